@@ -1,0 +1,321 @@
+"""Rigid transforms, the Cayley rotation parameterisation, and 3-D lines.
+
+Conventions (see DESIGN.md):
+
+- Lengths in mm, angles in rad.
+- A rigid transform is named ``source2target``; ``x_target = R @ x_source + t``.
+  Composition reads right to left: ``ct2carm = robot2carm @ ct2robot``.
+- Points are ``(N, 3)`` float64 arrays. A bundle of lines is a pair ``origins (N, 3)``,
+  ``directions (N, 3)`` with unit directions.
+
+The Cayley map used by the paper (Guéziec et al. 1998, eq. 4) is
+``Q = (I - U)(I + U)^-1`` with ``U = skew(u)``. For a rotation of angle ``theta`` about the
+unit axis ``n`` it gives ``u = -tan(theta / 2) n``, so ``Q ~ I - 2U`` for small ``u`` and the
+components of ``-2u`` are the small rotation angles about x, y, z. Rotations of exactly 180
+degrees have no Cayley parameters (``I + Q`` is singular); :func:`cayley_from_matrix` raises
+``ValueError`` for them. Solvers therefore parameterise *increments* about the current
+estimate, which stay far from 180 degrees.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+__all__ = [
+    "RigidTransform",
+    "as_points",
+    "as_lines",
+    "assert_transform_close",
+    "cayley",
+    "cayley_from_matrix",
+    "closest_point_to_lines",
+    "closest_points_on_lines",
+    "lines_through",
+    "point_line_distances",
+    "point_line_residuals",
+    "skew",
+    "transform_difference",
+]
+
+
+# --------------------------------------------------------------------------- input checks
+def as_points(points, name: str = "points", *, min_count: int = 0) -> np.ndarray:
+    """Return ``points`` as a C-contiguous float64 ``(N, 3)`` array, or raise ``ValueError``.
+
+    The message names the argument (``name``) and says what was expected.
+    """
+    arr = np.asarray(points, dtype=np.float64)
+    if arr.ndim == 1 and arr.shape[0] == 3:
+        arr = arr[None, :]
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"{name}: expected an (N, 3) array, got shape {arr.shape}")
+    if arr.shape[0] < min_count:
+        raise ValueError(f"{name}: expected at least {min_count} rows, got {arr.shape[0]}")
+    if not np.all(np.isfinite(arr)):
+        bad = np.flatnonzero(~np.all(np.isfinite(arr), axis=1))
+        raise ValueError(f"{name}: contains NaN or inf (rows {bad[:10].tolist()})")
+    return np.ascontiguousarray(arr)
+
+
+def as_lines(origins, directions, *, unit_tol: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
+    """Check a bundle of lines: ``origins (N, 3)``, unit ``directions (N, 3)`` (float64).
+
+    Raises ``ValueError`` for shape mismatch, NaN/inf, zero directions, or directions whose
+    norm differs from 1 by more than ``unit_tol`` (normalise them first with
+    :func:`lines_through` or ``d / np.linalg.norm(d, axis=1, keepdims=True)``).
+    """
+    o = as_points(origins, "origins")
+    d = as_points(directions, "directions")
+    if o.shape != d.shape:
+        raise ValueError(f"origins {o.shape} and directions {d.shape} must have the same shape")
+    norms = np.linalg.norm(d, axis=1)
+    zero = np.flatnonzero(norms < 1e-12)
+    if zero.size:
+        raise ValueError(f"directions: zero-length direction in rows {zero[:10].tolist()}")
+    off = np.flatnonzero(np.abs(norms - 1.0) > unit_tol)
+    if off.size:
+        raise ValueError(
+            f"directions: expected unit vectors; rows {off[:10].tolist()} have norms "
+            f"{np.round(norms[off[:3]], 6).tolist()}"
+        )
+    return o, d
+
+
+# --------------------------------------------------------------------------- rotations
+def skew(v) -> np.ndarray:
+    """Skew-symmetric matrix of ``v``: ``skew(v) @ x == cross(v, x)``.
+
+    ``v`` of shape ``(..., 3)`` gives ``(..., 3, 3)``.
+    """
+    v = np.asarray(v, dtype=np.float64)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1] = -v[..., 2]
+    out[..., 0, 2] = v[..., 1]
+    out[..., 1, 0] = v[..., 2]
+    out[..., 1, 2] = -v[..., 0]
+    out[..., 2, 0] = -v[..., 1]
+    out[..., 2, 1] = v[..., 0]
+    return out
+
+
+def cayley(u) -> np.ndarray:
+    """Rotation matrix ``Q = (I - U)(I + U)^-1`` of Cayley parameters ``u`` (3,) or (..., 3).
+
+    Closed form: ``Q = I + 2 (U^2 - U) / (1 + |u|^2)``; always a proper rotation, of angle
+    ``2 atan(|u|)`` about the axis ``-u / |u|``.
+    """
+    u = np.asarray(u, dtype=np.float64)
+    U = skew(u)
+    n2 = np.sum(u * u, axis=-1)[..., None, None]
+    return np.eye(3) + 2.0 * (U @ U - U) / (1.0 + n2)
+
+
+def cayley_from_matrix(Q, *, max_angle_deg: float = 179.0) -> np.ndarray:
+    """Cayley parameters ``u`` of the rotation matrix ``Q``: ``U = (I - Q)(I + Q)^-1``.
+
+    Raises ``ValueError`` when the rotation angle exceeds ``max_angle_deg`` (at 180 degrees
+    the parameters are infinite; near it they are ill-conditioned).
+    """
+    Q = np.asarray(Q, dtype=np.float64)
+    if Q.shape != (3, 3):
+        raise ValueError(f"Q: expected a (3, 3) rotation matrix, got shape {Q.shape}")
+    rotvec = Rotation.from_matrix(Q).as_rotvec()
+    angle = np.linalg.norm(rotvec)
+    if np.degrees(angle) > max_angle_deg:
+        raise ValueError(
+            f"rotation of {np.degrees(angle):.3f} deg has no usable Cayley parameters "
+            f"(limit {max_angle_deg} deg; exactly 180 deg is singular)"
+        )
+    if angle < 1e-300:
+        return np.zeros(3)
+    return -np.tan(angle / 2.0) * rotvec / angle
+
+
+# --------------------------------------------------------------------------- transforms
+@dataclass(frozen=True)
+class RigidTransform:
+    """A rigid transform ``x_target = R @ x_source + t`` (R: (3, 3) rotation, t: (3,) mm).
+
+    Name instances ``source2target``. ``a @ b`` composes (apply ``b`` first), ``~a`` or
+    ``a.inverse()`` inverts, ``a(points)`` or ``a.apply(points)`` maps ``(N, 3)`` points.
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+
+    def __post_init__(self):
+        R = np.array(self.R, dtype=np.float64)
+        t = np.array(self.t, dtype=np.float64).reshape(-1)
+        if R.shape != (3, 3) or t.shape != (3,):
+            raise ValueError(f"RigidTransform: R must be (3, 3) and t (3,), got {R.shape}, {t.shape}")
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+            raise ValueError("RigidTransform: R and t must be finite")
+        err = np.abs(R.T @ R - np.eye(3)).max()
+        if err > 1e-6 or np.linalg.det(R) < 0:
+            raise ValueError(f"RigidTransform: R is not a proper rotation (|RtR - I| = {err:.2e})")
+        R.setflags(write=False)
+        t.setflags(write=False)
+        object.__setattr__(self, "R", R)
+        object.__setattr__(self, "t", t)
+
+    # constructors
+    @classmethod
+    def identity(cls) -> RigidTransform:
+        return cls(np.eye(3), np.zeros(3))
+
+    @classmethod
+    def from_matrix(cls, T) -> RigidTransform:
+        """From a (4, 4) homogeneous matrix."""
+        T = np.asarray(T, dtype=np.float64)
+        if T.shape != (4, 4):
+            raise ValueError(f"expected a (4, 4) matrix, got {T.shape}")
+        return cls(T[:3, :3], T[:3, 3])
+
+    @classmethod
+    def from_rotvec(cls, rotvec_rad, t_mm=(0.0, 0.0, 0.0)) -> RigidTransform:
+        return cls(Rotation.from_rotvec(rotvec_rad).as_matrix(), t_mm)
+
+    @classmethod
+    def from_rotation(cls, rotation: Rotation, t_mm=(0.0, 0.0, 0.0)) -> RigidTransform:
+        return cls(rotation.as_matrix(), t_mm)
+
+    @classmethod
+    def from_cayley(cls, u, t_mm=(0.0, 0.0, 0.0)) -> RigidTransform:
+        return cls(cayley(u), t_mm)
+
+    # conversions
+    def as_matrix(self) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = self.R
+        T[:3, 3] = self.t
+        return T
+
+    def as_rotation(self) -> Rotation:
+        return Rotation.from_matrix(self.R)
+
+    def as_cayley(self) -> np.ndarray:
+        return cayley_from_matrix(self.R)
+
+    @property
+    def angle_rad(self) -> float:
+        """Rotation angle in rad, in [0, pi]."""
+        c = (np.trace(self.R) - 1.0) / 2.0
+        return float(np.arccos(np.clip(c, -1.0, 1.0)))
+
+    # algebra
+    def __matmul__(self, other: RigidTransform) -> RigidTransform:
+        if not isinstance(other, RigidTransform):
+            return NotImplemented
+        return RigidTransform(self.R @ other.R, self.R @ other.t + self.t)
+
+    def inverse(self) -> RigidTransform:
+        return RigidTransform(self.R.T, -self.R.T @ self.t)
+
+    def __invert__(self) -> RigidTransform:
+        return self.inverse()
+
+    def apply(self, points) -> np.ndarray:
+        """Map points ``(N, 3)`` (or a single ``(3,)``) from source to target frame."""
+        p = np.asarray(points, dtype=np.float64)
+        return p @ self.R.T + self.t
+
+    __call__ = apply
+
+    def apply_vectors(self, vectors) -> np.ndarray:
+        """Rotate direction vectors ``(N, 3)`` (no translation)."""
+        return np.asarray(vectors, dtype=np.float64) @ self.R.T
+
+    def apply_lines(self, origins, directions) -> tuple[np.ndarray, np.ndarray]:
+        return self.apply(origins), self.apply_vectors(directions)
+
+    def to_dict(self) -> dict:
+        return {"R": self.R.tolist(), "t": self.t.tolist()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> RigidTransform:
+        return cls(np.asarray(d["R"]), np.asarray(d["t"]))
+
+    def __repr__(self) -> str:
+        rv = np.degrees(self.as_rotation().as_rotvec())
+        return (
+            f"RigidTransform(rotvec_deg={np.round(rv, 4).tolist()}, "
+            f"t_mm={np.round(self.t, 4).tolist()})"
+        )
+
+
+def transform_difference(a: RigidTransform, b: RigidTransform) -> tuple[float, float]:
+    """Return ``(translation mm, rotation deg)`` of ``a @ b.inverse()``."""
+    d = a @ b.inverse()
+    return float(np.linalg.norm(d.t)), float(np.degrees(d.angle_rad))
+
+
+def assert_transform_close(a: RigidTransform, b: RigidTransform, *, mm: float, deg: float,
+                           points=None) -> None:
+    """Assert that two transforms agree within ``mm`` and ``deg``.
+
+    With ``points`` (N, 3), the translation test is the largest distance between the points
+    mapped by ``a`` and by ``b`` (a target registration error) instead of ``|t_a - t_b|``.
+    """
+    if points is not None:
+        p = as_points(points)
+        dist = float(np.max(np.linalg.norm(a.apply(p) - b.apply(p), axis=1)))
+    else:
+        dist = float(np.linalg.norm(a.t - b.t))
+    ang = float(np.degrees((a @ b.inverse()).angle_rad))
+    if not (dist <= mm and ang <= deg):
+        raise AssertionError(
+            f"transforms differ by {dist:.3g} mm (limit {mm}) and {ang:.3g} deg (limit {deg})\n"
+            f"  a = {a!r}\n  b = {b!r}"
+        )
+
+
+# --------------------------------------------------------------------------- lines
+def lines_through(a, b) -> tuple[np.ndarray, np.ndarray]:
+    """Lines through point pairs: origins ``a`` (N, 3), unit directions from ``a`` to ``b``."""
+    a = as_points(a, "a")
+    b = as_points(b, "b")
+    d = b - a
+    n = np.linalg.norm(d, axis=1, keepdims=True)
+    if np.any(n < 1e-12):
+        raise ValueError("lines_through: coincident point pairs define no line")
+    return a, d / n
+
+
+def point_line_residuals(points, origins, directions) -> np.ndarray:
+    """Perpendicular vectors from each line to its point, ``(N, 3)`` in mm.
+
+    ``r_i = (I - d_i d_i^T)(p_i - o_i)``; its norm is the point-line distance.
+    """
+    w = points - origins
+    return w - np.sum(w * directions, axis=1, keepdims=True) * directions
+
+
+def point_line_distances(points, origins, directions) -> np.ndarray:
+    """Distance (mm) from each point ``(N, 3)`` to its line; returns ``(N,)``."""
+    return np.linalg.norm(point_line_residuals(points, origins, directions), axis=1)
+
+
+def closest_points_on_lines(points, origins, directions) -> np.ndarray:
+    """The point of each line closest to its point, ``(N, 3)``."""
+    w = points - origins
+    return origins + np.sum(w * directions, axis=1, keepdims=True) * directions
+
+
+def closest_point_to_lines(origins, directions, weights=None) -> np.ndarray:
+    """Least-squares point closest to a bundle of lines (e.g. a center of perspective).
+
+    Minimises ``sum_i w_i |(I - d_i d_i^T)(x - o_i)|^2``. Raises ``ValueError`` if the lines
+    are all parallel (the point is at infinity).
+    """
+    o, d = as_lines(origins, directions)
+    w = np.ones(len(o)) if weights is None else np.asarray(weights, dtype=np.float64)
+    M = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+    A = np.einsum("n,nij->ij", w, M)
+    b = np.einsum("n,nij,nj->i", w, M, o)
+    s = np.linalg.svd(A, compute_uv=False)
+    if s[-1] < 1e-9 * max(s[0], 1e-300):
+        raise ValueError("closest_point_to_lines: lines are (nearly) parallel; no finite point")
+    return np.linalg.solve(A, b)

@@ -1,0 +1,55 @@
+"""Studies: the judge. Each study is a module ``studies/<name>.py`` (dashes in the name become
+underscores) that defines
+
+- ``TITLE``: one line for ``testbed study --list``;
+- ``DEFAULT_SCENE``: the scene name it uses when none is given;
+- ``run(ctx: StudyContext) -> pandas.DataFrame``: the long-format results (columns ``trial``,
+  ``metric``, ``value``, ``unit`` plus parameter columns). It may write figures into
+  ``ctx.out`` and add report sections with ``ctx.report``.
+
+:func:`run_study` resolves the scene and seed, runs the study, and writes ``results.csv``,
+``report.md`` (with the resolved scene, seed and git commit) and the figures.
+"""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+from pathlib import Path
+
+from studies.common import StudyContext, finish_study, start_study
+
+__all__ = ["available_studies", "run_study", "StudyContext"]
+
+
+def _module_name(name: str) -> str:
+    return "studies." + name.replace("-", "_")
+
+
+def available_studies() -> dict[str, str]:
+    """Study name -> title, for every module of ``studies`` that defines ``run`` and TITLE."""
+    out = {}
+    pkg_dir = Path(__file__).parent
+    for info in pkgutil.iter_modules([str(pkg_dir)]):
+        if info.name.startswith("_") or info.name in {"common", "main_job", "runner", "report"}:
+            continue
+        try:
+            mod = importlib.import_module("studies." + info.name)
+        except ImportError:
+            continue
+        if hasattr(mod, "run") and hasattr(mod, "TITLE"):
+            out[info.name.replace("_", "-")] = mod.TITLE
+    return dict(sorted(out.items()))
+
+
+def run_study(name: str, out: Path, *, scene=None, seed=None, quick=False, workers=1) -> Path:
+    """Run study ``name`` into folder ``out``; returns ``out``."""
+    known = available_studies()
+    if name not in known:
+        raise SystemExit(f"testbed study: unknown study {name!r}; known: {', '.join(known)}")
+    mod = importlib.import_module(_module_name(name))
+    ctx = start_study(name, out, scene=scene or mod.DEFAULT_SCENE, seed=seed, quick=quick,
+                      workers=workers)
+    df = mod.run(ctx)
+    finish_study(ctx, df)
+    return out

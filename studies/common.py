@@ -1,0 +1,121 @@
+"""What every study shares: the context it runs in, and the files it leaves behind.
+
+``results.csv`` is long format (``trial, metric, value, unit`` + parameter columns);
+``report.md`` starts with the provenance (study, scene file, seed, git commit, time) and the
+resolved scene, then the sections the study added, then the figures.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import subprocess
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from testbed.scene import find_scene, load_scene
+
+REQUIRED_COLUMNS = ("trial", "metric", "value", "unit")
+
+
+def git_commit() -> str:
+    """The project's git commit (with ``-dirty`` if the tree has changes), or ``unknown``."""
+    root = Path(__file__).resolve().parents[1]
+    try:
+        sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
+                             text=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                               cwd=root, capture_output=True, text=True, timeout=10).stdout
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    if not sha:
+        return "unknown"
+    return sha + ("-dirty" if dirty.strip() else "")
+
+
+@dataclass
+class StudyContext:
+    """Where and how a study runs. ``rng`` is made from ``seed``; use ``spawn`` for trials."""
+
+    name: str
+    out: Path
+    scene_path: Path
+    scene: object
+    seed: int
+    quick: bool = False
+    workers: int = 1
+    sections: list = field(default_factory=list)
+    figures: list = field(default_factory=list)
+
+    def seeds(self, n: int) -> list[np.random.SeedSequence]:
+        """``n`` independent child seeds of the study seed (same on any number of workers)."""
+        return np.random.SeedSequence(self.seed).spawn(n)
+
+    def report(self, heading: str, body: str) -> None:
+        """Add a markdown section to ``report.md``."""
+        self.sections.append((heading, body))
+
+    def figure(self, filename: str, caption: str) -> Path:
+        """Register a figure file (in ``out``) to be linked from the report; returns its path."""
+        self.figures.append((filename, caption))
+        return self.out / filename
+
+
+def start_study(name, out, *, scene, seed=None, quick=False, workers=1) -> StudyContext:
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = find_scene(scene)
+    sc = load_scene(path)
+    seed = sc.scene.seed if seed is None else int(seed)
+    return StudyContext(name=name, out=out, scene_path=path, scene=sc, seed=seed,
+                        quick=quick, workers=workers)
+
+
+def check_results(df: pd.DataFrame) -> None:
+    missing = [c for c in REQUIRED_COLUMNS if c not in df.columns]
+    if missing:
+        raise ValueError(f"study results lack the columns {missing}")
+
+
+def markdown_table(df: pd.DataFrame, floatfmt: str = ".3g") -> str:
+    """A plain markdown table (no extra dependency)."""
+    cols = [str(c) for c in df.columns]
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for row in df.itertuples(index=False):
+        cells = []
+        for v in row:
+            if isinstance(v, float | np.floating):
+                cells.append("" if np.isnan(v) else format(v, floatfmt))
+            else:
+                cells.append(str(v))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def finish_study(ctx: StudyContext, df: pd.DataFrame) -> None:
+    """Write ``results.csv`` and ``report.md`` for a finished study."""
+    check_results(df)
+    df.to_csv(ctx.out / "results.csv", index=False)
+    now = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+    resolved = json.dumps(ctx.scene.model_dump(mode="json"), indent=2)
+    parts = [
+        f"# Study `{ctx.name}`",
+        "",
+        f"- scene: `{ctx.scene_path}` ({ctx.scene.scene.name})",
+        f"- seed: {ctx.seed}",
+        f"- git commit: `{git_commit()}`",
+        f"- written: {now}; quick: {ctx.quick}; workers: {ctx.workers}",
+        f"- rows in results.csv: {len(df)}",
+        "",
+    ]
+    for heading, body in ctx.sections:
+        parts += [f"## {heading}", "", body, ""]
+    if ctx.figures:
+        parts += ["## Figures", ""]
+        for fn, cap in ctx.figures:
+            parts += [f"![{cap}]({fn})", "", f"*{cap}*", ""]
+    parts += ["## Resolved scene", "", "```json", resolved, "```", ""]
+    (ctx.out / "report.md").write_text("\n".join(parts))

@@ -1,0 +1,207 @@
+"""Scene files: TOML read with ``tomllib`` into frozen, validated models.
+
+A scene file has one table per section. Every section is a :class:`Spec` (a frozen pydantic
+model that rejects unknown keys and does not coerce types: a string where a number is
+expected is an error). Units are in the field names (``_mm``, ``_deg``, ``_px``, ``_s``).
+Each section model lives beside the code that uses it (``testbed.phantom.PhantomSpec``,
+``testbed.fluoroscope.FluoroscopeSpec``, ...); this module assembles them into
+:class:`Scene` and turns every failure into a :class:`SceneError` that names the file, the
+field and what was expected.
+
+Sections:
+
+``[scene]``         name, description, kind (``"synthetic"`` or ``"operating_room"``), seed
+``[synthetic]``     the paper's points-and-lines set-up (Fig. 9, Table I)
+``[phantom]``       femur, pins, soft tissue (``testbed.phantom``)
+``[ct]``            CT scanner and slice schedule (``testbed.ct``)
+``[fluoroscope]``   C-arm and image intensifier (``testbed.fluoroscope``)
+``[[views]]``       one table per C-arm pose (``testbed.fluoroscope``)
+``[robot]``         robot, rod, sweeps (``testbed.robot``)
+``[registration]``  the registration run (start perturbation, solver options)
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import Field, ValidationError, model_validator
+
+from testbed.ct import CTSpec
+from testbed.fluoroscope import FluoroscopeSpec, ViewSpec
+from testbed.phantom import PhantomSpec
+from testbed.robot import RobotSpec
+from testbed.spec import Positive as Pos
+from testbed.spec import Spec, Vec3
+
+__all__ = [
+    "Scene",
+    "SceneError",
+    "SceneMeta",
+    "Spec",
+    "SyntheticSpec",
+    "RegistrationSpec",
+    "find_scene",
+    "load_scene",
+    "parse_scene",
+    "scenes_dir",
+]
+
+
+class SceneError(ValueError):
+    """A scene file could not be read or is invalid; the message names file and field."""
+
+
+class SceneMeta(Spec):
+    """``[scene]``: what the scene is."""
+
+    name: str = "unnamed"
+    description: str = ""
+    kind: Literal["synthetic", "operating_room"] = "operating_room"
+    seed: Annotated[int, Field(ge=0)] = 0
+
+
+class SyntheticSpec(Spec):
+    """``[synthetic]``: the paper's synthetic points-and-lines configuration (NOTES.md s3).
+
+    Points uniform in the unit cube; lines from ``center_of_perspective`` through them; the
+    whole configuration turned by a random rotation; the points then turned by
+    ``rotation_deg`` about a random axis and moved by a random vector whose length is
+    ``translation_norm``. Noise (standard deviation ``noise_std``) on a ``outlier_fraction``
+    of the points. Lengths are in units of the unit cube (the paper's set-up is unitless).
+    """
+
+    n_points: Annotated[int, Field(ge=3, le=100_000)] = 20
+    center_of_perspective: Vec3 = (-2.0, -2.0, -2.0)
+    rotation_deg: Annotated[float, Field(ge=0, le=179)] = 30.0
+    translation_norm: Annotated[float, Field(ge=0)] = 1.0
+    noise_std: Annotated[float, Field(ge=0)] = 0.0
+    outlier_fraction: Annotated[float, Field(ge=0, le=1)] = 0.0
+    landmarks: tuple[Vec3, ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    success_threshold: Pos = 0.1
+
+
+class RegistrationSpec(Spec):
+    """``[registration]``: the 2-D/3-D registration run (issue 5 extends it)."""
+
+    method: Literal["lm", "linear", "robust", "ransac"] = "robust"
+    start_rotation_deg: Annotated[float, Field(ge=0, le=90)] = 5.0
+    max_iterations: Annotated[int, Field(ge=1, le=10_000)] = 50
+
+
+class Scene(Spec):
+    """A whole scene. ``views`` holds one ``ViewSpec`` per ``[[views]]`` table."""
+
+    scene: SceneMeta = SceneMeta()
+    synthetic: SyntheticSpec | None = None
+    phantom: PhantomSpec = PhantomSpec()
+    ct: CTSpec = CTSpec()
+    fluoroscope: FluoroscopeSpec = FluoroscopeSpec()
+    views: tuple[ViewSpec, ...] = ()
+    robot: RobotSpec = RobotSpec()
+    registration: RegistrationSpec = RegistrationSpec()
+
+    @model_validator(mode="after")
+    def _kind_needs(self):
+        if self.scene.kind == "synthetic" and self.synthetic is None:
+            raise ValueError("scene.kind is 'synthetic' but there is no [synthetic] table")
+        if self.scene.kind == "operating_room" and not self.views:
+            raise ValueError("scene.kind is 'operating_room' but no [[views]] are given")
+        return self
+
+
+# --------------------------------------------------------------------------- errors
+def _field_path(loc) -> str:
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            out += ("." if out else "") + str(part)
+    return out or "(top level)"
+
+
+def _describe(err: dict) -> str:
+    typ = err.get("type", "")
+    got = err.get("input")
+    if typ == "extra_forbidden":
+        return "unknown key (not part of the schema; check the spelling)"
+    if typ == "missing":
+        return "required field is missing"
+    shown = repr(got)
+    if len(shown) > 60:
+        shown = shown[:57] + "..."
+    msg = err.get("msg", "invalid value")
+    if msg.startswith("Value error, "):
+        msg = msg[len("Value error, "):]
+    return f"{msg}; got {shown} ({type(got).__name__})"
+
+
+def _validation_message(path: str, exc: ValidationError) -> str:
+    lines = [f"{path}: invalid scene ({exc.error_count()} problem(s))"]
+    for err in exc.errors(include_url=False):
+        lines.append(f"  {path}: field '{_field_path(err['loc'])}': {_describe(err)}")
+    return "\n".join(lines)
+
+
+def _tuplify(obj):
+    """TOML arrays become tuples (the models hold tuples, immutable like the models)."""
+    if isinstance(obj, list):
+        return tuple(_tuplify(x) for x in obj)
+    if isinstance(obj, dict):
+        return {k: _tuplify(v) for k, v in obj.items()}
+    return obj
+
+
+# --------------------------------------------------------------------------- loading
+def parse_scene(data: dict, *, source: str = "<scene>"):
+    """Validate a scene given as a dict (as ``tomllib`` returns it). Raises SceneError."""
+    if not isinstance(data, dict):
+        raise SceneError(f"{source}: expected a table at the top level, got {type(data).__name__}")
+    try:
+        return Scene.model_validate(_tuplify(data))
+    except ValidationError as exc:
+        raise SceneError(_validation_message(source, exc)) from None
+
+
+def load_scene(path):
+    """Read and validate a scene file (TOML). Raises :class:`SceneError` naming the file."""
+    path = Path(path)
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except FileNotFoundError:
+        raise SceneError(f"{path}: scene file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SceneError(f"{path}: cannot read scene file ({exc})") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(f"{path}: not valid TOML: {exc}") from None
+    return parse_scene(data, source=str(path))
+
+
+def scenes_dir() -> Path:
+    """The folder of named scenes: ``$TESTBED_SCENES`` or the project's ``scenes/``."""
+    env = os.environ.get("TESTBED_SCENES")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[1] / "scenes"
+
+
+DEFAULT_SCENE = "points-lines"
+
+
+def find_scene(name_or_path: str | os.PathLike | None) -> Path:
+    """Resolve a scene argument: an existing path, or a name in :func:`scenes_dir`."""
+    if name_or_path is None:
+        name_or_path = DEFAULT_SCENE
+    p = Path(name_or_path)
+    if p.is_file():
+        return p
+    cand = scenes_dir() / (p.name if p.suffix == ".toml" else p.name + ".toml")
+    if cand.is_file():
+        return cand
+    known = sorted(x.stem for x in scenes_dir().glob("*.toml"))
+    raise SceneError(f"{name_or_path}: no such scene file or named scene (known: {known})")
