@@ -150,7 +150,9 @@ class RigidTransform:
         R = np.array(self.R, dtype=np.float64)
         t = np.array(self.t, dtype=np.float64).reshape(-1)
         if R.shape != (3, 3) or t.shape != (3,):
-            raise ValueError(f"RigidTransform: R must be (3, 3) and t (3,), got {R.shape}, {t.shape}")
+            raise ValueError(
+                f"RigidTransform: R must be (3, 3) and t (3,), got {R.shape}, {t.shape}"
+            )
         if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
             raise ValueError("RigidTransform: R and t must be finite")
         err = np.abs(R.T @ R - np.eye(3)).max()
