@@ -12,6 +12,7 @@ Sections:
 
 ``[scene]``         name, description, kind (``"synthetic"`` or ``"operating_room"``), seed
 ``[synthetic]``     the paper's points-and-lines set-up (Fig. 9, Table I)
+``[patient]``       where the patient (ct frame) lies in the robot frame: ``ct2robot``
 ``[phantom]``       femur, pins, soft tissue (``testbed.phantom``)
 ``[ct]``            CT scanner and slice schedule (``testbed.ct``)
 ``[fluoroscope]``   C-arm and image intensifier (``testbed.fluoroscope``)
@@ -83,6 +84,26 @@ class SyntheticSpec(Spec):
     success_threshold: Pos = 0.1
 
 
+class PatientSpec(Spec):
+    """``[patient]``: where the patient (the ``ct`` frame) lies in the robot frame.
+
+    ``ct2robot`` = rotation ``rotation_deg`` (extrinsic x-y-z Euler angles, deg) then
+    translation ``position_mm``. ``on_table``: an OR table and foam lie under the limb.
+    """
+
+    position_mm: Vec3 = (0.0, 0.0, 0.0)
+    rotation_deg: Vec3 = (0.0, 0.0, 0.0)
+    on_table: bool = True
+
+    def ct2robot(self):
+        from scipy.spatial.transform import Rotation
+
+        from reglib.geometry import RigidTransform
+
+        rot = Rotation.from_euler("xyz", self.rotation_deg, degrees=True)
+        return RigidTransform.from_rotation(rot, self.position_mm)
+
+
 class RegistrationSpec(Spec):
     """``[registration]``: the 2-D/3-D registration run (issue 5 extends it)."""
 
@@ -96,6 +117,7 @@ class Scene(Spec):
 
     scene: SceneMeta = SceneMeta()
     synthetic: SyntheticSpec | None = None
+    patient: PatientSpec = PatientSpec()
     phantom: PhantomSpec = PhantomSpec()
     ct: CTSpec = CTSpec()
     fluoroscope: FluoroscopeSpec = FluoroscopeSpec()
