@@ -1,0 +1,106 @@
+"""Snake contours: simulate an image of a known shape -> snake from noisy clicks -> compare."""
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from reglib.contours import contours_from_ct, refine_subpixel, snake_contour
+
+
+def _ellipse_points(cx, cy, a, b, ang, n):
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    ca, sa = np.cos(ang), np.sin(ang)
+    return np.column_stack([cx + a * np.cos(t) * ca - b * np.sin(t) * sa,
+                            cy + a * np.cos(t) * sa + b * np.sin(t) * ca])
+
+
+def _ellipse_image(shape, cx, cy, a, b, ang, *, ss=4, level=1000.0):
+    """Image of a filled ellipse with partial-volume edges (ss x ss supersampling)."""
+    h, w = shape
+    o = (np.arange(ss) + 0.5) / ss - 0.5
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    ca, sa = np.cos(ang), np.sin(ang)
+    acc = np.zeros(shape)
+    for dy in o:
+        for dx in o:
+            x, y = xx + dx - cx, yy + dy - cy
+            u, v = ca * x + sa * y, -sa * x + ca * y
+            acc += (u / a) ** 2 + (v / b) ** 2 <= 1
+    return acc / ss**2 * level
+
+
+def _mean_distance(contour, truth):
+    return cKDTree(truth).query(contour)[0]
+
+
+@pytest.mark.parametrize("a,b,ang", [(22.0, 22.0, 0.0), (38.0, 17.0, 0.4), (12.0, 9.0, -1.0)])
+def test_snake_recovers_disc_and_ellipse(a, b, ang):
+    rng = np.random.default_rng(7)
+    cx, cy = 68.3, 57.6
+    img = _ellipse_image((120, 136), cx, cy, a, b, ang) + rng.normal(0, 30.0, (120, 136))
+    clicks = _ellipse_points(cx, cy, a, b, ang, 6) + rng.normal(0, 2.0, (6, 2))
+    c = snake_contour(img, clicks)
+    d = _mean_distance(c, _ellipse_points(cx, cy, a, b, ang, 20000))
+    assert d.mean() < 0.5, d.mean()
+    assert d.max() < 1.5, d.max()
+    # The contour goes all the way round: it covers every direction from the centre.
+    ang_c = np.arctan2(c[:, 1] - cy, c[:, 0] - cx)
+    assert np.histogram(ang_c, bins=12, range=(-np.pi, np.pi))[0].min() > 0
+
+
+def test_snake_clicks_outside_the_shape_converge_inwards():
+    rng = np.random.default_rng(3)
+    img = _ellipse_image((100, 100), 50.0, 50.0, 20.0, 20.0, 0.0)
+    clicks = _ellipse_points(50.0, 50.0, 26.0, 26.0, 0.0, 5) + rng.normal(0, 1.0, (5, 2))
+    c = snake_contour(img, clicks)
+    r = np.linalg.norm(c - 50.0, axis=1)
+    assert abs(r.mean() - 20.0) < 0.5
+
+
+def test_subpixel_refinement_moves_to_the_edge():
+    img = _ellipse_image((80, 80), 40.0, 40.0, 20.0, 20.0, 0.0)
+    from scipy import ndimage
+    g = ndimage.gaussian_gradient_magnitude(img, 1.0)
+    start = _ellipse_points(40.0, 40.0, 21.2, 21.2, 0.0, 60)
+    out = refine_subpixel(g, start)
+    r = np.linalg.norm(out - 40.0, axis=1)
+    assert np.abs(r - 20.0).max() < 0.15
+
+
+def test_bad_clicks_raise():
+    img = _ellipse_image((60, 60), 30.0, 30.0, 10.0, 10.0, 0.0)
+    with pytest.raises(ValueError, match="at least 3 clicks"):
+        snake_contour(img, [[20.0, 30.0], [40.0, 30.0]])
+    with pytest.raises(ValueError, match="outside the image"):
+        snake_contour(img, [[20.0, 30.0], [40.0, 30.0], [30.0, 75.0]])
+    with pytest.raises(ValueError, match="2-D"):
+        snake_contour(np.zeros((4, 60, 60)), [[20.0, 30.0], [40.0, 30.0], [30.0, 40.0]])
+
+
+def test_contours_from_ct_reuses_clicks_and_maps_to_ct_mm():
+    rng = np.random.default_rng(11)
+    # Two slices of a cylinder of radius 15 px, then two slices with two discs.
+    vol = np.stack([_ellipse_image((70, 90), 45.0, 35.0, 15.0, 15.0, 0.0)] * 2
+                   + [_ellipse_image((70, 90), 25.0, 35.0, 9.0, 9.0, 0.0)
+                      + _ellipse_image((70, 90), 65.0, 35.0, 9.0, 9.0, 0.0)] * 2)
+    vol = vol + rng.normal(0, 20.0, vol.shape)
+    z = np.array([0.0, 1.0, 7.0, 13.0])
+    slice2ct = np.tile(np.eye(4), (4, 1, 1))
+    slice2ct[:, 0, 0] = slice2ct[:, 1, 1] = 0.8          # 0.8 mm pixels
+    slice2ct[:, :3, 3] = np.column_stack([np.full(4, -10.0), np.full(4, 5.0), z])
+    clicks = {0: [_ellipse_points(45.0, 35.0, 15.0, 15.0, 0.3, 5) + 1.0],
+              3: [_ellipse_points(25.0, 35.0, 9.0, 9.0, 0.0, 5),
+                  _ellipse_points(65.0, 35.0, 9.0, 9.0, 0.0, 5)]}
+    out = contours_from_ct(vol, slice2ct, [0, 1, 2, 3], clicks)
+    assert [len(s.contours_ct) for s in out] == [1, 1, 2, 2]
+    for s, zk in zip(out, z, strict=True):
+        assert s.z_mm == pytest.approx(zk)
+    c = out[1].contours_ct[0]
+    centre = np.array([-10.0 + 45.0 * 0.8, 5.0 + 35.0 * 0.8])
+    r = np.linalg.norm(c[:, :2] - centre, axis=1)
+    assert abs(r.mean() - 15.0 * 0.8) < 0.3
+    for c, cx in zip(out[2].contours_ct, (25.0, 65.0), strict=True):
+        r = np.linalg.norm(c[:, :2] - [-10.0 + cx * 0.8, 5.0 + 35.0 * 0.8], axis=1)
+        assert abs(r.mean() - 9.0 * 0.8) < 0.3
+    with pytest.raises(ValueError, match="outside the volume"):
+        contours_from_ct(vol, slice2ct, [4], clicks)
