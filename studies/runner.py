@@ -1,0 +1,594 @@
+"""The study runner: many independent trials, in parallel, resumable, trial by trial on disk.
+
+A study is a list of :class:`Trial` (scene, seed, parameters) and a *trial function*
+``trial_fn(trial) -> list[dict]`` that returns long-format rows (``metric``, ``value``,
+``unit`` plus any parameter keys of its own). :func:`run_trials` runs them
+
+- in-process (``workers=1``), on a process pool (``workers > 1``, ``concurrent.futures`` with
+  the ``spawn`` or ``forkserver`` start method), or on a Dask cluster (``scheduler=`` an
+  address ``tcp://HOST:PORT``, a ``dask.distributed.Client`` or a ``LocalCluster``);
+- with a tqdm progress bar;
+- writing every finished trial at once to the SQLite database ``out_dir/trials.sqlite``
+  (WAL journal, one transaction per trial holding its status and all its rows), so that a
+  study stopped by Ctrl-C, ``kill -9`` or a lost worker is resumed by calling
+  :func:`run_trials` again with the same trials: trials already in the database are not run
+  again, and the result is exactly the rows of an uninterrupted run.
+
+Seeds come from the trial, never from the worker: :func:`make_trials` gives trial ``i`` the
+child ``i`` of ``numpy.random.SeedSequence(study_seed).spawn(n)``, stored as its ``entropy``
+and ``spawn_key`` so that :meth:`Trial.rng` rebuilds the same generator in any process. The
+rows therefore do not depend on the number of workers or on the order trials finish in.
+
+Failures. A trial whose function raises (any ``Exception``), returns malformed rows, or
+whose worker process dies while running it alone, is stored with status ``failed``, its error
+message and traceback, and does not stop the study. In the returned table it contributes one
+row ``metric="failed"``, ``value=1.0``, ``unit=""`` (plus its parameters); the messages are
+in ``df.attrs["failures"]`` and :func:`read_failures`. Failed trials are not rerun on resume
+unless ``retry_failed=True``.
+
+Database schema (``trials.sqlite``)::
+
+    trials(key TEXT PRIMARY KEY,     -- hash of (index, scene, entropy, spawn_key, params)
+           trial INTEGER,            -- the trial index
+           scene TEXT, seed TEXT,    -- seed: JSON {"entropy": int, "spawn_key": [int, ...]}
+           params TEXT,              -- JSON object of the trial's parameters
+           status TEXT,              -- 'done' or 'failed'
+           error TEXT, traceback TEXT,
+           seconds REAL,             -- wall time of the trial function in its worker, s
+           worker TEXT,              -- host:pid that ran it
+           finished_at TEXT)         -- UTC ISO time the row was written
+    rows(key TEXT, trial INTEGER, row INTEGER,   -- row: position in the trial's list
+         metric TEXT, value REAL, unit TEXT,
+         extra TEXT,                 -- JSON object of the row's own parameter keys
+         PRIMARY KEY (key, row))
+
+NaN values are stored as SQL NULL and read back as NaN; every other float round-trips
+bitwise (SQLite REAL is an IEEE double).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import datetime as _dt
+import hashlib
+import json
+import math
+import multiprocessing
+import numbers
+import os
+import socket
+import sqlite3
+import time
+import traceback
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import pandas as pd
+
+__all__ = [
+    "DB_NAME",
+    "Trial",
+    "TrialResult",
+    "make_trials",
+    "read_failures",
+    "read_results",
+    "read_trials",
+    "run_trials",
+]
+
+DB_NAME = "trials.sqlite"
+FAILED_METRIC = "failed"
+_ROW_CORE = ("metric", "value", "unit")
+_RESERVED = ("trial", "metric", "value", "unit")
+
+
+# --------------------------------------------------------------------------- trials
+def _scalar(value, what: str):
+    """A JSON-able scalar (str, int, float, bool, None) from ``value``, or ``ValueError``."""
+    if isinstance(value, np.generic):
+        value = value.item()
+    if value is None or isinstance(value, str | bool | int | float):
+        return value
+    raise ValueError(f"{what}: expected a scalar (str, int, float, bool or None), "
+                     f"got {type(value).__name__}")
+
+
+@dataclass(frozen=True)
+class Trial:
+    """One trial of a study.
+
+    Parameters
+    ----------
+    index : int
+        Position of the trial in the study (0-based); the ``trial`` column of the results.
+    scene : str
+        Scene name or path (as :func:`testbed.scene.find_scene` takes it).
+    entropy : int
+        Entropy of the trial's ``numpy.random.SeedSequence``.
+    spawn_key : tuple of int
+        Its spawn key: ``SeedSequence(entropy, spawn_key=spawn_key)`` is the trial's seed.
+    params : dict
+        Scalar parameters (str, int, float, bool, None); each becomes a column of the results.
+    """
+
+    index: int
+    scene: str
+    entropy: int
+    spawn_key: tuple[int, ...] = ()
+    params: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self):
+        if isinstance(self.index, bool) or not isinstance(self.index, numbers.Integral) \
+                or self.index < 0:
+            raise ValueError(f"Trial.index: expected an int >= 0, got {self.index!r}")
+        if not isinstance(self.scene, str | os.PathLike):
+            raise ValueError(f"Trial.scene: expected a scene name or path, got {self.scene!r}")
+        if not isinstance(self.entropy, numbers.Integral) or self.entropy < 0:
+            raise ValueError(f"Trial.entropy: expected an int >= 0, got {self.entropy!r}")
+        params = {}
+        for k, v in dict(self.params).items():
+            if not isinstance(k, str):
+                raise ValueError(f"Trial {self.index}: parameter names must be str, got {k!r}")
+            if k in _RESERVED:
+                raise ValueError(f"Trial {self.index}: parameter {k!r} clashes with the "
+                                 f"column of the same name; rename it")
+            params[k] = _scalar(v, f"Trial {self.index}: parameter {k!r}")
+        object.__setattr__(self, "index", int(self.index))
+        object.__setattr__(self, "scene", str(self.scene))
+        object.__setattr__(self, "entropy", int(self.entropy))
+        object.__setattr__(self, "spawn_key", tuple(int(s) for s in self.spawn_key))
+        object.__setattr__(self, "params", params)
+
+    @classmethod
+    def from_seed_sequence(cls, index: int, scene: str, seed: np.random.SeedSequence,
+                           params: Mapping[str, Any] | None = None) -> Trial:
+        """A trial whose seed is ``seed`` (a child of ``SeedSequence(study_seed).spawn``)."""
+        if seed.n_children_spawned:
+            raise ValueError(f"Trial {index}: its SeedSequence has already spawned children; "
+                             "pass a fresh child of SeedSequence(study_seed).spawn(n)")
+        return cls(index, scene, int(seed.entropy), tuple(seed.spawn_key), dict(params or {}))
+
+    @property
+    def seed_sequence(self) -> np.random.SeedSequence:
+        """The trial's ``SeedSequence``, rebuilt from ``entropy`` and ``spawn_key``."""
+        return np.random.SeedSequence(self.entropy, spawn_key=self.spawn_key)
+
+    def rng(self) -> np.random.Generator:
+        """A fresh ``numpy.random.Generator`` (PCG64) seeded by the trial: same in any worker."""
+        return np.random.default_rng(self.seed_sequence)
+
+    @property
+    def key(self) -> str:
+        """A stable identity (sha1 of index, scene, seed and params) used by the database."""
+        blob = json.dumps([self.index, self.scene, self.entropy, list(self.spawn_key),
+                           self.params], sort_keys=True, allow_nan=True)
+        return hashlib.sha1(blob.encode()).hexdigest()
+
+
+def make_trials(scene: str, study_seed: int, params: Sequence[Mapping[str, Any]]) -> list[Trial]:
+    """One trial per entry of ``params``; trial ``i`` gets child ``i`` of
+    ``SeedSequence(study_seed).spawn(len(params))``.
+
+    Parameters
+    ----------
+    scene : str
+        Scene name or path shared by the trials.
+    study_seed : int
+        The study's seed (>= 0).
+    params : sequence of dict
+        The parameters of each trial (scalars).
+    """
+    if isinstance(study_seed, bool) or not isinstance(study_seed, numbers.Integral) \
+            or study_seed < 0:
+        raise ValueError(f"make_trials: study_seed must be an int >= 0, got {study_seed!r}")
+    children = np.random.SeedSequence(int(study_seed)).spawn(len(params))
+    return [Trial.from_seed_sequence(i, scene, s, p)
+            for i, (s, p) in enumerate(zip(children, params, strict=True))]
+
+
+# --------------------------------------------------------------------------- one trial
+@dataclass(frozen=True)
+class TrialResult:
+    """What a worker sends back: status ``done`` or ``failed``, rows, error, timing (s)."""
+
+    key: str
+    index: int
+    status: Literal["done", "failed"]
+    rows: tuple[dict, ...]
+    error: str = ""
+    traceback: str = ""
+    seconds: float = float("nan")
+    worker: str = ""
+
+
+def _check_rows(rows, trial: Trial) -> list[dict]:
+    """Validate the rows a trial function returned; ``ValueError`` naming the bad row/key."""
+    if isinstance(rows, Mapping) or not isinstance(rows, Iterable):
+        raise ValueError(f"trial {trial.index}: trial_fn must return a list of dicts, got "
+                         f"{type(rows).__name__}")
+    out = []
+    for i, row in enumerate(rows):
+        if not isinstance(row, Mapping):
+            raise ValueError(f"trial {trial.index}, row {i}: expected a dict, got "
+                             f"{type(row).__name__}")
+        missing = [c for c in _ROW_CORE if c not in row]
+        if missing:
+            raise ValueError(f"trial {trial.index}, row {i}: missing keys {missing}")
+        metric, unit, value = row["metric"], row["unit"], row["value"]
+        if not isinstance(metric, str) or not metric:
+            raise ValueError(f"trial {trial.index}, row {i}: 'metric' must be a non-empty str")
+        if metric == FAILED_METRIC:
+            raise ValueError(f"trial {trial.index}, row {i}: the metric name {FAILED_METRIC!r} "
+                             "is reserved for failed trials")
+        if not isinstance(unit, str):
+            raise ValueError(f"trial {trial.index}, row {i}: 'unit' must be a str, got "
+                             f"{type(unit).__name__}")
+        if isinstance(value, np.generic):
+            value = value.item()
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise ValueError(f"trial {trial.index}, row {i} ({metric}): 'value' must be a "
+                             f"real number, got {type(value).__name__}")
+        extra = {}
+        for k, v in row.items():
+            if k in _ROW_CORE:
+                continue
+            if k == "trial":
+                raise ValueError(f"trial {trial.index}, row {i}: rows must not set 'trial' "
+                                 "(the runner adds it)")
+            v = _scalar(v, f"trial {trial.index}, row {i}: key {k!r}")
+            if k in trial.params and trial.params[k] != v:
+                raise ValueError(f"trial {trial.index}, row {i}: key {k!r} = {v!r} contradicts "
+                                 f"the trial parameter {k!r} = {trial.params[k]!r}")
+            if k not in trial.params:
+                extra[k] = v
+        out.append({"metric": metric, "value": float(value), "unit": unit, "extra": extra})
+    return out
+
+
+def execute_trial(trial_fn: Callable[[Trial], list[dict]], trial: Trial) -> TrialResult:
+    """Run one trial, catching its exceptions: the unit of work sent to a worker."""
+    who = f"{socket.gethostname()}:{os.getpid()}"
+    t0 = time.perf_counter()
+    try:
+        rows = _check_rows(trial_fn(trial), trial)
+    except Exception as exc:  # a failing trial is recorded, not fatal
+        return TrialResult(trial.key, trial.index, "failed", (),
+                           error=f"{type(exc).__name__}: {exc}",
+                           traceback=traceback.format_exc(),
+                           seconds=time.perf_counter() - t0, worker=who)
+    return TrialResult(trial.key, trial.index, "done", tuple(rows),
+                       seconds=time.perf_counter() - t0, worker=who)
+
+
+# --------------------------------------------------------------------------- database
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS trials (
+    key TEXT PRIMARY KEY, trial INTEGER NOT NULL, scene TEXT, seed TEXT, params TEXT,
+    status TEXT NOT NULL, error TEXT, traceback TEXT, seconds REAL, worker TEXT,
+    finished_at TEXT);
+CREATE TABLE IF NOT EXISTS rows (
+    key TEXT NOT NULL, trial INTEGER NOT NULL, row INTEGER NOT NULL, metric TEXT NOT NULL,
+    value REAL, unit TEXT NOT NULL, extra TEXT NOT NULL, PRIMARY KEY (key, row));
+CREATE INDEX IF NOT EXISTS rows_trial ON rows (trial, row);
+"""
+
+
+def _connect(db_path: Path) -> sqlite3.Connection:
+    con = sqlite3.connect(db_path, timeout=60.0, isolation_level=None)
+    con.execute("PRAGMA journal_mode=WAL")
+    # NORMAL is durable against a killed process (not against power loss) in WAL mode.
+    con.execute("PRAGMA synchronous=NORMAL")
+    con.executescript(_SCHEMA)
+    return con
+
+
+def _done_keys(con: sqlite3.Connection, *, retry_failed: bool) -> set[str]:
+    if retry_failed:
+        q = "SELECT key FROM trials WHERE status = 'done'"
+    else:
+        q = "SELECT key FROM trials"
+    return {k for (k,) in con.execute(q)}
+
+
+def _store(con: sqlite3.Connection, trial: Trial, res: TrialResult) -> None:
+    """Write one trial (status and all its rows) in one transaction."""
+    now = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+    seed = json.dumps({"entropy": trial.entropy, "spawn_key": list(trial.spawn_key)})
+    con.execute("BEGIN IMMEDIATE")
+    try:
+        con.execute("DELETE FROM rows WHERE key = ?", (trial.key,))
+        con.execute(
+            "INSERT OR REPLACE INTO trials VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            (trial.key, trial.index, trial.scene, seed, json.dumps(trial.params),
+             res.status, res.error, res.traceback, res.seconds, res.worker, now))
+        con.executemany(
+            "INSERT INTO rows VALUES (?, ?, ?, ?, ?, ?, ?)",
+            [(trial.key, trial.index, i, r["metric"],
+              None if math.isnan(r["value"]) else r["value"], r["unit"],
+              json.dumps(r["extra"])) for i, r in enumerate(res.rows)])
+        con.execute("COMMIT")
+    except BaseException:
+        con.execute("ROLLBACK")
+        raise
+
+
+def read_trials(out_dir) -> pd.DataFrame:
+    """The ``trials`` table of ``out_dir/trials.sqlite`` (one row per stored trial)."""
+    db = Path(out_dir) / DB_NAME
+    if not db.exists():
+        raise FileNotFoundError(f"no study database {db}")
+    with sqlite3.connect(db) as con:
+        return pd.read_sql_query("SELECT * FROM trials ORDER BY trial", con)
+
+
+def read_failures(out_dir) -> pd.DataFrame:
+    """Failed trials: columns ``trial``, ``error``, ``traceback``, ``key`` (by trial)."""
+    t = read_trials(out_dir)
+    return t.loc[t.status == "failed", ["trial", "error", "traceback", "key"]].reset_index(
+        drop=True)
+
+
+def read_results(out_dir, trials: Sequence[Trial] | None = None) -> pd.DataFrame:
+    """The long-format results stored in ``out_dir``, ordered by trial index and row index.
+
+    Parameters
+    ----------
+    out_dir : path
+        The study folder holding ``trials.sqlite``.
+    trials : sequence of Trial, optional
+        Keep only these trials (by key). All stored trials if None.
+
+    Returns
+    -------
+    DataFrame with columns ``trial``, ``metric``, ``value``, ``unit``, then the parameter
+    columns in order of first appearance (trial parameters, then the rows' own keys). A
+    failed trial gives one row ``metric="failed"``, ``value=1.0``.
+    ``df.attrs["failures"]`` lists the failed trials (``trial``, ``error``).
+    """
+    db = Path(out_dir) / DB_NAME
+    if not db.exists():
+        raise FileNotFoundError(f"no study database {db}")
+    con = sqlite3.connect(db)
+    try:
+        tr = con.execute(
+            "SELECT key, trial, params, status, error FROM trials ORDER BY trial").fetchall()
+        rows_by_key: dict[str, list] = {}
+        for key, _i, row, metric, value, unit, extra in con.execute(
+                "SELECT * FROM rows ORDER BY trial, row"):
+            rows_by_key.setdefault(key, []).append((row, metric, value, unit, extra))
+    finally:
+        con.close()
+    wanted = None if trials is None else {t.key for t in trials}
+    records, failures = [], []
+    for key, index, params_json, status, error in tr:
+        if wanted is not None and key not in wanted:
+            continue
+        params = json.loads(params_json)
+        if status == "failed":
+            failures.append({"trial": index, "error": error})
+            records.append({"trial": index, "metric": FAILED_METRIC, "value": 1.0, "unit": "",
+                            **params})
+            continue
+        for _row, metric, value, unit, extra in rows_by_key.get(key, []):
+            records.append({"trial": index, "metric": metric,
+                            "value": float("nan") if value is None else value, "unit": unit,
+                            **params, **json.loads(extra)})
+    df = pd.DataFrame.from_records(records, columns=None if records else list(_RESERVED))
+    df = df[list(_RESERVED) + [c for c in df.columns if c not in _RESERVED]]
+    df["value"] = df["value"].astype(np.float64)
+    df.attrs["failures"] = pd.DataFrame(failures, columns=["trial", "error"])
+    return df
+
+
+# --------------------------------------------------------------------------- back-ends
+def _progress(total: int, initial: int, enabled: bool):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, initial=initial, disable=not enabled, unit="trial",
+                dynamic_ncols=True, desc="trials")
+
+
+def _run_local(trial_fn, todo, record) -> None:
+    for trial in todo:
+        record(trial, execute_trial(trial_fn, trial))
+
+
+def _lost(trial: Trial, why: str) -> TrialResult:
+    return TrialResult(trial.key, trial.index, "failed", (),
+                       error=f"WorkerLost: the worker process died while running this trial "
+                             f"alone ({why})")
+
+
+def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str) -> None:
+    """Process pool with at most ``workers`` trials in flight, so that when a worker dies
+    (BrokenProcessPool) the suspects are known: they are rerun one at a time in a fresh
+    one-worker pool, and a trial that kills its worker even alone is recorded as failed."""
+    ctx = multiprocessing.get_context(mp_context)
+    queue = list(reversed(todo))  # pop() from the end = in trial order
+    suspects: list[Trial] = []
+    while queue or suspects:
+        if suspects:
+            trial = suspects.pop(0)
+            with cf.ProcessPoolExecutor(1, mp_context=ctx) as ex:
+                try:
+                    res = ex.submit(execute_trial, trial_fn, trial).result()
+                except BrokenProcessPool as exc:
+                    res = _lost(trial, str(exc) or type(exc).__name__)
+            record(trial, res)
+            continue
+        ex = cf.ProcessPoolExecutor(workers, mp_context=ctx)
+        running: dict[cf.Future, Trial] = {}
+        try:
+            while queue or running:
+                while queue and len(running) < workers:
+                    t = queue.pop()
+                    running[ex.submit(execute_trial, trial_fn, t)] = t
+                done, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
+                broken = False
+                for fut in done:
+                    t = running.pop(fut)
+                    try:
+                        res = fut.result()
+                    except BrokenProcessPool:
+                        suspects.append(t)
+                        broken = True
+                        continue
+                    record(t, res)
+                if broken:
+                    suspects.extend(running.values())
+                    suspects.sort(key=lambda tr: tr.index)
+                    running.clear()
+                    break
+        finally:
+            for fut in running:
+                fut.cancel()
+            ex.shutdown(wait=not running, cancel_futures=True)
+
+
+def _run_dask(trial_fn, todo, record, *, scheduler) -> None:
+    try:
+        from distributed import Client, as_completed
+    except ImportError as exc:  # pragma: no cover - depends on the installation
+        raise ImportError("run_trials(scheduler=...) needs dask.distributed: "
+                          "pip install 'dask[distributed]'") from exc
+    own = False
+    if isinstance(scheduler, Client):
+        client = scheduler
+    elif isinstance(scheduler, str):
+        client, own = Client(scheduler), True
+    elif hasattr(scheduler, "scheduler_address"):
+        client, own = Client(scheduler), True
+    else:
+        raise ValueError("scheduler: expected an address 'tcp://HOST:PORT', a "
+                         f"dask.distributed.Client or a cluster, got {type(scheduler).__name__}")
+    futures = {}
+    try:
+        for t in todo:
+            fut = client.submit(execute_trial, trial_fn, t, pure=False)
+            futures[fut] = t
+        for fut in as_completed(list(futures)):
+            t = futures.pop(fut)
+            try:
+                res = fut.result()
+            except Exception as exc:  # e.g. KilledWorker
+                res = TrialResult(t.key, t.index, "failed", (),
+                                  error=f"{type(exc).__name__}: {exc}",
+                                  traceback=traceback.format_exc())
+            record(t, res)
+    finally:
+        if futures:
+            client.cancel(list(futures))
+        if own:
+            client.close()
+
+
+# --------------------------------------------------------------------------- the runner
+def run_trials(
+    trial_fn: Callable[[Trial], list[dict]],
+    trials: Sequence[Trial],
+    *,
+    out_dir,
+    workers: int = 1,
+    scheduler=None,
+    progress: bool = True,
+    resume: bool = True,
+    retry_failed: bool = False,
+    mp_context: Literal["spawn", "forkserver"] = "spawn",
+) -> pd.DataFrame:
+    """Run ``trials`` with ``trial_fn``, storing each result as it finishes; return all rows.
+
+    Parameters
+    ----------
+    trial_fn : callable
+        A top-level (picklable) function ``trial_fn(trial) -> list[dict]``; each dict has
+        ``metric`` (str), ``value`` (real), ``unit`` (str) and optionally scalar parameter
+        keys of its own (e.g. ``pin``). It must draw every random number from
+        ``trial.rng()`` (or ``trial.seed_sequence``).
+    trials : sequence of Trial
+        Distinct indices; see :func:`make_trials`.
+    out_dir : path
+        Folder of the study; the database is ``out_dir/trials.sqlite`` (created if needed).
+    workers : int
+        1: run in this process. More: a process pool of that many workers. Ignored when
+        ``scheduler`` is given.
+    scheduler : str, dask.distributed.Client or cluster, optional
+        Run on Dask: an address ``tcp://HOST:PORT`` (a client is opened and closed here), a
+        ``Client`` (used as is), or a cluster such as ``LocalCluster``.
+    progress : bool
+        Show a tqdm progress bar.
+    resume : bool
+        True: trials already stored (same key) are not run again. False: the database is
+        emptied first and every trial runs.
+    retry_failed : bool
+        With ``resume``, run again the trials stored as failed.
+    mp_context : {"spawn", "forkserver"}
+        Start method of the process pool.
+
+    Returns
+    -------
+    DataFrame
+        :func:`read_results` for ``trials``: columns ``trial``, ``metric``, ``value``,
+        ``unit`` + parameter columns, sorted by trial index and row index; the same whatever
+        the number of workers. ``df.attrs`` holds ``failures`` (DataFrame ``trial``,
+        ``error``), ``executed`` (trials run by this call) and ``skipped`` (found stored).
+    """
+    trials = list(trials)
+    for t in trials:
+        if not isinstance(t, Trial):
+            raise ValueError(f"trials: expected Trial objects, got {type(t).__name__}")
+    seen: dict[int, Trial] = {}
+    for t in trials:
+        if t.index in seen:
+            raise ValueError(f"trials: index {t.index} is used twice")
+        seen[t.index] = t
+    if not callable(trial_fn):
+        raise ValueError("trial_fn: expected a callable trial_fn(trial) -> list[dict]")
+    if isinstance(workers, bool) or not isinstance(workers, numbers.Integral) or workers < 1:
+        raise ValueError(f"workers: expected an int >= 1, got {workers!r}")
+    if mp_context not in ("spawn", "forkserver"):
+        raise ValueError(f"mp_context: expected 'spawn' or 'forkserver', got {mp_context!r}")
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    con = _connect(out / DB_NAME)
+    try:
+        if not resume:
+            con.execute("BEGIN IMMEDIATE")
+            con.execute("DELETE FROM rows")
+            con.execute("DELETE FROM trials")
+            con.execute("COMMIT")
+        stored = _done_keys(con, retry_failed=retry_failed)
+        todo = [t for t in sorted(trials, key=lambda t: t.index) if t.key not in stored]
+        skipped = len(trials) - len(todo)
+        executed = 0
+        bar = _progress(len(trials), skipped, progress)
+
+        def record(trial: Trial, res: TrialResult) -> None:
+            nonlocal executed
+            _store(con, trial, res)
+            executed += 1
+            bar.update(1)
+            if res.status == "failed":
+                bar.set_postfix_str(f"last failure: trial {trial.index}", refresh=False)
+
+        try:
+            if not todo:
+                pass
+            elif scheduler is not None:
+                _run_dask(trial_fn, todo, record, scheduler=scheduler)
+            elif workers == 1:
+                _run_local(trial_fn, todo, record)
+            else:
+                _run_pool(trial_fn, todo, record, workers=int(workers), mp_context=mp_context)
+        finally:
+            bar.close()
+    finally:
+        con.close()
+    df = read_results(out, trials)
+    df.attrs["executed"] = executed
+    df.attrs["skipped"] = skipped
+    return df

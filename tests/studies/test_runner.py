@@ -1,0 +1,241 @@
+"""The study runner: same rows on any number of workers (in-process, process pool, Dask),
+resume after SIGKILL without loss or rerun, failures recorded without stopping the study."""
+
+from __future__ import annotations
+
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from studies.runner import (
+    DB_NAME,
+    Trial,
+    make_trials,
+    read_failures,
+    read_results,
+    read_trials,
+    run_trials,
+)
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parents[1]
+PINS = ("proximal", "distal_1", "distal_2")
+
+
+def toy_trial(trial: Trial) -> list[dict]:
+    """A tiny trial: a few random numbers from the trial's seed, a short sleep, and on demand
+    an exception (``fail``), malformed rows (``bad_rows``) or a dead worker (``die``)."""
+    p = trial.params
+    rng = trial.rng()
+    time.sleep(p.get("sleep_s", 0.0))
+    if p.get("fail"):
+        raise RuntimeError(f"trial {trial.index} was asked to fail")
+    if p.get("die"):
+        os._exit(3)
+    if p.get("bad_rows"):
+        return [{"metric": "mtre", "value": "2 mm", "unit": "mm"}]
+    rows = [{"metric": "pin_error", "value": float(v), "unit": "mm", "pin": pin}
+            for pin, v in zip(PINS, rng.gamma(2.0, 0.5, size=3))]
+    rows.append({"metric": "mtre", "value": float(rng.normal(1.0, 0.1)), "unit": "mm"})
+    rows.append({"metric": "undefined", "value": float("nan"), "unit": ""})
+    return rows
+
+
+def expected_rows(study_seed: int, params: list[dict]) -> pd.DataFrame:
+    """The rows computed directly from SeedSequence(study_seed).spawn(n), without the runner."""
+    recs = []
+    for i, (ss, p) in enumerate(zip(np.random.SeedSequence(study_seed).spawn(len(params)),
+                                    params)):
+        rng = np.random.default_rng(ss)
+        g = rng.gamma(2.0, 0.5, size=3)
+        for pin, v in zip(PINS, g):
+            recs.append({"trial": i, "metric": "pin_error", "value": v, "unit": "mm", **p,
+                         "pin": pin})
+        recs.append({"trial": i, "metric": "mtre", "value": rng.normal(1.0, 0.1), "unit": "mm",
+                     **p})
+        recs.append({"trial": i, "metric": "undefined", "value": np.nan, "unit": "", **p})
+    return pd.DataFrame(recs)
+
+
+def _params(n, sleep_s=0.003):
+    return [{"sleep_s": sleep_s, "noise": 0.1 * (i % 3)} for i in range(n)]
+
+
+def test_trial_seed_is_the_spawned_child_and_rebuilds_exactly():
+    children = np.random.SeedSequence(1234).spawn(5)
+    trials = make_trials("points-lines", 1234, [{}] * 5)
+    for child, t in zip(children, trials):
+        assert (t.entropy, t.spawn_key) == (child.entropy, child.spawn_key)
+        a = t.rng().random(4)
+        b = np.random.default_rng(child).random(4)
+        assert np.array_equal(a, b)
+    assert len({t.key for t in trials}) == 5
+    # the key changes with the seed and the parameters
+    assert make_trials("points-lines", 1235, [{}])[0].key != trials[0].key
+    assert make_trials("points-lines", 1234, [{"a": 1}])[0].key != trials[0].key
+
+
+@pytest.mark.slow
+def test_same_rows_in_process_and_on_two_workers(tmp_path):
+    params = _params(10)
+    trials = make_trials("points-lines", 42, params)
+    one = run_trials(toy_trial, trials, out_dir=tmp_path / "w1", workers=1, progress=False)
+    two = run_trials(toy_trial, trials, out_dir=tmp_path / "w2", workers=2, progress=False)
+    pd.testing.assert_frame_equal(one, two)
+    # and both are the rows computed straight from the seeds (NaN kept as NaN)
+    exp = expected_rows(42, params)
+    pd.testing.assert_frame_equal(one[exp.columns.tolist()], exp, check_exact=True)
+    assert list(one.columns[:4]) == ["trial", "metric", "value", "unit"]
+    assert one.attrs["executed"] == 10 and one.attrs["skipped"] == 0
+    # the trials ran in two worker processes, none of them this one
+    workers = set(read_trials(tmp_path / "w2").worker)
+    assert len(workers) == 2 and all(not w.endswith(f":{os.getpid()}") for w in workers)
+
+
+def test_failed_trial_is_recorded_and_does_not_stop_the_study(tmp_path):
+    params = _params(6, sleep_s=0.0)
+    params[2] = {**params[2], "fail": True}
+    params[4] = {**params[4], "bad_rows": True}
+    trials = make_trials("points-lines", 5, params)
+    df = run_trials(toy_trial, trials, out_dir=tmp_path, progress=False)
+    failed = df[df.metric == "failed"]
+    assert failed.trial.tolist() == [2, 4]
+    assert (failed.value == 1.0).all()
+    assert sorted(set(df.trial)) == list(range(6))
+    assert (df[df.trial == 3].metric == "mtre").sum() == 1
+    fails = read_failures(tmp_path)
+    assert fails.trial.tolist() == [2, 4]
+    assert fails.error[0] == "RuntimeError: trial 2 was asked to fail"
+    assert "toy_trial" in fails.traceback[0] and "RuntimeError" in fails.traceback[0]
+    assert "trial 4, row 0 (mtre): 'value' must be a real number, got str" in fails.error[1]
+    assert df.attrs["failures"].trial.tolist() == [2, 4]
+    # resume: nothing to do; retry_failed runs only the two failed trials again
+    again = run_trials(toy_trial, trials, out_dir=tmp_path, progress=False)
+    assert again.attrs["executed"] == 0 and again.attrs["skipped"] == 6
+    pd.testing.assert_frame_equal(again, df)
+    retried = run_trials(toy_trial, trials, out_dir=tmp_path, progress=False, retry_failed=True)
+    assert retried.attrs["executed"] == 2
+
+
+def test_resume_false_reruns_and_other_trials_are_not_returned(tmp_path):
+    a = make_trials("points-lines", 1, _params(3, 0.0))
+    b = make_trials("points-lines", 2, _params(3, 0.0))
+    ra = run_trials(toy_trial, a, out_dir=tmp_path, progress=False)
+    rb = run_trials(toy_trial, b, out_dir=tmp_path, progress=False)
+    assert rb.attrs["executed"] == 3  # other seeds: other keys, nothing reused
+    assert not np.array_equal(ra.value.to_numpy()[:3], rb.value.to_numpy()[:3])
+    pd.testing.assert_frame_equal(read_results(tmp_path, a), ra)
+    fresh = run_trials(toy_trial, a, out_dir=tmp_path, progress=False, resume=False)
+    assert fresh.attrs["executed"] == 3
+    pd.testing.assert_frame_equal(fresh, ra)
+    assert len(read_trials(tmp_path)) == 3  # resume=False emptied the database
+
+
+def test_bad_input_is_refused_with_a_clear_message(tmp_path):
+    t = make_trials("points-lines", 0, [{}, {}])
+    with pytest.raises(ValueError, match="index 0 is used twice"):
+        run_trials(toy_trial, [t[0], t[0]], out_dir=tmp_path)
+    with pytest.raises(ValueError, match="workers: expected an int >= 1"):
+        run_trials(toy_trial, t, out_dir=tmp_path, workers=0)
+    with pytest.raises(ValueError, match="parameter 'value' clashes"):
+        Trial(0, "points-lines", 1, (0,), {"value": 3})
+    with pytest.raises(ValueError, match="parameter 'x': expected a scalar"):
+        Trial(0, "points-lines", 1, (0,), {"x": [1, 2]})
+    with pytest.raises(ValueError, match="study_seed must be an int >= 0"):
+        make_trials("points-lines", -1, [{}])
+
+
+@pytest.mark.slow
+def test_worker_that_dies_is_recorded_and_the_others_finish(tmp_path):
+    params = _params(6, sleep_s=0.01)
+    params[3] = {**params[3], "die": True}
+    trials = make_trials("points-lines", 9, params)
+    df = run_trials(toy_trial, trials, out_dir=tmp_path, workers=2, progress=False)
+    assert df[df.metric == "failed"].trial.tolist() == [3]
+    assert "WorkerLost" in read_failures(tmp_path).error[0]
+    ok = df[df.trial != 3].reset_index(drop=True)
+    exp = expected_rows(9, params)
+    exp = exp[exp.trial != 3].reset_index(drop=True)
+    pd.testing.assert_frame_equal(ok[exp.columns.tolist()], exp, check_exact=True)
+
+
+def _count_done(db: Path) -> int:
+    if not db.exists():
+        return 0
+    try:
+        with sqlite3.connect(db, timeout=5) as con:
+            return con.execute("SELECT COUNT(*) FROM trials").fetchone()[0]
+    except sqlite3.OperationalError:  # tables not created yet
+        return 0
+
+
+@pytest.mark.slow
+def test_resume_after_sigkill_gives_the_rows_of_an_uninterrupted_run(tmp_path):
+    n, seed = 30, 77
+    params = _params(n, sleep_s=0.04)
+    killed = tmp_path / "killed"
+    script = tmp_path / "study.py"
+    script.write_text(textwrap.dedent(f"""
+        import sys
+        sys.path.insert(0, {str(HERE)!r})
+        from studies.runner import make_trials, run_trials
+        from test_runner import _params, toy_trial
+
+        if __name__ == "__main__":
+            trials = make_trials("points-lines", {seed}, _params({n}, sleep_s=0.04))
+            run_trials(toy_trial, trials, out_dir={str(killed)!r}, workers=2, progress=False)
+    """))
+    proc = subprocess.Popen([sys.executable, str(script)], cwd=ROOT, start_new_session=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    db = killed / DB_NAME
+    try:
+        deadline = time.monotonic() + 120
+        while _count_done(db) < 4:
+            assert proc.poll() is None, proc.stderr.read().decode()
+            assert time.monotonic() < deadline, "the study never stored 4 trials"
+            time.sleep(0.02)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)  # the study and its workers, as kill -9 would
+        proc.wait()
+        proc.stderr.close()
+    before = read_trials(killed)
+    assert 4 <= len(before) < n, "the kill came too late to test a resume"
+
+    trials = make_trials("points-lines", seed, params)
+    resumed = run_trials(toy_trial, trials, out_dir=killed, workers=1, progress=False)
+    assert resumed.attrs["skipped"] == len(before)
+    assert resumed.attrs["executed"] == n - len(before)
+    after = read_trials(killed).set_index("key")
+    # trials stored before the kill were not run again
+    assert (after.loc[before.key, "worker"].to_numpy() == before.worker.to_numpy()).all()
+
+    clean = run_trials(toy_trial, trials, out_dir=tmp_path / "clean", workers=1,
+                       progress=False)
+    pd.testing.assert_frame_equal(resumed, clean, check_exact=True)
+    assert len(clean) == 5 * n
+
+
+@pytest.mark.slow
+def test_dask_local_cluster_gives_the_same_rows(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    params = _params(8)
+    trials = make_trials("points-lines", 3, params)
+    ref = run_trials(toy_trial, trials, out_dir=tmp_path / "ref", progress=False)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        by_cluster = run_trials(toy_trial, trials, out_dir=tmp_path / "c", scheduler=cluster,
+                                progress=False)
+        by_address = run_trials(toy_trial, trials, out_dir=tmp_path / "a",
+                                scheduler=cluster.scheduler_address, progress=False)
+    pd.testing.assert_frame_equal(by_cluster, ref, check_exact=True)
+    pd.testing.assert_frame_equal(by_address, ref, check_exact=True)
+    assert len(set(read_trials(tmp_path / "c").worker)) == 2
