@@ -1,17 +1,607 @@
-"""The C-arm fluoroscope with an image intensifier. (Issue 4 fills this module.)"""
+"""The C-arm fluoroscope with an image intensifier: geometry, distortion, X-ray image formation.
+
+Frames and conventions (DESIGN.md):
+
+- ``carm`` frame of one C-arm pose: the X-ray source (focal spot) at the origin, ``+z`` the
+  beam axis towards the intensifier, ``+x`` along image columns, ``+y`` along image rows
+  (down the image). The intensifier's input plane is ``z_carm = sid_mm``.
+- Pinhole: the undistorted pixel of a carm point ``P`` is
+  ``x_u = cx + sid * P_x / (P_z * pixel_mm)``, ``y_u = cy + sid * P_y / (P_z * pixel_mm)``,
+  ``(cx, cy)`` the principal point (where the beam axis meets the image). Pixel ``(x, y) =
+  (col, row)``, centre of the top-left pixel at (0, 0).
+- The intensifier distorts: a point whose pinhole (undistorted) pixel is ``u`` appears at the
+  distorted pixel ``distort(u)`` (:class:`Distortion`): pincushion (radial,
+  ``1 + k1 rho^2 + k2 rho^4`` about a centre) then S-distortion (a rotation growing with the
+  radius, ``theta = theta_edge * rho^2``, plus a shift), where ``rho`` is the radius over the
+  radius of the field of view. The S-distortion comes from the Earth's magnetic field acting
+  on the electrons in the tube: the field component along the beam axis turns the image, the
+  transverse component shifts it; both depend on the C-arm's orientation, so the distortion
+  changes with the pose.
+- Rendering: each distorted pixel takes the X-ray path of its undistorted point (the inverse
+  of ``distort``, solved to 1e-10 px), so the image is exact, with no resampling; the
+  pixel -> ray map is kept as truth (:meth:`CArm.pixel_ray_map`).
+- X-ray formation: per-body path lengths by ray casting (``testbed.raycast``),
+  Beer-Lambert with per-material coefficients (nested bodies count
+  ``mu(body) - mu(enclosing body)``), Poisson quantum noise, veiling glare (a wide Gaussian
+  blur of a fraction of the light), vignetting, and an 8-bit video frame with a logarithmic
+  video amplifier. Outside the circular field of view the image is dark (0).
+
+Pose of the C-arm (``ViewSpec``), robot frame with ``+z`` up: with both rotations zero the
+beam points up (source under the table) and the image axes ``x, y`` are the robot's ``x, y``.
+``carm2robot.R = Ry(angular) @ Rx(orbital) @ Rz(roll)``; the source lies
+``source_to_isocenter_mm`` before the isocenter along the beam.
+"""
 
 from __future__ import annotations
 
-from testbed.spec import Positive, Spec
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import Field
+from scipy.ndimage import gaussian_filter
+from scipy.spatial.transform import Rotation
+
+from reglib.geometry import RigidTransform
+from testbed.bodies import Body
+from testbed.materials import material
+from testbed.raycast import attenuation_weights, body_path_lengths
+from testbed.spec import Positive, Spec, Vec2, Vec3
+
+__all__ = [
+    "CArm",
+    "Distortion",
+    "FluoroscopeSpec",
+    "Frame",
+    "ViewSpec",
+    "make_carm",
+    "make_distortion",
+    "render",
+    "render_command",
+    "render_view",
+]
+
+BONE_MATERIALS = ("cortical_bone", "cancellous_bone")
 
 
+# --------------------------------------------------------------------------- scene sections
 class FluoroscopeSpec(Spec):
-    """``[fluoroscope]``: the C-arm and its image intensifier."""
+    """``[fluoroscope]``: the C-arm and its image intensifier (defaults: a 9-inch mobile C-arm).
 
-    source_to_image_mm: Positive = 1000.0
+    Geometry: ``sid_mm`` source to intensifier input plane (1000); ``fov_diameter_mm`` the
+    circular field of view at the input plane (228.6 = 9 inch); ``width_px`` x ``height_px``
+    the video frame (640 x 480); ``pixel_mm`` pixel spacing at the input plane (0.5: the
+    field of view is a circle of 457 px diameter); ``principal_offset_px`` where the beam axis
+    meets the image, from the image centre (0, 0).
+
+    Distortion (``distortion`` switches it): ``pincushion_k1`` (0.02) and ``pincushion_k2``
+    (0.005), radial gain ``1 + k1 rho^2 + k2 rho^4`` with ``rho`` the radius over the field of
+    view's radius (about 6 px at the edge); ``distortion_center_px`` the centre of the
+    pincushion from the principal point ((4, -3) px); ``earth_field_uT`` the Earth's field in
+    the robot frame ((0, 20, -44) uT: north along +y, pointing down);
+    ``s_rotation_deg_per_uT`` image rotation at the edge of the field per uT of field along
+    the beam (0.03 deg/uT: about 1.3 deg, 5 px at the edge, for a vertical beam);
+    ``s_shift_mm_per_uT`` image shift per uT of transverse field (0.04 mm/uT: about 1.6 px
+    for a vertical beam).
+
+    Image formation (``noise`` switches the quantum noise): ``photons_per_pixel`` detected
+    quanta per pixel of the unattenuated beam (5000); ``glare_fraction`` (0.12) of the light
+    spread by veiling glare with a Gaussian of ``glare_sigma_px`` (30 px); ``vignetting``
+    relative brightness lost at the edge of the field (0.25, ``1 - v rho^2``);
+    ``display_range`` natural-log units of intensity spread over the video range (6.0);
+    ``black_u8`` and ``white_u8`` the video levels of the darkest and of the unattenuated
+    intensity (8, 240); ``oversample`` rays per pixel side (1: one ray through each pixel
+    centre; 2: four rays per pixel, averaged as the detector integrates).
+    """
+
+    sid_mm: Positive = 1000.0
+    fov_diameter_mm: Positive = 228.6
+    width_px: Annotated[int, Field(ge=8, le=4096)] = 640
+    height_px: Annotated[int, Field(ge=8, le=4096)] = 480
+    pixel_mm: Positive = 0.5
+    principal_offset_px: Vec2 = (0.0, 0.0)
+    distortion: bool = True
+    pincushion_k1: Annotated[float, Field(ge=-0.2, le=0.2)] = 0.02
+    pincushion_k2: Annotated[float, Field(ge=-0.2, le=0.2)] = 0.005
+    distortion_center_px: Vec2 = (4.0, -3.0)
+    earth_field_uT: Vec3 = (0.0, 20.0, -44.0)
+    s_rotation_deg_per_uT: Annotated[float, Field(ge=-1, le=1)] = 0.03
+    s_shift_mm_per_uT: Annotated[float, Field(ge=-1, le=1)] = 0.04
+    noise: bool = True
+    photons_per_pixel: Positive = 5000.0
+    glare_fraction: Annotated[float, Field(ge=0, lt=1)] = 0.12
+    glare_sigma_px: Positive = 30.0
+    vignetting: Annotated[float, Field(ge=0, lt=1)] = 0.25
+    display_range: Positive = 6.0
+    black_u8: Annotated[int, Field(ge=0, le=255)] = 8
+    white_u8: Annotated[int, Field(ge=1, le=255)] = 240
+    oversample: Annotated[int, Field(ge=1, le=8)] = 1
 
 
 class ViewSpec(Spec):
-    """``[[views]]``: one C-arm pose."""
+    """``[[views]]``: one C-arm pose.
+
+    ``name``; ``region`` the part of the femur it images ("proximal" or "distal");
+    ``isocenter_mm`` the point on the beam axis the C-arm turns about (robot frame, mm);
+    ``orbital_deg`` rotation about the robot x axis, ``angular_deg`` about the robot y axis,
+    ``roll_deg`` of the image about the beam (see the module docstring for the order);
+    ``source_to_isocenter_mm`` (650) distance from the source to the isocenter, less than the
+    fluoroscope's ``sid_mm``.
+    """
 
     name: str = "view"
+    region: Literal["proximal", "distal"] = "proximal"
+    isocenter_mm: Vec3 = (0.0, 0.0, 0.0)
+    orbital_deg: Annotated[float, Field(ge=-180, le=180)] = 0.0
+    angular_deg: Annotated[float, Field(ge=-180, le=180)] = 0.0
+    roll_deg: Annotated[float, Field(ge=-180, le=180)] = 0.0
+    source_to_isocenter_mm: Positive = 650.0
+
+
+# --------------------------------------------------------------------------- distortion
+@dataclass(frozen=True)
+class Distortion:
+    """The intensifier's distortion at one pose: undistorted pixel -> distorted pixel.
+
+    ``center_px`` (2,) pincushion centre (x, y) in px; ``radius_px`` the radius of the field
+    of view (px) that normalises ``rho``; ``k1, k2`` pincushion coefficients;
+    ``rotation_edge_rad`` the S-rotation at ``rho = 1``; ``shift_px`` (2,) the shift.
+
+    ``distort(u) = c + Rot(theta_edge * rho^2) (u - c) (1 + k1 rho^2 + k2 rho^4) + shift``,
+    ``rho = |u - c| / radius_px``.
+    """
+
+    center_px: tuple[float, float]
+    radius_px: float
+    k1: float
+    k2: float
+    rotation_edge_rad: float
+    shift_px: tuple[float, float]
+
+    def distort(self, xy_px) -> np.ndarray:
+        """Distorted pixels ``(N, 2)`` of undistorted (pinhole) pixels ``(N, 2)`` (x, y)."""
+        u = np.asarray(xy_px, dtype=np.float64)
+        c = np.asarray(self.center_px)
+        p = u - c
+        rho2 = np.sum(p * p, axis=-1, keepdims=True) / self.radius_px**2
+        p = p * (1.0 + self.k1 * rho2 + self.k2 * rho2 * rho2)
+        th = self.rotation_edge_rad * rho2[..., 0]
+        cs, sn = np.cos(th), np.sin(th)
+        q = np.stack([cs * p[..., 0] - sn * p[..., 1], sn * p[..., 0] + cs * p[..., 1]], -1)
+        return c + q + np.asarray(self.shift_px)
+
+    def undistort(self, xy_px, *, tol_px: float = 1e-10, max_iter: int = 100) -> np.ndarray:
+        """Undistorted pixels ``(N, 2)`` of distorted pixels ``(N, 2)``: ``distort``'s inverse.
+
+        Newton iterations with a numerical Jacobian; raises ``ValueError`` if they do not
+        converge to ``tol_px`` (the distortion must stay a one-to-one map there).
+        """
+        d = np.asarray(xy_px, dtype=np.float64)
+        u = d - np.asarray(self.shift_px)
+        h = 1e-3
+        for _ in range(max_iter):
+            r = self.distort(u) - d
+            if np.max(np.abs(r), initial=0.0) < tol_px:
+                return u
+            jx = (self.distort(u + [h, 0.0]) - self.distort(u - [h, 0.0])) / (2 * h)
+            jy = (self.distort(u + [0.0, h]) - self.distort(u - [0.0, h])) / (2 * h)
+            det = jx[..., 0] * jy[..., 1] - jy[..., 0] * jx[..., 1]
+            du0 = (jy[..., 1] * r[..., 0] - jy[..., 0] * r[..., 1]) / det
+            du1 = (-jx[..., 1] * r[..., 0] + jx[..., 0] * r[..., 1]) / det
+            u = u - np.stack([du0, du1], -1)
+        raise ValueError(
+            f"Distortion.undistort: no convergence to {tol_px} px in {max_iter} iterations "
+            "(distortion too strong for this pixel range)"
+        )
+
+
+def make_distortion(fluoro: FluoroscopeSpec, carm2robot: RigidTransform,
+                    principal_px) -> Distortion:
+    """The distortion of the intensifier at the pose ``carm2robot`` (see FluoroscopeSpec)."""
+    b_carm = carm2robot.R.T @ np.asarray(fluoro.earth_field_uT, dtype=np.float64)
+    # electrons travel along +z; the Lorentz force v x B deflects them along z x B
+    shift_mm = fluoro.s_shift_mm_per_uT * np.array([-b_carm[1], b_carm[0]])
+    return Distortion(
+        center_px=tuple(np.asarray(principal_px) + np.asarray(fluoro.distortion_center_px)),
+        radius_px=0.5 * fluoro.fov_diameter_mm / fluoro.pixel_mm,
+        k1=fluoro.pincushion_k1,
+        k2=fluoro.pincushion_k2,
+        rotation_edge_rad=math.radians(fluoro.s_rotation_deg_per_uT * b_carm[2]),
+        shift_px=tuple(shift_mm / fluoro.pixel_mm),
+    )
+
+
+# --------------------------------------------------------------------------- C-arm
+@dataclass(frozen=True)
+class CArm:
+    """One C-arm pose with its true projection (distortion included).
+
+    ``carm2robot``: the carm frame (source at the origin, +z the beam) in the robot frame;
+    ``sid_mm``: the input plane is ``z_carm = sid_mm``; ``pixel_mm``: pixel spacing at the
+    input plane; ``principal_px`` (x, y): where the beam axis meets the image;
+    ``fov_radius_mm``: radius of the circular field of view at the input plane;
+    ``distortion``: the intensifier's distortion, or None (an ideal pinhole camera).
+    """
+
+    carm2robot: RigidTransform
+    sid_mm: float
+    width_px: int
+    height_px: int
+    pixel_mm: float = 0.5
+    principal_px: tuple[float, float] = (319.5, 239.5)
+    fov_radius_mm: float = 114.3
+    distortion: Distortion | None = None
+    name: str = "view"
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def source_robot(self) -> np.ndarray:
+        """The X-ray source (focal spot), robot frame, (3,) mm."""
+        return np.array(self.carm2robot.t)
+
+    @property
+    def axis_robot(self) -> np.ndarray:
+        """The beam axis (unit, from source to intensifier), robot frame, (3,)."""
+        return np.array(self.carm2robot.R[:, 2])
+
+    def undistorted(self) -> CArm:
+        """The same pose seen by an ideal pinhole camera (no distortion)."""
+        return replace(self, distortion=None, _cache={})
+
+    # pinhole
+    def _plane_points(self, xy_u) -> np.ndarray:
+        """Carm-frame points (N, 3) mm on the input plane of undistorted pixels (N, 2)."""
+        xy_u = np.asarray(xy_u, dtype=np.float64)
+        p = np.empty(xy_u.shape[:-1] + (3,))
+        p[..., 0] = (xy_u[..., 0] - self.principal_px[0]) * self.pixel_mm
+        p[..., 1] = (xy_u[..., 1] - self.principal_px[1]) * self.pixel_mm
+        p[..., 2] = self.sid_mm
+        return p
+
+    def undistort_px(self, xy_px) -> np.ndarray:
+        """Undistorted (pinhole) pixels (N, 2) of distorted pixels (N, 2)."""
+        xy = np.asarray(xy_px, dtype=np.float64)
+        return xy if self.distortion is None else self.distortion.undistort(xy)
+
+    def distort_px(self, xy_u) -> np.ndarray:
+        """Distorted pixels (N, 2) of undistorted (pinhole) pixels (N, 2)."""
+        xy = np.asarray(xy_u, dtype=np.float64)
+        return xy if self.distortion is None else self.distortion.distort(xy)
+
+    def true_rays(self, xy_px) -> tuple[np.ndarray, np.ndarray]:
+        """The true X-ray paths reaching distorted pixels ``xy_px`` (N, 2) (x, y) px.
+
+        Returns ``origins (N, 3)`` (the source, mm) and unit ``directions (N, 3)``, both in
+        the robot frame.
+        """
+        xy = np.asarray(xy_px, dtype=np.float64)
+        if xy.ndim != 2 or xy.shape[1] != 2:
+            raise ValueError(f"xy_px: expected an (N, 2) array of pixels, got {xy.shape}")
+        p = self._plane_points(self.undistort_px(xy))
+        d = p / np.linalg.norm(p, axis=1, keepdims=True)
+        d = self.carm2robot.apply_vectors(d)
+        return np.broadcast_to(self.source_robot, d.shape).copy(), d
+
+    def project(self, points_robot) -> np.ndarray:
+        """Distorted pixels ``(N, 2)`` (x, y) where robot-frame points ``(N, 3)`` mm appear.
+
+        The exact inverse of :meth:`true_rays`. Points at or behind the source raise
+        ``ValueError``.
+        """
+        p = np.asarray(points_robot, dtype=np.float64).reshape(-1, 3)
+        q = self.carm2robot.inverse().apply(p)
+        if np.any(q[:, 2] <= 1e-9):
+            raise ValueError(f"view {self.name!r}: points at or behind the X-ray source")
+        xy_u = np.stack([
+            self.principal_px[0] + self.sid_mm * q[:, 0] / (q[:, 2] * self.pixel_mm),
+            self.principal_px[1] + self.sid_mm * q[:, 1] / (q[:, 2] * self.pixel_mm),
+        ], 1)
+        return self.distort_px(xy_u)
+
+    def pixel_grid(self) -> np.ndarray:
+        """Pixel centres ``(H, W, 2)`` (x, y)."""
+        x, y = np.meshgrid(np.arange(self.width_px, dtype=np.float64),
+                           np.arange(self.height_px, dtype=np.float64))
+        return np.stack([x, y], -1)
+
+    def pixel_ray_map(self) -> tuple[np.ndarray, np.ndarray]:
+        """The truth: the X-ray path of every pixel, ``origins (H, W, 3)`` and unit
+        ``directions (H, W, 3)`` in the robot frame (mm)."""
+        if "rays" not in self._cache:
+            o, d = self.true_rays(self.pixel_grid().reshape(-1, 2))
+            shape = (self.height_px, self.width_px, 3)
+            self._cache["rays"] = (o.reshape(shape), d.reshape(shape))
+        o, d = self._cache["rays"]
+        return o.copy(), d.copy()
+
+    def fov_rho(self, xy_px) -> np.ndarray:
+        """Radius on the input plane over the field-of-view radius, for distorted pixels
+        ``(N, 2)``; the field of view is ``rho <= 1``. Returns ``(N,)``."""
+        p = self._plane_points(self.undistort_px(np.asarray(xy_px, dtype=np.float64)))
+        return np.hypot(p[..., 0], p[..., 1]) / self.fov_radius_mm
+
+    def fov_mask(self) -> np.ndarray:
+        """Pixels inside the circular field of view, ``(H, W)`` bool."""
+        rho = self.fov_rho(self.pixel_grid().reshape(-1, 2))
+        return (rho <= 1.0).reshape(self.height_px, self.width_px)
+
+    def displacement_field(self) -> np.ndarray:
+        """Distorted minus undistorted position ``(H, W, 2)`` px at every distorted pixel."""
+        g = self.pixel_grid()
+        return g - self.undistort_px(g.reshape(-1, 2)).reshape(g.shape)
+
+
+def view_pose(view: ViewSpec) -> RigidTransform:
+    """``carm2robot`` of a view (see the module docstring)."""
+    R = (Rotation.from_euler("y", view.angular_deg, degrees=True)
+         * Rotation.from_euler("x", view.orbital_deg, degrees=True)
+         * Rotation.from_euler("z", view.roll_deg, degrees=True)).as_matrix()
+    source = np.asarray(view.isocenter_mm) - view.source_to_isocenter_mm * R[:, 2]
+    return RigidTransform(R, source)
+
+
+def make_carm(fluoro: FluoroscopeSpec, view: ViewSpec, *, distortion: bool | None = None,
+              view_index: int | None = None) -> CArm:
+    """The C-arm of ``view`` with the intensifier of ``fluoro``.
+
+    ``distortion``: None follows ``fluoro.distortion``; True/False forces it.
+    Raises ``ValueError`` naming the field if the isocenter lies beyond the input plane.
+    """
+    where = f"views[{view_index}]" if view_index is not None else f"view {view.name!r}"
+    if view.source_to_isocenter_mm >= fluoro.sid_mm:
+        raise ValueError(
+            f"{where}.source_to_isocenter_mm = {view.source_to_isocenter_mm} mm: must be less "
+            f"than fluoroscope.sid_mm = {fluoro.sid_mm} mm (the isocenter lies between the "
+            "source and the intensifier)"
+        )
+    carm2robot = view_pose(view)
+    principal = (
+        (fluoro.width_px - 1) / 2.0 + fluoro.principal_offset_px[0],
+        (fluoro.height_px - 1) / 2.0 + fluoro.principal_offset_px[1],
+    )
+    use = fluoro.distortion if distortion is None else bool(distortion)
+    dist = make_distortion(fluoro, carm2robot, principal) if use else None
+    return CArm(
+        carm2robot=carm2robot,
+        sid_mm=float(fluoro.sid_mm),
+        width_px=int(fluoro.width_px),
+        height_px=int(fluoro.height_px),
+        pixel_mm=float(fluoro.pixel_mm),
+        principal_px=principal,
+        fov_radius_mm=0.5 * float(fluoro.fov_diameter_mm),
+        distortion=dist,
+        name=view.name,
+    )
+
+
+# --------------------------------------------------------------------------- image formation
+@dataclass(frozen=True)
+class Frame:
+    """One rendered fluoroscopic frame and its truth.
+
+    ``image_u8`` (H, W) uint8: the 8-bit video frame (what the clinic has).
+    ``image`` (H, W) float32: detected intensity before quantisation, relative to the
+    unattenuated beam at the centre (noise, glare and vignetting included).
+    ``attenuation`` (H, W) float32: the line integral of mu along each pixel's X-ray path
+    (dimensionless; mean over the sub-rays when oversampling).
+    ``path_mm``: body name -> (H, W) float32 path length through that body (mm).
+    ``materials``: body name -> material name. ``fov`` (H, W) bool: the field of view.
+    ``carm``: the C-arm (its ``pixel_ray_map()`` is the true pixel -> ray map).
+    """
+
+    image_u8: np.ndarray
+    image: np.ndarray
+    attenuation: np.ndarray
+    path_mm: dict
+    materials: dict
+    fov: np.ndarray
+    carm: CArm
+
+    def mask(self, materials=BONE_MATERIALS) -> np.ndarray:
+        """Pixels whose X-ray path crosses a body of one of ``materials``, (H, W) bool."""
+        out = np.zeros(self.fov.shape, dtype=bool)
+        for name, mat in self.materials.items():
+            if mat in materials:
+                out |= self.path_mm[name] > 0
+        return out & self.fov
+
+    @property
+    def bone_mask(self) -> np.ndarray:
+        return self.mask(BONE_MATERIALS)
+
+
+def _check_source_outside(carm: CArm, bodies: list[Body]) -> None:
+    src = carm.source_robot
+    for b in bodies:
+        if b.mesh is not None:
+            lo, hi = b.mesh.bounds
+            if np.all(src >= lo) and np.all(src <= hi) and b.mesh.contains(src[None])[0]:
+                raise ValueError(
+                    f"view {carm.name!r}: the X-ray source at {np.round(src, 1).tolist()} mm "
+                    f"lies inside body {b.name!r}; move the view's isocenter_mm or change "
+                    "source_to_isocenter_mm / orbital_deg / angular_deg"
+                )
+        else:
+            dist = np.linalg.norm(b.sphere_centers - src, axis=1)
+            if np.any(dist <= b.sphere_radii):
+                raise ValueError(
+                    f"view {carm.name!r}: the X-ray source lies inside a sphere of body "
+                    f"{b.name!r}"
+                )
+
+
+def _sub_offsets(n: int) -> np.ndarray:
+    s = (np.arange(n) + 0.5) / n - 0.5
+    x, y = np.meshgrid(s, s)
+    return np.stack([x.ravel(), y.ravel()], 1)
+
+
+def render(carm: CArm, bodies: list[Body], *, fluoro: FluoroscopeSpec, rng=None,
+           noise: bool | None = None, distortion: bool | None = None,
+           engine: str = "embree") -> Frame:
+    """Render one fluoroscopic frame of ``bodies`` (robot frame) seen by ``carm``.
+
+    Parameters
+    ----------
+    carm : CArm
+        The pose and projection (from :func:`make_carm`).
+    bodies : list of Body
+        Closed meshes and spheres in the robot frame, nesting by ``inside``.
+    fluoro : FluoroscopeSpec
+        Image-formation parameters (noise, glare, vignetting, video levels, oversampling).
+    rng : numpy Generator or int or None
+        For the quantum noise.
+    noise : bool or None
+        None follows ``fluoro.noise``.
+    distortion : bool or None
+        None renders ``carm`` as it is; False renders its undistorted twin; True requires
+        ``carm`` to have a distortion.
+    engine : "embree" or "numpy"
+        Ray-casting engine (``testbed.raycast``).
+
+    Raises ``ValueError`` if the source lies inside a body, or for unknown materials or
+    nesting.
+    """
+    if distortion is False:
+        carm = carm.undistorted()
+    elif distortion is True and carm.distortion is None:
+        raise ValueError("render: distortion=True but the C-arm was made without distortion")
+    use_noise = fluoro.noise if noise is None else bool(noise)
+    for b in bodies:
+        material(b.material)
+    weights = attenuation_weights(bodies)
+    _check_source_outside(carm, bodies)
+
+    H, W = carm.height_px, carm.width_px
+    fov = carm.fov_mask()
+    grid = carm.pixel_grid()[fov]  # (M, 2) pixels in the field of view
+    n_sub = fluoro.oversample
+    subs = _sub_offsets(n_sub)
+    M = len(grid)
+    att = np.zeros(M)
+    trans = np.zeros(M)
+    lengths = np.zeros((M, len(bodies)))
+    for off in subs:
+        if n_sub == 1:
+            o, d = carm.pixel_ray_map()
+            o, d = o[fov], d[fov]
+        else:
+            o, d = carm.true_rays(grid + off)
+        t_max = carm.sid_mm / (d @ carm.axis_robot)
+        L = body_path_lengths(bodies, o, d, t_max, engine=engine)
+        a = L @ weights
+        att += a / len(subs)
+        trans += np.exp(-a) / len(subs)
+        lengths += L / len(subs)
+
+    rho = carm.fov_rho(grid)
+    rng = np.random.default_rng(rng)
+    if use_noise:
+        n0 = fluoro.photons_per_pixel
+        trans = rng.poisson(n0 * trans) / n0
+    full = np.zeros((H, W))
+    full[fov] = trans
+    if fluoro.glare_fraction > 0:
+        g = fluoro.glare_fraction
+        full = (1.0 - g) * full + g * gaussian_filter(full, fluoro.glare_sigma_px,
+                                                      mode="constant")
+    full[fov] *= 1.0 - fluoro.vignetting * rho**2
+    full[~fov] = 0.0
+
+    level = 1.0 + np.log(np.maximum(full, 1e-12)) / fluoro.display_range
+    video = fluoro.black_u8 + (fluoro.white_u8 - fluoro.black_u8) * np.clip(level, 0.0, 1.0)
+    video = np.where(fov, np.clip(np.rint(video), 0, 255), 0).astype(np.uint8)
+
+    att_img = np.zeros((H, W), dtype=np.float32)
+    att_img[fov] = att
+    paths = {}
+    for j, b in enumerate(bodies):
+        img = np.zeros((H, W), dtype=np.float32)
+        img[fov] = lengths[:, j]
+        paths[b.name] = img
+    return Frame(
+        image_u8=video,
+        image=full.astype(np.float32),
+        attenuation=att_img,
+        path_mm=paths,
+        materials={b.name: b.material for b in bodies},
+        fov=fov,
+        carm=carm,
+    )
+
+
+# --------------------------------------------------------------------------- scene wiring
+def _world_bodies(scene, rng) -> list[Body]:
+    """Bodies in the robot frame for a scene (until ``testbed.world`` exists).
+
+    The phantom (``testbed.phantom.make_phantom``, ct frame) moved by
+    ``scene.patient.ct2robot()``, plus the OR instruments of ``testbed.instruments``.
+    """
+    try:
+        from testbed.world import world_bodies  # the lead's module, when it exists
+    except ImportError:
+        world_bodies = None
+    if world_bodies is not None:
+        return list(world_bodies(scene, rng=rng))
+    bodies: list[Body] = []
+    try:
+        from testbed.phantom import make_phantom
+    except ImportError:
+        make_phantom = None
+    if make_phantom is not None:
+        phantom = make_phantom(scene.phantom, rng)
+        bodies += [b.transformed(scene.patient.ct2robot()) for b in phantom.bodies()]
+    from testbed.instruments import scene_instruments
+
+    bodies += scene_instruments(scene)
+    return bodies
+
+
+def render_view(scene, view: int, *, seed: int | None = None, bodies=None,
+                distortion: bool | None = None, noise: bool | None = None) -> Frame:
+    """Render view number ``view`` (0-based) of an operating-room scene.
+
+    Raises ``ValueError`` naming the scene field when the view index is out of range, the
+    source lies inside a body, or the field of view shows no bone.
+    """
+    n = len(scene.views)
+    if not 0 <= view < n:
+        raise ValueError(f"--view {view}: the scene has {n} [[views]] (0 to {n - 1})")
+    seed = scene.scene.seed if seed is None else seed
+    ss = np.random.SeedSequence(seed)
+    world_ss, noise_ss = ss.spawn(2)
+    if bodies is None:
+        bodies = _world_bodies(scene, np.random.default_rng(world_ss))
+    vspec = scene.views[view]
+    carm = make_carm(scene.fluoroscope, vspec, distortion=distortion, view_index=view)
+    try:
+        frame = render(carm, bodies, fluoro=scene.fluoroscope,
+                       rng=np.random.default_rng(noise_ss), noise=noise)
+    except ValueError as exc:
+        raise ValueError(f"views[{view}] ({vspec.name!r}): {exc}") from None
+    has_bone = any(mat in BONE_MATERIALS for mat in frame.materials.values())
+    if has_bone and not frame.bone_mask.any():
+        raise ValueError(
+            f"views[{view}] ({vspec.name!r}): the field of view misses the anatomy (no bone "
+            f"in the image); check views[{view}].isocenter_mm = {list(vspec.isocenter_mm)} "
+            "and the orbital/angular angles against patient.position_mm"
+        )
+    return frame
+
+
+def render_command(scene, *, view: int, out: Path, seed: int | None) -> None:
+    """``testbed render``: write the 8-bit frame of view ``view`` to ``out`` (PNG)."""
+    from testbed.scene import SceneError
+
+    try:
+        frame = render_view(scene, view, seed=seed)
+    except ValueError as exc:
+        raise SceneError(str(exc)) from None
+    import cv2
+
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(out), frame.image_u8):
+        raise SceneError(f"--out {out}: could not write the image (is it a .png path?)")
