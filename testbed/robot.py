@@ -1,11 +1,544 @@
-"""The surgical robot in pybullet, its rod, and calibration sweeps. (Issue 7 fills this.)"""
+"""The surgical robot in pybullet, its calibration rod, and the robot's imperfections.
+
+The robot is a 5-DOF SCARA-like arm (after ROBODOC): base yaw, elbow yaw, a vertical slide,
+wrist yaw and wrist pitch. Its tool is the calibration rod: a radiolucent ULTEM cylinder with
+steel beads on its axis and a metallic tip. Five joints place a *line* (a point on the rod
+and the rod's direction); the roll of the rod about its own axis is not controlled and does
+not matter, because the beads lie on the axis.
+
+Frames (DESIGN.md): ``robot`` is the robot base (z up, the frame of calibration); ``rod`` has
+its origin at the centre of bead 0 and its +x axis along the rod towards the tip; the beads
+sit at ``x = RodSpec.bead_positions_mm()`` on that axis.
+
+Imperfection, as a real robot has it. The controller knows only the *nominal* kinematic
+model; the *true* arm differs from it by small kinematic offsets (joint origins moved by
+``kinematic_offset_mm`` and turned by ``kinematic_offset_deg``, drawn once per robot from its
+``rng``). After a move, the servo stops where the encoders read the commanded angles, but the
+encoders err by ``encoder_noise_deg`` / ``encoder_noise_mm`` (a fresh draw per move), so the
+true joints differ from the read ones. The robot *reports* the nominal model at the read
+joints (:attr:`Robot.reported_rod2robot`); the world holds the true model at the true joints
+(:attr:`Robot.true_rod2robot`). Beads are rendered at the true pose; the calibration only
+ever sees the reported one.
+
+pybullet works in metres inside this module (its collision margins are tuned for metres);
+everything that leaves the module is in mm.
+"""
 
 from __future__ import annotations
 
-from testbed.spec import Spec
+import os
+import tempfile
+from typing import Annotated
+
+import numpy as np
+import pybullet
+import trimesh
+from pydantic import Field, model_validator
+from scipy.spatial.transform import Rotation
+
+from reglib.geometry import RigidTransform
+from testbed.bodies import Body
+from testbed.spec import NonNegative, Positive, Spec
+
+__all__ = [
+    "JOINT_NAMES",
+    "RodSpec",
+    "SweepSpec",
+    "RobotSpec",
+    "Robot",
+    "robot_urdf",
+    "rod_bodies",
+]
+
+JOINT_NAMES = ("yaw", "elbow", "slide", "wrist", "pitch")
+_PRISMATIC = (False, False, True, False, False)
+_M = 1e-3  # metres per mm
+
+
+# --------------------------------------------------------------------------- scene sections
+class RodSpec(Spec):
+    """``[robot.rod]``: the calibration rod (a radiolucent cylinder with steel beads).
+
+    ``bead_spacings_mm``: the gaps between consecutive beads, from bead 0 (nearest the robot's
+    wrist) towards the tip. Unequal gaps make every bead identifiable from 4 visible ones
+    (the default pattern was chosen so that no shifted or reversed run of 4 beads, with at
+    most one missing, has gap ratios within 0.034 of another's).
+    """
+
+    diameter_mm: Positive = 10.0
+    material: str = "ultem"
+    bead_diameter_mm: Positive = 2.0
+    bead_material: str = "steel"
+    bead_spacings_mm: tuple[float, ...] = (14.0, 27.0, 16.0, 12.0, 30.0, 21.0, 24.0)
+    mount_mm: Positive = 120.0          # from the wrist pitch axis to bead 0, along the rod
+    tip_gap_mm: Positive = 25.0         # from the last bead to the start of the tip
+    tip_length_mm: Positive = 12.0
+    tip_diameter_mm: Positive = 4.0
+    tip_material: str = "steel"
+
+    @model_validator(mode="after")
+    def _check(self):
+        if len(self.bead_spacings_mm) < 3:
+            raise ValueError("bead_spacings_mm: at least 3 gaps (4 beads) are needed")
+        if min(self.bead_spacings_mm) <= 3 * self.bead_diameter_mm:
+            raise ValueError("bead_spacings_mm: every gap must exceed 3 bead diameters")
+        if self.bead_diameter_mm >= self.diameter_mm:
+            raise ValueError("bead_diameter_mm must be smaller than the rod diameter_mm")
+        return self
+
+    def bead_positions_mm(self) -> np.ndarray:
+        """Bead centres along the rod axis, ``(n_beads,)`` mm from bead 0 (rod frame x)."""
+        return np.concatenate([[0.0], np.cumsum(self.bead_spacings_mm)])
+
+    @property
+    def n_beads(self) -> int:
+        return len(self.bead_spacings_mm) + 1
+
+
+class SweepSpec(Spec):
+    """``[robot.sweep]``: the calibration sweep per C-arm view (``testbed.sweep``).
+
+    Two planes between source and intensifier at ``near_fraction`` and ``far_fraction`` of
+    the source-to-image distance, perpendicular to the beam unless ``tilt_deg`` turns them
+    about the rod's direction. The rod lies in the plane along ``rod_angle_deg`` (from the
+    C-arm's x axis) and is stepped ``rows_per_plane`` times across it so the beads cover
+    ``coverage`` of the field. Each plane starts with a frame with the rod parked outside the
+    beam (a reference for the first difference). A validation row follows, in a plane at
+    ``validation_fraction`` turned by ``validation_angle_deg``.
+    """
+
+    near_fraction: Annotated[float, Field(gt=0.05, lt=0.99)] = 0.6
+    far_fraction: Annotated[float, Field(gt=0.05, lt=0.99)] = 0.8
+    tilt_deg: Annotated[float, Field(ge=-45, le=45)] = 0.0
+    rod_angle_deg: float = 0.0
+    rows_per_plane: Annotated[int, Field(ge=3, le=50)] = 7
+    coverage: Annotated[float, Field(gt=0, le=1.2)] = 0.8
+    validation_fraction: Annotated[float, Field(gt=0.05, lt=0.99)] = 0.7
+    validation_angle_deg: float = 30.0
+    validation_offset_mm: float = 5.0
+    move_time_s: Positive = 1.0
+    dose_rate_mrem_per_min: Positive = 45.0
+    park_distance_mm: Positive = 250.0
+
+    @model_validator(mode="after")
+    def _check(self):
+        if not self.near_fraction < self.far_fraction:
+            raise ValueError("near_fraction must be smaller than far_fraction")
+        return self
 
 
 class RobotSpec(Spec):
-    """``[robot]``: the robot, its rod and its imperfections."""
+    """``[robot]``: the robot, its rod, its sweeps and its imperfections.
+
+    Geometry (mm): the base yaw axis is the robot frame's z axis; link 1 (``link1_mm``) and
+    link 2 (``link2_mm``) are horizontal at ``base_height_mm``; the slide moves the quill
+    within ``slide_range_mm``; the wrist sits ``quill_mm`` below link 2 and the pitch axis
+    ``pitch_drop_mm`` below the wrist. ``urdf``: ``"builtin"`` (generated from these fields)
+    or a path to a URDF with the same five joint names.
+    """
 
     urdf: str = "builtin"
+    base_height_mm: float = 500.0
+    link1_mm: Positive = 550.0
+    link2_mm: Positive = 450.0
+    slide_range_mm: tuple[float, float] = (-700.0, 500.0)
+    quill_mm: Positive = 250.0
+    pitch_drop_mm: Positive = 60.0
+    elbow_limit_deg: Annotated[float, Field(gt=0, le=180)] = 160.0
+    pitch_limit_deg: Annotated[float, Field(gt=0, le=180)] = 120.0
+    encoder_noise_deg: NonNegative = 0.0005
+    encoder_noise_mm: NonNegative = 0.002
+    kinematic_offset_mm: NonNegative = 0.02
+    kinematic_offset_deg: NonNegative = 0.002
+    ik_tolerance_mm: Positive = 1e-3
+    rod: RodSpec = RodSpec()
+    sweep: SweepSpec = SweepSpec()
+
+    @model_validator(mode="after")
+    def _check(self):
+        lo, hi = self.slide_range_mm
+        if not lo < hi:
+            raise ValueError("slide_range_mm: expected (low, high) with low < high")
+        return self
+
+    def without_errors(self) -> RobotSpec:
+        """The same robot with no encoder noise and no kinematic offsets (a perfect robot)."""
+        return self.model_copy(update=dict(encoder_noise_deg=0.0, encoder_noise_mm=0.0,
+                                           kinematic_offset_mm=0.0, kinematic_offset_deg=0.0))
+
+
+# --------------------------------------------------------------------------- URDF
+def _joint_origins(spec: RobotSpec) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Nominal (xyz mm, rpy rad) of each joint origin in its parent link, in URDF order."""
+    L = [np.array(v, dtype=float) for v in (
+        (0.0, 0.0, spec.base_height_mm),      # yaw, on the base
+        (spec.link1_mm, 0.0, 0.0),            # elbow, at the end of link 1
+        (spec.link2_mm, 0.0, 0.0),            # slide, at the end of link 2
+        (0.0, 0.0, -spec.quill_mm),           # wrist, at the foot of the quill
+        (0.0, 0.0, -spec.pitch_drop_mm),      # pitch, below the wrist
+    )]
+    return [(xyz, np.zeros(3)) for xyz in L]
+
+
+def robot_urdf(spec: RobotSpec, *, offsets=None) -> str:
+    """URDF text of the robot and its rod (lengths in metres, as pybullet expects).
+
+    Parameters
+    ----------
+    spec : RobotSpec
+    offsets : (5, 6) array or None
+        Per joint, a translation (mm, 3) and a rotation (rad, roll-pitch-yaw, 3) added to the
+        nominal joint origin: the true arm's kinematic errors. None: the nominal arm.
+    """
+    origins = _joint_origins(spec)
+    if offsets is not None:
+        offsets = np.asarray(offsets, dtype=float).reshape(5, 6)
+        origins = [(xyz + off[:3], rpy + off[3:]) for (xyz, rpy), off in zip(origins, offsets)]
+    rod = spec.rod
+    s = rod.bead_positions_mm()
+    r_rod = rod.diameter_mm / 2 * _M
+    rod_len = (rod.mount_mm + s[-1] + rod.tip_gap_mm) * _M
+    lo, hi = spec.slide_range_mm
+    el = np.radians(spec.elbow_limit_deg)
+    pl = np.radians(spec.pitch_limit_deg)
+
+    def box(size_m, xyz_m):
+        return (f'<collision><origin xyz="{xyz_m[0]:.9g} {xyz_m[1]:.9g} {xyz_m[2]:.9g}"/>'
+                f'<geometry><box size="{size_m[0]:.9g} {size_m[1]:.9g} {size_m[2]:.9g}"/>'
+                f'</geometry></collision>')
+
+    def inertial():
+        return ('<inertial><mass value="1"/>'
+                '<inertia ixx="0.01" ixy="0" ixz="0" iyy="0.01" iyz="0" izz="0.01"/></inertial>')
+
+    def link(name, body=""):
+        return f'<link name="{name}">{inertial()}{body}</link>'
+
+    def joint(name, kind, parent, child, xyz_mm, rpy, axis="0 0 1", limit=None):
+        x = np.asarray(xyz_mm) * _M
+        lim = ""
+        if limit is not None:
+            lim = (f'<limit lower="{limit[0]:.12g}" upper="{limit[1]:.12g}" effort="100" '
+                   f'velocity="1"/>')
+        return (f'<joint name="{name}" type="{kind}"><parent link="{parent}"/>'
+                f'<child link="{child}"/><origin xyz="{x[0]:.12g} {x[1]:.12g} {x[2]:.12g}" '
+                f'rpy="{rpy[0]:.12g} {rpy[1]:.12g} {rpy[2]:.12g}"/><axis xyz="{axis}"/>{lim}'
+                f'</joint>')
+
+    h = spec.base_height_mm * _M
+    l1, l2 = spec.link1_mm * _M, spec.link2_mm * _M
+    q = spec.quill_mm * _M
+    parts = [
+        '<?xml version="1.0"?>', '<robot name="scara5">',
+        link("base", box((0.3, 0.3, max(h, 0.05)), (0, 0, h / 2))),
+        link("link1", box((l1, 0.12, 0.1), (l1 / 2, 0, 0.06))),
+        link("link2", box((l2, 0.1, 0.08), (l2 / 2, 0, 0.06))),
+        link("quill", box((0.06, 0.06, q), (0, 0, q / 2))),
+        link("wrist", box((0.07, 0.07, spec.pitch_drop_mm * _M),
+                          (0, 0, spec.pitch_drop_mm * _M / 2))),
+        # the rod holder: the rod runs along +x from the pitch axis
+        link("rod_mount", box((rod_len, 2 * r_rod, 2 * r_rod), (rod_len / 2, 0, 0))),
+        link("bead0"),
+        link("rod_end"),
+    ]
+    names = ["base", "link1", "link2", "quill", "wrist", "rod_mount"]
+    kinds = ["revolute", "revolute", "prismatic", "revolute", "revolute"]
+    axes = ["0 0 1", "0 0 1", "0 0 1", "0 0 1", "0 1 0"]
+    limits = [(-np.radians(175), np.radians(175)), (-el, el), (lo * _M, hi * _M),
+              (-np.pi, np.pi), (-pl, pl)]
+    for i, jn in enumerate(JOINT_NAMES):
+        xyz, rpy = origins[i]
+        parts.append(joint(jn, kinds[i], names[i], names[i + 1], xyz, rpy, axes[i], limits[i]))
+    parts.append(joint("bead0_fixed", "fixed", "rod_mount", "bead0",
+                       (rod.mount_mm, 0, 0), (0, 0, 0)))
+    parts.append(joint("rod_end_fixed", "fixed", "bead0", "rod_end", (s[-1], 0, 0), (0, 0, 0)))
+    parts.append("</robot>")
+    return "\n".join(parts)
+
+
+# --------------------------------------------------------------------------- rod bodies
+def rod_bodies(rod: RodSpec, rod2robot: RigidTransform, *, name: str = "rod") -> list[Body]:
+    """The rod as world bodies (robot frame, mm): ULTEM cylinder, steel beads, steel tip.
+
+    The beads are exact spheres nested in the cylinder; the tip is a steel cylinder beyond the
+    rod's far end (in air).
+    """
+    s = rod.bead_positions_mm()
+    start = -rod.mount_mm + 10.0  # the cylinder starts just past the holder
+    end = s[-1] + rod.tip_gap_mm
+    cyl = trimesh.creation.cylinder(radius=rod.diameter_mm / 2, height=end - start, sections=48)
+    # trimesh cylinders run along z, centred; lay it along rod x
+    to_x = RigidTransform.from_rotvec([0.0, np.pi / 2, 0.0], [(start + end) / 2, 0.0, 0.0])
+    cyl.apply_transform((rod2robot @ to_x).as_matrix())
+    tip = trimesh.creation.cylinder(radius=rod.tip_diameter_mm / 2, height=rod.tip_length_mm,
+                                    sections=32)
+    to_tip = RigidTransform.from_rotvec([0.0, np.pi / 2, 0.0],
+                                        [end + rod.tip_length_mm / 2, 0.0, 0.0])
+    tip.apply_transform((rod2robot @ to_tip).as_matrix())
+    beads = rod2robot.apply(np.column_stack([s, np.zeros_like(s), np.zeros_like(s)]))
+    return [
+        Body(name, rod.material, mesh=cyl),
+        Body(f"{name}_beads", rod.bead_material, sphere_centers=beads,
+             sphere_radii=np.full(len(s), rod.bead_diameter_mm / 2), inside=name),
+        Body(f"{name}_tip", rod.tip_material, mesh=tip),
+    ]
+
+
+# --------------------------------------------------------------------------- the robot
+class Robot:
+    """A pybullet robot (DIRECT mode, its own client) holding the calibration rod.
+
+    Use as a context manager or call :meth:`close`. Two arms live in the client: the
+    *nominal* model (what the controller knows; used for inverse kinematics and for the
+    reported pose) and the *true* arm (nominal plus kinematic offsets; used for the world's
+    rod, the rendered beads and collision checks). Collisions between the two are disabled.
+
+    Parameters
+    ----------
+    spec : RobotSpec
+    rng : numpy Generator, int seed or None
+        Draws the kinematic offsets now and the encoder errors at every move.
+    """
+
+    def __init__(self, spec: RobotSpec | None = None, *, rng=None):
+        self.spec = spec or RobotSpec()
+        self.rng = np.random.default_rng(rng)
+        self.client = pybullet.connect(pybullet.DIRECT)
+        self._closed = False
+        sp = self.spec
+        off = np.zeros((5, 6))
+        off[:, :3] = self.rng.normal(0.0, sp.kinematic_offset_mm, (5, 3))
+        off[:, 3:] = np.radians(self.rng.normal(0.0, sp.kinematic_offset_deg, (5, 3)))
+        self.kinematic_offsets = off
+        self._dir = tempfile.TemporaryDirectory(prefix="testbed_robot_")
+        if sp.urdf == "builtin":
+            nominal_text, true_text = robot_urdf(sp), robot_urdf(sp, offsets=off)
+        else:
+            try:
+                nominal_text = true_text = open(sp.urdf).read()
+            except OSError as exc:
+                raise ValueError(f"robot.urdf: cannot read {sp.urdf!r} ({exc})") from None
+        self.nominal_id = self._load(nominal_text, "nominal.urdf")
+        self.true_id = self._load(true_text, "true.urdf")
+        self._index = self._joint_index(self.nominal_id)
+        self.movable = [self._index[n] for n in JOINT_NAMES]
+        self.bead0_link = self._index["bead0_fixed"]
+        self.end_link = self._index["rod_end_fixed"]
+        info = [pybullet.getJointInfo(self.nominal_id, j, physicsClientId=self.client)
+                for j in self.movable]
+        self.lower = np.array([i[8] for i in info])
+        self.upper = np.array([i[9] for i in info])
+        # never let the two arms collide with each other
+        n = pybullet.getNumJoints(self.nominal_id, physicsClientId=self.client)
+        for a in range(-1, n):
+            for b in range(-1, n):
+                pybullet.setCollisionFilterPair(self.nominal_id, self.true_id, a, b, 0,
+                                                physicsClientId=self.client)
+        self.q_commanded = np.zeros(5)   # joint values (rad, rad, m, rad, rad)
+        self.q_read = np.zeros(5)
+        self.q_true = np.zeros(5)
+        self._set(self.nominal_id, self.q_read)
+        self._set(self.true_id, self.q_true)
+
+    # -- lifetime
+    def _load(self, text, fname):
+        path = os.path.join(self._dir.name, fname)
+        with open(path, "w") as f:
+            f.write(text)
+        return pybullet.loadURDF(path, useFixedBase=True, physicsClientId=self.client,
+                                 flags=pybullet.URDF_USE_SELF_COLLISION * 0)
+
+    def close(self) -> None:
+        if not self._closed:
+            pybullet.disconnect(physicsClientId=self.client)
+            self._dir.cleanup()
+            self._closed = True
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001 - interpreter shutdown
+            pass
+
+    def _joint_index(self, body):
+        n = pybullet.getNumJoints(body, physicsClientId=self.client)
+        out = {}
+        for j in range(n):
+            out[pybullet.getJointInfo(body, j, physicsClientId=self.client)[1].decode()] = j
+        missing = [k for k in (*JOINT_NAMES, "bead0_fixed", "rod_end_fixed") if k not in out]
+        if missing:
+            raise ValueError(f"robot.urdf: the URDF lacks the joints {missing}")
+        return out
+
+    # -- kinematics (joint units: rad, and m for the slide)
+    def _set(self, body, q):
+        for j, v in zip(self.movable, q):
+            pybullet.resetJointState(body, j, float(v), physicsClientId=self.client)
+
+    def _link_pose(self, body, link) -> RigidTransform:
+        st = pybullet.getLinkState(body, link, computeForwardKinematics=True,
+                                   physicsClientId=self.client)
+        R = Rotation.from_quat(st[5]).as_matrix()
+        return RigidTransform(R, np.asarray(st[4]) / _M)
+
+    def forward(self, q, *, true: bool = False) -> RigidTransform:
+        """``rod2robot`` of the nominal (or true) arm at joints ``q`` (rad, rad, mm, rad, rad).
+
+        Leaves the arm at ``q`` (the other arm is not moved).
+        """
+        q = self._to_internal(q)
+        body = self.true_id if true else self.nominal_id
+        self._set(body, q)
+        return self._link_pose(body, self.bead0_link)
+
+    @staticmethod
+    def _to_internal(q_user):
+        q = np.array(q_user, dtype=float).reshape(5)
+        q[2] *= _M
+        return q
+
+    @staticmethod
+    def _to_user(q):
+        q = np.array(q, dtype=float).reshape(5)
+        q[2] /= _M
+        return q
+
+    def _targets_mm(self, q):
+        self._set(self.nominal_id, q)
+        a = self._link_pose(self.nominal_id, self.bead0_link).t
+        b = self._link_pose(self.nominal_id, self.end_link).t
+        return a, b
+
+    def _newton(self, q, goal_a, goal_b, *, iterations=12):
+        """Gauss-Newton refinement of joints ``q`` (internal units) towards the two targets.
+
+        Jacobian by central differences (pybullet returns link poses in single precision, so
+        the step is large enough to stay above its rounding); steps are clipped to the limits.
+        """
+        def resid(x):
+            a, b = self._targets_mm(x)
+            return np.r_[a - goal_a, b - goal_b]
+
+        h = 1e-5
+        r = resid(q)
+        for _ in range(iterations):
+            J = np.empty((6, 5))
+            for k in range(5):
+                e = np.zeros(5)
+                e[k] = h
+                J[:, k] = (resid(q + e) - resid(q - e)) / (2 * h)
+            dq = np.linalg.lstsq(J, -r, rcond=1e-10)[0]
+            q_new = np.clip(q + dq, self.lower, self.upper)
+            r_new = resid(q_new)
+            if np.linalg.norm(r_new) >= np.linalg.norm(r):
+                break
+            q, r = q_new, r_new
+            if np.abs(r).max() < 1e-5:
+                break
+        return q
+
+    def inverse(self, point_robot, direction_robot) -> np.ndarray:
+        """Joints (rad, rad, mm, rad, rad) that put bead 0 at ``point_robot`` (3,) mm and the
+        rod's axis along unit ``direction_robot`` (3,), by pybullet IK refined by Newton steps
+        (Gauss-Newton on the two bead targets). Raises ``ValueError`` if the pose is unreachable,
+        saying how far off the best solution stays.
+        """
+        p = np.asarray(point_robot, dtype=float).reshape(-1)
+        d = np.asarray(direction_robot, dtype=float).reshape(-1)
+        if p.shape != (3,) or d.shape != (3,) or not np.all(np.isfinite(np.r_[p, d])):
+            raise ValueError("place_rod: point and direction must be finite (3,) vectors")
+        nd = np.linalg.norm(d)
+        if nd < 1e-9:
+            raise ValueError("place_rod: direction has zero length")
+        d = d / nd
+        span = self.spec.rod.bead_positions_mm()[-1]
+        goal_a, goal_b = p, p + span * d
+        mid = 0.5 * (self.lower + self.upper)
+        seeds = [self.q_commanded * np.r_[1, 1, _M, 1, 1], mid,
+                 np.r_[0.7, 1.2, mid[2], 0.0, 0.0], np.r_[-0.7, -1.2, mid[2], 0.0, 0.0]]
+        best, best_err = None, np.inf
+        for seed in seeds:
+            self._set(self.nominal_id, np.clip(seed, self.lower, self.upper))
+            # pybullet's IK with two end effectors (bead 0 and the last bead); its null-space
+            # options are not supported for several end effectors, so limits are applied after
+            q = pybullet.calculateInverseKinematics2(
+                self.nominal_id, [self.bead0_link, self.end_link],
+                [list(goal_a * _M), list(goal_b * _M)],
+                maxNumIterations=200, residualThreshold=1e-10, physicsClientId=self.client)
+            q = np.asarray(q, dtype=float)
+            q[[0, 1, 3, 4]] = (q[[0, 1, 3, 4]] + np.pi) % (2 * np.pi) - np.pi
+            x = self._newton(np.clip(q, self.lower, self.upper), goal_a, goal_b)
+            a, b = self._targets_mm(x)
+            err = max(np.linalg.norm(a - goal_a), np.linalg.norm(b - goal_b))
+            if err < best_err:
+                best, best_err = x, err
+            if best_err <= self.spec.ik_tolerance_mm:
+                break
+        if best_err > self.spec.ik_tolerance_mm:
+            raise ValueError(
+                f"place_rod: pose unreachable: point {np.round(p, 2).tolist()} mm, direction "
+                f"{np.round(d, 4).tolist()}: the best joint solution leaves the rod "
+                f"{best_err:.3f} mm off the commanded line (tolerance "
+                f"{self.spec.ik_tolerance_mm} mm)")
+        return self._to_user(best)
+
+    def move_joints(self, q_user) -> None:
+        """Command joints (rad, rad, mm, rad, rad); the true arm ends up with encoder error."""
+        q = self._to_internal(q_user)
+        if np.any(q < self.lower - 1e-12) or np.any(q > self.upper + 1e-12):
+            raise ValueError(f"move_joints: joints {np.round(q_user, 4).tolist()} outside the "
+                             f"limits {self.lower.tolist()} .. {self.upper.tolist()}")
+        sp = self.spec
+        sig = np.array([sp.encoder_noise_deg] * 5)
+        sig = np.radians(sig)
+        sig[2] = sp.encoder_noise_mm * _M
+        self.q_commanded = q
+        self.q_read = q.copy()                      # the servo stops at the commanded reading
+        self.q_true = q + self.rng.normal(0.0, 1.0, 5) * sig
+        self._set(self.nominal_id, self.q_read)
+        self._set(self.true_id, self.q_true)
+
+    def place_rod(self, point_robot, direction_robot) -> np.ndarray:
+        """Put bead 0 at ``point_robot`` (3,) mm with the rod along ``direction_robot`` (3,).
+
+        Inverse kinematics on the nominal model, checked by its forward kinematics; then the
+        move (encoder errors drawn). Returns the commanded joints (rad, rad, mm, rad, rad).
+        Raises ``ValueError`` for an unreachable pose.
+        """
+        q = self.inverse(point_robot, direction_robot)
+        self.move_joints(q)
+        return q
+
+    def park(self, point_robot, direction_robot) -> np.ndarray:
+        """Alias of :meth:`place_rod` for moving the rod out of the beam."""
+        return self.place_rod(point_robot, direction_robot)
+
+    # -- poses after the last move
+    @property
+    def reported_rod2robot(self) -> RigidTransform:
+        """The rod pose the robot reports: nominal model at the encoder readings."""
+        self._set(self.nominal_id, self.q_read)
+        return self._link_pose(self.nominal_id, self.bead0_link)
+
+    @property
+    def true_rod2robot(self) -> RigidTransform:
+        """The rod's true pose: the true arm at the true joints (simulator only)."""
+        self._set(self.true_id, self.q_true)
+        return self._link_pose(self.true_id, self.bead0_link)
+
+    def bead_positions(self, *, true: bool = False) -> np.ndarray:
+        """Bead centres in the robot frame, ``(n_beads, 3)`` mm (reported, or ``true``)."""
+        s = self.spec.rod.bead_positions_mm()
+        local = np.column_stack([s, np.zeros_like(s), np.zeros_like(s)])
+        pose = self.true_rod2robot if true else self.reported_rod2robot
+        return pose.apply(local)
+
+    def rod_bodies(self) -> list[Body]:
+        """The rod at its true pose, as world bodies (robot frame)."""
+        return rod_bodies(self.spec.rod, self.true_rod2robot)
