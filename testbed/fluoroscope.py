@@ -172,24 +172,41 @@ class Distortion:
         q = np.stack([cs * p[..., 0] - sn * p[..., 1], sn * p[..., 0] + cs * p[..., 1]], -1)
         return c + q + np.asarray(self.shift_px)
 
-    def undistort(self, xy_px, *, tol_px: float = 1e-10, max_iter: int = 100) -> np.ndarray:
+    def jacobian(self, xy_px) -> np.ndarray:
+        """``d distort / d u`` at undistorted pixels ``(N, 2)``: ``(N, 2, 2)`` (analytic)."""
+        u = np.asarray(xy_px, dtype=np.float64)
+        p = u - np.asarray(self.center_px)
+        r0 = self.radius_px**2
+        rho2 = np.sum(p * p, axis=-1) / r0
+        g = 1.0 + self.k1 * rho2 + self.k2 * rho2 * rho2
+        th = self.rotation_edge_rad * rho2
+        q = p * g[..., None]
+        jq = np.stack([-q[..., 1], q[..., 0]], -1)  # d Rot(theta) q / d theta, before Rot
+        dg = (2.0 / r0) * (self.k1 + 2.0 * self.k2 * rho2)
+        dth = (2.0 / r0) * self.rotation_edge_rad
+        inner = (g[..., None, None] * np.eye(2)
+                 + dg[..., None, None] * p[..., :, None] * p[..., None, :]
+                 + dth * jq[..., :, None] * p[..., None, :])
+        cs, sn = np.cos(th), np.sin(th)
+        rot = np.stack([np.stack([cs, -sn], -1), np.stack([sn, cs], -1)], -2)
+        return rot @ inner
+
+    def undistort(self, xy_px, *, tol_px: float = 1e-10, max_iter: int = 50) -> np.ndarray:
         """Undistorted pixels ``(N, 2)`` of distorted pixels ``(N, 2)``: ``distort``'s inverse.
 
-        Newton iterations with a numerical Jacobian; raises ``ValueError`` if they do not
-        converge to ``tol_px`` (the distortion must stay a one-to-one map there).
+        Newton iterations with the analytic Jacobian; raises ``ValueError`` if they do not
+        converge to ``tol_px`` (the distortion must stay one-to-one there).
         """
         d = np.asarray(xy_px, dtype=np.float64)
         u = d - np.asarray(self.shift_px)
-        h = 1e-3
         for _ in range(max_iter):
             r = self.distort(u) - d
             if np.max(np.abs(r), initial=0.0) < tol_px:
                 return u
-            jx = (self.distort(u + [h, 0.0]) - self.distort(u - [h, 0.0])) / (2 * h)
-            jy = (self.distort(u + [0.0, h]) - self.distort(u - [0.0, h])) / (2 * h)
-            det = jx[..., 0] * jy[..., 1] - jy[..., 0] * jx[..., 1]
-            du0 = (jy[..., 1] * r[..., 0] - jy[..., 0] * r[..., 1]) / det
-            du1 = (-jx[..., 1] * r[..., 0] + jx[..., 0] * r[..., 1]) / det
+            J = self.jacobian(u)
+            det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
+            du0 = (J[..., 1, 1] * r[..., 0] - J[..., 0, 1] * r[..., 1]) / det
+            du1 = (-J[..., 1, 0] * r[..., 0] + J[..., 0, 0] * r[..., 1]) / det
             u = u - np.stack([du0, du1], -1)
         raise ValueError(
             f"Distortion.undistort: no convergence to {tol_px} px in {max_iter} iterations "
@@ -306,12 +323,22 @@ class CArm:
                            np.arange(self.height_px, dtype=np.float64))
         return np.stack([x, y], -1)
 
+    def _undistorted_grid(self) -> np.ndarray:
+        """Undistorted pixel ``(H, W, 2)`` of every pixel centre (computed once per C-arm)."""
+        if "undist" not in self._cache:
+            g = self.pixel_grid()
+            self._cache["undist"] = self.undistort_px(g.reshape(-1, 2)).reshape(g.shape)
+        return self._cache["undist"]
+
     def pixel_ray_map(self) -> tuple[np.ndarray, np.ndarray]:
         """The truth: the X-ray path of every pixel, ``origins (H, W, 3)`` and unit
         ``directions (H, W, 3)`` in the robot frame (mm)."""
         if "rays" not in self._cache:
-            o, d = self.true_rays(self.pixel_grid().reshape(-1, 2))
+            p = self._plane_points(self._undistorted_grid().reshape(-1, 2))
+            d = p / np.linalg.norm(p, axis=1, keepdims=True)
+            d = np.einsum("ij,nj->ni", self.carm2robot.R, d)
             shape = (self.height_px, self.width_px, 3)
+            o = np.broadcast_to(self.source_robot, d.shape)
             self._cache["rays"] = (o.reshape(shape), d.reshape(shape))
         o, d = self._cache["rays"]
         return o.copy(), d.copy()
@@ -319,18 +346,25 @@ class CArm:
     def fov_rho(self, xy_px) -> np.ndarray:
         """Radius on the input plane over the field-of-view radius, for distorted pixels
         ``(N, 2)``; the field of view is ``rho <= 1``. Returns ``(N,)``."""
-        p = self._plane_points(self.undistort_px(np.asarray(xy_px, dtype=np.float64)))
+        return self._rho_of_undistorted(self.undistort_px(np.asarray(xy_px, dtype=np.float64)))
+
+    def _rho_of_undistorted(self, xy_u) -> np.ndarray:
+        p = self._plane_points(xy_u)
         return np.hypot(p[..., 0], p[..., 1]) / self.fov_radius_mm
+
+    def rho_map(self) -> np.ndarray:
+        """``fov_rho`` of every pixel centre, ``(H, W)``."""
+        if "rho" not in self._cache:
+            self._cache["rho"] = self._rho_of_undistorted(self._undistorted_grid())
+        return self._cache["rho"]
 
     def fov_mask(self) -> np.ndarray:
         """Pixels inside the circular field of view, ``(H, W)`` bool."""
-        rho = self.fov_rho(self.pixel_grid().reshape(-1, 2))
-        return (rho <= 1.0).reshape(self.height_px, self.width_px)
+        return self.rho_map() <= 1.0
 
     def displacement_field(self) -> np.ndarray:
         """Distorted minus undistorted position ``(H, W, 2)`` px at every distorted pixel."""
-        g = self.pixel_grid()
-        return g - self.undistort_px(g.reshape(-1, 2)).reshape(g.shape)
+        return self.pixel_grid() - self._undistorted_grid()
 
 
 def view_pose(view: ViewSpec) -> RigidTransform:
@@ -496,7 +530,7 @@ def render(carm: CArm, bodies: list[Body], *, fluoro: FluoroscopeSpec, rng=None,
         trans += np.exp(-a) / len(subs)
         lengths += L / len(subs)
 
-    rho = carm.fov_rho(grid)
+    rho = carm.rho_map()[fov]
     rng = np.random.default_rng(rng)
     if use_noise:
         n0 = fluoro.photons_per_pixel

@@ -1,0 +1,213 @@
+"""The fluoroscope: projection geometry, intensifier distortion, image formation, bad input."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from testbed.bodies import Body
+from testbed.fluoroscope import (
+    FluoroscopeSpec,
+    ViewSpec,
+    make_carm,
+    render,
+    render_view,
+)
+from testbed.instruments import InstrumentSpec, make_instrument
+from testbed.scene import parse_scene
+
+CLEAN = FluoroscopeSpec(glare_fraction=0.0, vignetting=0.0, noise=False, oversample=3)
+VIEW = ViewSpec(name="oblique", isocenter_mm=(10.0, -20.0, 5.0), angular_deg=20.0,
+                orbital_deg=-10.0)
+
+
+def _beads(carm, rng, n=6):
+    """Bead centres (robot frame) spread over the field of view, 600-700 mm from the source."""
+    local = np.c_[rng.uniform(-50, 50, (n, 2)), rng.uniform(600, 700, n)]
+    return carm.carm2robot.apply(local)
+
+
+def _centroids(image, xy_guess, r=12):
+    """Attenuation-weighted centroids (x, y) of dark blobs near ``xy_guess`` (N, 2)."""
+    out = []
+    for x, y in xy_guess:
+        x0, y0 = int(round(x)), int(round(y))
+        win = image[y0 - r:y0 + r + 1, x0 - r:x0 + r + 1].astype(np.float64)
+        w = -np.log(win)
+        yy, xx = np.mgrid[y0 - r:y0 + r + 1, x0 - r:x0 + r + 1]
+        out.append(((w * xx).sum() / w.sum(), (w * yy).sum() / w.sum()))
+    return np.array(out)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("distortion", [False, True])
+def test_bead_centroid_matches_true_projection(distortion):
+    rng = np.random.default_rng(4)
+    carm = make_carm(CLEAN, VIEW, distortion=distortion)
+    centres = _beads(carm, rng)
+    frame = render(carm, [Body("beads", "steel", sphere_centers=centres, sphere_radii=1.5)],
+                   fluoro=CLEAN)
+    truth = carm.project(centres)
+    # the pinhole and the true model are written independently: x = f X / Z (+ distortion)
+    local = carm.carm2robot.inverse().apply(centres)
+    pinhole = carm.principal_px + CLEAN.sid_mm * local[:, :2] / (local[:, 2:] * CLEAN.pixel_mm)
+    found = _centroids(frame.image, truth)
+    err = np.linalg.norm(found - truth, axis=1)
+    assert err.max() < 0.05, err
+    if distortion:
+        # the distortion is large enough here that the test could not pass by accident
+        assert np.linalg.norm(truth - pinhole, axis=1).max() > 2.0
+        assert np.allclose(truth, carm.distortion.distort(pinhole), atol=1e-9)
+    else:
+        assert np.allclose(truth, pinhole, atol=1e-9)
+
+
+def test_true_rays_and_project_are_inverse():
+    rng = np.random.default_rng(5)
+    carm = make_carm(FluoroscopeSpec(), VIEW)
+    pts = _beads(carm, rng, n=200)
+    xy = carm.project(pts)
+    o, d = carm.true_rays(xy)
+    assert np.allclose(np.linalg.norm(d, axis=1), 1.0)
+    assert np.allclose(o, carm.source_robot)
+    # each point lies on the ray of the pixel where it appears
+    w = pts - o
+    perp = w - np.sum(w * d, axis=1, keepdims=True) * d
+    assert np.linalg.norm(perp, axis=1).max() < 1e-6
+    xy_px = rng.uniform(0, 640, (300, 2))
+    o, d = carm.true_rays(xy_px)
+    assert np.abs(carm.project(o + 800.0 * d) - xy_px).max() < 1e-6
+    # the ray map holds the same rays
+    O, D = carm.pixel_ray_map()
+    assert O.shape == D.shape == (480, 640, 3)
+    o, d = carm.true_rays(np.array([[17.0, 33.0], [600.0, 400.0]]))
+    assert np.allclose(D[33, 17], d[0]) and np.allclose(D[400, 600], d[1])
+
+
+def test_distortion_magnitude_and_pose_dependence():
+    fluoro = FluoroscopeSpec()
+    a = make_carm(fluoro, ViewSpec(orbital_deg=0.0))
+    b = make_carm(fluoro, ViewSpec(orbital_deg=60.0, angular_deg=30.0))
+    fov = a.fov_mask()
+    da = np.linalg.norm(a.displacement_field()[fov], axis=1)
+    db = np.linalg.norm(b.displacement_field()[fov], axis=1)
+    # several pixels at the edge of a 9-inch field, sub-pixel near the centre
+    assert 3.0 < da.max() < 20.0 and 3.0 < db.max() < 20.0
+    assert np.median(da) < da.max() / 2
+    # the S-distortion follows the Earth's field, so the field changes with the pose
+    change = np.linalg.norm(a.displacement_field() - b.displacement_field(), axis=-1)[fov]
+    assert change.max() > 1.0
+    # no Earth's field: pincushion only, the same at both poses
+    calm = FluoroscopeSpec(earth_field_uT=(0.0, 0.0, 0.0))
+    ca = make_carm(calm, ViewSpec(orbital_deg=0.0)).displacement_field()
+    cb = make_carm(calm, ViewSpec(orbital_deg=60.0, angular_deg=30.0)).displacement_field()
+    assert np.abs(ca - cb).max() < 1e-9
+
+
+def test_circular_field_of_view_is_dark_outside():
+    fluoro = FluoroscopeSpec()
+    carm = make_carm(fluoro, ViewSpec())
+    frame = render(carm, [Body("bead", "steel", sphere_centers=[[0.0, 0.0, 0.0]],
+                                sphere_radii=2.0)], fluoro=fluoro, rng=1)
+    fov = frame.fov
+    # a 228.6 mm circle at 0.5 mm/px: pi * 228.6^2 pixels; the pincushion enlarges it
+    ideal = carm.undistorted().fov_mask().sum()
+    assert abs(ideal / (np.pi * 228.6**2) - 1.0) < 0.002
+    assert 1.02 < fov.sum() / ideal < 1.10
+    assert np.all(frame.image_u8[~fov] == 0)
+    assert frame.image_u8[fov].min() > 0
+    assert not fov[0, 0] and fov[240, 320]
+
+
+def test_beer_lambert_and_noise_statistics():
+    """Flat slab: the mean detected intensity is exp(-mu L), the spread is Poisson's."""
+    slab = trimesh.creation.box(extents=(300.0, 300.0, 20.0))  # 20 mm of steel-free tissue
+    bodies = [Body("slab", "soft_tissue", mesh=slab)]
+    fluoro = FluoroscopeSpec(glare_fraction=0.0, vignetting=0.0, distortion=False,
+                             photons_per_pixel=2000.0)
+    carm = make_carm(fluoro, ViewSpec(source_to_isocenter_mm=600.0))
+    frame = render(carm, bodies, fluoro=fluoro, rng=np.random.default_rng(7))
+    centre = frame.fov & (carm.rho_map() < 0.2)
+    # path length through the slab along each ray: 20 mm / cos(angle to the axis)
+    _, d = carm.pixel_ray_map()
+    path = 20.0 / (d @ carm.axis_robot)
+    assert np.allclose(frame.path_mm["slab"][frame.fov], path[frame.fov], atol=1e-4)
+    expected = np.exp(-0.0206 * path[centre])
+    rel = frame.image[centre] / expected
+    assert abs(rel.mean() - 1.0) < 0.002
+    assert abs(rel.std() * np.sqrt(2000.0 * expected.mean()) - 1.0) < 0.05
+    # the 8-bit frame decreases with attenuation (bone dark, air bright)
+    free = render(carm, [], fluoro=fluoro.model_copy(update={"noise": False}))
+    assert free.image_u8[centre].mean() > frame.image_u8[centre].mean() + 5
+
+
+def test_glare_and_vignetting_shape_the_flat_field():
+    fluoro = FluoroscopeSpec(noise=False, distortion=False)
+    carm = make_carm(fluoro, ViewSpec())
+    frame = render(carm, [], fluoro=fluoro)
+    rho = carm.rho_map()
+    centre = frame.image[frame.fov & (rho < 0.1)].mean()
+    edge = frame.image[frame.fov & (rho > 0.95)].mean()
+    assert centre == pytest.approx(1.0, abs=0.01)
+    # vignetting (25 % at the edge) plus the glare lost beyond the field's edge
+    assert 0.6 < edge < 0.75
+
+
+def _scene(views, **fluoro):
+    return parse_scene({
+        "scene": {"name": "t", "kind": "operating_room"},
+        "fluoroscope": fluoro,
+        "views": views,
+    })
+
+
+def _femur_stand_in():
+    bone = trimesh.creation.cylinder(radius=14.0, height=400.0, sections=64)
+    bone.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, (1, 0, 0)))
+    return Body("femur", "cortical_bone", mesh=bone)
+
+
+def test_bad_input_source_inside_a_mesh():
+    tissue = trimesh.creation.box(extents=(400.0, 400.0, 2000.0))
+    scene = _scene([{"name": "deep", "isocenter_mm": [0.0, 0.0, 0.0]}])
+    with pytest.raises(ValueError, match=r"views\[0\].*source.*inside body 'tissue'"):
+        render_view(scene, 0, bodies=[Body("tissue", "soft_tissue", mesh=tissue)])
+
+
+def test_bad_input_field_of_view_misses_the_anatomy():
+    scene = _scene([{"name": "aside", "isocenter_mm": [500.0, 0.0, 0.0]}], noise=False)
+    with pytest.raises(ValueError, match=r"views\[0\].*misses the anatomy.*isocenter_mm"):
+        render_view(scene, 0, bodies=[_femur_stand_in()])
+    # the same bone at the isocenter is seen
+    ok = _scene([{"name": "on", "isocenter_mm": [0.0, 0.0, 0.0]}], noise=False)
+    assert render_view(ok, 0, bodies=[_femur_stand_in()]).bone_mask.sum() > 1000
+    with pytest.raises(ValueError, match=r"--view 3"):
+        render_view(ok, 3, bodies=[_femur_stand_in()])
+
+
+def test_bad_input_materials_and_geometry():
+    with pytest.raises(ValueError, match="unknown material 'kryptonite'"):
+        InstrumentSpec(name="clamp", kind="clamp", material="kryptonite")
+    with pytest.raises(ValueError, match="unknown material"):
+        Body("x", "adamantium", sphere_centers=[[0.0, 0.0, 0.0]], sphere_radii=1.0)
+    with pytest.raises(ValueError, match=r"source_to_isocenter_mm.*sid_mm"):
+        make_carm(FluoroscopeSpec(sid_mm=500.0), ViewSpec(source_to_isocenter_mm=600.0),
+                  view_index=2)
+    with pytest.raises(ValueError, match="inside='nowhere'"):
+        render(make_carm(FluoroscopeSpec(), ViewSpec()),
+               [Body("b", "marrow", sphere_centers=[[0.0, 0.0, 0.0]], sphere_radii=3.0,
+                     inside="nowhere")], fluoro=FluoroscopeSpec())
+
+
+def test_instruments_occlude_the_bone():
+    fluoro = FluoroscopeSpec(noise=False, distortion=False)
+    femur = _femur_stand_in()
+    retractor = make_instrument(InstrumentSpec(name="retractor", kind="retractor",
+                                               position_mm=(-20.0, 0.0, 40.0)))
+    clamp = make_instrument(InstrumentSpec(name="clamp", kind="clamp",
+                                           position_mm=(-60.0, 60.0, 60.0)))
+    assert retractor.mesh.is_watertight and clamp.mesh.is_watertight
+    carm = make_carm(fluoro, ViewSpec())
+    frame = render(carm, [femur, retractor, clamp], fluoro=fluoro)
+    steel = frame.mask(("steel",))
+    assert (steel & frame.bone_mask).sum() > 200  # the retractor's blade crosses the femur
+    assert frame.image_u8[steel].mean() < frame.image_u8[frame.bone_mask & ~steel].mean() - 20
