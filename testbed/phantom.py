@@ -1,16 +1,434 @@
 """The simulated patient: a procedural femur with pins and a soft-tissue envelope.
 
-(Issue 3 fills this module; the scene section is declared here so scenes can name it.)
+The ``ct`` frame is the phantom's own frame (mm), the frame the CT scanner images:
+
+- ``z`` along the femur's long axis, proximal positive: the lowest point of the condyles at
+  z = 0, the top of the femoral head at z = ``length_mm`` (about 450 mm);
+- ``x`` toward the patient's right: lateral for a right femur (the femoral head lies at
+  negative x), medial for a left femur (the mirror image, head at positive x);
+- ``y`` anterior. (x, y, z) is right-handed (RAS).
+
+The femur is built with robust booleans (manifold3d): the union of convex lofts between
+elliptic cross-sections along an anteriorly bowed shaft (with metaphyseal flares), a sphere
+for the head, a loft for the neck (neck-shaft angle, anteversion), ellipsoids for the greater
+and lesser trochanters and the two condyles (with the intercondylar notch between them) and a
+trochlear bridge joining the condyles anteriorly. The same construction with every part
+inset by the end-cortex thickness gives the cancellous bone at the two ends; a tapered loft
+inside the shaft gives the medullary canal. Every mesh is watertight and manifold.
+
+Pins: small steel cylinders in cancellous bone, one in the greater trochanter
+(``proximal``) and one in each condyle (``distal_1`` medial, ``distal_2`` lateral); their
+centre is the ground-truth target point.
 """
 
 from __future__ import annotations
 
-from typing import Literal
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Literal
 
-from testbed.spec import Spec
+import manifold3d as mf
+import numpy as np
+import trimesh
+from pydantic import Field, model_validator
+
+from testbed.bodies import Body
+from testbed.spec import NonNegative, Positive, Spec, Vec3
+
+__all__ = ["Phantom", "PhantomSpec", "PIN_NAMES", "make_phantom"]
+
+PIN_NAMES = ("proximal", "distal_1", "distal_2")
 
 
 class PhantomSpec(Spec):
-    """``[phantom]``: the femur phantom."""
+    """``[phantom]``: the femur phantom (procedural, or a user mesh), its pins and the thigh.
+
+    Dimensions (mm, deg) default to an adult femur; ``shape_variation`` (0: the mean femur,
+    1: about one population standard deviation per dimension) draws a plausible femur from
+    ``shape_seed``.
+    """
 
     side: Literal["left", "right"] = "right"
+    length_mm: Annotated[float, Field(ge=300, le=600)] = 450.0
+    head_radius_mm: Annotated[float, Field(ge=15, le=35)] = 23.0
+    neck_length_mm: Annotated[float, Field(ge=30, le=80)] = 50.0
+    neck_radius_mm: Annotated[float, Field(ge=8, le=25)] = 15.0
+    neck_shaft_angle_deg: Annotated[float, Field(ge=110, le=150)] = 127.0
+    anteversion_deg: Annotated[float, Field(ge=-10, le=40)] = 12.0
+    shaft_diameter_mm: Annotated[float, Field(ge=18, le=40)] = 28.0
+    cortical_thickness_mm: Annotated[float, Field(ge=2, le=10)] = 6.5
+    end_cortex_mm: Annotated[float, Field(ge=1, le=5)] = 2.5
+    shaft_bow_mm: Annotated[float, Field(ge=0, le=25)] = 8.0
+    condyle_width_mm: Annotated[float, Field(ge=60, le=100)] = 80.0
+    notch_width_mm: Annotated[float, Field(ge=10, le=30)] = 18.0
+    condyle_depth_mm: Annotated[float, Field(ge=45, le=80)] = 60.0
+    thigh_radius_mm: Annotated[float, Field(ge=50, le=200)] = 85.0
+    knee_radius_mm: Annotated[float, Field(ge=45, le=120)] = 60.0
+    pin_diameter_mm: Annotated[float, Field(gt=0, le=8)] = 4.0
+    pin_length_mm: Annotated[float, Field(gt=0, le=20)] = 8.0
+    segments: Annotated[int, Field(ge=16, le=256)] = 64
+    shape_variation: NonNegative = 0.0
+    shape_seed: Annotated[int, Field(ge=0)] = 0
+    mesh_path: str | None = None
+    mesh_pins_mm: dict[str, Vec3] | None = None
+    mesh_margin_mm: Positive = 40.0
+
+    @model_validator(mode="after")
+    def _check(self):
+        if self.notch_width_mm >= self.condyle_width_mm / 2:
+            raise ValueError("notch_width_mm must be below half of condyle_width_mm")
+        if self.mesh_pins_mm is not None:
+            missing = set(PIN_NAMES) - set(self.mesh_pins_mm)
+            if missing:
+                raise ValueError(f"mesh_pins_mm lacks the pins {sorted(missing)}")
+        return self
+
+
+@dataclass(frozen=True)
+class Phantom:
+    """The phantom in the ct frame (mm).
+
+    ``femur``: outer bone surface (cortical bone); ``canal``: medullary canal (marrow), inside
+    the femur; ``cancellous``: cancellous bone at both ends, inside the femur (None for a user
+    mesh); ``soft_tissue``: thigh envelope around the femur; ``pins``: name -> (3,) centre;
+    ``pin_meshes``: name -> steel cylinder; ``landmarks``: name -> (3,) anatomical points
+    (``head_center``, ``neck_base``, ``lesser_trochanter``, ``greater_trochanter``,
+    ``medial_condyle``, ``lateral_condyle``); ``spec``: the resolved dimensions.
+    """
+
+    femur: trimesh.Trimesh
+    canal: trimesh.Trimesh | None
+    cancellous: trimesh.Trimesh | None
+    soft_tissue: trimesh.Trimesh
+    pins: dict[str, np.ndarray]
+    pin_meshes: dict[str, trimesh.Trimesh]
+    pin_inside: dict[str, str]
+    side: str
+    landmarks: dict[str, np.ndarray] = field(default_factory=dict)
+    spec: PhantomSpec | None = None
+
+    def bodies(self) -> list[Body]:
+        """The phantom as world bodies in the ct frame, outermost first, nesting set."""
+        out = [Body("soft_tissue", "soft_tissue", self.soft_tissue, inside=None),
+               Body("femur", "cortical_bone", self.femur, inside="soft_tissue")]
+        if self.cancellous is not None:
+            out.append(Body("cancellous", "cancellous_bone", self.cancellous, inside="femur"))
+        if self.canal is not None:
+            out.append(Body("canal", "marrow", self.canal, inside="femur"))
+        for name in PIN_NAMES:
+            out.append(Body(f"pin_{name}", "steel", self.pin_meshes[name],
+                            inside=self.pin_inside[name]))
+        return out
+
+    def z_range_mm(self) -> tuple[float, float]:
+        """Lowest and highest z of the femur, mm."""
+        return float(self.femur.bounds[0, 2]), float(self.femur.bounds[1, 2])
+
+
+# --------------------------------------------------------------------------- geometry
+def _to_trimesh(m: mf.Manifold) -> trimesh.Trimesh:
+    mesh = m.to_mesh()
+    v = np.asarray(mesh.vert_properties, dtype=np.float64)[:, :3]
+    f = np.asarray(mesh.tri_verts, dtype=np.int64)
+    return trimesh.Trimesh(v, f, process=True)
+
+
+def _ring(center, e1, e2, a, b, n) -> np.ndarray:
+    t = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    return (np.asarray(center)[None, :] + np.outer(a * np.cos(t), e1)
+            + np.outer(b * np.sin(t), e2))
+
+
+def _ellipsoid(center, axes, n) -> mf.Manifold:
+    return mf.Manifold.sphere(1.0, n).scale(tuple(float(a) for a in axes)).translate(
+        tuple(float(c) for c in center))
+
+
+def _loft(rings) -> list[mf.Manifold]:
+    return [mf.Manifold.hull_points(np.vstack([r0, r1])) for r0, r1 in zip(rings, rings[1:],
+                                                                              strict=False)]
+
+
+@dataclass
+class _Dims:
+    """Resolved dimensions (after shape variation), right femur."""
+
+    L: float
+    head_r: float
+    neck_len: float
+    neck_r: float
+    nsa: float
+    antev: float
+    shaft_r: float
+    cortex: float
+    end_cortex: float
+    bow: float
+    condyle_w: float
+    notch_w: float
+    condyle_d: float
+    n: int
+
+
+def _resolve(spec: PhantomSpec) -> _Dims:
+    v = float(spec.shape_variation)
+    rng = np.random.default_rng(spec.shape_seed)
+    z = np.clip(rng.standard_normal(12), -2.5, 2.5) * v
+    s_len = 1 + 0.05 * z[0]
+    s_wid = 1 + 0.06 * z[1]
+    return _Dims(
+        L=spec.length_mm * s_len,
+        head_r=spec.head_radius_mm * s_wid * (1 + 0.04 * z[2]),
+        neck_len=spec.neck_length_mm * s_wid * (1 + 0.06 * z[3]),
+        neck_r=spec.neck_radius_mm * s_wid * (1 + 0.05 * z[4]),
+        nsa=np.clip(spec.neck_shaft_angle_deg + 4.5 * z[5], 112, 145),
+        antev=np.clip(spec.anteversion_deg + 6.0 * z[6], -5, 35),
+        shaft_r=spec.shaft_diameter_mm / 2 * s_wid * (1 + 0.05 * z[7]),
+        cortex=spec.cortical_thickness_mm * (1 + 0.08 * z[8]),
+        end_cortex=spec.end_cortex_mm,
+        bow=max(0.0, spec.shaft_bow_mm * (1 + 0.3 * z[9])),
+        condyle_w=spec.condyle_width_mm * s_wid * (1 + 0.04 * z[10]),
+        notch_w=spec.notch_width_mm * s_wid * (1 + 0.08 * z[11]),
+        condyle_d=spec.condyle_depth_mm * s_wid,
+        n=int(spec.segments),
+    )
+
+
+def _geometry(d: _Dims) -> dict:
+    """Anatomical frame points and part sizes of a right femur (mm)."""
+    L, n = d.L, d.n
+    theta = np.radians(180.0 - d.nsa)          # neck axis from +z
+    ante = np.radians(d.antev)
+    neck_dir = np.array([-np.sin(theta) * np.cos(ante), np.sin(theta) * np.sin(ante),
+                         np.cos(theta)])
+    # The neck leaves the shaft axis; the head's top is at z = L.
+    neck_base = np.array([0.0, 0.0, L - d.head_r - d.neck_len * neck_dir[2]])
+    head_c = neck_base + d.neck_len * neck_dir
+    r = d.shaft_r
+    cw = d.condyle_w / 2
+    cond_ax = (cw - d.notch_w / 2) / 2                # ML semi-axis of one condyle
+    cond_x = d.notch_w / 2 + cond_ax
+    cond_h = 0.40 * d.condyle_d                       # SI semi-axis
+    cond = dict(ax=(cond_ax, d.condyle_d / 2, cond_h), y=-0.12 * d.condyle_d, z=cond_h)
+    z_shaft0 = 2.4 * cond_h                           # shaft sections start above condyles
+    z_shaft1 = neck_base[2] - 0.3 * r
+    # (z, ML semi-axis, AP semi-axis, y offset) knots of the shaft sections.
+    knots = np.array([
+        [0.75 * cond_h, 0.95 * cw, 0.40 * d.condyle_d, 0.05 * d.condyle_d],
+        [1.5 * cond_h, 0.85 * cw, 0.42 * d.condyle_d, 0.0],
+        [z_shaft0, 1.6 * r, 1.25 * r, 0.0],
+        [z_shaft0 + 0.12 * L, 1.05 * r, r, 0.0],
+        [0.5 * L, r, 0.95 * r, 0.0],
+        [z_shaft1 - 0.15 * L, 1.05 * r, r, 0.0],
+        [z_shaft1 - 0.05 * L, 1.25 * r, 1.1 * r, 0.0],
+        [z_shaft1, 1.55 * r, 1.2 * r, 0.0],
+    ])
+    gt = dict(c=np.array([0.9 * r + 4, -0.35 * r, neck_base[2] + 0.5 * d.neck_r]),
+              ax=(0.55 * r + 4, 0.75 * r + 2, 1.1 * d.neck_r + 10))
+    lt = dict(c=np.array([-0.85 * r, -0.55 * r, neck_base[2] - 2.6 * d.neck_r]),
+              ax=(0.45 * r, 0.4 * r, 0.7 * d.neck_r))
+    trochlea = dict(c=np.array([0.0, 0.22 * d.condyle_d, 1.55 * cond_h]),
+                    ax=(0.85 * cw, 0.22 * d.condyle_d, 0.7 * cond_h))
+    return dict(L=L, n=n, neck_dir=neck_dir, head_c=head_c, neck_base=neck_base, knots=knots,
+                cond=cond, cond_x=cond_x, gt=gt, lt=lt, trochlea=trochlea,
+                z_shaft0=z_shaft0, z_shaft1=z_shaft1)
+
+
+def _bow_y(z, d: _Dims, g) -> np.ndarray:
+    z0, z1 = g["z_shaft0"], g["z_shaft1"]
+    t = np.clip((np.asarray(z) - z0) / (z1 - z0), 0.0, 1.0)
+    return d.bow * np.sin(np.pi * t)
+
+
+def _femur_manifold(d: _Dims, g: dict, inset: float) -> mf.Manifold:
+    """Union of the femur's parts, every part shrunk by ``inset`` mm."""
+    n = g["n"]
+    ex, ey, ez = np.eye(3)
+    parts = []
+    # Shaft and metaphyses: lofts between elliptic sections, dense along z.
+    k = g["knots"]
+    zs = np.concatenate([np.linspace(k[i, 0], k[i + 1, 0], 4, endpoint=False)
+                         for i in range(len(k) - 1)] + [[k[-1, 0]]])
+    zs[0] += inset      # the inset loft's flat ends stay off the outer loft's ends
+    zs[-1] -= inset
+    a = np.interp(zs, k[:, 0], k[:, 1]) - inset
+    b = np.interp(zs, k[:, 0], k[:, 2]) - inset
+    yoff = np.interp(zs, k[:, 0], k[:, 3]) + _bow_y(zs, d, g)
+    rings = [_ring((0.0, yo, z), ex, ey, aa, bb, n)
+             for z, aa, bb, yo in zip(zs, a, b, yoff, strict=True)]
+    parts += _loft(rings)
+    # Neck: from inside the proximal shaft to the head, slightly narrowing.
+    nd = g["neck_dir"]
+    e1 = np.cross(nd, ey)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(nd, e1)
+    nb = g["neck_base"]
+    top = rings[-1]
+    neck0 = _ring(nb, e1, e2, 1.25 * d.neck_r - inset, 1.0 * d.neck_r - inset, n)
+    neck1 = _ring(nb + 0.75 * d.neck_len * nd, e1, e2, 0.95 * d.neck_r - inset,
+                  0.85 * d.neck_r - inset, n)
+    parts.append(mf.Manifold.hull_points(np.vstack([top, neck0])))
+    parts.append(mf.Manifold.hull_points(np.vstack([neck0, neck1])))
+    parts.append(mf.Manifold.sphere(d.head_r - inset, n).translate(tuple(g["head_c"])))
+    # Trochanters.
+    for t in (g["gt"], g["lt"]):
+        parts.append(_ellipsoid(t["c"], np.asarray(t["ax"]) - inset, n))
+    gt_base = _ring(g["gt"]["c"] - np.array([0, 0, 0.6 * g["gt"]["ax"][2]]), ex, ey,
+                    0.8 * g["gt"]["ax"][0] - inset, 0.8 * g["gt"]["ax"][1] - inset, n)
+    parts.append(mf.Manifold.hull_points(np.vstack([rings[-4], gt_base])))
+    # Condyles and the trochlear bridge.
+    c = g["cond"]
+    for sx in (-1.0, 1.0):
+        parts.append(_ellipsoid((sx * g["cond_x"], c["y"], c["z"]), np.asarray(c["ax"]) - inset,
+                                n))
+    parts.append(_ellipsoid(g["trochlea"]["c"], np.asarray(g["trochlea"]["ax"]) - inset, n))
+    return mf.Manifold.batch_boolean(parts, mf.OpType.Add)
+
+
+def _canal_manifold(d: _Dims, g: dict) -> mf.Manifold:
+    n = g["n"]
+    ex, ey, _ = np.eye(3)
+    r_in = d.shaft_r - d.cortex
+    z0 = g["z_shaft0"] + 0.08 * d.L
+    z1 = g["z_shaft1"] - 0.12 * d.L
+    zs = np.linspace(z0, z1, 24)
+    t = (zs - z0) / (z1 - z0)
+    # Full radius in the middle, rounded off over the last 12 % at each end.
+    taper = np.sqrt(np.clip(1 - (np.maximum(0, np.abs(t - 0.5) - 0.38) / 0.12) ** 2, 0.05, 1))
+    rings = [_ring((0.0, _bow_y(z, d, g), z), ex, ey, 1.05 * r_in * s, r_in * s, n)
+             for z, s in zip(zs, taper, strict=True)]
+    return mf.Manifold.batch_boolean(_loft(rings), mf.OpType.Add)
+
+
+def _pin_mesh(center, axis, diameter, length, n) -> trimesh.Trimesh:
+    m = trimesh.creation.cylinder(radius=diameter / 2, height=length, sections=max(16, n // 2))
+    z = np.array([0.0, 0.0, 1.0])
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    T = trimesh.geometry.align_vectors(z, a)
+    T[:3, 3] = center
+    m.apply_transform(T)
+    return m
+
+
+def _soft_tissue(bounds_lo, bounds_hi, spec: PhantomSpec, g: dict | None, n: int):
+    """A thigh: lofts of ellipses from below the knee to above the hip, around the bone."""
+    ex, ey, _ = np.eye(3)
+    zlo, zhi = bounds_lo[2] - 40.0, bounds_hi[2] + 30.0
+    if g is None:
+        c = (bounds_lo + bounds_hi) / 2
+        half = (bounds_hi - bounds_lo) / 2 + spec.mesh_margin_mm
+        rings = [_ring((c[0], c[1], z), ex, ey, half[0], half[1], n) for z in (zlo, zhi)]
+    else:
+        zs = np.linspace(zlo, zhi, 8)
+        t = (zs - zlo) / (zhi - zlo)
+        head_x = g["head_c"][0]
+        cx = 0.55 * head_x * t ** 1.5
+        ra = spec.knee_radius_mm + (spec.thigh_radius_mm - spec.knee_radius_mm) * t
+        rb = 0.9 * ra
+        rings = [_ring((x, 0.0, z), ex, ey, a, b, n)
+                 for x, z, a, b in zip(cx, zs, ra, rb, strict=True)]
+    return mf.Manifold.batch_boolean(_loft(rings), mf.OpType.Add)
+
+
+def _check_closed(mesh: trimesh.Trimesh, what: str) -> None:
+    if not (mesh.is_watertight and mesh.is_winding_consistent and mesh.is_volume):
+        raise ValueError(
+            f"{what} is not a closed manifold solid (watertight={mesh.is_watertight}, "
+            f"winding consistent={mesh.is_winding_consistent}, volume={mesh.is_volume})"
+        )
+
+
+def _user_phantom(spec: PhantomSpec) -> Phantom:
+    path = Path(spec.mesh_path)
+    if not path.is_file():
+        raise ValueError(f"phantom.mesh_path: no such file {str(path)!r}")
+    try:
+        mesh = trimesh.load_mesh(path, process=True)
+    except Exception as exc:  # trimesh raises many kinds on unreadable files
+        raise ValueError(f"phantom.mesh_path: cannot read {str(path)!r} as a mesh ({exc})") from None
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise ValueError(f"phantom.mesh_path: {str(path)!r} holds no single triangle mesh")
+    if not mesh.is_watertight:
+        raise ValueError(f"phantom.mesh_path: the mesh in {str(path)!r} is not watertight "
+                         "(it has holes or open edges); give a closed surface")
+    _check_closed(mesh, f"phantom.mesh_path {str(path)!r}")
+    if spec.mesh_pins_mm is None:
+        raise ValueError("phantom.mesh_pins_mm must give the pin centres (proximal, distal_1, "
+                         "distal_2) for a user mesh")
+    pins = {k: np.asarray(spec.mesh_pins_mm[k], dtype=np.float64) for k in PIN_NAMES}
+    inside = mesh.contains(np.array([pins[k] for k in PIN_NAMES]))
+    if not np.all(inside):
+        bad = [k for k, ok in zip(PIN_NAMES, inside, strict=True) if not ok]
+        raise ValueError(f"phantom.mesh_pins_mm: pins {bad} are not inside the user mesh")
+    n = spec.segments
+    pin_meshes = {k: _pin_mesh(p, (1.0, 0.0, 0.0), spec.pin_diameter_mm, spec.pin_length_mm, n)
+                  for k, p in pins.items()}
+    soft = _to_trimesh(_soft_tissue(mesh.bounds[0], mesh.bounds[1], spec, None, n))
+    return Phantom(femur=mesh, canal=None, cancellous=None, soft_tissue=soft, pins=pins,
+                   pin_meshes=pin_meshes, pin_inside={k: "femur" for k in PIN_NAMES},
+                   side=spec.side, landmarks={}, spec=spec)
+
+
+def make_phantom(spec: PhantomSpec | None = None, rng=None) -> Phantom:
+    """Build the phantom in the ct frame.
+
+    Parameters
+    ----------
+    spec : the ``[phantom]`` section (default: the mean right femur).
+    rng : unused by the procedural femur, whose variation is drawn from ``spec.shape_seed``
+        so that a scene file fixes the patient; accepted for a uniform signature.
+
+    Returns
+    -------
+    Phantom
+
+    Raises
+    ------
+    ValueError : the user mesh is missing, unreadable, not watertight, or its pins are not
+        inside it.
+    """
+    spec = PhantomSpec() if spec is None else spec
+    if spec.mesh_path is not None:
+        return _user_phantom(spec)
+    d = _resolve(spec)
+    g = _geometry(d)
+    femur_m = _femur_manifold(d, g, 0.0)
+    inner = _femur_manifold(d, g, d.end_cortex)
+    canal_m = _canal_manifold(d, g)
+    lo_cut = g["z_shaft0"] + 0.12 * d.L
+    hi_cut = g["z_shaft1"] - 0.17 * d.L
+    big = 4 * d.L
+    slab_lo = mf.Manifold.cube((big, big, lo_cut + big), True).translate(
+        (0.0, 0.0, (lo_cut - big) / 2))
+    slab_hi = mf.Manifold.cube((big, big, big), True).translate((0.0, 0.0, hi_cut + big / 2))
+    canc_m = (inner ^ (slab_lo + slab_hi)) - canal_m
+    bb = np.asarray(femur_m.bounding_box())
+    soft_m = _soft_tissue(bb[:3], bb[3:], spec, g, d.n)
+    mirror = spec.side == "left"
+    if mirror:
+        femur_m, canc_m, canal_m, soft_m = (m.mirror((1.0, 0.0, 0.0))
+                                            for m in (femur_m, canc_m, canal_m, soft_m))
+    femur = _to_trimesh(femur_m)
+    soft = _to_trimesh(soft_m)
+    canal = _to_trimesh(canal_m)
+    canc = _to_trimesh(canc_m)
+    sx = -1.0 if mirror else 1.0
+    flip = np.array([sx, 1.0, 1.0])
+    c = g["cond"]
+    gt = g["gt"]["c"]
+    pins = {
+        "proximal": np.array([gt[0] + 1.0, gt[1], gt[2] - 0.15 * g["gt"]["ax"][2]]) * flip,
+        "distal_1": np.array([-g["cond_x"], c["y"] + 2.0, 0.9 * c["z"]]) * flip,
+        "distal_2": np.array([g["cond_x"], c["y"] + 2.0, 0.9 * c["z"]]) * flip,
+    }
+    axes = {"proximal": (1.0, 0.0, 0.0), "distal_1": (0.0, 1.0, 0.0),
+            "distal_2": (0.0, 1.0, 0.0)}
+    pin_meshes = {k: _pin_mesh(p, axes[k], spec.pin_diameter_mm, spec.pin_length_mm, d.n)
+                  for k, p in pins.items()}
+    gl = {"head_center": g["head_c"], "neck_base": g["neck_base"],
+          "greater_trochanter": gt, "lesser_trochanter": g["lt"]["c"],
+          "medial_condyle": np.array([-g["cond_x"], c["y"], c["z"]]),
+          "lateral_condyle": np.array([g["cond_x"], c["y"], c["z"]])}
+    landmarks = {k: np.asarray(v, dtype=np.float64) * flip for k, v in gl.items()}
+    return Phantom(femur=femur, canal=canal, cancellous=canc, soft_tissue=soft, pins=pins,
+                   pin_meshes=pin_meshes, pin_inside={k: "cancellous" for k in PIN_NAMES},
+                   side=spec.side, landmarks=landmarks, spec=spec)

@@ -1,0 +1,129 @@
+"""The femur phantom: closed manifold meshes, pins in bone, dimensions as asked, bad input."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from testbed.phantom import PIN_NAMES, PhantomSpec, make_phantom
+
+
+def _closed(m: trimesh.Trimesh) -> bool:
+    return bool(m.is_watertight and m.is_winding_consistent and m.is_volume)
+
+
+@pytest.fixture(scope="module")
+def phantom():
+    return make_phantom(PhantomSpec())
+
+
+def test_default_phantom_is_closed_nested_and_sized(phantom):
+    for name in ("femur", "canal", "cancellous", "soft_tissue"):
+        assert _closed(getattr(phantom, name)), name
+    assert 10_000 <= len(phantom.femur.faces) <= 40_000
+    assert phantom.femur.body_count == 1
+    # Nesting: canal and cancellous inside the femur, femur inside the thigh, canal and
+    # cancellous disjoint.
+    assert phantom.femur.contains(phantom.canal.vertices).all()
+    assert phantom.femur.contains(phantom.cancellous.vertices).all()
+    assert phantom.soft_tissue.contains(phantom.femur.vertices).all()
+    assert not phantom.cancellous.contains(phantom.canal.vertices[::5]).any()
+    bodies = {b.name: b for b in phantom.bodies()}
+    assert bodies["femur"].inside == "soft_tissue" and bodies["soft_tissue"].inside is None
+    assert bodies["canal"].inside == "femur" and bodies["femur"].material == "cortical_bone"
+    assert {f"pin_{k}" for k in PIN_NAMES} <= set(bodies)
+
+
+def test_pins_inside_bone(phantom):
+    assert set(phantom.pins) == set(PIN_NAMES)
+    for name, centre in phantom.pins.items():
+        pin = phantom.pin_meshes[name]
+        assert _closed(pin)
+        np.testing.assert_allclose(pin.bounding_box.centroid, centre, atol=1e-9)
+        assert phantom.femur.contains(pin.vertices).all(), name
+        assert phantom.cancellous.contains(pin.vertices).all(), name
+        assert not phantom.canal.contains(pin.vertices).any(), name
+    # Proximal pin in the greater trochanter (lateral, proximal); distal pins one per condyle.
+    p = phantom.pins
+    assert p["proximal"][0] > 5 and p["proximal"][2] > 380
+    assert p["distal_1"][0] < -10 < 10 < p["distal_2"][0]
+    assert max(p["distal_1"][2], p["distal_2"][2]) < 40
+
+
+def test_dimensions_follow_the_spec():
+    spec = PhantomSpec(length_mm=420.0, head_radius_mm=25.0, shaft_diameter_mm=30.0,
+                       condyle_width_mm=84.0, neck_shaft_angle_deg=130.0, anteversion_deg=15.0)
+    ph = make_phantom(spec)
+    lo, hi = ph.femur.bounds
+    assert lo[2] == pytest.approx(0.0, abs=0.05) and hi[2] == pytest.approx(420.0, abs=0.05)
+    # Head: a cap of vertices on a sphere of the asked radius around the head centre.
+    h = ph.landmarks["head_center"]
+    r = np.linalg.norm(ph.femur.vertices - h, axis=1)
+    assert np.sum(np.abs(r - 25.0) < 0.05) > 300
+    assert h[0] < -20  # right femur: head medial, at negative x
+    # Neck axis: neck-shaft angle and anteversion.
+    nd = h - ph.landmarks["neck_base"]
+    nd /= np.linalg.norm(nd)
+    assert np.degrees(np.arccos(-nd[2])) == pytest.approx(130.0, abs=1e-6)
+    assert np.degrees(np.arctan2(nd[1], -nd[0])) == pytest.approx(15.0, abs=1e-6)
+    # Mid-shaft diameter and condylar width from cross-sections.
+    mid = ph.femur.section([0, 0, 1], [0, 0, 210.0]).vertices
+    assert np.ptp(mid[:, 0]) == pytest.approx(30.0, rel=0.03)
+    low = ph.femur.section([0, 0, 1], [0, 0, 15.0]).vertices
+    assert np.ptp(low[:, 0]) == pytest.approx(84.0, rel=0.05)
+    # Two condyles (two sections) near the bottom, one section at mid-shaft.
+    assert len(ph.femur.section([0, 0, 1], [0, 0, 8.0]).discrete) == 2
+    assert len(ph.femur.section([0, 0, 1], [0, 0, 210.0]).discrete) == 1
+
+
+def test_left_femur_is_the_mirror_image(phantom):
+    left = make_phantom(PhantomSpec(side="left"))
+    assert _closed(left.femur) and left.landmarks["head_center"][0] > 20
+    np.testing.assert_allclose(left.femur.volume, phantom.femur.volume, rtol=1e-9)
+    for k in PIN_NAMES:
+        np.testing.assert_allclose(left.pins[k], phantom.pins[k] * [-1, 1, 1])
+
+
+def test_shape_variation_is_seeded_and_varies():
+    a = make_phantom(PhantomSpec(shape_variation=1.0, shape_seed=5, segments=24))
+    b = make_phantom(PhantomSpec(shape_variation=1.0, shape_seed=5, segments=24))
+    c = make_phantom(PhantomSpec(shape_variation=1.0, shape_seed=6, segments=24))
+    np.testing.assert_array_equal(a.femur.vertices, b.femur.vertices)
+    assert abs(a.femur.volume - c.femur.volume) > 1e3
+
+
+@pytest.mark.slow
+def test_fifty_variations_are_closed_manifolds_with_pins_in_bone():
+    for seed in range(50):
+        spec = PhantomSpec(shape_variation=1.5, shape_seed=seed, segments=16,
+                           side="left" if seed % 2 else "right")
+        ph = make_phantom(spec)
+        for name in ("femur", "canal", "cancellous", "soft_tissue"):
+            assert _closed(getattr(ph, name)), (seed, name)
+        pins = np.vstack([m.vertices for m in ph.pin_meshes.values()])
+        assert ph.cancellous.contains(pins).all(), seed
+        assert ph.soft_tissue.contains(ph.femur.vertices[::4]).all(), seed
+
+
+def test_user_mesh(tmp_path):
+    good = trimesh.creation.capsule(height=300.0, radius=15.0)
+    good.apply_translation([0, 0, 170.0])
+    path = tmp_path / "bone.stl"
+    good.export(path)
+    pins = {"proximal": (0.0, 0.0, 300.0), "distal_1": (0.0, 5.0, 40.0),
+            "distal_2": (0.0, -5.0, 40.0)}
+    ph = make_phantom(PhantomSpec(mesh_path=str(path), mesh_pins_mm=pins))
+    assert ph.canal is None and _closed(ph.femur)
+    assert ph.soft_tissue.contains(ph.femur.vertices).all()
+    assert [b.name for b in ph.bodies()][:2] == ["soft_tissue", "femur"]
+    # A mesh with a hole is refused, naming the problem.
+    holed = good.copy()
+    holed.update_faces(np.arange(len(holed.faces)) > 3)
+    bad = tmp_path / "holed.stl"
+    holed.export(bad)
+    with pytest.raises(ValueError, match="not watertight"):
+        make_phantom(PhantomSpec(mesh_path=str(bad), mesh_pins_mm=pins))
+    with pytest.raises(ValueError, match="no such file"):
+        make_phantom(PhantomSpec(mesh_path=str(tmp_path / "missing.ply"), mesh_pins_mm=pins))
+    with pytest.raises(ValueError, match="not inside"):
+        make_phantom(PhantomSpec(mesh_path=str(path),
+                                 mesh_pins_mm={**pins, "proximal": (0.0, 0.0, 600.0)}))
