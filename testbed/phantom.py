@@ -344,7 +344,9 @@ def _user_phantom(spec: PhantomSpec) -> Phantom:
     try:
         mesh = trimesh.load_mesh(path, process=True)
     except Exception as exc:  # trimesh raises many kinds on unreadable files
-        raise ValueError(f"phantom.mesh_path: cannot read {str(path)!r} as a mesh ({exc})") from None
+        raise ValueError(
+            f"phantom.mesh_path: cannot read {str(path)!r} as a mesh ({exc})"
+        ) from None
     if not isinstance(mesh, trimesh.Trimesh):
         raise ValueError(f"phantom.mesh_path: {str(path)!r} holds no single triangle mesh")
     if not mesh.is_watertight:
