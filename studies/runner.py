@@ -408,6 +408,13 @@ def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str) -> None:
     (BrokenProcessPool) the suspects are known: they are rerun one at a time in a fresh
     one-worker pool, and a trial that kills its worker even alone is recorded as failed."""
     ctx = multiprocessing.get_context(mp_context)
+    if mp_context == "forkserver":
+        # Workers fork from one server that has imported these once (no effect once the
+        # server of this process runs); cheap worker (re)starts.
+        mods = ["studies.runner"]
+        if getattr(trial_fn, "__module__", "__main__") not in ("__main__", "__mp_main__"):
+            mods.append(trial_fn.__module__)
+        ctx.set_forkserver_preload(mods)
     queue = list(reversed(todo))  # pop() from the end = in trial order
     suspects: list[Trial] = []
     while queue or suspects:
@@ -497,7 +504,7 @@ def run_trials(
     progress: bool = True,
     resume: bool = True,
     retry_failed: bool = False,
-    mp_context: Literal["spawn", "forkserver"] = "spawn",
+    mp_context: Literal["spawn", "forkserver"] | None = None,
 ) -> pd.DataFrame:
     """Run ``trials`` with ``trial_fn``, storing each result as it finishes; return all rows.
 
@@ -525,8 +532,10 @@ def run_trials(
         emptied first and every trial runs.
     retry_failed : bool
         With ``resume``, run again the trials stored as failed.
-    mp_context : {"spawn", "forkserver"}
-        Start method of the process pool.
+    mp_context : {"spawn", "forkserver"}, optional
+        Start method of the process pool; default ``forkserver`` where the platform has it
+        (workers fork from one server process that imported ``studies.runner`` and the trial
+        function's module once, so (re)starting workers is cheap), else ``spawn``.
 
     Returns
     -------
@@ -549,6 +558,9 @@ def run_trials(
         raise ValueError("trial_fn: expected a callable trial_fn(trial) -> list[dict]")
     if isinstance(workers, bool) or not isinstance(workers, numbers.Integral) or workers < 1:
         raise ValueError(f"workers: expected an int >= 1, got {workers!r}")
+    if mp_context is None:
+        methods = multiprocessing.get_all_start_methods()
+        mp_context = "forkserver" if "forkserver" in methods else "spawn"
     if mp_context not in ("spawn", "forkserver"):
         raise ValueError(f"mp_context: expected 'spawn' or 'forkserver', got {mp_context!r}")
 

@@ -86,7 +86,7 @@ def test_trial_seed_is_the_spawned_child_and_rebuilds_exactly():
 
 @pytest.mark.slow
 def test_same_rows_in_process_and_on_two_workers(tmp_path):
-    params = _params(10)
+    params = _params(10, sleep_s=0.02)
     trials = make_trials("points-lines", 42, params)
     one = run_trials(toy_trial, trials, out_dir=tmp_path / "w1", workers=1, progress=False)
     two = run_trials(toy_trial, trials, out_dir=tmp_path / "w2", workers=2, progress=False)
