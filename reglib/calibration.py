@@ -178,19 +178,26 @@ class ThinPlateSpline:
 
 
 # --------------------------------------------------------------------------- detection
-def _log_image(img) -> np.ndarray:
+def _log_image(img, response: str) -> np.ndarray:
+    """The frame in log-intensity units (up to scale): as it is for a logarithmic video
+    amplifier, else its logarithm."""
     a = np.asarray(img, dtype=np.float64)
+    if response == "log":
+        return a
     lo = 0.5 if np.issubdtype(np.asarray(img).dtype, np.integer) else 1e-6 * max(a.max(), 1e-12)
     return np.log(np.maximum(a, lo))
 
 
-def detect_markers(previous, current, *, polarity: str = "dark", rel_threshold: float = 0.35,
+def detect_markers(previous, current, *, polarity: str = "dark", response: str = "log",
+                   rel_threshold: float = 0.35,
                    n_sigma: float = 6.0, min_area_px: int = 4, max_area_px: int = 2000,
                    max_elongation: float = 2.0, mask=None) -> tuple[np.ndarray, np.ndarray]:
     """Blobs that appeared in ``current`` and not in ``previous`` (the rod's new beads).
 
     Works on ``d = log(previous) - log(current)`` (for dark markers: the added attenuation,
-    independent of what lies behind); blobs are the connected regions of the smoothed ``d``
+    independent of what lies behind; with ``response="log"`` the frames already are log
+    intensities, as from a logarithmic video amplifier, and are differenced as they are,
+    with ``"linear"`` their logarithm is taken); blobs are the connected regions of the smoothed ``d``
     above ``max(n_sigma * noise, rel_threshold * peak)``. Each centroid is the
     ``d``-weighted mean over a disc about the blob, minus the median of a ring around it
     (background), iterated twice with the disc re-centred.
@@ -200,6 +207,8 @@ def detect_markers(previous, current, *, polarity: str = "dark", rel_threshold: 
     previous, current : (H, W) images (any dtype; intensities, larger = more X-rays).
     polarity : "dark" (markers absorb: darker in ``current``) or "bright".
     mask : (H, W) bool, optional; where to look (e.g. the intensifier's circular field).
+        A blob whose centroid window reaches outside it is dropped (cut by the field's edge,
+        its centroid would be biased).
 
     Returns
     -------
@@ -212,7 +221,13 @@ def detect_markers(previous, current, *, polarity: str = "dark", rel_threshold: 
                          f"got {a.shape} and {b.shape}")
     if polarity not in ("dark", "bright"):
         raise ValueError(f"polarity: expected 'dark' or 'bright', got {polarity!r}")
-    d = _log_image(a) - _log_image(b)
+    if response not in ("log", "linear"):
+        raise ValueError(f"response: expected 'log' or 'linear', got {response!r}")
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != a.shape:
+            raise ValueError(f"mask: expected shape {a.shape}, got {mask.shape}")
+    d = _log_image(a, response) - _log_image(b, response)
     if polarity == "bright":
         d = -d
     if mask is not None:
@@ -257,6 +272,8 @@ def detect_markers(previous, current, *, polarity: str = "dark", rel_threshold: 
             if sw <= 0:
                 break
             cx, cy = (w * px).sum() / sw, (w * py).sum() / sw
+        if mask is not None and not mask[y0:y1, x0:x1].all():
+            continue  # cut by the edge of the field
         out.append((cx, cy))
         strength.append(float(ds[sl][sub].max()))
     if not out:
