@@ -1,0 +1,428 @@
+"""The iterative 2-D/3-D registration loop: CT surfaces to the X-ray paths of several views.
+
+Paper: Guezic et al. 1998, Section IV (``paper/NOTES.md`` s3). One iteration, all views at
+once:
+
+1. for each view, its center of perspective is brought into the CT frame with the current
+   pose (``ct2robot``), and the apparent contours of every surface are computed from it
+   (:mod:`reglib.apparent`) -- moving the center instead of the surfaces is the same thing;
+2. for each X-ray path of the view, the closest point on every contour (Step A) and the
+   selection of one contour (Step B, :mod:`reglib.closest`) give a CT point matched to the
+   path;
+3. the pose is solved from all matched points (CT frame) and paths (robot frame), starting at
+   the current pose (:func:`reglib.pose.solve_pose`, robust by default), or, with a fixed
+   point, a rotation about that point only (:func:`solve_rotation_about`);
+4. stop when the step is below ``tol_step_mm``, the residual below ``tol_residual_mm``, or
+   after ``max_iterations``; fail (``converged=False`` with a ``reason``) on an empty view, a
+   view without apparent contour, a pose solve that breaks down, too few inliers, or a pose
+   that runs away from the start (divergence).
+
+Frames: surfaces in ``ct`` (mm); views (centers and paths) in ``robot`` (mm); the result is
+``ct2robot`` (``x_robot = R x_ct + t``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from reglib.apparent import SurfaceTopology, apparent_contours, prepare_surface
+from reglib.closest import ContourSet, closest_points, select_contours
+from reglib.geometry import RigidTransform, as_lines
+from reglib.pose import solve_pose, tukey_weights
+
+__all__ = [
+    "IterationRecord",
+    "RegistrationResult",
+    "View",
+    "match_view",
+    "register",
+    "solve_rotation_about",
+]
+
+
+@dataclass(frozen=True, eq=False)
+class View:
+    """One calibrated view: its center of perspective and its X-ray paths (robot frame).
+
+    Attributes
+    ----------
+    center : (3,) float64, mm, robot frame; the center of perspective (e.g.
+        :func:`reglib.geometry.closest_point_to_lines` of all the view's paths).
+    origins, directions : (N, 3) float64, mm and unit, robot frame; the X-ray paths of the
+        view's contour pixels, preferably in order along the image contour.
+    external : (N,) bool; True for paths of external bone-contour pixels (the paper's
+        selection rule), False for internal ones (closest contour). Default all True.
+    name : label used in messages.
+    """
+
+    center: np.ndarray
+    origins: np.ndarray
+    directions: np.ndarray
+    external: np.ndarray | None = None
+    name: str = ""
+
+    def __post_init__(self):
+        c = np.asarray(self.center, dtype=np.float64).reshape(-1)
+        label = f"view {self.name!r}"
+        if c.shape != (3,) or not np.all(np.isfinite(c)):
+            raise ValueError(f"{label}: center must be a finite (3,) point in mm, got {c!r}")
+        o = np.asarray(self.origins, dtype=np.float64)
+        d = np.asarray(self.directions, dtype=np.float64)
+        if o.size == 0 and d.size == 0:
+            o = d = np.zeros((0, 3))
+        else:
+            try:
+                o, d = as_lines(o, d)
+            except ValueError as err:
+                raise ValueError(f"{label}: {err}") from None
+        ext = (np.ones(len(o), dtype=bool) if self.external is None
+               else np.asarray(self.external, dtype=bool).reshape(-1))
+        if ext.shape != (len(o),):
+            raise ValueError(f"{label}: external must have shape ({len(o)},), got {ext.shape}")
+        object.__setattr__(self, "center", c)
+        object.__setattr__(self, "origins", o)
+        object.__setattr__(self, "directions", d)
+        object.__setattr__(self, "external", ext)
+
+    @property
+    def n_paths(self) -> int:
+        return int(len(self.origins))
+
+
+@dataclass(frozen=True)
+class IterationRecord:
+    """One iteration of the loop.
+
+    ``residual_mm``: RMS point-path distance of the inliers at the pose after the solve;
+    ``median_mm``: median distance of all matches after the solve; ``step_mm``: largest
+    displacement of the surfaces' bounding-box corners by this iteration's update;
+    ``step_deg``: its rotation angle; ``inlier_fraction``: share of matches the solver kept;
+    ``n_matches``: matched paths; ``time_s``: wall time of the iteration.
+    """
+
+    iteration: int
+    residual_mm: float
+    median_mm: float
+    step_mm: float
+    step_deg: float
+    inlier_fraction: float
+    n_matches: int
+    time_s: float
+
+
+@dataclass(frozen=True, eq=False)
+class RegistrationResult:
+    """Outcome of :func:`register`. Falsy when it did not converge; ``reason`` says why.
+
+    Attributes
+    ----------
+    ct2robot : RigidTransform, the final pose (the start pose if it failed before a solve).
+    converged : bool.
+    reason : str, why it stopped (converged: which test; failed: what went wrong).
+    iterations : int.
+    history : tuple of IterationRecord.
+    residuals : (M,) float64, mm, point-path distances of the last matches at the final pose.
+    weights : (M,) float64, the solver's final weights of those matches (0 = rejected).
+    view_index : (M,) int64, the view of each match.
+    inlier_fraction_per_view : (V,) float64.
+    time_s : float, total wall time.
+    """
+
+    ct2robot: RigidTransform
+    converged: bool
+    reason: str
+    iterations: int
+    history: tuple = ()
+    residuals: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    weights: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    view_index: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    inlier_fraction_per_view: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    time_s: float = 0.0
+
+    def __bool__(self) -> bool:
+        return bool(self.converged)
+
+    @property
+    def inlier_fraction(self) -> float:
+        return float(np.mean(self.weights > 0)) if self.weights.size else 0.0
+
+
+# --------------------------------------------------------------------------- fixed point
+def solve_rotation_about(points, origins, directions, center, *, robust: bool = True,
+                         tukey_a: float = 2.0, max_iterations: int = 50, tol: float = 1e-12):
+    """Rotation about a fixed point that puts ``points`` on their lines.
+
+    Minimises ``sum_i w_i |(I - v_i v_i^T)(f + R (p_i - f) - c_i)|^2`` over rotations ``R``
+    (Gauss-Newton on a rotation vector, each step applied exactly), with Tukey biweights
+    (``a = tukey_a``, scale ``median / 0.6745``) when ``robust``.
+
+    Parameters
+    ----------
+    points : (N, 3) mm, already in the lines' frame (the current pose applied).
+    origins, directions : (N, 3) mm and unit, the lines.
+    center : (3,) mm, the fixed point ``f`` (same frame).
+
+    Returns
+    -------
+    (R (3, 3), residuals (N,) mm, weights (N,), ok: bool, message: str); the pose update is
+    ``x -> f + R (x - f)``.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    o, d = as_lines(origins, directions)
+    f = np.asarray(center, dtype=np.float64).reshape(3)
+    if p.shape != o.shape:
+        raise ValueError(f"points {p.shape} and lines {o.shape} must have the same shape")
+    if len(p) < 2:
+        raise ValueError(f"a rotation about a fixed point needs at least 2 matches, got {len(p)}")
+    M = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+    R = np.eye(3)
+    x0 = p - f
+    w = np.ones(len(p))
+    scale = float(np.sqrt(np.mean(np.sum(x0 * x0, axis=1)))) or 1.0
+
+    def dist_of(R):
+        r = np.einsum("nij,nj->ni", M, f + x0 @ R.T - o)
+        return r, np.linalg.norm(r, axis=1)
+
+    for _ in range(max_iterations):
+        x = x0 @ R.T
+        r, dist = dist_of(R)
+        if robust:
+            s = max(float(np.median(dist)) / 0.6745, 1e-12 * scale)
+            w = tukey_weights(dist / s, tukey_a)
+            if np.count_nonzero(w) < 3:
+                return R, dist, w, False, "fewer than 3 matches kept by the biweight"
+        J = np.einsum("nij,njk->nik", M, _skew_rows(x))   # r(omega) = r - J omega
+        A = np.einsum("n,nji,njk->ik", w, J, J)
+        b = np.einsum("n,nji,nj->i", w, J, r)
+        sv = np.linalg.svd(A, compute_uv=False)
+        if sv[-1] <= 1e-10 * max(sv[0], 1e-300):
+            return R, dist, w, False, "rotation about the fixed point is undetermined " \
+                                      "(degenerate geometry)"
+        omega = np.linalg.solve(A, b)
+        R = Rotation.from_rotvec(omega).as_matrix() @ R
+        if omega @ omega < tol * tol:
+            break
+    _, dist = dist_of(R)
+    if robust:
+        s = max(float(np.median(dist)) / 0.6745, 1e-12 * scale)
+        w = tukey_weights(dist / s, tukey_a)
+    return R, dist, w, True, ""
+
+
+def _skew_rows(x):
+    S = np.zeros(x.shape + (3,))
+    S[:, 0, 1], S[:, 0, 2] = -x[:, 2], x[:, 1]
+    S[:, 1, 0], S[:, 1, 2] = x[:, 2], -x[:, 0]
+    S[:, 2, 0], S[:, 2, 1] = -x[:, 1], x[:, 0]
+    return S
+
+
+# --------------------------------------------------------------------------- one view
+def match_view(surfaces, view: View, ct2robot: RigidTransform, *, closest: str = "dense"):
+    """Matched CT points for the paths of one view at the pose ``ct2robot``.
+
+    Returns
+    -------
+    points_ct : (N, 3) mm, the selected closest contour point of each path (CT frame), or
+        None when the surfaces show no apparent contour from this view.
+    contours : ContourSet of the apparent contours in the CT frame.
+    surface_of_contour : (C,) int64, which surface each contour belongs to.
+    """
+    robot2ct = ct2robot.inverse()
+    c_ct = robot2ct.apply(view.center)
+    o_ct, d_ct = robot2ct.apply_lines(view.origins, view.directions)
+    conts, owner = [], []
+    for k, top in enumerate(surfaces):
+        cs = apparent_contours(top, c_ct)
+        conts += cs
+        owner += [k] * len(cs)
+    if not conts:
+        return None, ContourSet.from_polylines([], []), np.zeros(0, dtype=np.int64)
+    cset = ContourSet.from_contours(conts)
+    cp = closest_points(cset, o_ct, d_ct, method=closest)
+    sel = select_contours(cp, cset, d_ct, view.external)
+    pts = cp.p[np.arange(len(sel)), sel]
+    return pts, cset, np.asarray(owner, dtype=np.int64)
+
+
+# --------------------------------------------------------------------------- the loop
+def _corners(surfaces) -> np.ndarray:
+    v = np.vstack([s.vertices for s in surfaces])
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                     for z in (lo[2], hi[2])])
+
+
+def _motion(a: RigidTransform, b: RigidTransform, corners) -> tuple[float, float]:
+    mm = float(np.max(np.linalg.norm(a.apply(corners) - b.apply(corners), axis=1)))
+    return mm, float(np.degrees((a @ b.inverse()).angle_rad))
+
+
+def _as_topologies(surfaces):
+    out = []
+    if isinstance(surfaces, SurfaceTopology):
+        surfaces = [surfaces]
+    for i, s in enumerate(surfaces):
+        if isinstance(s, SurfaceTopology):
+            out.append(s)
+        else:
+            try:
+                v, f = s
+            except (TypeError, ValueError):
+                raise ValueError(
+                    f"surfaces[{i}]: expected a SurfaceTopology or a (vertices, faces) pair"
+                ) from None
+            out.append(prepare_surface(v, f))
+    if not out:
+        raise ValueError("surfaces: at least one surface is needed")
+    return out
+
+
+def register(surfaces, views, initial: RigidTransform, *,
+             method: Literal["robust", "lm", "linear", "ransac"] = "robust",
+             closest: Literal["dense", "hierarchy", "reference"] = "dense",
+             fixed_point_ct=None, max_iterations: int = 50, tol_step_mm: float = 1e-4,
+             tol_residual_mm: float = 0.0, max_motion_mm: float = 150.0,
+             max_rotation_deg: float = 45.0, min_inlier_fraction: float = 0.2,
+             solver_iterations: int = 20, solver_options: dict | None = None
+             ) -> RegistrationResult:
+    """Register CT surfaces to the X-ray paths of several views (the paper's loop).
+
+    Parameters
+    ----------
+    surfaces : list of SurfaceTopology (or ``(vertices, faces)`` pairs), CT frame, mm.
+    views : list of View (robot frame).
+    initial : RigidTransform ``ct2robot``, the start pose.
+    method : pose solver of :func:`reglib.pose.solve_pose` (default "robust", the paper's).
+        Ignored with ``fixed_point_ct`` (a robust rotation about the point is solved then).
+    closest : Step A method of :func:`reglib.closest.closest_points`.
+    fixed_point_ct : (3,) mm or None; a CT point whose robot position ``initial(point)`` is
+        known and kept (e.g. a located pin, as in the paper's experiment 1): only the
+        rotation about it is optimised.
+    max_iterations : iterations of the loop.
+    tol_step_mm : converged when an update moves the surfaces' bounding box by less.
+    tol_residual_mm : converged when the inlier RMS residual falls below (0: never).
+    max_motion_mm, max_rotation_deg : divergence limits on the distance from ``initial``
+        (bounding-box corner displacement, rotation angle).
+    min_inlier_fraction : fail when the solver keeps a smaller share of the matches.
+    solver_iterations : inner iterations of the pose solver per loop iteration (the matches
+        change at every iteration anyway).
+    solver_options : extra keyword arguments for ``solve_pose``.
+
+    Returns
+    -------
+    RegistrationResult; ``converged=False`` with a ``reason`` on failure, never a silent
+    wrong pose.
+    """
+    t_start = time.perf_counter()
+    tops = _as_topologies(surfaces)
+    views = list(views)
+    if not views:
+        raise ValueError("views: at least one view is needed")
+    for i, v in enumerate(views):
+        if not isinstance(v, View):
+            raise ValueError(f"views[{i}]: expected a View, got {type(v).__name__}")
+    if not isinstance(initial, RigidTransform):
+        raise ValueError(f"initial: expected a RigidTransform ct2robot, got {type(initial)}")
+    if max_iterations < 1:
+        raise ValueError(f"max_iterations: expected >= 1, got {max_iterations}")
+    fixed_robot = None
+    if fixed_point_ct is not None:
+        fp = np.asarray(fixed_point_ct, dtype=np.float64).reshape(-1)
+        if fp.shape != (3,) or not np.all(np.isfinite(fp)):
+            raise ValueError(f"fixed_point_ct: expected a finite (3,) point, got {fp!r}")
+        fixed_robot = initial.apply(fp)
+    opts = dict(solver_options or {})
+    opts.setdefault("max_iterations", solver_iterations)
+    corners = _corners(tops)
+
+    def fail(reason, T=initial, it=0, history=(), **kw):
+        return RegistrationResult(ct2robot=T, converged=False, reason=reason, iterations=it,
+                                  history=tuple(history), time_s=time.perf_counter() - t_start,
+                                  **kw)
+
+    empty = [f"{i} ({v.name!r})" if v.name else str(i)
+             for i, v in enumerate(views) if v.n_paths == 0]
+    if empty:
+        return fail(f"view {', '.join(empty)} has no contour pixels (no X-ray paths)")
+
+    view_index = np.concatenate([np.full(v.n_paths, i) for i, v in enumerate(views)])
+    o_r = np.vstack([v.origins for v in views])
+    d_r = np.vstack([v.directions for v in views])
+    T = initial
+    history: list[IterationRecord] = []
+    last = None
+    reason = ""
+    converged = False
+    it = 0
+    for it in range(1, max_iterations + 1):
+        t0 = time.perf_counter()
+        pts = []
+        for i, v in enumerate(views):
+            p_ct, _, _ = match_view(tops, v, T, closest=closest)
+            if p_ct is None:
+                return fail(f"view {i} ({v.name!r}): the surfaces show no apparent contour "
+                            f"from its center at iteration {it} (degenerate geometry or "
+                            "surfaces outside the view)", T=T, it=it, history=history)
+            pts.append(p_ct)
+        p_ct = np.vstack(pts)
+        if fixed_robot is not None:
+            R, dist, w, ok, msg = solve_rotation_about(T.apply(p_ct), o_r, d_r, fixed_robot)
+            if not ok:
+                return fail(f"pose solve failed at iteration {it}: {msg}", T=T, it=it,
+                            history=history)
+            U = RigidTransform(R, fixed_robot - R @ fixed_robot)
+            T_new = U @ T
+        else:
+            try:
+                res = solve_pose(p_ct, o_r, d_r, method=method, initial=T, **opts)
+            except ValueError as err:
+                return fail(f"pose solve refused the matches at iteration {it}: {err}", T=T,
+                            it=it, history=history)
+            if not res.converged and res.iterations < opts["max_iterations"]:
+                return fail(f"pose solve failed at iteration {it}: {res.message}", T=T,
+                            it=it, history=history)
+            T_new = RigidTransform(res.R, res.t)
+            dist, w = res.residuals, res.weights
+        step_mm, step_deg = _motion(T_new, T, corners)
+        inl = w > 0
+        frac = float(np.mean(inl))
+        rms = float(np.sqrt(np.mean(dist[inl] ** 2))) if inl.any() else float("inf")
+        history.append(IterationRecord(it, rms, float(np.median(dist)), step_mm, step_deg, frac,
+                                       len(dist), time.perf_counter() - t0))
+        last = (dist, w)
+        T = T_new
+        moved_mm, moved_deg = _motion(T, initial, corners)
+        if moved_mm > max_motion_mm or moved_deg > max_rotation_deg:
+            reason = (f"diverged at iteration {it}: the pose moved {moved_mm:.1f} mm / "
+                      f"{moved_deg:.1f} deg from the start (limits {max_motion_mm} mm, "
+                      f"{max_rotation_deg} deg)")
+            break
+        if frac < min_inlier_fraction:
+            reason = (f"too few inliers at iteration {it}: {frac:.0%} of the matches kept "
+                      f"(minimum {min_inlier_fraction:.0%}); the start is probably too far off")
+            break
+        if step_mm < tol_step_mm:
+            converged = True
+            reason = f"step {step_mm:.2e} mm below tol_step_mm={tol_step_mm}"
+            break
+        if rms < tol_residual_mm:
+            converged = True
+            reason = f"inlier RMS residual {rms:.2e} mm below tol_residual_mm={tol_residual_mm}"
+            break
+    else:
+        reason = (f"no convergence after {max_iterations} iterations (last step "
+                  f"{history[-1].step_mm:.3g} mm)")
+    dist, w = last
+    per_view = np.array([float(np.mean(w[view_index == i] > 0)) for i in range(len(views))])
+    return RegistrationResult(
+        ct2robot=T, converged=converged, reason=reason, iterations=it, history=tuple(history),
+        residuals=dist, weights=w, view_index=view_index.astype(np.int64),
+        inlier_fraction_per_view=per_view, time_s=time.perf_counter() - t_start,
+    )
