@@ -1,0 +1,140 @@
+"""Per-body path lengths: embree fast path vs the numpy reference, and analytic chords."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from testbed.bodies import Body
+from testbed.raycast import (
+    attenuation_weights,
+    body_path_lengths,
+    mesh_chords,
+    ray_box_hits,
+    sphere_chords,
+)
+
+
+def _rays_towards(rng, n, target_box, distance=400.0):
+    """Rays from a sphere of radius ``distance`` towards random points of a box (mm)."""
+    o = rng.normal(size=(n, 3))
+    o *= distance / np.linalg.norm(o, axis=1, keepdims=True)
+    tgt = rng.uniform(-target_box, target_box, (n, 3))
+    d = tgt - o
+    return o, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _meshes(rng):
+    blob = trimesh.convex.convex_hull(rng.normal(scale=30.0, size=(60, 3)))
+    torus = trimesh.creation.torus(major_radius=40.0, minor_radius=12.0,
+                                   major_sections=24, minor_sections=10)
+    box = trimesh.creation.box(extents=(50.0, 30.0, 70.0))
+    return {"convex blob": blob, "torus": torus, "box": box}
+
+
+@pytest.mark.parametrize("name", ["convex blob", "torus", "box"])
+def test_embree_matches_numpy_reference_on_random_rays(name):
+    rng = np.random.default_rng(11)
+    mesh = _meshes(rng)[name]
+    assert mesh.is_watertight
+    o, d = _rays_towards(rng, 400, 60.0)
+    t_max = rng.uniform(300.0, 700.0, len(o))  # some segments end inside the mesh
+    fast = mesh_chords(mesh, o, d, t_max, engine="embree")
+    ref = mesh_chords(mesh, o, d, t_max, engine="numpy")
+    assert (ref > 0).sum() > 100
+    assert np.abs(fast - ref).max() < 1e-3
+
+
+def test_rays_through_edges_and_vertices_are_counted_once():
+    """Axis-aligned rays through a box's edges and vertices, and a cube grid."""
+    box = trimesh.creation.box(extents=(40.0, 40.0, 40.0))  # faces split along diagonals
+    s = np.linspace(-19.0, 19.0, 39)  # includes 0, on the faces' diagonals
+    x, y = np.meshgrid(s, s)
+    o = np.c_[x.ravel(), y.ravel(), np.full(x.size, -100.0)]
+    d = np.tile([0.0, 0.0, 1.0], (len(o), 1))
+    for engine in ("embree", "numpy"):
+        assert np.allclose(mesh_chords(box, o, d, 500.0, engine=engine), 40.0, atol=1e-4)
+    # diagonal rays through opposite vertices
+    v = np.array([[-20.0, -20.0, -20.0]])
+    dv = np.ones((1, 3)) / np.sqrt(3.0)
+    for engine in ("embree", "numpy"):
+        got = mesh_chords(box, v - 100 * dv, dv, 500.0, engine=engine)
+        assert got[0] == pytest.approx(40.0 * np.sqrt(3.0), abs=1e-3)
+
+
+def test_cylinder_chords_match_the_analytic_chord():
+    """A 256-gon prism lies between the inscribed and the circumscribed circle."""
+    R, n = 20.0, 256
+    cyl = trimesh.creation.cylinder(radius=R, height=200.0, sections=n)  # axis along z
+    rng = np.random.default_rng(3)
+    s = rng.uniform(-0.95 * R, 0.95 * R, 500)  # offset of the ray from the axis
+    z = rng.uniform(-90.0, 90.0, 500)
+    phi = rng.uniform(0, 2 * np.pi, 500)  # direction in the xy plane
+    d = np.c_[np.cos(phi), np.sin(phi), np.zeros(500)]
+    perp = np.c_[-np.sin(phi), np.cos(phi), np.zeros(500)]
+    o = perp * s[:, None] - 300.0 * d + np.c_[np.zeros((500, 2)), z]
+    got = mesh_chords(cyl, o, d, 1000.0)
+    outer = 2 * np.sqrt(R**2 - s**2)
+    r_in = R * np.cos(np.pi / n)
+    inner = 2 * np.sqrt(r_in**2 - s**2)
+    assert np.all(got <= outer + 1e-6) and np.all(got >= inner - 1e-6)
+    assert np.abs(got - outer).max() < 0.05
+    # an oblique ray through the axis: the chord of an ellipse, 2R / sin(angle)
+    a = np.radians(50.0)
+    d1 = np.array([[np.sin(a), 0.0, np.cos(a)]])
+    got = mesh_chords(cyl, -300.0 * d1, d1, 1000.0)[0]
+    assert got == pytest.approx(2 * R / np.sin(a), rel=1e-4)
+
+
+def test_sphere_chords_analytic_and_clipped():
+    rng = np.random.default_rng(8)
+    c = np.array([[10.0, -5.0, 300.0]])
+    r = 7.0
+    o = np.zeros((2000, 3))
+    tgt = c + rng.uniform(-9.0, 9.0, (2000, 3))
+    d = tgt / np.linalg.norm(tgt, axis=1, keepdims=True)
+    got = sphere_chords(c, [r], o, d, 1000.0)[:, 0]
+    dist = np.linalg.norm(np.cross(d, c), axis=1)  # distance from centre to the line
+    want = np.where(dist < r, 2 * np.sqrt(np.clip(r**2 - dist**2, 0, None)), 0.0)
+    assert np.abs(got - want).max() < 1e-9
+    assert (want > 0).sum() > 500
+    # the same sphere as a fine mesh agrees to the mesh's facet error
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=r)
+    mesh.apply_translation(c[0])
+    inner = dist < 0.9 * r
+    assert np.abs(mesh_chords(mesh, o, d, 1000.0)[inner] - want[inner]).max() < 0.02
+    # a segment ending at the centre holds half the chord through the centre
+    half = sphere_chords(c, [r], [[0.0, 0.0, 0.0]], c / np.linalg.norm(c),
+                         np.linalg.norm(c))
+    assert half[0, 0] == pytest.approx(r)
+
+
+def test_box_culling_is_exact():
+    rng = np.random.default_rng(2)
+    o, d = _rays_towards(rng, 3000, 45.0)
+    t_max = rng.uniform(360.0, 440.0, len(o))  # some segments stop short of the box
+    lo, hi = np.array([-30.0, -20.0, -10.0]), np.array([30.0, 20.0, 10.0])
+    hit = ray_box_hits(o, d, t_max, lo, hi)
+    # reference: the box as a mesh, cast with the numpy reference
+    box = trimesh.creation.box(bounds=np.stack([lo, hi]))
+    meets = mesh_chords(box, o, d, t_max, engine="numpy") > 1e-9
+    assert meets.sum() > 300 and (~meets).sum() > 300
+    assert np.all(hit[meets])  # never culls a segment that meets the box
+    assert (hit & ~meets).sum() <= 3  # only segments grazing the box
+
+
+def test_nesting_and_source_inside():
+    outer = trimesh.creation.icosphere(subdivisions=3, radius=50.0)
+    inner = trimesh.creation.icosphere(subdivisions=3, radius=20.0)
+    bodies = [Body("tissue", "soft_tissue", mesh=outer),
+              Body("bone", "cortical_bone", mesh=inner, inside="tissue")]
+    w = attenuation_weights(bodies)
+    assert w == pytest.approx([0.0206, 0.0600 - 0.0206])
+    o = np.array([[0.0, 0.0, -200.0]])
+    d = np.array([[0.0, 0.0, 1.0]])
+    L = body_path_lengths(bodies, o, d, 400.0)
+    # a ray through the centre: 60 mm of tissue then 40 mm of bone then 60 mm of tissue
+    assert float(L[0] @ w) == pytest.approx(0.0206 * 60 + 0.06 * 40, rel=2e-3)
+    with pytest.raises(ValueError, match="'tissue'.*inside the mesh"):
+        mesh_chords(outer, [[0.0, 0.0, 0.0]], d, 400.0, name="tissue")
+    with pytest.raises(ValueError, match="unique"):
+        attenuation_weights([bodies[0], bodies[0]])
