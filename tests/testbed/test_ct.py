@@ -1,0 +1,141 @@
+"""CT scanner: known geometry -> scan -> expected HU, partial volume, schedule, bad input."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import trimesh
+
+from testbed.bodies import Body
+from testbed.ct import CTSpec, sample_hu_reference, scan, slice_schedule
+from testbed.materials import material
+from testbed.phantom import PhantomSpec, make_phantom
+
+
+def _cylinder(r, z0=0.0, z1=100.0, sections=128):
+    m = trimesh.creation.cylinder(radius=r, height=z1 - z0, sections=sections)
+    m.apply_translation([3.0, -2.0, (z0 + z1) / 2])
+    return m
+
+
+@pytest.fixture(scope="module")
+def cylinders():
+    """Concentric cylinders: thigh r 60, bone r 20 (cortical), canal r 10 (marrow)."""
+    soft, bone, canal = _cylinder(60.0), _cylinder(20.0, 5, 95), _cylinder(10.0, 10, 90)
+    bodies = [Body("soft_tissue", "soft_tissue", soft),
+              Body("femur", "cortical_bone", bone, inside="soft_tissue"),
+              Body("canal", "marrow", canal, inside="femur")]
+    return SimpleNamespace(
+        soft_tissue=soft, femur=bone, pins={"proximal": np.array([3.0, -2.0, 80.0]),
+                                            "distal_1": np.array([3.0, -2.0, 20.0]),
+                                            "distal_2": np.array([3.0, -2.0, 22.0])},
+        spec=PhantomSpec(), bodies=lambda: bodies, z_range_mm=lambda: (5.0, 95.0))
+
+
+def test_expected_hu_per_material(cylinders):
+    spec = CTSpec(schedule="explicit", slice_z_mm=(30.0, 50.0), noise_hu=0.0)
+    ct = scan(cylinders, spec, rng=0)
+    assert ct.volume_hu.dtype == np.float32 and ct.volume_hu.shape[0] == 2
+    n = ct.volume_hu.shape[1]
+    yy, xx = np.mgrid[0:n, 0:n]
+    pts = ct.pixel_to_ct(np.column_stack([xx.ravel(), yy.ravel()]), 1)
+    r = np.hypot(pts[:, 0] - 3.0, pts[:, 1] + 2.0).reshape(n, n)
+    img = ct.volume_hu[1]
+    for lo, hi, mat in [(0, 9, "marrow"), (11, 19, "cortical_bone"), (21, 59, "soft_tissue"),
+                        (61, 1e9, "air")]:
+        sel = (r > lo) & (r < hi)
+        assert sel.sum() > 50
+        np.testing.assert_allclose(img[sel], material(mat).hu, atol=0.5, err_msg=mat)
+    # Partial volume conserves the integral: sum of (HU - air) * pixel area = sum of areas.
+    want = sum(np.pi * rr**2 * dhu for rr, dhu in [(60.0, 1040.0), (20.0, 1460.0),
+                                                   (10.0, -1550.0)])
+    got = float(np.sum(img.astype(np.float64) + 1000.0)) * ct.pixel_mm**2
+    assert got == pytest.approx(want, rel=2e-3)
+    # Edge pixels hold intermediate values (partial volume), not only the pure ones.
+    edge = (r > 19.5) & (r < 20.5)
+    assert np.any((img[edge] > 100) & (img[edge] < 1400))
+
+
+def test_partial_volume_matches_brute_force_reference():
+    ph = make_phantom(PhantomSpec(segments=32))
+    spec = CTSpec(schedule="explicit", slice_z_mm=(21.0, 400.0), noise_hu=0.0, supersample=2,
+                  slice_thickness_mm=0.5, subslice_mm=0.25)
+    ct = scan(ph, spec)
+    rng = np.random.default_rng(0)
+    for k in range(2):
+        # Pixels near the bone edge, where partial volume matters.
+        img = ct.volume_hu[k]
+        rows, cols = np.nonzero((img > -900) & (np.abs(np.gradient(img)[0]) > 200))
+        pick = rng.choice(len(rows), 40, replace=False)
+        for r, c in zip(rows[pick], cols[pick], strict=True):
+            sx = (np.arange(16) + 0.5) / 16 - 0.5
+            sy = (np.arange(2) + 0.5) / 2 - 0.5
+            sz = (np.arange(2) + 0.5) / 2 - 0.5
+            gx, gy, gz = np.meshgrid(sx, sy, sz, indexing="ij")
+            xy = np.column_stack([c + gx.ravel(), r + gy.ravel()])
+            pts = ct.pixel_to_ct(xy, k)
+            pts[:, 2] += gz.ravel() * 0.5
+            ref = sample_hu_reference(ph.bodies(), pts).mean()
+            assert abs(ref - img[r, c]) < 4600 / 16 / 2 + 1, (k, r, c, ref, img[r, c])
+
+
+def test_clinical_schedule(cylinders):
+    spec = CTSpec(distal_range_mm=(6.0, 40.0), proximal_range_mm=(60.0, 94.0))
+    z, regions = slice_schedule(cylinders, spec)
+    zd, zp = z[regions["distal"]], z[regions["proximal"]]
+    assert zd.min() >= 6.0 and zd.max() <= 40.0 and zp.min() >= 60.0 and zp.max() <= 94.0
+    # 1 mm within 15 mm of the distal pins (z 20, 22), 6 mm elsewhere.
+    np.testing.assert_allclose(zd, [6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.0, 13.0, 14.0, 15.0,
+                                    16.0, 17.0, 18.0, 19.0, 20.0, 21.0, 22.0, 23.0, 24.0,
+                                    25.0, 26.0, 27.0, 28.0, 29.0, 30.0, 31.0, 32.0, 33.0,
+                                    34.0, 35.0, 36.0, 37.0])
+    np.testing.assert_allclose(zp, [60.0, 65.0, 66.0, 67.0, 68.0, 69.0, 70.0, 71.0, 72.0,
+                                    73.0, 74.0, 75.0, 76.0, 77.0, 78.0, 79.0, 80.0, 81.0, 82.0,
+                                    83.0, 84.0, 85.0, 86.0, 87.0, 88.0, 89.0, 90.0, 91.0, 92.0,
+                                    93.0, 94.0])
+    ct = scan(cylinders, spec.model_copy(update={"noise_hu": 20.0}), rng=1)
+    np.testing.assert_allclose(ct.slice_z_mm, z)
+    a = ct.slice2ct
+    assert a.shape == (len(z), 4, 4)
+    np.testing.assert_allclose(a[:, 2, 3], z)
+    with pytest.raises(ValueError, match="unequally spaced"):
+        _ = ct.voxel2ct
+    # Noise: the standard deviation asked, in a uniform region.
+    np.testing.assert_allclose(np.std(ct.volume_hu[3, :20, :20]), 20.0, rtol=0.15)
+
+
+def test_default_protocol_on_the_femur_has_two_regions_and_fine_slices_at_pins():
+    ph = make_phantom(PhantomSpec(segments=32))
+    ct = scan(ph, CTSpec(metal_streaks=True), rng=3)
+    z = ct.slice_z_mm
+    assert set(ct.regions) == {"distal", "proximal"}
+    gap = np.diff(z)
+    assert gap.max() > 200  # the shaft is not scanned
+    for p in ph.pins.values():
+        near = z[np.abs(z - p[2]) < 14.0]
+        assert np.allclose(np.diff(near), 1.0)
+    assert 0.7 <= ct.pixel_mm <= 0.9
+    n = ct.volume_hu.shape[1]
+    assert n * ct.pixel_mm > np.ptp(ph.soft_tissue.bounds[:, :2], axis=0).max()
+    # The pins are steel (clipped to the scanner's range) in the slice through their centre.
+    for p in ph.pins.values():
+        k = int(np.argmin(np.abs(z - p[2])))
+        c, r = np.round(ct.ct_to_pixel(p)[0]).astype(int)
+        assert ct.volume_hu[k, r, c] > 2500
+
+
+def test_uniform_voxel2ct(cylinders):
+    ct = scan(cylinders, CTSpec(schedule="uniform", uniform_range_mm=(10.0, 30.0),
+                                uniform_spacing_mm=5.0, noise_hu=0.0))
+    a = ct.voxel2ct
+    np.testing.assert_allclose(a @ [2.0, 3.0, 4.0, 1.0],
+                               [*ct.pixel_to_ct([[2.0, 3.0]], 4)[0], 1.0])
+
+
+def test_schedule_outside_the_volume_raises(cylinders):
+    with pytest.raises(ValueError, match="outside the volume"):
+        scan(cylinders, CTSpec(schedule="explicit", slice_z_mm=(50.0, 150.0)))
+    with pytest.raises(ValueError, match="outside the volume"):
+        scan(cylinders, CTSpec(proximal_range_mm=(60.0, 130.0), distal_range_mm=(6.0, 40.0)))
+    with pytest.raises(ValueError, match="strictly increasing"):
+        scan(cylinders, CTSpec(schedule="explicit", slice_z_mm=(50.0, 40.0)))
