@@ -77,6 +77,7 @@ __all__ = [
     "read_failures",
     "read_results",
     "read_trials",
+    "run_study_trials",
     "run_trials",
 ]
 
@@ -347,7 +348,8 @@ def read_results(out_dir, trials: Sequence[Trial] | None = None) -> pd.DataFrame
     DataFrame with columns ``trial``, ``metric``, ``value``, ``unit``, then the parameter
     columns in order of first appearance (trial parameters, then the rows' own keys). A
     failed trial gives one row ``metric="failed"``, ``value=1.0``.
-    ``df.attrs["failures"]`` lists the failed trials (``trial``, ``error``).
+    ``df.attrs["failures"]`` is a dict trial index -> error message of the failed trials
+    (plain values, so that ``pd.concat`` of results keeps working).
     """
     db = Path(out_dir) / DB_NAME
     if not db.exists():
@@ -363,13 +365,13 @@ def read_results(out_dir, trials: Sequence[Trial] | None = None) -> pd.DataFrame
     finally:
         con.close()
     wanted = None if trials is None else {t.key for t in trials}
-    records, failures = [], []
+    records, failures = [], {}
     for key, index, params_json, status, error in tr:
         if wanted is not None and key not in wanted:
             continue
         params = json.loads(params_json)
         if status == "failed":
-            failures.append({"trial": index, "error": error})
+            failures[index] = error
             records.append({"trial": index, "metric": FAILED_METRIC, "value": 1.0, "unit": "",
                             **params})
             continue
@@ -380,7 +382,7 @@ def read_results(out_dir, trials: Sequence[Trial] | None = None) -> pd.DataFrame
     df = pd.DataFrame.from_records(records, columns=None if records else list(_RESERVED))
     df = df[list(_RESERVED) + [c for c in df.columns if c not in _RESERVED]]
     df["value"] = df["value"].astype(np.float64)
-    df.attrs["failures"] = pd.DataFrame(failures, columns=["trial", "error"])
+    df.attrs["failures"] = failures
     return df
 
 
@@ -542,8 +544,8 @@ def run_trials(
     DataFrame
         :func:`read_results` for ``trials``: columns ``trial``, ``metric``, ``value``,
         ``unit`` + parameter columns, sorted by trial index and row index; the same whatever
-        the number of workers. ``df.attrs`` holds ``failures`` (DataFrame ``trial``,
-        ``error``), ``executed`` (trials run by this call) and ``skipped`` (found stored).
+        the number of workers. ``df.attrs`` holds ``failures`` (dict trial index ->
+        error message), ``executed`` (trials run by this call) and ``skipped`` (found stored).
     """
     trials = list(trials)
     for t in trials:
@@ -604,3 +606,27 @@ def run_trials(
     df.attrs["executed"] = executed
     df.attrs["skipped"] = skipped
     return df
+
+
+def run_study_trials(ctx, trial_fn: Callable[[Trial], list[dict]],
+                     params: Sequence[Mapping[str, Any]], *, scheduler=None,
+                     progress: bool = True, **kwargs) -> pd.DataFrame:
+    """:func:`run_trials` for a study: trials on ``ctx.scene_path`` seeded from ``ctx.seed``
+    (trial ``i`` = child ``i`` of ``SeedSequence(ctx.seed)``, as ``ctx.seeds``), stored in
+    ``ctx.out``, on ``ctx.workers`` workers or on ``scheduler`` (default:
+    ``ctx.scheduler`` if the context has one). Other keywords go to :func:`run_trials`.
+
+    Parameters
+    ----------
+    ctx : studies.common.StudyContext
+        Needs ``scene_path``, ``seed``, ``out`` and ``workers``.
+    trial_fn : callable
+        Top-level ``trial_fn(trial) -> list[dict]``; it loads the scene from ``trial.scene``.
+    params : sequence of dict
+        One dict of scalar parameters per trial.
+    """
+    trials = make_trials(str(ctx.scene_path), int(ctx.seed), params)
+    if scheduler is None:
+        scheduler = getattr(ctx, "scheduler", None)
+    return run_trials(trial_fn, trials, out_dir=ctx.out, workers=int(ctx.workers),
+                      scheduler=scheduler, progress=progress, **kwargs)

@@ -16,6 +16,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from studies.common import start_study
 from studies.runner import (
     DB_NAME,
     Trial,
@@ -23,6 +24,7 @@ from studies.runner import (
     read_failures,
     read_results,
     read_trials,
+    run_study_trials,
     run_trials,
 )
 
@@ -117,11 +119,12 @@ def test_failed_trial_is_recorded_and_does_not_stop_the_study(tmp_path):
     assert fails.error[0] == "RuntimeError: trial 2 was asked to fail"
     assert "toy_trial" in fails.traceback[0] and "RuntimeError" in fails.traceback[0]
     assert "trial 4, row 0 (mtre): 'value' must be a real number, got str" in fails.error[1]
-    assert df.attrs["failures"].trial.tolist() == [2, 4]
+    assert list(df.attrs["failures"]) == [2, 4]
     # resume: nothing to do; retry_failed runs only the two failed trials again
     again = run_trials(toy_trial, trials, out_dir=tmp_path, progress=False)
     assert again.attrs["executed"] == 0 and again.attrs["skipped"] == 6
     pd.testing.assert_frame_equal(again, df)
+    assert pd.concat([df, again]).shape[0] == 2 * len(df)  # attrs do not break pandas
     retried = run_trials(toy_trial, trials, out_dir=tmp_path, progress=False, retry_failed=True)
     assert retried.attrs["executed"] == 2
 
@@ -239,3 +242,13 @@ def test_dask_local_cluster_gives_the_same_rows(tmp_path):
     pd.testing.assert_frame_equal(by_cluster, ref, check_exact=True)
     pd.testing.assert_frame_equal(by_address, ref, check_exact=True)
     assert len(set(read_trials(tmp_path / "c").worker)) == 2
+
+
+def test_study_context_runs_trials_seeded_by_the_study(tmp_path):
+    ctx = start_study("toy", tmp_path, scene="points-lines", seed=11)
+    params = _params(4, 0.0)
+    df = run_study_trials(ctx, toy_trial, params, progress=False)
+    exp = expected_rows(11, params)
+    pd.testing.assert_frame_equal(df[exp.columns.tolist()], exp, check_exact=True)
+    assert (tmp_path / DB_NAME).exists()
+    assert set(read_trials(tmp_path).scene) == {str(ctx.scene_path)}
