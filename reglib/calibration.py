@@ -191,16 +191,18 @@ def _log_image(img, response: str) -> np.ndarray:
 def detect_markers(previous, current, *, polarity: str = "dark", response: str = "log",
                    rel_threshold: float = 0.35,
                    n_sigma: float = 6.0, min_area_px: int = 4, max_area_px: int = 2000,
-                   max_elongation: float = 2.0, mask=None) -> tuple[np.ndarray, np.ndarray]:
+                   max_elongation: float = 2.0, centroid_floor: float = 0.25,
+                   mask=None) -> tuple[np.ndarray, np.ndarray]:
     """Blobs that appeared in ``current`` and not in ``previous`` (the rod's new beads).
 
     Works on ``d = log(previous) - log(current)`` (for dark markers: the added attenuation,
     independent of what lies behind; with ``response="log"`` the frames already are log
     intensities, as from a logarithmic video amplifier, and are differenced as they are,
-    with ``"linear"`` their logarithm is taken); blobs are the connected regions of the smoothed ``d``
-    above ``max(n_sigma * noise, rel_threshold * peak)``. Each centroid is the
-    ``d``-weighted mean over a disc about the blob, minus the median of a ring around it
-    (background), iterated twice with the disc re-centred.
+    with ``"linear"`` their logarithm is taken); blobs are the connected regions of the
+    smoothed ``d`` above ``max(n_sigma * noise, rel_threshold * peak)``. Each centroid is the
+    mean over a disc about the blob weighted by ``d`` above a floor (the median of a ring
+    around the disc, the background, plus ``centroid_floor`` times the blob's height above
+    it: this drops the rod's faint band under the bead), iterated with the disc re-centred.
 
     Parameters
     ----------
@@ -267,7 +269,9 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
             rr = np.hypot(px - cx, py - cy)
             ring = pd[(rr > r_in) & (rr <= r_in + 3)]
             bg = np.median(ring) if ring.size else 0.0
-            w = np.where(rr <= r_in, np.maximum(pd - bg, 0.0), 0.0)
+            inner = rr <= r_in
+            floor = bg + centroid_floor * (pd[inner].max() - bg) if inner.any() else bg
+            w = np.where(inner, np.maximum(pd - floor, 0.0), 0.0)
             sw = w.sum()
             if sw <= 0:
                 break
@@ -339,7 +343,7 @@ def identify_row(xy_px, bead_positions_mm, *, tolerance: float = 0.15,
         raise ValueError(f"identify_row: the spacing pattern matches at most {count.max()} "
                          f"of {K} blobs (need {min_matched})")
     # distinct assignments of the two best counts, refitted; a candidate's score is its count
-    # minus its refit RMS in units of (tolerance * gap / 10): a stray blob that happens to fall
+    # minus its refit RMS in units of (tolerance * gap / 5): a stray blob that happens to fall
     # near a bead cannot outvote a tight fit of fewer blobs
     top = np.flatnonzero(count >= max(min_matched, count.max() - 1))
     assign = np.where(inl[top], j[top], -1)
@@ -355,7 +359,7 @@ def identify_row(xy_px, bead_positions_mm, *, tolerance: float = 0.15,
         A = np.column_stack([sk, np.ones_like(sk)])
         coef = np.linalg.lstsq(A, tk, rcond=None)[0]
         rms = float(np.sqrt(np.mean((tk - A @ coef) ** 2)))
-        unit = 0.1 * tolerance * abs(coef[0]) * np.min(np.diff(s))
+        unit = 0.2 * tolerance * abs(coef[0]) * np.min(np.diff(s))
         scored.append((m.sum() - rms / unit, rms, k))
     scored.sort(reverse=True)
     score, rms, k = scored[0]

@@ -1,0 +1,211 @@
+"""reglib.calibration: TPS against the paper's SVD solve, affine reproduction, marker detection
+and identification on synthetic images, two-plane paths against a pinhole truth."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from reglib.calibration import (
+    Calibration,
+    Markers,
+    SweepData,
+    ThinPlateSpline,
+    calibrate,
+    detect_markers,
+    find_markers,
+    identify_row,
+    tps_evaluate,
+    tps_fit_svd,
+)
+from reglib.geometry import RigidTransform
+
+BEADS = np.r_[0.0, np.cumsum([14.0, 27.0, 16.0, 12.0, 30.0, 21.0, 24.0])]
+
+
+# --------------------------------------------------------------------------- TPS
+@pytest.mark.parametrize("lam", [0.0, 0.01, 0.5])
+def test_rbf_interpolator_matches_the_paper_svd_solve(lam):
+    rng = np.random.default_rng(11)
+    for n in (10, 60):
+        xy = rng.uniform(0, 640, (n, 2))
+        v = rng.normal(0, 50, (n, 3))
+        tps = ThinPlateSpline.fit(xy, v, smoothing=lam)
+        coef = tps_fit_svd(xy, v, lam)
+        q = rng.uniform(-50, 700, (200, 2))
+        assert np.allclose(tps(q), tps_evaluate(coef, xy, q), atol=1e-7 * 50)
+
+
+@pytest.mark.parametrize("lam", [0.0, 0.01, 10.0])
+def test_tps_reproduces_an_affine_mapping_exactly(lam):
+    rng = np.random.default_rng(2)
+    xy = rng.uniform(0, 640, (40, 2))
+    A, b = rng.normal(size=(3, 2)), rng.normal(0, 100, 3)
+    tps = ThinPlateSpline.fit(xy, xy @ A.T + b, smoothing=lam)
+    q = rng.uniform(-100, 740, (500, 2))
+    assert np.abs(tps(q) - (q @ A.T + b)).max() < 1e-7
+
+
+def test_tps_interpolates_its_markers_within_the_smoothing():
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(0, 640, (50, 2))
+    v = np.column_stack([np.sin(xy[:, 0] / 80.0) * 3, np.cos(xy[:, 1] / 60.0) * 2])
+    res = [ThinPlateSpline.fit(xy, v, smoothing=lam).residuals().max()
+           for lam in (0.0, 1e-3, 1e-2, 1e-1, 1.0)]
+    assert res[0] < 1e-8                       # exact interpolation without smoothing
+    assert all(a <= b + 1e-12 for a, b in zip(res, res[1:]))  # grows with the smoothing
+    assert res[2] < 0.05 and res[-1] > res[2]
+
+
+def test_tps_bad_input():
+    with pytest.raises(ValueError, match="at least 3"):
+        ThinPlateSpline.fit(np.zeros((2, 2)), np.zeros((2, 3)))
+    line = np.column_stack([np.arange(10.0), 2 * np.arange(10.0)])
+    with pytest.raises(ValueError, match="collinear"):
+        ThinPlateSpline.fit(line, np.zeros((10, 3)))
+    with pytest.raises(ValueError, match="expected 10 rows"):
+        ThinPlateSpline.fit(np.random.default_rng(0).random((10, 2)), np.zeros((9, 3)))
+
+
+# --------------------------------------------------------------------------- detection
+def _bead_image(centres_px, shape=(240, 320), radius_px=3.0, contrast=70.0, rod=None):
+    """A log-video frame (uint8): bright background, dark spheres (analytic chord lengths,
+    4x4 supersampled) on an optional faint band (the rod) along a line."""
+    H, W = shape
+    sub = (np.arange(4) + 0.5) / 4 - 0.5
+    yy, xx = np.mgrid[0:H, 0:W].astype(float)
+    att = np.zeros(shape)
+    for dy in sub:
+        for dx in sub:
+            for cx, cy in centres_px:
+                r2 = (xx + dx - cx) ** 2 + (yy + dy - cy) ** 2
+                att += np.sqrt(np.maximum(radius_px**2 - r2, 0.0)) / radius_px / 16
+    img = 220.0 - contrast * att
+    if rod is not None:
+        (px, py), (ux, uy), half = rod
+        dist = np.abs((xx - px) * uy - (yy - py) * ux)
+        img -= 8.0 * np.sqrt(np.maximum(1 - (dist / half) ** 2, 0.0))
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+def test_detect_markers_finds_new_beads_with_subpixel_accuracy():
+    rng = np.random.default_rng(4)
+    ang = 0.3
+    u = np.r_[np.cos(ang), np.sin(ang)]
+    start = np.r_[60.0, 70.0]
+    centres = start + (BEADS * 1.4)[:, None] * u + rng.uniform(-0.5, 0.5, 2)
+    prev = _bead_image([], rod=None)
+    cur = _bead_image(centres, rod=(start, u, 6.0))
+    xy, strength = detect_markers(prev, cur)
+    assert len(xy) == len(centres)
+    d = np.linalg.norm(xy[:, None] - centres[None], axis=2)
+    assert np.all(d.min(axis=1) < 0.1)
+    assert np.all(strength > 0)
+    # the old row (brighter now) is not detected as new: swap the frames
+    xy2, _ = detect_markers(cur, prev)
+    assert len(xy2) == 0
+
+
+def test_detect_markers_bad_input():
+    with pytest.raises(ValueError, match="same shape"):
+        detect_markers(np.zeros((10, 10)), np.zeros((10, 11)))
+    with pytest.raises(ValueError, match="polarity"):
+        detect_markers(np.zeros((10, 10)), np.zeros((10, 10)), polarity="grey")
+
+
+# --------------------------------------------------------------------------- identification
+def test_identify_row_finds_every_bead_index():
+    rng = np.random.default_rng(8)
+    for _ in range(60):
+        scale = rng.uniform(1.5, 3.0) * rng.choice([-1, 1])      # either orientation
+        t = scale * BEADS + rng.uniform(-200, 0)
+        t = t + 5e-8 * t**3                                       # a little distortion
+        ang = rng.uniform(0, np.pi)
+        pts = 320 + t[:, None] * np.r_[np.cos(ang), np.sin(ang)] + rng.normal(0, 0.05, (8, 2))
+        k0 = rng.integers(0, 4)
+        keep = np.arange(k0, rng.integers(k0 + 4, 9))            # a run cut by the field
+        if len(keep) > 5 and rng.random() < 0.5:
+            keep = np.delete(keep, rng.integers(1, len(keep) - 1))  # one hidden inside
+        perm = rng.permutation(len(keep))
+        bead, rms = identify_row(pts[keep][perm], BEADS)
+        assert np.array_equal(bead, keep[perm])
+        assert rms < 2.0
+
+
+def test_identify_row_rejects_a_stray_blob_and_too_few_blobs():
+    t = 2.0 * BEADS
+    pts = np.column_stack([100 + t, 50 + 0.1 * t])
+    stray = np.r_[100 + 2.0 * 50.0, 55.0]                      # between beads 2 and 3
+    bead, _ = identify_row(np.vstack([pts, stray]), BEADS)
+    assert np.array_equal(bead, np.r_[np.arange(8), -1])
+    with pytest.raises(ValueError, match="at least 4"):
+        identify_row(pts[:3], BEADS)
+
+
+# --------------------------------------------------------------------------- two planes
+def _pinhole(carm2robot, points_robot, sid=1000.0, pixel=0.5, c=(319.5, 239.5)):
+    q = carm2robot.inverse().apply(points_robot)
+    return np.column_stack([c[0] + sid * q[:, 0] / (q[:, 2] * pixel),
+                            c[1] + sid * q[:, 1] / (q[:, 2] * pixel)])
+
+
+def _grid_markers(carm2robot, depths=(600.0, 800.0), rows=6):
+    frame, plane, bead, xy, robot = [], [], [], [], []
+    f = 0
+    for p, z in enumerate(depths):
+        for y in np.linspace(-50, 50, rows) * z / 700:
+            f += 1
+            pts_c = np.column_stack([BEADS - 72.0, np.full(8, y), np.full(8, z)])
+            pts = carm2robot.apply(pts_c)
+            frame.append(np.full(8, f))
+            plane.append(np.full(8, p))
+            bead.append(np.arange(8))
+            xy.append(_pinhole(carm2robot, pts))
+            robot.append(pts)
+    return Markers("test", np.concatenate(frame), np.concatenate(plane), np.concatenate(bead),
+                   np.concatenate(xy), np.concatenate(robot))
+
+
+def test_two_plane_paths_match_pinhole_rays():
+    carm2robot = RigidTransform.from_rotation(Rotation.from_rotvec([0.4, -0.2, 0.9]),
+                                              [700.0, -100.0, -300.0])
+    cal = calibrate(_grid_markers(carm2robot), smoothing=0.01)
+    assert isinstance(cal, Calibration)
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, [640, 480], (1000, 2))
+    o, d = cal.paths(xy)
+    # the true ray of a pixel: from the source through its point on the image plane
+    q = np.column_stack([(xy[:, 0] - 319.5) * 0.5, (xy[:, 1] - 239.5) * 0.5,
+                         np.full(len(xy), 1000.0)])
+    true_d = carm2robot.apply_vectors(q / np.linalg.norm(q, axis=1, keepdims=True))
+    src = carm2robot.t
+    # distance between calibrated and true rays at the source and at the intensifier
+    for depth in (0.0, 650.0, 1000.0):
+        p_true = src + depth * true_d / (true_d @ carm2robot.R[:, 2])[:, None]
+        t = ((p_true - o) @ carm2robot.R[:, 2]) / (d @ carm2robot.R[:, 2])
+        assert np.abs(o + t[:, None] * d - p_true).max() < 1e-6
+    assert np.linalg.norm(cal.center_of_perspective() - src) < 1e-6
+    # whole-image map: (H, W, 3), unit directions
+    o_img, d_img = cal.path_map(64, 48)
+    assert o_img.shape == (48, 64, 3) and np.allclose(np.linalg.norm(d_img, axis=2), 1.0)
+
+
+def test_calibrate_names_view_and_plane_when_too_few_markers():
+    carm2robot = RigidTransform.from_rotvec([0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+    m = _grid_markers(carm2robot, rows=6)
+    keep = ~((m.plane == 1) & (m.frame > 8))               # far plane: 2 rows left
+    few = Markers("lateral", m.frame[keep], m.plane[keep], m.bead[keep], m.xy_px[keep],
+                  m.robot[keep], ["view lateral, far plane, frame 9: row dropped"])
+    with pytest.raises(ValueError, match=r"view lateral: far plane has 16 markers in 2 rows"):
+        calibrate(few)
+    # the same with enough rows left calibrates from the rest
+    keep = ~((m.plane == 1) & (m.frame == 12))
+    ok = Markers("lateral", m.frame[keep], m.plane[keep], m.bead[keep], m.xy_px[keep],
+                 m.robot[keep], ["view lateral, far plane, frame 12: row dropped"])
+    cal = calibrate(ok)
+    assert cal.problems == ("view lateral, far plane, frame 12: row dropped",)
+
+
+def test_find_markers_checks_shapes():
+    with pytest.raises(ValueError, match="view v: frames"):
+        find_markers(SweepData("v", np.zeros((3, 8, 8)), np.zeros(2, int),
+                               np.zeros((3, 8, 3)), BEADS))
