@@ -71,6 +71,7 @@ import pandas as pd
 
 __all__ = [
     "DB_NAME",
+    "FAILED_METRIC",
     "Trial",
     "TrialResult",
     "make_trials",

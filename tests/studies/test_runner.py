@@ -1,5 +1,6 @@
 """The study runner: same rows on any number of workers (in-process, process pool, Dask),
-resume after SIGKILL without loss or rerun, failures recorded without stopping the study."""
+resume after SIGKILL without loss or rerun, failures recorded without stopping the study.
+Also the summaries of studies.report, on the runner's results (failures included)."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ import pandas as pd
 import pytest
 
 from studies.common import start_study
+from studies.report import plot_metric, success_rate, summarize
 from studies.runner import (
     DB_NAME,
     Trial,
@@ -252,3 +254,40 @@ def test_study_context_runs_trials_seeded_by_the_study(tmp_path):
     pd.testing.assert_frame_equal(df[exp.columns.tolist()], exp, check_exact=True)
     assert (tmp_path / DB_NAME).exists()
     assert set(read_trials(tmp_path).scene) == {str(ctx.scene_path)}
+
+
+def test_report_summaries_count_failed_trials(tmp_path):
+    params = [{"sleep_s": 0.0, "noise": float(i % 2)} for i in range(12)]
+    for i in (3, 8):
+        params[i] = {**params[i], "fail": True}
+    df = run_trials(toy_trial, make_trials("points-lines", 21, params), out_dir=tmp_path,
+                    progress=False)
+    exp = expected_rows(21, [{k: v for k, v in p.items() if k != "fail"} for p in params])
+    ok = exp[~exp.trial.isin([3, 8])]
+
+    pins = summarize(df, "pin_error", by=["pin"])
+    assert pins.pin.tolist() == sorted(PINS)
+    assert (pins.n == 10).all() and (pins.failed == 2).all() and (pins.unit == "mm").all()
+    for row in pins.itertuples():
+        v = ok[(ok.metric == "pin_error") & (ok.pin == row.pin)].value.to_numpy()
+        assert row.mean == pytest.approx(v.mean(), rel=1e-12)
+        assert row.p95 == pytest.approx(np.quantile(v, 0.95), rel=1e-12)
+    whole = summarize(df, "mtre")
+    assert whole.n[0] == 10 and whole.failed[0] == 2
+
+    rate = success_rate(df, "mtre", 1.0, by=["noise"])
+    for row in rate.itertuples():
+        trials = exp[(exp.noise == row.noise)].trial.unique()
+        m = ok[(ok.metric == "mtre") & (ok.noise == row.noise)]
+        assert row.trials == len(trials) == 6
+        assert row.successes == int((m.value < 1.0).sum())
+        assert row.lo <= row.rate <= row.hi
+    # a trial with several rows succeeds only if all do
+    allpins = success_rate(df, "pin_error", 1.0)
+    per = ok[ok.metric == "pin_error"].groupby("trial").value.max() < 1.0
+    assert allpins.successes[0] == int(per.sum()) and allpins.trials[0] == 12
+    with pytest.raises(ValueError, match="no rows with metric 'nope'"):
+        summarize(df, "nope")
+
+    png = plot_metric(df, "mtre", "noise", tmp_path / "mtre.png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
