@@ -57,7 +57,7 @@ __all__ = [
     "stabbing",
 ]
 
-Method = Literal["dense", "hierarchy", "reference"]
+Method = Literal["blocks", "dense", "hierarchy", "reference"]
 
 
 # --------------------------------------------------------------------------- contours
@@ -245,6 +245,62 @@ def _closest_dense(contours: ContourSet, o, d) -> ClosestPoints:
     return _finish(contours, o, d, seg)
 
 
+def _group_argmin(values: np.ndarray, group_starts: np.ndarray) -> np.ndarray:
+    """Index (into ``values``) of the first minimum of each contiguous group."""
+    mins = np.minimum.reduceat(values, group_starts)
+    sizes = np.diff(np.r_[group_starts, len(values)])
+    hit = values <= np.repeat(mins, sizes)
+    idx = np.where(hit, np.arange(len(values)), len(values))
+    return np.minimum.reduceat(idx, group_starts)
+
+
+def _closest_blocks(contours: ContourSet, o, d, block: int = 8) -> ClosestPoints:
+    """Two-level exact pruning: capsules over blocks of ``block`` segments bound the
+    distances; only the segments of blocks whose lower bound ``d - eps`` does not exceed the
+    best upper bound ``d + eps`` of their contour are evaluated exactly."""
+    n, nc = len(o), contours.n_contours
+    nseg = np.diff(contours.offsets)
+    nblk = -(-nseg // block)
+    # block b of contour c covers local segments [j0, j1); path rows pbase + j0 .. pbase + j1
+    bc = np.repeat(np.arange(nc), nblk)
+    j0 = (np.arange(nblk.sum()) - np.repeat(np.cumsum(nblk) - nblk, nblk)) * block
+    j1 = np.minimum(j0 + block, nseg[bc])
+    pbase = contours.offsets[:-1] + np.arange(nc)
+    lo, hi = pbase[bc] + j0, pbase[bc] + j1
+    cnt = hi - lo + 1
+    rows = np.repeat(lo, cnt) + (np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt))
+    owner = np.repeat(np.arange(len(lo)), cnt)
+    path = contours.path
+    dev = _point_segment_distances(path[rows], path[lo][owner], path[hi][owner])
+    eps = np.maximum.reduceat(dev, np.r_[0, np.cumsum(cnt)[:-1]])
+    # stage 1: every line against every block capsule (exact formula, (N, B))
+    dist_b, _, _ = _exact(o[:, None, :], d[:, None, :], path[lo][None], path[hi][None])
+    lower = dist_b - eps
+    upper = np.minimum.reduceat(dist_b + eps, np.r_[0, np.cumsum(nblk)[:-1]], axis=1)
+    slack = 1e-9 * (1.0 + upper)
+    keep = lower <= np.repeat(upper + slack, nblk, axis=1)
+    li, bi = np.nonzero(keep)                          # sorted by line, then block
+    # stage 2: the segments of the kept blocks, exactly
+    ns = j1[bi] - j0[bi]
+    first = contours.offsets[bc[bi]] + j0[bi]
+    seg = np.repeat(first, ns) + (np.arange(ns.sum()) - np.repeat(np.cumsum(ns) - ns, ns))
+    line = np.repeat(li, ns)
+    dist, p, q = _exact(o[line], d[line], contours.starts[seg], contours.ends[seg])
+    key = line * nc + bc[np.repeat(bi, ns)]
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    win = _group_argmin(dist, starts)
+    out_d = np.full((n, nc), np.inf)
+    out_p = np.full((n, nc, 3), np.nan)
+    out_q = np.full((n, nc, 3), np.nan)
+    out_s = np.full((n, nc), -1, dtype=np.int64)
+    kk = key[starts]
+    out_d.reshape(-1)[kk] = dist[win]
+    out_p.reshape(-1, 3)[kk] = p[win]
+    out_q.reshape(-1, 3)[kk] = q[win]
+    out_s.reshape(-1)[kk] = seg[win]
+    return ClosestPoints(out_d, out_p, out_q, out_s)
+
+
 # --------------------------------------------------------------------------- hierarchy
 @dataclass(frozen=True, eq=False)
 class _Hierarchy:
@@ -396,6 +452,7 @@ def _closest_hierarchy(contours: ContourSet, o, d) -> ClosestPoints:
 
 
 _METHODS = {
+    "blocks": _closest_blocks,
     "dense": _closest_dense,
     "hierarchy": _closest_hierarchy,
     "reference": _closest_reference,
@@ -445,8 +502,8 @@ def stabbing(cp: ClosestPoints, contours: ContourSet, directions) -> np.ndarray:
     return det > 0.0
 
 
-def select_contours(cp: ClosestPoints, contours: ContourSet, directions, external=None
-                    ) -> np.ndarray:
+def select_contours(cp: ClosestPoints, contours: ContourSet, directions, external=None, *,
+                    max_stab_distance_mm: float = np.inf) -> np.ndarray:
     """The paper's selection of one contour per line: ``(N,)`` int64 contour index.
 
     For a line from an *external* bone-contour pixel (``external[n]`` True): among the
@@ -458,6 +515,8 @@ def select_contours(cp: ClosestPoints, contours: ContourSet, directions, externa
     cp : ClosestPoints of these lines and ``contours``.
     directions : (N, 3) unit directions of the lines.
     external : (N,) bool or None (None: every line is external).
+    max_stab_distance_mm : stabbed contours farther than this are not counted as stabbed
+        (default: no limit, the paper's rule).
     """
     n, c = cp.distance.shape
     if c == 0:
@@ -466,7 +525,7 @@ def select_contours(cp: ClosestPoints, contours: ContourSet, directions, externa
     if ext.shape != (n,):
         raise ValueError(f"external: expected shape ({n},), got {ext.shape}")
     closest = np.argmin(cp.distance, axis=1)
-    st = stabbing(cp, contours, directions)
+    st = stabbing(cp, contours, directions) & (cp.distance <= max_stab_distance_mm)
     far = np.argmax(np.where(st, cp.distance, -np.inf), axis=1)
     use_far = ext & st.any(axis=1)
     return np.where(use_far, far, closest).astype(np.int64)
