@@ -1,0 +1,141 @@
+"""Sweeps: planning, rendering, and the calibration they feed (simulate -> estimate -> truth)."""
+
+import numpy as np
+import pytest
+
+from reglib.calibration import Markers, SweepData, calibrate, find_markers
+from testbed.fluoroscope import FluoroscopeSpec, ViewSpec, make_carm
+from testbed.robot import Robot, RobotSpec, SweepSpec
+from testbed.sweep import plan_sweep, run_sweep
+
+VIEW = ViewSpec(name="ap", isocenter_mm=(800.0, 0.0, 200.0))
+
+
+def _spec(**kw):
+    return RobotSpec(sweep=SweepSpec(rows_per_plane=4, **kw)).without_errors()
+
+
+@pytest.fixture(scope="module")
+def clean_sweep():
+    """A noise-free, distortion-free sweep with a perfect robot (12 frames)."""
+    fl = FluoroscopeSpec(distortion=False, noise=False)
+    carm = make_carm(fl, VIEW)
+    with Robot(_spec(), rng=0) as robot:
+        sw = run_sweep(robot, carm, fl, rng=1)
+    return carm, sw
+
+
+def test_plan_lays_rows_in_planes_perpendicular_to_the_beam():
+    fl = FluoroscopeSpec(distortion=False)
+    carm = make_carm(fl, VIEW)
+    spec = _spec(tilt_deg=0.0)
+    poses = plan_sweep(carm, spec)
+    codes = [p.plane for p in poses]
+    assert codes == [-1, 0, 0, 0, 0, -1, 1, 1, 1, 1, -1, 2]
+    for p in poses:
+        depth = (p.point_robot - carm.source_robot) @ carm.axis_robot
+        assert abs(p.direction_robot @ carm.axis_robot) < 1e-12   # rod parallel to the image
+        want = {0: 0.6, 1: 0.8, 2: 0.7}.get(p.plane)
+        if want is not None:
+            assert depth == pytest.approx(want * carm.sid_mm)
+
+
+@pytest.mark.slow
+def test_sweep_reports_time_dose_and_positions(clean_sweep):
+    carm, sw = clean_sweep
+    assert sw.frames.shape == (12, carm.height_px, carm.width_px)
+    assert sw.frames.dtype == np.uint8
+    assert sw.duration_s == pytest.approx(12.0)
+    assert sw.dose_mrem == pytest.approx(12.0 / 60.0 * 45.0)
+    ref = sw.plane < 0
+    assert np.isnan(sw.beads_reported[ref]).all()
+    assert np.abs(sw.beads_reported[~ref] - sw.beads_true[~ref]).max() < 1e-3
+
+
+@pytest.mark.slow
+def test_detection_finds_every_bead_in_the_field_and_no_false_ones(clean_sweep):
+    carm, sw = clean_sweep
+    m = find_markers(SweepData(**sw.for_calibration()))
+    # every marker is the bead it claims to be, at its true projection
+    true_xy = carm.project(sw.beads_true[m.frame, m.bead])
+    assert np.abs(m.xy_px - true_xy).max() < 0.3
+    # every bead well inside the field is found; beads outside are reported missing
+    for f in np.flatnonzero(sw.plane >= 0):
+        rho = carm.fov_rho(carm.project(sw.beads_true[f]))
+        found = set(m.bead[m.frame == f].tolist())
+        inside = set(np.flatnonzero(rho < 0.95).tolist())
+        assert inside <= found, f"frame {f}: beads {sorted(inside - found)} missed"
+        assert all(rho[b] < 1.0 for b in found)
+        outside = sorted(np.flatnonzero(rho > 1.0).tolist())
+        if outside:
+            msg = [p for p in m.problems if f"frame {f}:" in p and "not found" in p]
+            assert msg and f"view {carm.name}" in msg[0]
+            assert all(str(b) in msg[0] for b in outside)
+
+
+@pytest.mark.slow
+def test_calibration_from_rendered_sweep_validates_below_0_1_mm(clean_sweep):
+    carm, sw = clean_sweep
+    m = find_markers(SweepData(**sw.for_calibration()))
+    cal = calibrate(m, min_markers=10)
+    xy, pts = m.select(2)
+    assert len(xy) >= 6
+    assert cal.distances(xy, pts).max() < 0.1
+    assert np.linalg.norm(cal.center_of_perspective() - carm.source_robot) < 5.0
+
+
+def test_paths_match_true_rays_to_1e_3_mm_without_distortion_and_noise():
+    """Planes parallel to the intensifier, exact marker pixels: the two-plane TPS is exact."""
+    fl = FluoroscopeSpec(distortion=False, noise=False)
+    carm = make_carm(fl, VIEW)
+    spec = _spec()
+    frame, plane, bead, xy, robot_pts = [], [], [], [], []
+    with Robot(spec, rng=0) as robot:
+        for f, pose in enumerate(plan_sweep(carm, spec)):
+            if pose.plane < 0:
+                continue
+            robot.place_rod(pose.point_robot, pose.direction_robot)
+            b = robot.bead_positions()
+            frame.append(np.full(len(b), f))
+            plane.append(np.full(len(b), pose.plane))
+            bead.append(np.arange(len(b)))
+            xy.append(carm.project(robot.bead_positions(true=True)))
+            robot_pts.append(b)
+    m = Markers(VIEW.name, *(np.concatenate(a) for a in (frame, plane, bead, xy, robot_pts)))
+    cal = calibrate(m, smoothing=0.01)
+    g = carm.pixel_grid()[::8, ::8].reshape(-1, 2)
+    g = g[carm.fov_rho(g) <= 1.0]
+    o, d = cal.paths(g)
+    to, td = carm.true_rays(g)
+    ax = carm.axis_robot
+    for depth in (300.0, 650.0, 1000.0):
+        p_true = to + (depth / (td @ ax))[:, None] * td
+        t = ((p_true - o) @ ax) / (d @ ax)
+        assert np.abs(o + t[:, None] * d - p_true).max() < 1e-3
+
+
+@pytest.mark.slow
+def test_a_hidden_bead_is_named_and_the_view_still_calibrates(clean_sweep):
+    carm, sw = clean_sweep
+    f = int(np.flatnonzero(sw.plane == 0)[1])
+    b = 4
+    x, y = np.rint(carm.project(sw.beads_true[f, b][None])[0]).astype(int)
+    frames = sw.frames.copy()
+    frames[:, y - 6:y + 7, x - 6:x + 7] = 3        # a steel instrument there all along
+    data = sw.for_calibration() | {"frames": frames}
+    m = find_markers(SweepData(**data))
+    assert b not in m.bead[m.frame == f]
+    msg = [p for p in m.problems if f"frame {f}:" in p and "not found" in p]
+    assert msg and str(b) in msg[0], m.problems
+    cal = calibrate(m, min_markers=10)
+    xy, pts = m.select(2)
+    assert cal.distances(xy, pts).max() < 0.1
+
+
+def test_an_unreachable_sweep_names_the_view_and_pose():
+    fl = FluoroscopeSpec(distortion=False, noise=False)
+    far = ViewSpec(name="far-away", isocenter_mm=(3000.0, 0.0, 200.0))
+    carm = make_carm(fl, far)
+    with Robot(_spec(), rng=0) as robot:
+        with pytest.raises(ValueError, match=r"view 'far-away': sweep pose 0 .*unreachable"):
+            run_sweep(robot, carm, fl, rng=0)
