@@ -47,7 +47,7 @@ from reglib.geometry import RigidTransform, as_lines, as_points, cayley, skew
 __all__ = ["PoseResult", "solve_pose", "tukey_weights", "p3l_solutions", "MIN_POINTS"]
 
 Method = Literal["lm", "linear", "robust", "ransac"]
-MIN_POINTS = {"lm": 3, "linear": 3, "robust": 3, "ransac": 4}
+MIN_POINTS = {"lm": 3, "linear": 3, "robust": 4, "ransac": 4}  # robust: needs redundancy
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,70 @@
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from reglib.geometry import (
+    RigidTransform,
+    assert_transform_close,
+    cayley,
+    cayley_from_matrix,
+    closest_point_to_lines,
+    lines_through,
+    point_line_distances,
+    skew,
+)
+
+
+def test_skew_is_cross_product():
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=(2, 50, 3))
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", skew(a), b), np.cross(a, b), atol=1e-14)
+
+
+def test_cayley_round_trip_and_definition():
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        u = rng.normal(size=3) * rng.uniform(0.01, 5)
+        Q = cayley(u)
+        U = skew(u)
+        np.testing.assert_allclose(Q, (np.eye(3) - U) @ np.linalg.inv(np.eye(3) + U), atol=1e-12)
+        np.testing.assert_allclose(Q.T @ Q, np.eye(3), atol=1e-12)
+        assert np.linalg.det(Q) == pytest.approx(1.0)
+        np.testing.assert_allclose(cayley_from_matrix(Q), u, rtol=1e-9, atol=1e-12)
+    # small rotations: Q ~ I - 2U, angle 2 atan |u| about -u
+    u = np.array([1e-4, -2e-4, 3e-4])
+    np.testing.assert_allclose(cayley(u), np.eye(3) - 2 * skew(u), atol=1e-6)  # O(|u|^2)
+    u = np.array([0.0, 0.0, np.tan(np.radians(20))])
+    rv = Rotation.from_matrix(cayley(u)).as_rotvec()
+    np.testing.assert_allclose(rv, [0, 0, -np.radians(40)], atol=1e-12)
+
+
+def test_cayley_at_180_degrees_raises():
+    Q = Rotation.from_rotvec([0, np.pi, 0]).as_matrix()
+    with pytest.raises(ValueError, match="180"):
+        cayley_from_matrix(Q)
+
+
+def test_rigid_transform_algebra():
+    rng = np.random.default_rng(2)
+    a = RigidTransform.from_rotation(Rotation.random(random_state=rng), rng.normal(size=3) * 50)
+    b = RigidTransform.from_rotation(Rotation.random(random_state=rng), rng.normal(size=3) * 50)
+    p = rng.normal(size=(20, 3)) * 100
+    np.testing.assert_allclose((a @ b).apply(p), a.apply(b.apply(p)), atol=1e-10)
+    np.testing.assert_allclose((~a).apply(a.apply(p)), p, atol=1e-10)
+    np.testing.assert_allclose(RigidTransform.from_matrix(a.as_matrix()).R, a.R)
+    assert_transform_close(RigidTransform.from_dict(a.to_dict()), a, mm=1e-12, deg=1e-10)
+    with pytest.raises(AssertionError):
+        assert_transform_close(a, b, mm=1.0, deg=1.0)
+    with pytest.raises(ValueError, match="proper rotation"):
+        RigidTransform(np.diag([1.0, 1.0, -1.0]), np.zeros(3))
+
+
+def test_lines_and_center_of_perspective():
+    rng = np.random.default_rng(3)
+    c = np.array([10.0, -20.0, 5.0])
+    pts = rng.normal(size=(30, 3)) * 100 + [0, 0, 600]
+    o, d = lines_through(np.broadcast_to(c, pts.shape), pts)
+    np.testing.assert_allclose(point_line_distances(pts, o, d), 0, atol=1e-10)
+    np.testing.assert_allclose(closest_point_to_lines(o + 5 * d, d), c, atol=1e-9)
+    with pytest.raises(ValueError, match="parallel"):
+        closest_point_to_lines(pts, np.broadcast_to([0, 0, 1.0], pts.shape))
