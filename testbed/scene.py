@@ -151,6 +151,8 @@ def _describe(err: dict) -> str:
     if typ == "extra_forbidden":
         return "unknown key (not part of the schema; check the spelling)"
     if typ == "missing":
+        if err.get("loc") and isinstance(err["loc"][-1], int):
+            return "too few items in this list (it has a fixed length)"
         return "required field is missing"
     shown = repr(got)
     if len(shown) > 60:

@@ -1,0 +1,141 @@
+"""Scene files: valid ones load; malformed ones always give a SceneError naming the file
+and the field (hypothesis generates wrong types, unknown keys, missing and out-of-range
+values), never another exception."""
+
+import tomllib
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from testbed.scene import SceneError, find_scene, load_scene, parse_scene, scenes_dir
+
+VALID = {
+    "scene": {"name": "t", "kind": "synthetic", "seed": 3},
+    "synthetic": {"n_points": 20, "noise_std": 0.1, "outlier_fraction": 0.2,
+                  "center_of_perspective": [-2.0, -2.0, -2.0]},
+}
+
+
+def _toml_value(v):
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, float):
+        return repr(v) if v == v and abs(v) != float("inf") else ("nan" if v != v else "inf")
+    return str(v)
+
+
+def _dump(data: dict) -> str:
+    out = []
+    for section, table in data.items():
+        out.append(f"[{section}]")
+        for k, v in table.items():
+            out.append(f'"{k}" = {_toml_value(v)}')
+    return "\n".join(out) + "\n"
+
+
+@pytest.mark.parametrize("path", sorted(scenes_dir().glob("*.toml")), ids=lambda p: p.stem)
+def test_every_shipped_scene_loads(path):
+    scene = load_scene(path)
+    assert scene.scene.name
+
+
+def test_valid_scene_round_trips(tmp_path):
+    f = tmp_path / "s.toml"
+    f.write_text(_dump(VALID))
+    assert tomllib.loads(f.read_text()) == VALID
+    s = load_scene(f)
+    assert s.synthetic.n_points == 20 and s.scene.seed == 3
+    assert s.synthetic.center_of_perspective == (-2.0, -2.0, -2.0)
+
+
+def test_find_scene_by_name_and_unknown():
+    assert find_scene("points-lines").name == "points-lines.toml"
+    with pytest.raises(SceneError, match="no such scene"):
+        find_scene("does-not-exist")
+
+
+def test_syntax_error_names_file(tmp_path):
+    f = tmp_path / "bad.toml"
+    f.write_text("[scene\nname = 1\n")
+    with pytest.raises(SceneError, match="bad.toml.*TOML"):
+        load_scene(f)
+
+
+@pytest.mark.parametrize(
+    "section, key, value, expect",
+    [
+        ("synthetic", "n_points", "20", "valid integer"),
+        ("synthetic", "n_points", 2, "greater than or equal to 3"),
+        ("synthetic", "noise_std", -0.1, "greater than or equal to 0"),
+        ("synthetic", "center_of_perspective", [1.0, 2.0], "too few items"),
+        ("synthetic", "nosie_std", 0.1, "unknown key"),
+        ("scene", "kind", "hospital", "synthetic"),
+        ("ct", "pixel_mm", "0.8", "valid number"),
+    ],
+)
+def test_specific_errors_name_file_and_field(tmp_path, section, key, value, expect):
+    data = {k: dict(v) for k, v in VALID.items()}
+    data.setdefault(section, {})[key] = value
+    f = tmp_path / "scene.toml"
+    f.write_text(_dump(data))
+    with pytest.raises(SceneError) as exc:
+        load_scene(f)
+    msg = str(exc.value)
+    assert str(f) in msg and f"{section}.{key}" in msg and expect in msg, msg
+
+
+def test_missing_synthetic_table(tmp_path):
+    f = tmp_path / "scene.toml"
+    f.write_text(_dump({"scene": {"kind": "synthetic"}}))
+    with pytest.raises(SceneError, match="no \\[synthetic\\] table"):
+        load_scene(f)
+
+
+scalars = st.one_of(
+    st.integers(-10**6, 10**6), st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=8), st.booleans(),
+    st.lists(st.floats(-10, 10, allow_nan=False), max_size=4),
+)
+keys = st.sampled_from(["name", "kind", "seed", "n_points", "noise_std", "outlier_fraction",
+                        "center_of_perspective", "rotation_deg", "landmarks", "bogus",
+                        "pixel_mm", "sid_mm", "position_mm"])
+sections = st.sampled_from(["scene", "synthetic", "ct", "patient", "phantom", "fluoroscope",
+                            "robot", "registration", "unknown_section"])
+
+
+@settings(max_examples=150, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(edits=st.lists(st.tuples(sections, keys, scalars), min_size=1, max_size=4),
+       drop=st.lists(st.tuples(st.sampled_from(["scene", "synthetic"]), keys), max_size=2))
+def test_malformed_scenes_always_give_scene_error(tmp_path, edits, drop):
+    data = {k: dict(v) for k, v in VALID.items()}
+    for section, key in drop:
+        data[section].pop(key, None)
+    for section, key, value in edits:
+        data.setdefault(section, {})[key] = value
+    f = tmp_path / "h.toml"
+    f.write_text(_dump(data))
+    try:
+        load_scene(f)
+    except SceneError as exc:
+        msg = str(exc)
+        assert str(f) in msg
+        # each reported problem names a field, or the problem is the file itself
+        problem_lines = [ln for ln in msg.splitlines()[1:]]
+        assert all("field '" in ln for ln in problem_lines) or "TOML" in msg, msg
+
+
+def test_parse_scene_rejects_non_table():
+    with pytest.raises(SceneError, match="expected a table"):
+        parse_scene([1, 2], source="x.toml")
+
+
+def test_unreadable_file(tmp_path):
+    with pytest.raises(SceneError, match="not found"):
+        load_scene(Path(tmp_path) / "nope.toml")
