@@ -56,6 +56,7 @@ import math
 import multiprocessing
 import numbers
 import os
+import pickle
 import socket
 import sqlite3
 import time
@@ -566,6 +567,14 @@ def run_trials(
         mp_context = "forkserver" if "forkserver" in methods else "spawn"
     if mp_context not in ("spawn", "forkserver"):
         raise ValueError(f"mp_context: expected 'spawn' or 'forkserver', got {mp_context!r}")
+
+    if scheduler is None and workers > 1:
+        try:
+            pickle.dumps(trial_fn)
+        except Exception as exc:  # PicklingError, AttributeError, TypeError...
+            raise ValueError(f"trial_fn: {trial_fn!r} cannot be sent to worker processes "
+                             f"({exc}); use a top-level function of an importable module"
+                             ) from exc
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

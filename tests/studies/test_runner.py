@@ -151,6 +151,8 @@ def test_bad_input_is_refused_with_a_clear_message(tmp_path):
         run_trials(toy_trial, [t[0], t[0]], out_dir=tmp_path)
     with pytest.raises(ValueError, match="workers: expected an int >= 1"):
         run_trials(toy_trial, t, out_dir=tmp_path, workers=0)
+    with pytest.raises(ValueError, match="trial_fn: .* cannot be sent to worker processes"):
+        run_trials(lambda t: [], t, out_dir=tmp_path, workers=2)
     with pytest.raises(ValueError, match="parameter 'value' clashes"):
         Trial(0, "points-lines", 1, (0,), {"value": 3})
     with pytest.raises(ValueError, match="parameter 'x': expected a scalar"):
