@@ -1,0 +1,484 @@
+"""Bone surfaces from stacks of CT contours: tiling by dynamic programming, simplification.
+
+Tiling (NOTES.md s2). Two adjacent closed contours A (m vertices, lower slice) and B (n
+vertices, upper slice), both counter-clockwise seen from +z, each rolled so that vertex 0 of
+each is a closest pair. A strip of m + n triangles between them is a monotone path on the
+(m + 1) x (n + 1) grid graph from (0, 0) to (m, n): a step in i adds the triangle
+(A_i, A_i+1, B_j), a step in j adds (A_i, B_j+1, B_j). Dynamic programming over the grid's
+anti-diagonals finds the path of least total cost: the triangle area (``quality="area"``) or
+minus the compactness (``"compactness"``: 4 sqrt(3) area / sum of squared sides, 1 for an
+equilateral triangle). :func:`tile_pair` with ``method="brute_force"`` enumerates every path
+(small contours only) and is the reference of the tests.
+
+Branching (one contour above two, as at the condyles): the two contours are joined into one
+by a bridge between their closest vertices (traversed once each way), and that keyhole contour
+is tiled with the single one; the bridge edge gets one triangle from each side of the strip,
+so the surface stays manifold. The result is a consistently oriented manifold surface with
+boundary (normals point out of the bone); its two ends are open.
+
+Simplification: quadric edge collapse (``fast_simplification``) with the boundary kept, the
+reduction chosen by bisection so that the two-sided distance between the simplified and the
+full surface stays below the tolerance (checked on every vertex against exact point-triangle
+distances).
+
+Nothing here sees the simulator: contours in, vertices (V, 3) mm and faces (F, 3) out.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import fast_simplification
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from reglib.contours import contours_from_ct
+
+__all__ = [
+    "Surface",
+    "bridge_contours",
+    "check_manifold",
+    "simplify_surface",
+    "surface_distance_bound",
+    "surface_from_contours",
+    "surface_from_ct",
+    "tile_pair",
+]
+
+Quality = Literal["area", "compactness"]
+
+
+@dataclass(frozen=True)
+class Surface:
+    """A triangulated surface (mm, in the frame of its contours, the ct frame for CT).
+
+    ``vertices`` (V, 3) float64; ``faces`` (F, 3) int64, counter-clockwise seen from outside
+    the bone; ``info``: counts and tolerances of how it was made.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    info: dict = field(default_factory=dict)
+
+    @property
+    def n_triangles(self) -> int:
+        return int(len(self.faces))
+
+
+# --------------------------------------------------------------------------- helpers
+def _as_contour(c, name: str) -> np.ndarray:
+    p = np.asarray(c, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"{name}: a contour must have shape (K, 3) in mm, got {p.shape}")
+    if len(p) < 3:
+        raise ValueError(f"{name}: a contour needs at least 3 points, got {len(p)}")
+    if not np.all(np.isfinite(p)):
+        raise ValueError(f"{name}: contour contains NaN or infinite values")
+    return p
+
+
+def _signed_area_xy(p: np.ndarray) -> float:
+    x, y = p[:, 0], p[:, 1]
+    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+
+
+def _ccw(idx: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    return idx if _signed_area_xy(pts[idx]) >= 0 else idx[::-1]
+
+
+def _tri_cost(p, q, r, quality: Quality) -> np.ndarray:
+    e1, e2 = q - p, r - p
+    area = 0.5 * np.linalg.norm(np.cross(e1, e2), axis=-1)
+    if quality == "area":
+        return area
+    if quality == "compactness":
+        s = np.sum(e1**2, -1) + np.sum(e2**2, -1) + np.sum((r - q) ** 2, -1)
+        return -4.0 * np.sqrt(3.0) * area / np.maximum(s, 1e-300)
+    raise ValueError(f"quality must be 'area' or 'compactness', got {quality!r}")
+
+
+def _cost_tables(a: np.ndarray, b: np.ndarray, quality: Quality):
+    """cost_i[i, j] of step (i, j) -> (i+1, j); cost_j[i, j] of step (i, j) -> (i, j+1)."""
+    m, n = len(a), len(b)
+    ai = a[np.arange(m + 1) % m]
+    bj = b[np.arange(n + 1) % n]
+    cost_i = _tri_cost(ai[:m, None], ai[1:, None], bj[None, :], quality)          # (m, n+1)
+    cost_j = _tri_cost(ai[:, None], bj[None, 1:], bj[None, :n], quality)          # (m+1, n)
+    return cost_i, cost_j
+
+
+def _dp(cost_i: np.ndarray, cost_j: np.ndarray) -> tuple[float, np.ndarray]:
+    """Least-cost monotone path; returns (cost, steps) with steps[k] = 0 (i) or 1 (j)."""
+    m, n = cost_i.shape[0], cost_j.shape[1]
+    total = np.full((m + 1, n + 1), np.inf)
+    came_j = np.zeros((m + 1, n + 1), dtype=bool)
+    total[0, 0] = 0.0
+    for d in range(1, m + n + 1):
+        i = np.arange(max(0, d - n), min(m, d) + 1)
+        j = d - i
+        from_i = np.full(len(i), np.inf)
+        ok = i > 0
+        from_i[ok] = total[i[ok] - 1, j[ok]] + cost_i[i[ok] - 1, j[ok]]
+        from_j = np.full(len(i), np.inf)
+        ok = j > 0
+        from_j[ok] = total[i[ok], j[ok] - 1] + cost_j[i[ok], j[ok] - 1]
+        use_j = from_j < from_i
+        total[i, j] = np.where(use_j, from_j, from_i)
+        came_j[i, j] = use_j
+    steps = np.empty(m + n, dtype=np.int8)
+    i, j = m, n
+    for k in range(m + n - 1, -1, -1):
+        if came_j[i, j]:
+            steps[k] = 1
+            j -= 1
+        else:
+            steps[k] = 0
+            i -= 1
+    return float(total[m, n]), steps
+
+
+def _brute_force(cost_i: np.ndarray, cost_j: np.ndarray) -> tuple[float, np.ndarray]:
+    m, n = cost_i.shape[0], cost_j.shape[1]
+    if m + n > 22:
+        raise ValueError(f"brute force tiling is for small contours only (m + n = {m + n})")
+    best, best_steps = np.inf, None
+    for js in itertools.combinations(range(m + n), n):
+        steps = np.zeros(m + n, dtype=np.int8)
+        steps[list(js)] = 1
+        i = j = 0
+        c = 0.0
+        for s in steps:
+            if s:
+                c += cost_j[i, j]
+                j += 1
+            else:
+                c += cost_i[i, j]
+                i += 1
+        if c < best:
+            best, best_steps = c, steps
+    return float(best), best_steps
+
+
+def _closest_pair(a: np.ndarray, b: np.ndarray) -> tuple[int, int]:
+    d, j = cKDTree(b).query(a)
+    i = int(np.argmin(d))
+    return i, int(j[i])
+
+
+def tile_pair(a, b, *, quality: Quality = "area", method: Literal["dp", "brute_force"] = "dp",
+              start: tuple[int, int] | None = None):
+    """Tile two closed contours with a strip of triangles.
+
+    Parameters
+    ----------
+    a, b : (m, 3) and (n, 3) arrays, mm: the lower and the upper contour (any direction; they
+        are used counter-clockwise seen from +z).
+    quality : "area" (minimise the total area) or "compactness" (maximise the total).
+    method : "dp" (dynamic programming, O(mn)) or "brute_force" (every path; m + n <= 22).
+    start : indices of the starting pair; default a closest pair.
+
+    Returns
+    -------
+    faces : (m + n, 3) int array of indices into ``vstack([a, b])`` (b's indices offset by
+        m), oriented so that the normals point away from the contours' inside.
+    cost : the total cost of the strip (area in mm^2, or minus the total compactness).
+    """
+    a = _as_contour(a, "tile_pair a")
+    b = _as_contour(b, "tile_pair b")
+    ia = _ccw(np.arange(len(a)), a)
+    ib = _ccw(np.arange(len(b)), b)
+    if start is not None:
+        start = (int(start[0]), int(start[1]) + len(a))
+    return _tile_indices(ia, ib + len(a), np.vstack([a, b]), quality, method, start)
+
+
+def _tile_indices(ia, ib, pts, quality, method, start):
+    """Tile the index loops ``ia`` (lower) and ``ib`` (upper) into ``pts``; (faces, cost)."""
+    pa, pb = pts[ia], pts[ib]
+    if start is None:
+        i0, j0 = _closest_pair(pa, pb)
+    else:
+        i0 = int(np.flatnonzero(ia == start[0])[0])
+        j0 = int(np.flatnonzero(ib == start[1])[0])
+    ia, ib = np.roll(ia, -i0), np.roll(ib, -j0)
+    pa, pb = pts[ia], pts[ib]
+    cost_i, cost_j = _cost_tables(pa, pb, quality)
+    cost, steps = (_dp if method == "dp" else _brute_force)(cost_i, cost_j)
+    la, lb = len(ia), len(ib)
+    faces = np.empty((la + lb, 3), dtype=np.int64)
+    i = j = 0
+    for k, s in enumerate(steps):
+        if s == 0:
+            faces[k] = (ia[i % la], ia[(i + 1) % la], ib[j % lb])
+            i += 1
+        else:
+            faces[k] = (ia[i % la], ib[(j + 1) % lb], ib[j % lb])
+            j += 1
+    return faces, cost
+
+
+def bridge_contours(pts: np.ndarray, idx1: np.ndarray, idx2: np.ndarray) -> np.ndarray:
+    """Join two counter-clockwise index loops into pts (V, 3) by a bridge between their
+    closest vertices; returns the keyhole loop (the two bridge vertices appear twice)."""
+    i, j = _closest_pair(pts[idx1], pts[idx2])
+    l1 = np.roll(idx1, -i)
+    l2 = np.roll(idx2, -j)
+    return np.concatenate([l1, l1[:1], l2, l2[:1]])
+
+
+# --------------------------------------------------------------------------- surfaces
+def _slice_list(slices) -> list[list[np.ndarray]]:
+    out = []
+    for k, s in enumerate(slices):
+        cs = s.contours_ct if hasattr(s, "contours_ct") else s
+        if isinstance(cs, np.ndarray) and cs.ndim == 2:
+            cs = [cs]
+        out.append([_as_contour(c, f"slice {k}, contour {j}") for j, c in enumerate(cs)])
+        if not out[-1]:
+            raise ValueError(f"slice {k} holds no contour")
+    return out
+
+
+def surface_from_contours(slices, *, quality: Quality = "area",
+                          simplify_tol_mm: float | None = None) -> Surface:
+    """Tile a stack of slice contours into one surface.
+
+    Parameters
+    ----------
+    slices : sequence over slices (increasing z) of sequences of (K, 3) contours in mm (or
+        :class:`reglib.contours.SliceContours`). One or two contours per slice; between
+        neighbours, equal counts are matched by nearest centroid, one and two are joined by a
+        bridge (branching).
+    quality : tiling quality, "area" or "compactness".
+    simplify_tol_mm : if given (0-0.3 mm is the paper's range), simplify within it.
+
+    Returns
+    -------
+    Surface with ``info`` keys ``n_slices``, ``n_triangles_tiled``, ``simplify_tol_mm``,
+    ``hausdorff_mm`` (the verified bound, 0 if not simplified).
+    """
+    stack = _slice_list(slices)
+    if len(stack) < 2:
+        raise ValueError(f"a surface needs at least 2 slices of contours, got {len(stack)}")
+    z = [np.mean(np.concatenate(s)[:, 2]) for s in stack]
+    if np.any(np.diff(z) <= 0):
+        raise ValueError("slices must be given in order of increasing z")
+    verts, offsets = [], []
+    n = 0
+    for s in stack:
+        offs = []
+        for c in s:
+            offs.append(n)
+            verts.append(c)
+            n += len(c)
+        offsets.append(offs)
+    vertices = np.vstack(verts)
+    loops = [[_ccw(np.arange(len(c)) + o, vertices) for c, o in zip(s, offs, strict=True)]
+             for s, offs in zip(stack, offsets, strict=True)]
+    faces = []
+    for k in range(len(stack) - 1):
+        lo, hi = loops[k], loops[k + 1]
+        pairs = _match(lo, hi, vertices, k)
+        for la, lb in pairs:
+            f, _ = _tile_indices(la, lb, vertices, quality, "dp", None)
+            faces.append(f)
+    faces = np.vstack(faces)
+    surf = Surface(vertices, faces, {"n_slices": len(stack), "n_triangles_tiled": len(faces),
+                                     "simplify_tol_mm": 0.0, "hausdorff_mm": 0.0})
+    if simplify_tol_mm:
+        surf = simplify_surface(surf, simplify_tol_mm)
+    return surf
+
+
+def _match(lo, hi, vertices, k):
+    """Pairs of index loops to tile between slice k and k + 1 (bridging one to two)."""
+    if len(lo) == len(hi):
+        if len(lo) == 1:
+            return [(lo[0], hi[0])]
+        cl = np.array([vertices[x].mean(axis=0) for x in lo])
+        ch = np.array([vertices[x].mean(axis=0) for x in hi])
+        order = [int(np.argmin(np.linalg.norm(ch[:, :2] - c[:2], axis=1))) for c in cl]
+        if len(set(order)) != len(order):
+            raise ValueError(f"slices {k} and {k + 1}: cannot match their contours one to one")
+        return [(lo[i], hi[o]) for i, o in enumerate(order)]
+    if sorted((len(lo), len(hi))) == [1, 2]:
+        if len(lo) == 2:
+            return [(bridge_contours(vertices, lo[0], lo[1]), hi[0])]
+        return [(lo[0], bridge_contours(vertices, hi[0], hi[1]))]
+    raise ValueError(f"slices {k} and {k + 1} hold {len(lo)} and {len(hi)} contours; "
+                     "only 1-1, 2-2 and 1-2 branching are supported")
+
+
+def check_manifold(vertices, faces) -> dict:
+    """Edge and orientation checks of a triangulated surface with boundary.
+
+    Returns a dict: ``max_faces_per_edge`` (<= 2 for a manifold), ``oriented`` (every interior
+    edge used once in each direction), ``boundary_edges``, ``single_fan`` (each vertex's
+    triangles form one fan), ``manifold`` (all of these hold).
+    """
+    f = np.asarray(faces, dtype=np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    und = np.sort(e, axis=1)
+    _, inv, cnt = np.unique(und, axis=0, return_inverse=True, return_counts=True)
+    directed, dcnt = np.unique(e, axis=0, return_counts=True)
+    oriented = bool(dcnt.max() == 1)
+    # Vertex fans: the incidences (vertex v, triangle t) of one vertex are linked when two of
+    # its triangles share an edge through v; a manifold vertex has one linked group.
+    nf = len(f)
+    tri = np.tile(np.arange(nf), 3)
+    order = np.argsort(inv, kind="stable")
+    inner = cnt[inv[order]] == 2
+    first = order[inner][0::2]
+    second = order[inner][1::2]
+    t1, t2 = tri[first], tri[second]
+    ends = und[first]
+    inc_key = f.ravel() * nf + np.repeat(np.arange(nf), 3)    # incidence id -> sorted key
+    srt = np.argsort(inc_key)
+    sorted_key = inc_key[srt]
+    links = []
+    for end in (ends[:, 0], ends[:, 1]):
+        ka = srt[np.searchsorted(sorted_key, end * nf + t1)]
+        kb = srt[np.searchsorted(sorted_key, end * nf + t2)]
+        links.append((ka, kb))
+    la = np.concatenate([x[0] for x in links])
+    lb = np.concatenate([x[1] for x in links])
+    g = coo_matrix((np.ones(len(la)), (la, lb)), shape=(3 * nf, 3 * nf))
+    _, lab = connected_components(g, directed=False)
+    pairs = np.unique(np.column_stack([f.ravel(), lab]), axis=0)
+    fans = np.bincount(pairs[:, 0])
+    single_fan = bool(np.all(fans[np.unique(f)] == 1))
+    out = {"max_faces_per_edge": int(cnt.max()), "oriented": oriented,
+           "boundary_edges": int(np.sum(cnt == 1)), "single_fan": single_fan}
+    out["manifold"] = out["max_faces_per_edge"] <= 2 and oriented and single_fan
+    return out
+
+
+# --------------------------------------------------------------------------- simplification
+def _point_triangle_distance(p, tri) -> np.ndarray:
+    """Exact distances from points p (N, 3) to triangles tri (N, 3, 3), pairwise."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
+    bp = p - b
+    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
+    cp = p - c
+    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    # Closest point in barycentric form (Ericson, Real-Time Collision Detection, 5.1.5).
+    res = np.empty_like(p)
+    done = np.zeros(len(p), dtype=bool)
+
+    def put(mask, val):
+        nonlocal done
+        mask = mask & ~done
+        res[mask] = val[mask]
+        done |= mask
+
+    put((d1 <= 0) & (d2 <= 0), a)
+    put((d3 >= 0) & (d4 <= d3), b)
+    put((d6 >= 0) & (d5 <= d6), c)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        v = d1 / (d1 - d3)
+        put((vc <= 0) & (d1 >= 0) & (d3 <= 0), a + v[:, None] * ab)
+        w = d2 / (d2 - d6)
+        put((vb <= 0) & (d2 >= 0) & (d6 <= 0), a + w[:, None] * ac)
+        w2 = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        put((va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0), b + w2[:, None] * (c - b))
+        den = 1.0 / (va + vb + vc)
+        v, w = vb * den, vc * den
+        put(np.ones(len(p), bool), a + ab * v[:, None] + ac * w[:, None])
+    return np.linalg.norm(p - res, axis=1)
+
+
+def surface_distance_bound(points, vertices, faces, *, k: int = 12) -> np.ndarray:
+    """Upper bounds of the distances from points to a triangulated surface (mm).
+
+    Exact point-triangle distances to the ``k`` triangles whose centroids are nearest; the
+    minimum over a subset of the triangles is never below the true distance, and equals it
+    when the closest triangle is among the candidates (always, on the surfaces compared here:
+    a simplified surface and its original).
+    """
+    p = np.asarray(points, dtype=np.float64)
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    tri = v[f]
+    k = min(k, len(f))
+    _, idx = cKDTree(tri.mean(axis=1)).query(p, k=k)
+    idx = idx.reshape(len(p), k)
+    d = _point_triangle_distance(np.repeat(p, k, axis=0), tri[idx.ravel()])
+    return d.reshape(len(p), k).min(axis=1)
+
+
+def _compact(vertices, faces):
+    used = np.unique(faces)
+    remap = np.full(len(vertices), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    return vertices[used], remap[faces]
+
+
+def simplify_surface(surface: Surface, tol_mm: float, *, max_steps: int = 6) -> Surface:
+    """Simplify a surface so that it stays within ``tol_mm`` of the original (both ways).
+
+    Quadric edge collapse (fast_simplification, boundary preserved); the reduction is chosen
+    by bisection, each candidate checked with :func:`surface_distance_bound` from the
+    original vertices to the candidate and back, and required to stay manifold.
+    """
+    if not 0 <= tol_mm <= 5.0:
+        raise ValueError(f"simplify tolerance must be in [0, 5] mm, got {tol_mm}")
+    v0, f0 = surface.vertices, surface.faces
+    best = (v0, f0, 0.0)
+    if tol_mm == 0:
+        return surface
+    lo, hi = 0.0, 0.97
+    r = 0.8
+    for _ in range(max_steps):
+        v, f = fast_simplification.simplify(v0, f0.astype(np.int32), target_reduction=r,
+                                            preserve_border=True)
+        v, f = _compact(np.asarray(v, np.float64), np.asarray(f, np.int64))
+        ok = len(f) > 0
+        h = np.inf
+        if ok:
+            h = max(surface_distance_bound(v0, v, f).max(),
+                    surface_distance_bound(v, v0, f0).max())
+            ok = h <= tol_mm and check_manifold(v, f)["manifold"]
+        if ok:
+            if len(f) < len(best[1]):
+                best = (v, f, h)
+            lo = r
+        else:
+            hi = r
+        r = 0.5 * (lo + hi)
+    v, f, h = best
+    info = dict(surface.info, simplify_tol_mm=tol_mm, hausdorff_mm=float(h))
+    return Surface(v, f, info)
+
+
+def surface_from_ct(volume_hu, slice2ct, slice_indices: Sequence[int],
+                    clicks_xy: Mapping[int, Sequence[np.ndarray]], *,
+                    quality: Quality = "area", simplify_tol_mm: float | None = 0.2,
+                    snake_options: dict | None = None):
+    """One bone surface from CT slices: snake contours, tiling, simplification.
+
+    Parameters
+    ----------
+    volume_hu, slice2ct, slice_indices, clicks_xy : as :func:`reglib.contours.contours_from_ct`
+        (the slices of one region, e.g. the proximal or the distal femur, in increasing z).
+    quality, simplify_tol_mm : as :func:`surface_from_contours`.
+    snake_options : keyword options of :func:`reglib.contours.snake_contour`.
+
+    Returns
+    -------
+    (Surface, list of SliceContours)
+    """
+    contours = contours_from_ct(volume_hu, slice2ct, slice_indices, clicks_xy,
+                                **(snake_options or {}))
+    contours = sorted(contours, key=lambda s: s.z_mm)
+    surf = surface_from_contours(contours, quality=quality, simplify_tol_mm=simplify_tol_mm)
+    return surf, contours
