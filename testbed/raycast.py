@@ -141,7 +141,8 @@ def _signed_sums(n, ray, t, sense, t_max):
 
 
 def mesh_chords(mesh: trimesh.Trimesh, origins, directions, t_max, *,
-                engine: Engine = "embree", name: str = "mesh") -> np.ndarray:
+                engine: Engine = "embree", name: str = "mesh",
+                _shift_mm: float = 1e-6) -> np.ndarray:
     """Length (mm) of each segment ``origin + t d, 0 <= t <= t_max`` inside a closed mesh.
 
     Parameters
@@ -174,6 +175,20 @@ def mesh_chords(mesh: trimesh.Trimesh, origins, directions, t_max, *,
         # the float32 fast path missed or doubled a crossing: redo those rays exactly
         chord[bad] = mesh_chords(mesh, o[sel[bad]], d[sel[bad]], tm[sel[bad]],
                                  engine="numpy", name=name)
+        bad = np.zeros(0, dtype=np.int64)
+    if bad.size and _shift_mm > 0:
+        # a ray exactly through an edge or a vertex where it only touches the surface
+        # (one face reported, the other not): the length inside is continuous there, so
+        # take the mean over parallel rays shifted by 1e-6 of the mesh's size
+        rng = np.random.default_rng(0)
+        shift = _shift_mm * max(float(mesh.scale), 1.0)
+        acc = np.zeros(bad.size)
+        for _ in range(2):
+            v = np.cross(d[sel[bad]], rng.normal(size=(bad.size, 3)))
+            v *= shift / np.linalg.norm(v, axis=1, keepdims=True)
+            acc += mesh_chords(mesh, o[sel[bad]] + v, d[sel[bad]], tm[sel[bad]],
+                               engine="numpy", name=name, _shift_mm=0.0)
+        chord[bad] = acc / 2
         bad = np.zeros(0, dtype=np.int64)
     if bad.size:
         first = sel[bad[0]]
