@@ -1,0 +1,159 @@
+"""Closest points between lines and contours: the three fast methods against the plain
+brute force on random polylines and lines (1e-9 mm), the reference against first-order
+optimality, the paper's radius r, the stabbing test and the selection rule, bad input."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from reglib.apparent import apparent_contours, prepare_surface
+from reglib.closest import ContourSet, closest_points, select_contours, stabbing
+
+
+def random_case(rng, n_lines=120, n_contours=5):
+    polys, closed = [], []
+    for _ in range(n_contours):
+        k = int(rng.integers(2, 120))
+        steps = rng.normal(size=(k, 3)) * rng.uniform(0.5, 6.0)
+        polys.append(np.cumsum(steps, axis=0) + rng.normal(size=3) * 40.0)
+        closed.append(bool(rng.integers(0, 2)) and k >= 3)
+    cs = ContourSet.from_polylines(polys, closed)
+    # lines from near a common center (like X-ray paths), plus some random ones
+    c = np.array([0.0, 0.0, -600.0]) + rng.normal(size=3) * 5
+    tgt = rng.normal(size=(n_lines, 3)) * 40.0
+    o = c + rng.normal(size=(n_lines, 3))
+    o[: n_lines // 4] = rng.normal(size=(n_lines // 4, 3)) * 100
+    d = tgt - o
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    # origins anywhere along the lines
+    o = o + rng.uniform(-300, 300, size=(n_lines, 1)) * d
+    return cs, o, d
+
+
+@pytest.mark.parametrize("method", ["dense", "blocks", "hierarchy"])
+def test_fast_methods_agree_with_brute_force(method):
+    rng = np.random.default_rng(10)
+    for _ in range(6):
+        cs, o, d = random_case(rng)
+        ref = closest_points(cs, o, d, method="reference")
+        got = closest_points(cs, o, d, method=method)
+        assert got.distance.shape == (len(o), cs.n_contours)
+        np.testing.assert_allclose(got.distance, ref.distance, atol=1e-9, rtol=0)
+        np.testing.assert_allclose(got.p, ref.p, atol=1e-9, rtol=0)
+        np.testing.assert_allclose(got.q, ref.q, atol=1e-9, rtol=0)
+        # the segment holds p, and belongs to the right contour
+        sc = cs.segment_contour[got.segment]
+        assert np.array_equal(sc, np.broadcast_to(np.arange(cs.n_contours), sc.shape))
+
+
+def test_reference_is_the_minimum():
+    """Independent check of the reference: p on its segment, q on the line, q - p orthogonal
+    to the line, and no sampled contour point closer to the line."""
+    rng = np.random.default_rng(11)
+    cs, o, d = random_case(rng, n_lines=40, n_contours=3)
+    cp = closest_points(cs, o, d, method="reference")
+    a, b = cs.starts[cp.segment], cs.ends[cp.segment]
+    # p on segment [a, b]
+    e = b - a
+    s = np.einsum("ncj,ncj->nc", cp.p - a, e) / np.einsum("ncj,ncj->nc", e, e)
+    assert np.all((s > -1e-9) & (s < 1 + 1e-9))
+    np.testing.assert_allclose(a + s[..., None] * e, cp.p, atol=1e-9)
+    # q - p orthogonal to the line direction
+    assert np.max(np.abs(np.einsum("ncj,nj->nc", cp.q - cp.p, d))) < 1e-9
+    # dense sampling of every segment is never closer
+    t = np.linspace(0, 1, 101)
+    samples = cs.starts[:, None, :] + t[None, :, None] * (cs.ends - cs.starts)[:, None, :]
+    samples = samples.reshape(-1, 3)
+    owner = np.repeat(cs.segment_contour, len(t))
+    w = samples[None] - o[:, None]
+    perp = w - np.einsum("nsj,nj->ns", w, d)[..., None] * d[:, None]
+    dist = np.linalg.norm(perp, axis=2)
+    for c in range(cs.n_contours):
+        assert np.all(cp.distance[:, c] <= dist[:, owner == c].min(axis=1) + 1e-9)
+
+
+def test_hierarchy_radius_and_sorted_lines():
+    """Neighbouring lines (sorted along a curve) give the same answer, and the paper's r
+    is non-negative and equals (d2 - eps2 - d1) / 2 >= 0 by construction."""
+    rng = np.random.default_rng(12)
+    theta = np.linspace(0, 2 * np.pi, 200, endpoint=False)
+    ring = np.c_[30 * np.cos(theta), 20 * np.sin(theta), 5 * np.sin(3 * theta)]
+    cs = ContourSet.from_polylines([ring, ring[::3] * 1.5 + [0, 0, 10]], [True, True])
+    c = np.array([0.0, 0.0, -600.0])
+    tgt = np.c_[31 * np.cos(theta), 21 * np.sin(theta), np.zeros_like(theta)]
+    tgt += rng.normal(size=tgt.shape) * 0.5
+    d = tgt - c
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = np.repeat(c[None], len(d), axis=0)
+    ref = closest_points(cs, o, d, method="reference")
+    got = closest_points(cs, o, d, method="hierarchy")
+    np.testing.assert_allclose(got.distance, ref.distance, atol=1e-9, rtol=0)
+    assert got.reuse_radius is not None
+    assert np.all(got.reuse_radius >= -1e-12)
+
+
+def circle_contour_and_lines():
+    """The apparent contour of a sphere seen from c, and lines from c inside / outside it."""
+    m = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
+    top = prepare_surface(m.vertices, m.faces)
+    c = np.array([0.0, 0.0, -500.0])
+    conts = apparent_contours(top, c)
+    cs = ContourSet.from_contours(conts)
+    ang = np.linspace(0, 2 * np.pi, 17)[:-1]
+    half = np.arcsin(50.0 / 500.0)
+    dirs = []
+    for f in (0.8, 1.2):   # inside, then outside the silhouette cone
+        a = f * half
+        dirs.append(np.c_[np.sin(a) * np.cos(ang), np.sin(a) * np.sin(ang), np.full(16, np.cos(a))])
+    d = np.vstack(dirs)
+    o = np.repeat(c[None], len(d), axis=0)
+    return cs, o, d
+
+
+def test_stabbing_means_passing_inside_the_silhouette():
+    cs, o, d = circle_contour_and_lines()
+    cp = closest_points(cs, o, d)
+    st = stabbing(cp, cs, d)
+    assert st.shape == (32, 1)
+    assert np.all(st[:16, 0]) and not np.any(st[16:, 0])
+
+
+def test_selection_rule():
+    cs1, o, d = circle_contour_and_lines()
+    # a second, larger concentric contour: every inside line stabs both
+    big = cs1.path[:-1] * [1.5, 1.5, 1.0]
+    cs = ContourSet.from_polylines([cs1.path[:-1], big], [True, True])
+    cp = closest_points(cs, o, d)
+    st = stabbing(cp, cs, d)
+    inside = np.arange(16)
+    assert np.all(st[inside])
+    # external lines that stab: the farthest stabbed contour (the big one)
+    sel = select_contours(cp, cs, d, np.ones(32, dtype=bool))
+    assert np.all(sel[inside] == np.argmax(cp.distance[inside], axis=1))
+    # internal lines: the closest contour
+    sel_int = select_contours(cp, cs, d, np.zeros(32, dtype=bool))
+    assert np.array_equal(sel_int, np.argmin(cp.distance, axis=1))
+    # lines outside both stab the big one only if inside it; those outside both: closest
+    outside = ~st.any(axis=1)
+    assert np.array_equal(sel[outside], np.argmin(cp.distance[outside], axis=1))
+    # a stab distance limit smaller than the far contour falls back to the nearer one
+    sel_lim = select_contours(cp, cs, d, None,
+                              max_stab_distance_mm=float(cp.distance[inside].min(axis=1).max()))
+    assert np.all(sel_lim[inside] == np.argmin(cp.distance[inside], axis=1))
+
+
+def test_bad_input():
+    cs = ContourSet.from_polylines([np.eye(3)], [False])
+    o = np.zeros((2, 3))
+    with pytest.raises(ValueError, match="unit"):
+        closest_points(cs, o, np.ones((2, 3)))
+    with pytest.raises(ValueError, match="method"):
+        closest_points(cs, o, np.tile([1.0, 0, 0], (2, 1)), method="fast")
+    with pytest.raises(ValueError, match="same shape"):
+        closest_points(cs, o, np.tile([1.0, 0, 0], (3, 1)))
+    with pytest.raises(ValueError, match="at least 2 vertices"):
+        ContourSet.from_polylines([np.zeros((1, 3))], [False])
+    with pytest.raises(ValueError, match="ContourSet"):
+        closest_points([np.eye(3)], o, np.tile([1.0, 0, 0], (2, 1)))
+    empty = closest_points(ContourSet.from_polylines([], []), o, np.tile([1.0, 0, 0], (2, 1)))
+    assert empty.distance.shape == (2, 0)
