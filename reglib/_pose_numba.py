@@ -188,3 +188,47 @@ def iterate(p, o, Nb, R0, t0, robust, r, max_iterations, tol, a, fixed_scale, sc
             status = STATUS_CONVERGED
             break
     return R, tt, it, status
+
+
+@njit(cache=True)
+def perp_basis(d):
+    """Same as reglib.pose._perp_basis: (2, N, 3) unit vectors orthogonal to each row."""
+    n = d.shape[0]
+    out = np.empty((2, n, 3))
+    for i in range(n):
+        vx, vy, vz = d[i, 0], d[i, 1], d[i, 2]
+        if abs(vx) > 0.9:  # a = e_y
+            ax, ay, az = 0.0, 1.0, 0.0
+        else:  # a = e_x
+            ax, ay, az = 1.0, 0.0, 0.0
+        n1x = ay * vz - az * vy
+        n1y = az * vx - ax * vz
+        n1z = ax * vy - ay * vx
+        nn = np.sqrt(n1x * n1x + n1y * n1y + n1z * n1z)
+        n1x /= nn
+        n1y /= nn
+        n1z /= nn
+        out[0, i, 0] = n1x
+        out[0, i, 1] = n1y
+        out[0, i, 2] = n1z
+        out[1, i, 0] = vy * n1z - vz * n1y
+        out[1, i, 1] = vz * n1x - vx * n1z
+        out[1, i, 2] = vx * n1y - vy * n1x
+    return out
+
+
+@njit(cache=True)
+def distances(p, o, d, R, t):
+    """Point-line distances of the points moved by (R, t)."""
+    n = p.shape[0]
+    out = np.empty(n)
+    for i in range(n):
+        w = np.empty(3)
+        for j in range(3):
+            w[j] = R[j, 0] * p[i, 0] + R[j, 1] * p[i, 1] + R[j, 2] * p[i, 2] + t[j] - o[i, j]
+        s = w[0] * d[i, 0] + w[1] * d[i, 1] + w[2] * d[i, 2]
+        e0 = w[0] - s * d[i, 0]
+        e1 = w[1] - s * d[i, 1]
+        e2 = w[2] - s * d[i, 2]
+        out[i] = np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+    return out

@@ -105,11 +105,12 @@ def _check_inputs(points, origins, directions, method: str):
             f"method {method!r} needs at least {need} point-line pairs, got {p.shape[0]}"
         )
     centered = p - p.mean(axis=0)
-    s = np.linalg.svd(centered, compute_uv=False)
+    ev = np.linalg.eigvalsh(centered.T @ centered)  # squared singular values, ascending
+    s = np.sqrt(np.maximum(ev[::-1], 0.0))
     scale = max(s[0], 1e-300)
     if s[0] < 1e-12 * max(1.0, np.abs(p).max()):
         raise ValueError("points: all points coincide; the rotation is undetermined")
-    if s[1] < 1e-9 * scale:
+    if s[1] < 1e-7 * scale:
         raise ValueError(
             "points: all points are collinear; the rotation about their common line is "
             "undetermined"
@@ -239,7 +240,9 @@ def _median(x):
 
 
 def _scale_of(points):
-    return float(np.sqrt(np.mean(np.sum((points - points.mean(0)) ** 2, axis=1)))) or 1.0
+    """RMS distance of the points to their centroid (1.0 for a single point)."""
+    c = points - points.mean(0)
+    return float(np.sqrt(np.einsum("ij,ij->", c, c) / len(points))) or 1.0
 
 
 # --------------------------------------------------------------------------- methods
@@ -253,12 +256,12 @@ def _numba_kernel():
 
 def _iterate_linearised(p, o, d, R0, t0, *, robust, r, max_iterations, tol, a,
                         fixed_scale=None, method, backend="auto"):
-    Nb = _perp_basis(d)
     scale = _scale_of(p)
     kernel = _numba_kernel() if backend in ("auto", "numba") else None
     if backend == "numba" and kernel is None:
         raise ValueError("backend 'numba' asked for but numba is not installed")
     if kernel is not None:
+        Nb = kernel.perp_basis(d)
         R, tt, it, status = kernel.iterate(
             p, o, Nb, np.ascontiguousarray(R0, dtype=np.float64),
             np.ascontiguousarray(t0, dtype=np.float64), robust, r if r is not None else -1.0,
@@ -270,7 +273,7 @@ def _iterate_linearised(p, o, d, R0, t0, *, robust, r, max_iterations, tol, a,
                "(too many outliers or a start too far off)",
             3: f"singular linear system at iteration {it} (degenerate geometry)",
         }
-        dist = _distances(p @ R.T + tt, o, d)
+        dist = kernel.distances(p, o, d, R, tt)
         if robust:
             s = fixed_scale if fixed_scale is not None else _median(dist) / 0.6745
             weights = tukey_weights(dist / max(s, 1e-12 * scale), a)
@@ -278,6 +281,7 @@ def _iterate_linearised(p, o, d, R0, t0, *, robust, r, max_iterations, tol, a,
             weights = np.ones(len(p))
         return PoseResult(R, tt, dist, weights, weights > 0, int(it), status == 0, method,
                           messages[int(status)])
+    Nb = _perp_basis(d)
     R, tt = R0.copy(), t0.copy()
     P = p @ R.T + tt
     weights = None
