@@ -1,0 +1,108 @@
+"""The main job behind ``testbed run``.
+
+- A ``synthetic`` scene (``points-lines``, the default until the operating-room job lands):
+  one seeded instance solved by every pose method, then the quick versions of the ``fig9``
+  and ``table1`` studies written under ``--out`` (default ``runs/<scene name>``).
+- An ``operating_room`` scene: the end-to-end registration (``studies.end_to_end``).
+
+The result is a JSON-ready dict with at least ``pins`` (name -> error), ``mtre_mm``,
+``converged`` and ``timings`` (stage -> s), as DESIGN.md asks.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def run_main_job(scene, *, scene_path, seed=None, out=None) -> dict:
+    seed = scene.scene.seed if seed is None else int(seed)
+    out = Path(out) if out is not None else Path("runs") / scene.scene.name
+    if scene.scene.kind == "synthetic":
+        return _synthetic_job(scene, scene_path=scene_path, seed=seed, out=out)
+    from studies.end_to_end import run_case
+
+    return run_case(scene, scene_path=scene_path, seed=seed, out=out)
+
+
+def _synthetic_job(scene, *, scene_path, seed, out) -> dict:
+    from reglib.pose import solve_pose
+    from studies import run_study
+    from studies.fig9 import summary
+    from testbed.synthetic import make_points_lines
+
+    timings = {}
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    spec = scene.synthetic
+    case = make_points_lines(spec, rng)
+    timings["simulate"] = time.perf_counter() - t0
+    methods = {}
+    for method in ("lm", "linear", "robust", "ransac"):
+        t0 = time.perf_counter()
+        res = solve_pose(case.points, case.origins, case.directions, method, rng=rng)
+        timings[f"solve_{method}"] = time.perf_counter() - t0
+        lm_est = res.transform.apply(case.landmarks)
+        lm_true = case.points2lines.apply(case.landmarks)
+        errs = np.linalg.norm(lm_est - lm_true, axis=1)
+        methods[method] = {
+            "landmark_errors": [float(e) for e in errs],
+            "max_landmark_error": float(errs.max()),
+            "converged": bool(res.converged),
+            "iterations": int(res.iterations),
+            "message": res.message,
+        }
+    t0 = time.perf_counter()
+    run_study("fig9", out / "fig9", scene=str(scene_path), seed=seed, quick=True)
+    timings["study_fig9_quick"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    run_study("table1", out / "table1", scene=str(scene_path), seed=seed, quick=True)
+    timings["study_table1_quick"] = time.perf_counter() - t0
+
+    import pandas as pd
+
+    fig9 = summary(pd.read_csv(out / "fig9" / "results.csv"))
+    worst = fig9[fig9.noise == fig9.noise.max()]
+    success = {f"{r.method}@{r.outliers:.0%}": float(r.success_rate)
+               for r in worst.itertuples(index=False)}
+    robust = methods["robust"]
+    return {
+        "scene": scene.scene.name,
+        "kind": "synthetic",
+        "seed": seed,
+        "pins": {f"landmark_{i + 1}": e for i, e in enumerate(robust["landmark_errors"])},
+        "mtre_mm": float(np.mean(robust["landmark_errors"])),
+        "units": "unit-cube units (the synthetic set-up is unitless)",
+        "converged": bool(robust["converged"]),
+        "methods": methods,
+        "fig9_success_at_max_noise": success,
+        "outputs": {"fig9": str(out / "fig9"), "table1": str(out / "table1")},
+        "timings": timings,
+    }
+
+
+def format_result(result: dict) -> str:
+    """Human-readable summary of :func:`run_main_job`'s result."""
+    lines = [f"scene {result['scene']} ({result.get('kind', '')}), seed {result.get('seed')}"]
+    if result.get("kind") == "synthetic":
+        lines.append("pose from points and lines, one instance (max landmark error):")
+        for m, r in result["methods"].items():
+            flag = "" if r["converged"] else f"  NOT CONVERGED: {r['message']}"
+            lines.append(f"  {m:7s} {r['max_landmark_error']:.3e}  "
+                         f"({r['iterations']} iterations){flag}")
+        lines.append("fig9 (quick) success rate at the largest noise:")
+        for k, v in result["fig9_success_at_max_noise"].items():
+            lines.append(f"  {k:14s} {v:.2f}")
+        for k, v in result["outputs"].items():
+            lines.append(f"{k}: {v}/report.md")
+    else:
+        lines.append("error at the pins after registration:")
+        for pin, e in result["pins"].items():
+            lines.append(f"  {pin:10s} {e:7.3f} mm")
+        lines.append(f"mTRE {result['mtre_mm']:.3f} mm; converged: {result['converged']}")
+        for k, v in result.get("extra_lines", []):
+            lines.append(f"{k}: {v}")
+    lines.append("timings (s): " + ", ".join(f"{k} {v:.2f}" for k, v in result["timings"].items()))
+    return "\n".join(lines)
