@@ -17,9 +17,7 @@ import importlib
 import pkgutil
 from pathlib import Path
 
-from studies.common import StudyContext, finish_study, start_study
-
-__all__ = ["available_studies", "run_study", "StudyContext"]
+__all__ = ["available_studies", "run_study"]
 
 
 def _module_name(name: str) -> str:
@@ -42,14 +40,21 @@ def available_studies() -> dict[str, str]:
     return dict(sorted(out.items()))
 
 
-def run_study(name: str, out: Path, *, scene=None, seed=None, quick=False, workers=1) -> Path:
-    """Run study ``name`` into folder ``out``; returns ``out``."""
+def run_study(name: str, out: Path, *, scene=None, seed=None, quick=False, workers=1,
+              scheduler=None) -> Path:
+    """Run study ``name`` into folder ``out``; returns ``out``.
+
+    ``workers``: processes for the trials; ``scheduler``: a Dask scheduler address (or
+    Client / cluster) to run them on instead. Rerunning into the same ``out`` resumes.
+    """
+    from studies.common import finish_study, start_study
+
     known = available_studies()
     if name not in known:
         raise SystemExit(f"testbed study: unknown study {name!r}; known: {', '.join(known)}")
     mod = importlib.import_module(_module_name(name))
     ctx = start_study(name, out, scene=scene or mod.DEFAULT_SCENE, seed=seed, quick=quick,
-                      workers=workers)
+                      workers=workers, scheduler=scheduler)
     df = mod.run(ctx)
     finish_study(ctx, df)
     return out

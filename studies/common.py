@@ -47,6 +47,7 @@ class StudyContext:
     seed: int
     quick: bool = False
     workers: int = 1
+    scheduler: object = None
     sections: list = field(default_factory=list)
     figures: list = field(default_factory=list)
 
@@ -64,14 +65,15 @@ class StudyContext:
         return self.out / filename
 
 
-def start_study(name, out, *, scene, seed=None, quick=False, workers=1) -> StudyContext:
+def start_study(name, out, *, scene, seed=None, quick=False, workers=1,
+                scheduler=None) -> StudyContext:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     path = find_scene(scene)
     sc = load_scene(path)
     seed = sc.scene.seed if seed is None else int(seed)
     return StudyContext(name=name, out=out, scene_path=path, scene=sc, seed=seed,
-                        quick=quick, workers=workers)
+                        quick=quick, workers=workers, scheduler=scheduler)
 
 
 def check_results(df: pd.DataFrame) -> None:
@@ -107,7 +109,8 @@ def finish_study(ctx: StudyContext, df: pd.DataFrame) -> None:
         f"- scene: `{ctx.scene_path}` ({ctx.scene.scene.name})",
         f"- seed: {ctx.seed}",
         f"- git commit: `{git_commit()}`",
-        f"- written: {now}; quick: {ctx.quick}; workers: {ctx.workers}",
+        f"- written: {now}; quick: {ctx.quick}; workers: {ctx.workers}"
+        + (f"; Dask scheduler: {ctx.scheduler}" if ctx.scheduler else ""),
         f"- rows in results.csv: {len(df)}",
         "",
     ]

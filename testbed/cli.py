@@ -45,7 +45,7 @@ def cmd_study(args) -> int:
         raise SystemExit("testbed study: --out DIR is required")
     out = run_study(
         args.name, Path(args.out), scene=args.scene, seed=args.seed, quick=args.quick,
-        workers=args.workers,
+        workers=args.workers, scheduler=args.scheduler,
     )
     print(f"wrote {out / 'results.csv'} and {out / 'report.md'}")
     return 0
@@ -61,7 +61,11 @@ def cmd_render(args) -> int:
 
 
 def cmd_generate(args) -> int:
-    from testbed.dataset import generate_command
+    try:
+        from testbed.generate import generate_command
+    except ImportError:
+        raise SystemExit("testbed generate: the dataset generator is not built yet "
+                         "(the on-disk format is, in testbed/dataset.py)") from None
 
     path, scene = _load(args.scene)
     generate_command(scene, scene_path=path, cases=args.cases, out=Path(args.out), seed=args.seed)
@@ -89,6 +93,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=None, help="override the study's seed")
     s.add_argument("--quick", action="store_true", help="a small version (for smoke tests)")
     s.add_argument("--workers", type=int, default=1, help="worker processes")
+    s.add_argument("--scheduler", default=None,
+                   help="run trials on a Dask cluster: scheduler address tcp://HOST:PORT")
     s.add_argument("--list", action="store_true", help="list the studies")
     s.set_defaults(func=cmd_study)
 
