@@ -18,6 +18,7 @@ Sections:
 ``[fluoroscope]``   C-arm and image intensifier (``testbed.fluoroscope``)
 ``[[views]]``       one table per C-arm pose (``testbed.fluoroscope``)
 ``[robot]``         robot, rod, sweeps (``testbed.robot``)
+``[[instruments]]`` OR instruments that may occlude the anatomy (``testbed.instruments``)
 ``[registration]``  the registration run (start perturbation, solver options)
 """
 
@@ -32,6 +33,7 @@ from pydantic import Field, ValidationError, model_validator
 
 from testbed.ct import CTSpec
 from testbed.fluoroscope import FluoroscopeSpec, ViewSpec
+from testbed.instruments import InstrumentSpec
 from testbed.phantom import PhantomSpec
 from testbed.robot import RobotSpec
 from testbed.spec import Positive as Pos
@@ -123,6 +125,7 @@ class Scene(Spec):
     fluoroscope: FluoroscopeSpec = FluoroscopeSpec()
     views: tuple[ViewSpec, ...] = ()
     robot: RobotSpec = RobotSpec()
+    instruments: tuple[InstrumentSpec, ...] = ()
     registration: RegistrationSpec = RegistrationSpec()
 
     @model_validator(mode="after")
