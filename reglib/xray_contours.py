@@ -1,0 +1,267 @@
+"""Bone contours on fluoroscopic (X-ray) images from a few user clicks.
+
+On a fluoroscopic frame the femur shows *external* contours (the outline of the bone: the
+edges of the shaft, the head, the condyles) and *internal* ones (edges seen through the bone:
+the medullary canal, the far condyle, the lesser trochanter). Both kinds are 2-D projections
+of apparent contours and both can be used for registration (X-rays see through bone); the
+label says which kind the user traced, as the registration treats them differently
+(NOTES.md s3, step B).
+
+Each contour is found by the two-stage snake of :func:`reglib.contours.snake_contour`, on an
+image prepared for X-ray video:
+
+- the dark surround of the circular field of view is replaced by the nearest pixel inside it,
+  so that the edge of the field (the strongest edge of the frame) does not attract the snake;
+- the 8-bit video is used as it is (a logarithmic video amplifier makes its grey levels
+  proportional to the line integral of attenuation, and bone edges steps in it);
+
+then every vertex is moved along its normal to the edge found by fitting the intensity
+profile across it (:func:`refine_edge_profile`). The gradient maximum alone is biased
+inwards on X-ray images: near an apparent contour of a smooth body, the path length through
+the body grows as the square root of the distance to the contour, so the blurred edge has its
+steepest point a fraction of the blur inside the body (about 0.6 px here). The fit uses that
+generic shape (``a + b * sqrt(max(+-(s - s0), 0))``, blurred by a Gaussian of unknown width)
+and returns ``s0``, the contour itself. Curves are open by default (the edges of a shaft end
+at the border of the field); closed curves (the femoral head) are asked for with
+``closed=True``.
+
+Pixel coordinates ``(x, y) = (col, row)``, the centre of the top-left pixel at (0, 0);
+images ``(H, W)`` indexed ``[row, col]``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from scipy import ndimage
+
+from reglib.contours import snake_contour
+
+__all__ = ["XrayContour", "field_of_view_mask", "prepare_xray", "refine_edge_profile",
+           "xray_contour", "xray_contours"]
+
+Label = Literal["external", "internal"]
+
+
+@dataclass(frozen=True)
+class XrayContour:
+    """One bone contour on an X-ray image.
+
+    ``points_xy`` (K, 2) float64 (x, y) px along the contour; ``label`` "external" or
+    "internal"; ``closed`` whether the last point joins the first.
+    """
+
+    points_xy: np.ndarray
+    label: Label
+    closed: bool
+
+    def __post_init__(self):
+        if self.label not in ("external", "internal"):
+            raise ValueError(f"label: expected 'external' or 'internal', got {self.label!r}")
+
+
+def field_of_view_mask(image, *, dark_level: float = 2.0, erode_px: int = 3) -> np.ndarray:
+    """The image's field of view: the largest bright connected region, eroded, ``(H, W)``.
+
+    Video frames of an image intensifier are dark (near 0) outside a circular field. Pixels
+    above ``dark_level`` belong to it; the largest connected part is kept and eroded by
+    ``erode_px`` so that the blurred rim is excluded.
+    """
+    img = np.asarray(image, dtype=np.float64)
+    lit = img > dark_level
+    lab, n = ndimage.label(lit)
+    if n == 0:
+        raise ValueError("image: no pixel above the dark level; is this an X-ray frame?")
+    sizes = ndimage.sum(lit, lab, index=np.arange(1, n + 1))
+    mask = lab == (1 + int(np.argmax(sizes)))
+    mask = ndimage.binary_fill_holes(mask)  # black objects (metal) stay in the field
+    if erode_px > 0:
+        mask = ndimage.binary_erosion(mask, iterations=erode_px)
+    return mask
+
+
+def prepare_xray(image, *, fov_mask=None) -> np.ndarray:
+    """The image as float64 with the outside of the field filled by the nearest inside pixel."""
+    img = np.asarray(image, dtype=np.float64)
+    if img.ndim != 2:
+        raise ValueError(f"image: expected a 2-D (H, W) array, got shape {img.shape}")
+    mask = field_of_view_mask(img) if fov_mask is None else np.asarray(fov_mask, dtype=bool)
+    if mask.shape != img.shape:
+        raise ValueError(f"fov_mask: shape {mask.shape} differs from the image's {img.shape}")
+    if not mask.any():
+        raise ValueError("fov_mask: empty field of view")
+    _, (rows, cols) = ndimage.distance_transform_edt(~mask, return_indices=True)
+    return img[rows, cols]
+
+
+def _normals(c: np.ndarray, closed: bool) -> np.ndarray:
+    d = np.roll(c, -1, axis=0) - np.roll(c, 1, axis=0) if closed else np.gradient(c, axis=0)
+    n = np.column_stack([d[:, 1], -d[:, 0]])
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    return n / np.where(norm > 0, norm, 1.0)
+
+
+def _blurred_sqrt_table(sigmas, step: float = 0.01, reach: float = 12.0):
+    """``H_sigma(x) = (G_sigma * sqrt(max(., 0)))(x)`` on a grid, one row per sigma."""
+    x = np.arange(-reach, reach + step / 2, step)
+    base = np.sqrt(np.maximum(x, 0.0))
+    rows = [ndimage.gaussian_filter1d(base, s / step, mode="nearest") for s in sigmas]
+    return x, np.array(rows)
+
+
+def refine_edge_profile(image, contour_xy, *, closed: bool = False, half_width_px: float = 4.0,
+                        sample_px: float = 0.25, search_px: float = 2.0,
+                        pre_sigma_px: float = 0.7, sigmas_px=(0.6, 0.8, 1.0, 1.2, 1.5),
+                        smooth_vertices: int = 5) -> np.ndarray:
+    """Move each contour vertex along its normal to the edge of a fitted X-ray edge profile.
+
+    The image, smoothed by ``pre_sigma_px``, is sampled (bilinear) every ``sample_px`` within
+    ``+-half_width_px`` of the vertex along its normal; the profile is fitted in least squares
+    by ``a + b * H_sigma(+-(s - s0))`` (``H_sigma`` a square root blurred by a Gaussian of
+    width ``sigma``: the shape of the line integral across an apparent contour), over both
+    signs, ``sigma`` in ``sigmas_px`` and ``s0`` within ``+-search_px`` (grid of 0.05 px, then
+    a parabola through the best three). Vertices whose best ``s0`` lies at the end of the
+    search range, or whose fit explains less than half the profile's variance, are failed
+    fits; the offsets of the others are passed through a running median over
+    ``smooth_vertices`` neighbours (1: none), which also fills the failed ones.
+
+    Parameters
+    ----------
+    image : (H, W) array indexed [row, col].
+    contour_xy : (K, 2) float64 (x, y) px.
+
+    Returns
+    -------
+    (K, 2) float64 (x, y) px.
+    """
+    img = ndimage.gaussian_filter(np.asarray(image, dtype=np.float64), pre_sigma_px)
+    c = np.asarray(contour_xy, dtype=np.float64)
+    n = _normals(c, closed)
+    s = np.arange(-half_width_px, half_width_px + sample_px / 2, sample_px)  # (S,)
+    px = c[:, None, 0] + s[None, :] * n[:, None, 0]
+    py = c[:, None, 1] + s[None, :] * n[:, None, 1]
+    prof = ndimage.map_coordinates(img, [py.ravel(), px.ravel()], order=1,
+                                   mode="nearest").reshape(px.shape)  # (K, S)
+    eff = np.sqrt(np.asarray(sigmas_px, dtype=np.float64) ** 2 + pre_sigma_px**2)
+    xt, table = _blurred_sqrt_table(eff)
+    s0 = np.arange(-search_px, search_px + 1e-9, 0.05)  # (T,)
+    best_res = np.full(len(c), np.inf)
+    best_t = np.zeros(len(c), dtype=int)
+    best_curve = np.zeros((len(c), len(s0)))
+    pm = prof - prof.mean(axis=1, keepdims=True)
+    total = np.sum(pm * pm, axis=1)
+    for row in table:
+        for sign in (1.0, -1.0):
+            arg = sign * (s[None, :] - s0[:, None])  # (T, S)
+            h = np.interp(arg, xt, row)
+            hm = h - h.mean(axis=1, keepdims=True)  # (T, S)
+            hh = np.sum(hm * hm, axis=1)  # (T,)
+            ph = pm @ hm.T  # (K, T)
+            res = total[:, None] - ph**2 / hh[None, :]  # residual after the best a, b
+            k = np.argmin(res, axis=1)
+            rk = res[np.arange(len(c)), k]
+            better = rk < best_res
+            best_res[better] = rk[better]
+            best_t[better] = k[better]
+            best_curve[better] = res[better]
+    k = best_t
+    ok = (k > 0) & (k < len(s0) - 1) & (best_res < 0.5 * total)
+    kk = np.clip(k, 1, len(s0) - 2)
+    rows = np.arange(len(c))
+    f0, f1, f2 = best_curve[rows, kk - 1], best_curve[rows, kk], best_curve[rows, kk + 1]
+    den = f0 - 2 * f1 + f2
+    frac = np.where(den > 0, 0.5 * (f0 - f2) / np.where(den > 0, den, 1.0), 0.0)
+    off = s0[kk] + np.clip(frac, -0.5, 0.5) * 0.05
+    if smooth_vertices > 1 and ok.sum() >= smooth_vertices:
+        # the edge is smooth along the contour: a running median of the offsets rejects
+        # vertices fitted to noise or to a neighbouring edge; failed fits take it too
+        idx = np.flatnonzero(ok)
+        med = ndimage.median_filter(off[idx], size=smooth_vertices,
+                                    mode="wrap" if closed else "nearest")
+        off = np.interp(np.arange(len(c)), idx, med)
+    else:
+        off = np.where(ok, off, 0.0)
+    return c + off[:, None] * n
+
+
+def xray_contour(
+    image,
+    clicks_xy,
+    *,
+    label: Label = "external",
+    closed: bool = False,
+    fov_mask=None,
+    fine_sigma_px: float = 1.0,
+    spacing_px: float = 2.0,
+    profile_fit: bool = True,
+    **snake_options,
+) -> XrayContour:
+    """One bone contour from a few clicks on an X-ray image.
+
+    Parameters
+    ----------
+    image : (H, W) array, the video frame (uint8 or float), indexed [row, col].
+    clicks_xy : (K, 2) array of (x, y) px near the bone edge, in order along it (K >= 2 for
+        an open contour, K >= 3 for a closed one).
+    label : "external" (the bone outline) or "internal" (an edge seen through the bone).
+    closed : a closed contour (e.g. the femoral head) or an open one (default).
+    fov_mask : (H, W) bool, the field of view; estimated from the image when None.
+    fine_sigma_px, spacing_px, snake_options : passed to
+        :func:`reglib.contours.snake_contour`.
+    profile_fit : finish with :func:`refine_edge_profile` (else the snake's gradient maximum).
+
+    Returns
+    -------
+    XrayContour with ``points_xy`` (M, 2) (x, y) px, sub-pixel.
+
+    Raises
+    ------
+    ValueError : bad label, image or clicks (too few, outside the image or the field).
+    """
+    if label not in ("external", "internal"):
+        raise ValueError(f"label: expected 'external' or 'internal', got {label!r}")
+    img = np.asarray(image, dtype=np.float64)
+    if img.ndim != 2:
+        raise ValueError(f"image: expected a 2-D (H, W) array, got shape {img.shape}")
+    mask = field_of_view_mask(img) if fov_mask is None else np.asarray(fov_mask, dtype=bool)
+    pts = np.asarray(clicks_xy, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        raise ValueError(f"clicks_xy: expected a (K, 2) array of (x, y) px, got {pts.shape}")
+    inside = np.zeros(len(pts), dtype=bool)
+    r = np.rint(pts[:, 1]).astype(int)
+    c = np.rint(pts[:, 0]).astype(int)
+    ok = (r >= 0) & (r < img.shape[0]) & (c >= 0) & (c < img.shape[1])
+    inside[ok] = mask[r[ok], c[ok]]
+    if not inside.all():
+        bad = np.flatnonzero(~inside).tolist()
+        raise ValueError(f"clicks_xy: clicks {bad} lie outside the image's field of view")
+    filled = prepare_xray(img, fov_mask=mask)
+    pts_out = snake_contour(filled, pts, closed=closed, fine_sigma_px=fine_sigma_px,
+                            spacing_px=spacing_px, **snake_options)
+    if profile_fit:
+        pts_out = refine_edge_profile(filled, pts_out, closed=closed)
+    return XrayContour(points_xy=pts_out, label=label, closed=closed)
+
+
+def xray_contours(image, traces: Sequence[dict], *, fov_mask=None) -> list[XrayContour]:
+    """Several contours on one image.
+
+    ``traces``: a sequence of dicts with ``clicks_xy`` and optionally ``label`` and
+    ``closed`` (and snake options); the field of view is estimated once.
+    """
+    img = np.asarray(image, dtype=np.float64)
+    mask = field_of_view_mask(img) if fov_mask is None else fov_mask
+    out = []
+    for i, tr in enumerate(traces):
+        tr = dict(tr)
+        if "clicks_xy" not in tr:
+            raise ValueError(f"traces[{i}]: missing 'clicks_xy'")
+        clicks = tr.pop("clicks_xy")
+        try:
+            out.append(xray_contour(img, clicks, fov_mask=mask, **tr))
+        except ValueError as exc:
+            raise ValueError(f"traces[{i}]: {exc}") from None
+    return out

@@ -1,0 +1,95 @@
+"""X-ray contours from clicks: simulate a rendered bone cylinder, trace it, compare with its
+true apparent contour (computed from the cylinder and the C-arm geometry)."""
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+
+from reglib.xray_contours import XrayContour, field_of_view_mask, xray_contour, xray_contours
+from testbed.bodies import Body
+from testbed.fluoroscope import FluoroscopeSpec, ViewSpec, make_carm, render
+
+R_MM = 14.0
+
+
+def _shaft_scene():
+    """A cortical tube (marrow inside) in a soft-tissue cylinder, tilted in the image."""
+    turn = (trimesh.transformations.rotation_matrix(0.3, (0, 0, 1))
+            @ trimesh.transformations.rotation_matrix(np.pi / 2, (1, 0, 0)))
+    meshes = []
+    for radius, sections in ((70.0, 128), (R_MM, 256), (8.0, 128)):
+        m = trimesh.creation.cylinder(radius=radius, height=600.0, sections=sections)
+        m.apply_transform(turn)
+        meshes.append(m)
+    meshes[0].apply_translation((8.0, 0.0, 0.0))
+    bodies = [Body("tissue", "soft_tissue", meshes[0]),
+              Body("bone", "cortical_bone", meshes[1], inside="tissue"),
+              Body("canal", "marrow", meshes[2], inside="bone")]
+    return bodies, turn[:3, :3] @ np.array([0.0, 0.0, 1.0])
+
+
+def _true_edges(carm, axis):
+    """The two silhouette generators of the bone cylinder, projected: (2, N, 2) px."""
+    s = carm.source_robot
+    w = s - (s @ axis) * axis
+    d = np.linalg.norm(w)
+    u, v = w / d, np.cross(axis, w / d)
+    c, sn = R_MM / d, np.sqrt(1 - (R_MM / d) ** 2)
+    t = np.linspace(-150.0, 150.0, 3001)
+    return [carm.project(R_MM * (c * u + k * sn * v) + t[:, None] * axis) for k in (1, -1)]
+
+
+@pytest.fixture(scope="module")
+def frames():
+    bodies, axis = _shaft_scene()
+    fluoro = FluoroscopeSpec()
+    carm = make_carm(fluoro, ViewSpec(orbital_deg=5.0))
+    clean = render(carm, bodies, fluoro=fluoro, noise=False)
+    noisy = render(carm, bodies, fluoro=fluoro, rng=np.random.default_rng(3))
+    return carm, axis, clean, noisy
+
+
+def _trace(frame, edge, rng):
+    clicks = edge[[900, 1300, 1700, 2100]] + rng.normal(0.0, 1.5, (4, 2))
+    return xray_contour(frame.image_u8, clicks, label="external")
+
+
+@pytest.mark.slow
+def test_snake_finds_the_true_apparent_contour(frames):
+    carm, axis, clean, noisy = frames
+    rng = np.random.default_rng(0)
+    for edge in _true_edges(carm, axis):
+        tree = cKDTree(edge)
+        # noise off: every vertex within 0.3 px of the true contour
+        c = _trace(clean, edge, rng)
+        assert c.label == "external" and not c.closed and len(c.points_xy) > 100
+        dist, idx = tree.query(c.points_xy)
+        assert dist.max() < 0.3, np.percentile(dist, [50, 90, 100])
+        assert idx.max() - idx.min() > 1000  # it follows the edge, not a piece of it
+        # the plain gradient maximum is biased inwards: the profile fit matters
+        plain = xray_contour(clean.image_u8, c.points_xy[::20], profile_fit=False)
+        assert np.median(tree.query(plain.points_xy)[0]) > 0.5
+        # with quantum noise: the typical vertex still within 0.3 px
+        c = _trace(noisy, edge, rng)
+        dist, _ = tree.query(c.points_xy)
+        assert np.median(dist) < 0.3 and np.percentile(dist, 90) < 0.7
+
+
+def test_field_of_view_and_bad_input(frames):
+    carm, axis, clean, _ = frames
+    mask = field_of_view_mask(clean.image_u8)
+    # the estimated field lies inside the true one and covers nearly all of it
+    assert not (mask & ~clean.fov).any()
+    assert mask.sum() > 0.97 * clean.fov.sum()
+    edge = _true_edges(carm, axis)[0]
+    with pytest.raises(ValueError, match="outside the image's field of view"):
+        xray_contour(clean.image_u8, [[2.0, 2.0], [50.0, 50.0], edge[1500]])
+    with pytest.raises(ValueError, match="label"):
+        xray_contour(clean.image_u8, edge[[1000, 1500, 2000]], label="outer")
+    with pytest.raises(ValueError, match=r"traces\[0\]: missing 'clicks_xy'"):
+        xray_contours(clean.image_u8, [{"label": "internal"}])
+    with pytest.raises(ValueError, match="2-D"):
+        xray_contour(np.zeros((3, 4, 5)), edge[[1000, 1500]])
+    with pytest.raises(ValueError, match="label"):
+        XrayContour(np.zeros((3, 2)), "middle", False)
