@@ -421,9 +421,11 @@ class Markers:
 def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int = 4,
                  **detect_kw) -> Markers:
     """Detect and identify every marker of a sweep (see :func:`detect_markers`,
-    :func:`identify_row`). A frame is compared with the frame before it; a row whose beads
-    cannot be identified is dropped and named in ``problems``, as are missing beads (outside
-    the field, hidden) and stray blobs.
+    :func:`identify_row`). A frame is compared with the frame before it. A row with too few
+    blobs to identify alone (at the edge of the field) is matched to where its beads are
+    predicted from the other rows of its plane; a row that still cannot be identified is
+    dropped and named in ``problems``, as are missing beads (outside the field, hidden) and
+    stray blobs.
     """
     frames = np.asarray(sweep.frames)
     plane = np.asarray(sweep.plane)
@@ -436,20 +438,34 @@ def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int =
             f"{beads.shape} disagree (expected (F, H, W), (F,), (F, {len(s)}, 3))")
     rows = {k: [] for k in ("frame", "plane", "bead", "xy", "robot")}
     problems: list[str] = []
+    weak = []  # rows too short to identify on their own: (frame, name, blobs, message index)
     expected = 0
+
+    def add(f, bead, xy):
+        rows["frame"].append(np.full(len(bead), f))
+        rows["plane"].append(np.full(len(bead), int(plane[f])))
+        rows["bead"].append(bead)
+        rows["xy"].append(xy)
+        rows["robot"].append(beads[f][bead])
+
     for f in range(1, F):
         if plane[f] < 0:
             continue
         expected += len(s)
         name = f"view {sweep.view}, {PLANE_NAMES.get(int(plane[f]), plane[f])} plane, frame {f}"
+        if not np.all(np.isfinite(beads[f])):
+            problems.append(f"{name}: robot positions missing; row dropped")
+            continue
         xy, _ = detect_markers(frames[f - 1], frames[f], polarity=polarity, mask=sweep.mask,
                                **detect_kw)
         try:
-            bead, _rms = identify_row(xy, s, min_matched=min_matched) if len(xy) else (None, 0)
-            if bead is None:
+            if not len(xy):
                 raise ValueError("no blobs")
+            bead, _rms = identify_row(xy, s, min_matched=min_matched)
         except ValueError as exc:
             problems.append(f"{name}: row dropped ({exc}; {len(xy)} blobs found)")
+            if len(xy):
+                weak.append((f, name, xy, len(problems) - 1))
             continue
         ok = bead >= 0
         missing = sorted(set(range(len(s))) - set(bead[ok].tolist()))
@@ -458,21 +474,43 @@ def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int =
         if (~ok).any():
             problems.append(f"{name}: {int((~ok).sum())} stray blob(s) at "
                             f"{np.round(xy[~ok], 1).tolist()} px ignored")
-        if not np.all(np.isfinite(beads[f][bead[ok]])):
-            problems.append(f"{name}: robot positions missing; row dropped")
+        add(f, bead[ok], xy[ok])
+
+    # rows with too few blobs (at the edge of the field): predict where their beads appear
+    # from the identified rows of the same plane (a TPS from in-plane mm to pixels) and take
+    # the blobs that fall on a prediction
+    for f, name, xy, k in weak:
+        p = int(plane[f])
+        have = [i for i, fr in enumerate(rows["frame"]) if plane[fr[0]] == p]
+        if len(have) < 2:
             continue
-        rows["frame"].append(np.full(ok.sum(), f))
-        rows["plane"].append(np.full(ok.sum(), int(plane[f])))
-        rows["bead"].append(bead[ok])
-        rows["xy"].append(xy[ok])
-        rows["robot"].append(beads[f][bead[ok]])
+        P = np.concatenate([rows["robot"][i] for i in have])
+        X = np.concatenate([rows["xy"][i] for i in have])
+        c = P.mean(axis=0)
+        basis = np.linalg.svd(P - c)[2][:2].T
+        try:
+            to_px = ThinPlateSpline.fit((P - c) @ basis, X, smoothing=0.0)
+        except ValueError:
+            continue
+        pred = to_px((beads[f] - c) @ basis)
+        gap = np.min(np.linalg.norm(np.diff(pred, axis=0), axis=1))
+        dist = np.linalg.norm(xy[:, None, :] - pred[None], axis=2)
+        j = np.argmin(dist, axis=1)
+        good = dist[np.arange(len(xy)), j] < 0.2 * gap
+        good &= np.array([np.sum(j[good] == jj) == 1 for jj in j])
+        if good.any():
+            add(f, j[good], xy[good])
+            missing = sorted(set(range(len(s))) - set(j[good].tolist()))
+            problems[k] = (f"{name}: {int(good.sum())} blob(s) identified from the plane's other "
+                           f"rows; beads {missing} not found (outside the field or hidden)")
 
     def cat(key, shape):
         return np.concatenate(rows[key]) if rows[key] else np.zeros(shape)
 
-    return Markers(sweep.view, cat("frame", (0,)).astype(int), cat("plane", (0,)).astype(int),
-                   cat("bead", (0,)).astype(int), cat("xy", (0, 2)), cat("robot", (0, 3)),
-                   problems, expected)
+    order = np.argsort(cat("frame", (0,)), kind="stable")
+    return Markers(sweep.view, cat("frame", (0,)).astype(int)[order],
+                   cat("plane", (0,)).astype(int)[order], cat("bead", (0,)).astype(int)[order],
+                   cat("xy", (0, 2))[order], cat("robot", (0, 3))[order], problems, expected)
 
 
 # --------------------------------------------------------------------------- calibration

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import os
 import tempfile
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 import pybullet
@@ -102,17 +102,20 @@ class SweepSpec(Spec):
     the source-to-image distance, perpendicular to the beam unless ``tilt_deg`` turns them
     about the rod's direction. The rod lies in the plane along ``rod_angle_deg`` (from the
     C-arm's x axis) and is stepped ``rows_per_plane`` times across it so the beads cover
-    ``coverage`` of the field. Each plane starts with a frame with the rod parked outside the
-    beam (a reference for the first difference). A validation row follows, in a plane at
-    ``validation_fraction`` turned by ``validation_angle_deg``.
+    ``coverage`` of the field. The sweep starts with a frame with the rod parked outside the
+    beam (a reference for the first difference); with ``reference_frames = "each"`` the far
+    plane and the validation row get one too (otherwise their first frame is compared with
+    the previous plane's last row, which lies at the other side of the image). A validation
+    row follows, in a plane at ``validation_fraction`` turned by ``validation_angle_deg``.
     """
 
     near_fraction: Annotated[float, Field(gt=0.05, lt=0.99)] = 0.6
     far_fraction: Annotated[float, Field(gt=0.05, lt=0.99)] = 0.8
     tilt_deg: Annotated[float, Field(ge=-45, le=45)] = 0.0
     rod_angle_deg: float = 0.0
-    rows_per_plane: Annotated[int, Field(ge=3, le=50)] = 7
-    coverage: Annotated[float, Field(gt=0, le=1.2)] = 0.8
+    rows_per_plane: Annotated[int, Field(ge=3, le=50)] = 9
+    coverage: Annotated[float, Field(gt=0, le=1.2)] = 0.9
+    reference_frames: Literal["first", "each"] = "first"
     validation_fraction: Annotated[float, Field(gt=0.05, lt=0.99)] = 0.7
     validation_angle_deg: float = 30.0
     validation_offset_mm: float = 5.0

@@ -9,8 +9,10 @@ For each view (``testbed.fluoroscope.CArm``) :func:`plan_sweep` lays out the rod
 - in each plane, the rod lies along the C-arm's x axis turned by ``rod_angle_deg`` and is
   stepped ``rows_per_plane`` times across the plane, its beads centred, so that the rows
   cover ``coverage`` of the field's diameter at that depth;
-- each plane starts with a *reference* frame, the rod parked outside the beam (its first
-  difference then shows only the first row);
+- the sweep starts with a *reference* frame, the rod parked outside the beam (its first
+  difference then shows only the first row); both planes are swept in the same direction,
+  so the far plane's first row lies at the other side of the image from the near plane's
+  last (``reference_frames = "each"`` adds a reference frame before every plane);
 - a validation row at another depth (``validation_fraction``) and in-plane angle
   (``validation_angle_deg``), also after a reference frame.
 
@@ -130,7 +132,8 @@ def plan_sweep(carm, spec: RobotSpec) -> list[SweepPose]:
         radius = f * carm.fov_radius_mm  # the field's radius at this depth
         offsets = np.linspace(-1.0, 1.0, sw.rows_per_plane) * sw.coverage * radius
         park = centre - (radius + spec.rod.diameter_mm + 30.0) * e2
-        poses.append(SweepPose(-1, -1, park - span / 2 * d, d))
+        if code == 0 or sw.reference_frames == "each":
+            poses.append(SweepPose(-1, -1, park - span / 2 * d, d))
         for k, y in enumerate(offsets):
             c = centre + y * e2
             poses.append(SweepPose(code, k, c - span / 2 * d, d))
@@ -139,7 +142,8 @@ def plan_sweep(carm, spec: RobotSpec) -> list[SweepPose]:
     d = orient(e1, centre)
     radius = sw.validation_fraction * carm.fov_radius_mm
     park = centre - (radius + spec.rod.diameter_mm + 30.0) * e2
-    poses.append(SweepPose(-1, -1, park - span / 2 * d, d))
+    if sw.reference_frames == "each":
+        poses.append(SweepPose(-1, -1, park - span / 2 * d, d))
     poses.append(SweepPose(2, 0, centre - span / 2 * d, d))
     return poses
 

@@ -12,12 +12,13 @@ VIEW = ViewSpec(name="ap", isocenter_mm=(800.0, 0.0, 200.0))
 
 
 def _spec(**kw):
+    kw.setdefault("coverage", 0.75)
     return RobotSpec(sweep=SweepSpec(rows_per_plane=4, **kw)).without_errors()
 
 
 @pytest.fixture(scope="module")
 def clean_sweep():
-    """A noise-free, distortion-free sweep with a perfect robot (12 frames)."""
+    """A noise-free, distortion-free sweep with a perfect robot (10 frames)."""
     fl = FluoroscopeSpec(distortion=False, noise=False)
     carm = make_carm(fl, VIEW)
     with Robot(_spec(), rng=0) as robot:
@@ -31,7 +32,9 @@ def test_plan_lays_rows_in_planes_perpendicular_to_the_beam():
     spec = _spec(tilt_deg=0.0)
     poses = plan_sweep(carm, spec)
     codes = [p.plane for p in poses]
-    assert codes == [-1, 0, 0, 0, 0, -1, 1, 1, 1, 1, -1, 2]
+    assert codes == [-1, 0, 0, 0, 0, 1, 1, 1, 1, 2]
+    each = plan_sweep(carm, _spec(reference_frames="each"))
+    assert [p.plane for p in each] == [-1, 0, 0, 0, 0, -1, 1, 1, 1, 1, -1, 2]
     for p in poses:
         depth = (p.point_robot - carm.source_robot) @ carm.axis_robot
         assert abs(p.direction_robot @ carm.axis_robot) < 1e-12   # rod parallel to the image
@@ -43,10 +46,10 @@ def test_plan_lays_rows_in_planes_perpendicular_to_the_beam():
 @pytest.mark.slow
 def test_sweep_reports_time_dose_and_positions(clean_sweep):
     carm, sw = clean_sweep
-    assert sw.frames.shape == (12, carm.height_px, carm.width_px)
+    assert sw.frames.shape == (10, carm.height_px, carm.width_px)
     assert sw.frames.dtype == np.uint8
-    assert sw.duration_s == pytest.approx(12.0)
-    assert sw.dose_mrem == pytest.approx(12.0 / 60.0 * 45.0)
+    assert sw.duration_s == pytest.approx(10.0)
+    assert sw.dose_mrem == pytest.approx(10.0 / 60.0 * 45.0)
     ref = sw.plane < 0
     assert np.isnan(sw.beads_reported[ref]).all()
     assert np.abs(sw.beads_reported[~ref] - sw.beads_true[~ref]).max() < 1e-3

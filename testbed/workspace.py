@@ -1,0 +1,257 @@
+"""Workspace checks: can the views and sweeps be taken around robot, C-arm, table and patient?
+
+The paper names the workspace as an open problem: with a patient on the table, not every
+C-arm pose leaves room for the robot to sweep the rod. :class:`Workspace` puts simple
+collision shapes into the robot's pybullet client (the true arm and its rod are already
+there): the C-arm of a view as boxes and cylinders (source housing, intensifier, the C),
+the OR table as a box, the patient as the convex hulls of its outer bodies (or a box).
+:func:`check_sweep` places the arm at every pose of a planned sweep and reports which
+bodies collide, and which poses cannot be reached at all.
+
+Frames and units: robot frame, mm (pybullet gets metres inside).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pybullet
+
+from reglib.geometry import RigidTransform
+
+__all__ = ["Contact", "PoseCheck", "WorkspaceReport", "Workspace", "check_sweep"]
+
+_M = 1e-3
+
+
+@dataclass(frozen=True)
+class Contact:
+    """Two bodies closer than the margin: names ``a``, ``b``; ``distance_mm`` (< 0: they
+    overlap by that much)."""
+
+    a: str
+    b: str
+    distance_mm: float
+
+
+@dataclass(frozen=True)
+class PoseCheck:
+    """One pose of a sweep: its index, plane code, the contacts, or why it is unreachable."""
+
+    index: int
+    plane: int
+    contacts: tuple[Contact, ...] = ()
+    unreachable: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        return not self.contacts and self.unreachable is None
+
+
+@dataclass
+class WorkspaceReport:
+    """The workspace check of one view: the C-arm's own contacts and every sweep pose."""
+
+    view: str
+    carm_contacts: list[Contact] = field(default_factory=list)
+    poses: list[PoseCheck] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.carm_contacts and all(p.ok for p in self.poses)
+
+    def colliding_pairs(self) -> set[tuple[str, str]]:
+        pairs = {(c.a, c.b) for c in self.carm_contacts}
+        for p in self.poses:
+            pairs |= {(c.a, c.b) for c in p.contacts}
+        return pairs
+
+    def summary(self) -> str:
+        """One line: ``view X: ok`` or what collides and which poses are unreachable."""
+        if self.ok:
+            return f"view {self.view}: ok ({len(self.poses)} poses)"
+        parts = []
+        pairs = sorted(self.colliding_pairs())
+        if pairs:
+            parts.append("collisions " + ", ".join(f"{a}-{b}" for a, b in pairs))
+        bad = [p.index for p in self.poses if p.unreachable]
+        if bad:
+            parts.append(f"unreachable poses {bad}")
+        hit = [p.index for p in self.poses if p.contacts]
+        if hit:
+            parts.append(f"colliding poses {hit}")
+        return f"view {self.view}: cannot be taken: " + "; ".join(parts)
+
+
+class Workspace:
+    """Obstacles in the pybullet client of a :class:`testbed.robot.Robot`.
+
+    Collisions are checked between the true arm (its links and the rod) and every obstacle,
+    and between the C-arm's parts and the other obstacles (table, patient).
+    """
+
+    def __init__(self, robot):
+        self.robot = robot
+        self.client = robot.client
+        self.obstacles: dict[str, int] = {}
+        self.kind: dict[str, str] = {}
+        n = pybullet.getNumJoints(robot.true_id, physicsClientId=self.client)
+        self.link_names = {-1: "robot_base"}
+        for j in range(n):
+            name = pybullet.getJointInfo(robot.true_id, j, physicsClientId=self.client)[12]
+            name = name.decode()
+            self.link_names[j] = "rod" if name == "rod_mount" else f"robot_{name}"
+
+    # -- adding obstacles
+    def _add(self, name, kind, shape, pose: RigidTransform):
+        if name in self.obstacles:
+            raise ValueError(f"workspace: an obstacle named {name!r} exists already")
+        q = pose.as_rotation().as_quat()
+        body = pybullet.createMultiBody(baseMass=0, baseCollisionShapeIndex=shape,
+                                        basePosition=list(pose.t * _M),
+                                        baseOrientation=list(q), physicsClientId=self.client)
+        self.obstacles[name] = body
+        self.kind[name] = kind
+
+    def add_box(self, name: str, half_extents_mm, pose: RigidTransform, *,
+                kind: str = "obstacle") -> None:
+        """A box of half extents (3,) mm at ``pose`` (box2robot)."""
+        h = np.asarray(half_extents_mm, dtype=float)
+        if h.shape != (3,) or np.any(h <= 0):
+            raise ValueError(f"workspace box {name!r}: half_extents_mm must be 3 positive mm")
+        shape = pybullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=list(h * _M),
+                                              physicsClientId=self.client)
+        self._add(name, kind, shape, pose)
+
+    def add_cylinder(self, name: str, radius_mm: float, length_mm: float,
+                     pose: RigidTransform, *, kind: str = "obstacle") -> None:
+        """A cylinder along the z axis of ``pose`` (cylinder2robot), centred at its origin."""
+        shape = pybullet.createCollisionShape(pybullet.GEOM_CYLINDER, radius=radius_mm * _M,
+                                              height=length_mm * _M,
+                                              physicsClientId=self.client)
+        self._add(name, kind, shape, pose)
+
+    def add_mesh_hull(self, name: str, vertices_mm, *, kind: str = "patient") -> None:
+        """The convex hull of a mesh's vertices (N, 3) mm, robot frame."""
+        v = np.asarray(vertices_mm, dtype=float).reshape(-1, 3)
+        if len(v) < 4:
+            raise ValueError(f"workspace mesh {name!r}: at least 4 vertices are needed")
+        c = v.mean(axis=0)
+        import trimesh
+
+        hull = trimesh.convex.convex_hull(v)
+        shape = pybullet.createCollisionShape(
+            pybullet.GEOM_MESH, vertices=((hull.vertices - c) * _M).tolist(),
+            physicsClientId=self.client)
+        self._add(name, kind, shape, RigidTransform(np.eye(3), c))
+
+    def add_bodies(self, bodies, *, kind: str = "patient") -> None:
+        """World bodies (``testbed.bodies.Body``, robot frame): the convex hull of each
+        outermost body (``inside`` None); nested bodies lie within their parents."""
+        for b in bodies:
+            if b.inside is not None:
+                continue
+            if b.mesh is not None:
+                self.add_mesh_hull(b.name, b.mesh.vertices, kind=kind)
+            else:
+                for i, (c, r) in enumerate(zip(b.sphere_centers, b.sphere_radii)):
+                    shape = pybullet.createCollisionShape(pybullet.GEOM_SPHERE,
+                                                          radius=float(r) * _M,
+                                                          physicsClientId=self.client)
+                    self._add(f"{b.name}[{i}]", kind, shape, RigidTransform(np.eye(3), c))
+
+    def add_table(self, top_center_mm, *, size_mm=(2000.0, 500.0, 60.0)) -> None:
+        """The OR table top: a box whose top face is centred at ``top_center_mm`` (3,), long
+        side along the robot's x axis."""
+        sx, sy, sz = size_mm
+        c = np.asarray(top_center_mm, dtype=float) - np.r_[0.0, 0.0, sz / 2]
+        self.add_box("table", (sx / 2, sy / 2, sz / 2), RigidTransform(np.eye(3), c),
+                     kind="table")
+
+    def add_carm(self, carm, *, housing_radius_mm: float = 110.0,
+                 c_depth_mm: float = 700.0, name: str = "carm") -> None:
+        """The C-arm of a view: the source housing (a cylinder behind the source), the
+        intensifier (a cylinder from the input plane on), and the C (three boxes joining them
+        round the side of the carm's -y axis)."""
+        R, src, sid = carm.carm2robot.R, carm.source_robot, carm.sid_mm
+        ax = carm.axis_robot
+        ii_r = carm.fov_radius_mm + 40.0
+        pose = RigidTransform(R, src - 120.0 * ax)
+        self.add_cylinder(f"{name}_source", housing_radius_mm, 200.0, pose, kind="carm")
+        pose = RigidTransform(R, src + (sid + 100.0) * ax)
+        self.add_cylinder(f"{name}_intensifier", ii_r, 200.0, pose, kind="carm")
+        y = -R[:, 1]
+        t = 40.0
+        arm_len = c_depth_mm
+        for label, depth in (("c_low", -220.0), ("c_high", sid + 200.0)):
+            centre = src + depth * ax + y * arm_len / 2
+            self.add_box(f"{name}_{label}", (t, arm_len / 2, t),
+                         RigidTransform(R, centre), kind="carm")
+        centre = src + (sid / 2) * ax + y * arm_len
+        self.add_box(f"{name}_c_arc", (t, t, (sid + 420.0) / 2), RigidTransform(R, centre),
+                     kind="carm")
+
+    def remove(self, prefix: str) -> None:
+        """Remove every obstacle whose name starts with ``prefix``."""
+        for name in [n for n in self.obstacles if n.startswith(prefix)]:
+            pybullet.removeBody(self.obstacles.pop(name), physicsClientId=self.client)
+            self.kind.pop(name)
+
+    # -- checks
+    def robot_contacts(self, *, margin_mm: float = 0.0) -> list[Contact]:
+        """Contacts between the true arm (at its current joints) and every obstacle."""
+        out = []
+        arm = self.robot.true_id
+        for name, body in self.obstacles.items():
+            pts = pybullet.getClosestPoints(arm, body, distance=margin_mm * _M,
+                                            physicsClientId=self.client)
+            seen = {}
+            for p in pts:
+                link = self.link_names.get(p[3], f"robot_link{p[3]}")
+                seen[link] = min(seen.get(link, np.inf), p[8] / _M)
+            out += [Contact(link, name, float(d)) for link, d in sorted(seen.items())]
+        return out
+
+    def carm_contacts(self, *, margin_mm: float = 0.0) -> list[Contact]:
+        """Contacts between C-arm parts and the non-C-arm obstacles (table, patient)."""
+        out = []
+        carm = [n for n, k in self.kind.items() if k == "carm"]
+        other = [n for n, k in self.kind.items() if k != "carm"]
+        for a in carm:
+            for b in other:
+                pts = pybullet.getClosestPoints(self.obstacles[a], self.obstacles[b],
+                                                distance=margin_mm * _M,
+                                                physicsClientId=self.client)
+                if pts:
+                    out.append(Contact(a, b, float(min(p[8] for p in pts) / _M)))
+        return out
+
+
+def check_sweep(workspace: Workspace, carm, poses, *, margin_mm: float = 0.0,
+                carm_name: str = "carm") -> WorkspaceReport:
+    """Check a planned sweep of ``carm`` (``testbed.sweep.plan_sweep``) for collisions.
+
+    Adds the C-arm to the workspace (removed again afterwards), then for every pose solves
+    the robot's inverse kinematics and places the true arm there (no move, no encoder draw:
+    the robot's state is restored). Returns a :class:`WorkspaceReport`.
+    """
+    robot = workspace.robot
+    workspace.add_carm(carm, name=carm_name)
+    report = WorkspaceReport(view=carm.name)
+    q_true = robot.q_true.copy()
+    try:
+        report.carm_contacts = workspace.carm_contacts(margin_mm=margin_mm)
+        for i, pose in enumerate(poses):
+            try:
+                q = robot.inverse(pose.point_robot, pose.direction_robot)
+            except ValueError as exc:
+                report.poses.append(PoseCheck(i, pose.plane, (), str(exc)))
+                continue
+            robot._set(robot.true_id, robot._to_internal(q))
+            contacts = tuple(workspace.robot_contacts(margin_mm=margin_mm))
+            report.poses.append(PoseCheck(i, pose.plane, contacts))
+    finally:
+        robot._set(robot.true_id, q_true)
+        workspace.remove(carm_name)
+    return report
