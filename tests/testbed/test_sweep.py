@@ -142,3 +142,35 @@ def test_an_unreachable_sweep_names_the_view_and_pose():
     with Robot(_spec(), rng=0) as robot:
         with pytest.raises(ValueError, match=r"view 'far-away': sweep pose 0 .*unreachable"):
             run_sweep(robot, carm, fl, rng=0)
+
+
+# --------------------------------------------------------------------------- workspace
+def test_workspace_names_the_colliding_bodies_of_a_sweep():
+    from reglib.geometry import RigidTransform
+    from testbed.workspace import Workspace, check_sweep
+
+    fl = FluoroscopeSpec(distortion=False, noise=False)
+    # low enough for the intensifier to pass under the robot's links
+    carm = make_carm(fl, ViewSpec(name="low", isocenter_mm=(800.0, 0.0, -100.0)))
+    spec = _spec()
+    poses = plan_sweep(carm, spec)
+    with Robot(spec, rng=0) as robot:
+        ws = Workspace(robot)
+        free = check_sweep(ws, carm, poses)
+        assert not any(p.contacts for p in free.poses)
+        assert all(p.unreachable is None for p in free.poses)
+        # a block where the near plane's rod lies: every near-plane pose hits it
+        centre = carm.source_robot + 0.6 * carm.sid_mm * carm.axis_robot
+        ws.add_box("instrument_tray", (30.0, 30.0, 10.0), RigidTransform(np.eye(3), centre))
+        rep = check_sweep(ws, carm, poses)
+        hit = [p for p in rep.poses if any(c.b == "instrument_tray" for c in p.contacts)]
+        assert hit and {p.plane for p in hit} == {0}
+        assert all(c.distance_mm < 0 for p in hit for c in p.contacts)
+        assert ("rod", "instrument_tray") in rep.colliding_pairs()
+        assert not rep.ok and "rod-instrument_tray" in rep.summary()
+        # the C-arm was added for the check and removed after it
+        assert set(ws.obstacles) == {"instrument_tray"}
+        # a table through the source housing: the view itself cannot be taken
+        ws.add_table(carm.source_robot - np.r_[0.0, 0.0, 60.0])
+        rep = check_sweep(ws, carm, poses)
+        assert ("carm_source", "table") in {(c.a, c.b) for c in rep.carm_contacts}
