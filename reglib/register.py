@@ -251,7 +251,7 @@ def _skew_rows(x):
 
 
 # --------------------------------------------------------------------------- one view
-def match_view(surfaces, view: View, ct2robot: RigidTransform, *, closest: str = "dense",
+def match_view(surfaces, view: View, ct2robot: RigidTransform, *, closest: str = "blocks",
                selection: Literal["paper", "closest"] = "paper",
                max_stab_distance_mm: float = np.inf):
     """Matched CT points for the paths of one view at the pose ``ct2robot``.
@@ -275,7 +275,12 @@ def match_view(surfaces, view: View, ct2robot: RigidTransform, *, closest: str =
     if not conts:
         return None, None, ContourSet.from_polylines([], []), np.zeros(0, dtype=np.int64)
     cset = ContourSet.from_contours(conts)
-    cp = closest_points(cset, o_ct, d_ct, method=closest)
+    within = None
+    if closest == "blocks":
+        # Step B only looks at the nearest contour and the stabbed ones within the limit
+        within = 0.0 if selection == "closest" else float(max_stab_distance_mm)
+        within = None if not np.isfinite(within) else within
+    cp = closest_points(cset, o_ct, d_ct, method=closest, within_mm=within)
     ext = view.external if selection == "paper" else np.zeros(view.n_paths, dtype=bool)
     sel = select_contours(cp, cset, d_ct, ext, max_stab_distance_mm=max_stab_distance_mm)
     rows = np.arange(len(sel))
@@ -319,7 +324,7 @@ def _as_topologies(surfaces):
 
 def register(surfaces, views, initial: RigidTransform, *,
              method: Literal["robust", "lm", "linear", "ransac"] = "robust",
-             closest: Literal["dense", "blocks", "hierarchy", "reference"] = "dense",
+             closest: Literal["blocks", "dense", "hierarchy", "reference"] = "blocks",
              selection: Literal["paper", "closest"] = "paper",
              max_stab_distance_mm: float = 10.0,
              residual: Literal["line", "normal"] = "normal",
@@ -337,7 +342,8 @@ def register(surfaces, views, initial: RigidTransform, *,
     initial : RigidTransform ``ct2robot``, the start pose.
     method : pose solver of :func:`reglib.pose.solve_pose` (default "robust", the paper's).
         Ignored with ``fixed_point_ct`` (a robust rotation about the point is solved then).
-    closest : Step A method of :func:`reglib.closest.closest_points`.
+    closest : Step A method of :func:`reglib.closest.closest_points` (default "blocks",
+        restricted to the contours Step B can select; all methods give the same matches).
     selection : "paper" (Step B: external paths take the farthest stabbed contour, else the
         closest) or "closest" (every path takes its closest contour).
     max_stab_distance_mm : with "paper", stabbed contours farther than this do not count

@@ -141,6 +141,19 @@ def test_recovers_7deg_20mm_to_below_0_05mm_at_pins(world, seed):
     assert np.all(res.inlier_fraction_per_view > 0.5)
 
 
+@pytest.mark.parametrize("closest", ["dense", "reference"])
+def test_closest_methods_give_the_same_registration(world, closest):
+    """The pruned default ("blocks", restricted to what Step B needs) and the all-pairs
+    methods make the same matches, hence the same poses."""
+    tops, views, true = world
+    init = perturbed(true, 7.0, 20.0, np.random.default_rng(4))
+    a = register(tops, list(views.values()), init, max_iterations=3)
+    b = register(tops, list(views.values()), init, max_iterations=3, closest=closest)
+    assert a.iterations == b.iterations == 3
+    np.testing.assert_allclose(a.ct2robot.as_matrix(), b.ct2robot.as_matrix(), atol=1e-9)
+    assert np.array_equal(a.weights > 0, b.weights > 0)
+
+
 def test_fixed_point_rotation_only(world):
     """Experiment 1 set-up: two views (proximal, distal) and the proximal pin known: a 7 deg
     rotation about that pin is recovered by optimising the rotation alone."""
