@@ -103,6 +103,38 @@ class ContourSet:
         """(S,) int64, contour index of each segment."""
         return np.repeat(np.arange(self.n_contours), np.diff(self.offsets))
 
+    def tangents(self, segment, p) -> np.ndarray:
+        """Oriented contour direction at points ``p (..., 3)`` lying on ``segment (...)``.
+
+        Inside a segment: its unit direction. At a vertex (``p`` within 1e-9 mm of a segment
+        end) the two segments meeting there are ambiguous, so the sum of their unit
+        directions is used (normalised), whichever of them holds ``p``; at the free end of an
+        open contour, the end segment's direction. Entries with ``segment < 0`` are NaN.
+        """
+        seg = np.asarray(segment, dtype=np.int64)
+        p = np.asarray(p, dtype=np.float64)
+        valid = seg >= 0
+        g = np.where(valid, seg, 0)
+        e = self.ends - self.starts
+        n = np.linalg.norm(e, axis=1, keepdims=True)
+        u = e / np.where(n > 0, n, 1.0)
+        c = self.segment_contour[g]
+        lo, hi = self.offsets[c], self.offsets[c + 1] - 1
+        closed = self.closed[c]
+        prv = np.where(g > lo, g - 1, np.where(closed, hi, -1))
+        nxt = np.where(g < hi, g + 1, np.where(closed, lo, -1))
+        at_start = np.linalg.norm(p - self.starts[g], axis=-1) <= 1e-9
+        at_end = np.linalg.norm(p - self.ends[g], axis=-1) <= 1e-9
+        t = u[g].copy()
+        add_prev = at_start & (prv >= 0)
+        add_next = at_end & ~at_start & (nxt >= 0)
+        t[add_prev] += u[prv[add_prev]]
+        t[add_next] += u[nxt[add_next]]
+        tn = np.linalg.norm(t, axis=-1, keepdims=True)
+        t = np.where(tn > 1e-12, t / np.where(tn > 1e-12, tn, 1.0), u[g])
+        t[~valid] = np.nan
+        return t
+
     @classmethod
     def from_polylines(cls, polylines, closed) -> ContourSet:
         """From a list of ``(K_c, 3)`` vertex arrays (mm) and a list of ``closed`` flags.
@@ -541,8 +573,9 @@ def closest_points(contours: ContourSet, origins, directions, *,
 def stabbing(cp: ClosestPoints, contours: ContourSet, directions) -> np.ndarray:
     """Which contours each line stabs: ``(N, C)`` bool.
 
-    Line n stabs contour c when ``q - p``, the oriented contour segment at ``p`` and the line
-    direction form a right-handed frame: ``det[q - p, e, d] > 0``. For a contour with the
+    Line n stabs contour c when ``q - p``, the oriented contour direction at ``p``
+    (:meth:`ContourSet.tangents`) and the line direction form a right-handed frame:
+    ``det[q - p, e, d] > 0``. For a contour with the
     visible triangles on its left this means the line passes on the side of the contour
     where the surface projects (it "enters" the surface's image).
     """
@@ -552,8 +585,7 @@ def stabbing(cp: ClosestPoints, contours: ContourSet, directions) -> np.ndarray:
     if cp.distance.shape[1] == 0:
         return np.zeros(cp.distance.shape, dtype=bool)
     valid = cp.segment >= 0
-    seg = np.where(valid, cp.segment, 0)
-    e = contours.ends[seg] - contours.starts[seg]
+    e = contours.tangents(cp.segment, np.where(valid[..., None], cp.p, 0.0))
     with np.errstate(invalid="ignore"):
         det = np.einsum("ncj,ncj->nc", cp.q - cp.p, np.cross(e, d[:, None, :]))
         return valid & (det > 0.0)

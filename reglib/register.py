@@ -260,7 +260,8 @@ def match_view(surfaces, view: View, ct2robot: RigidTransform, *, closest: str =
     -------
     points_ct : (N, 3) mm, the selected closest contour point of each path (CT frame), or
         None when the surfaces show no apparent contour from this view.
-    tangents_ct : (N, 3), the oriented contour segment (mm) holding each point (CT frame).
+    tangents_ct : (N, 3), unit oriented contour direction at each point (CT frame; the mean
+        of the two segments' directions at a contour vertex).
     contours : ContourSet of the apparent contours in the CT frame.
     surface_of_contour : (C,) int64, which surface each contour belongs to.
     """
@@ -284,9 +285,9 @@ def match_view(surfaces, view: View, ct2robot: RigidTransform, *, closest: str =
     ext = view.external if selection == "paper" else np.zeros(view.n_paths, dtype=bool)
     sel = select_contours(cp, cset, d_ct, ext, max_stab_distance_mm=max_stab_distance_mm)
     rows = np.arange(len(sel))
-    seg = cp.segment[rows, sel]
-    tangents = cset.ends[seg] - cset.starts[seg]
-    return cp.p[rows, sel], tangents, cset, np.asarray(owner, dtype=np.int64)
+    pts = cp.p[rows, sel]
+    tangents = cset.tangents(cp.segment[rows, sel], pts)
+    return pts, tangents, cset, np.asarray(owner, dtype=np.int64)
 
 
 # --------------------------------------------------------------------------- the loop
