@@ -47,7 +47,7 @@ from scipy.spatial.transform import Rotation
 from reglib.geometry import RigidTransform
 from testbed.bodies import Body
 from testbed.materials import material
-from testbed.raycast import attenuation_weights, body_path_lengths
+from testbed.raycast import RayScene, attenuation_weights, body_path_lengths
 from testbed.spec import Positive, Spec, Vec2, Vec3
 
 __all__ = [
@@ -474,7 +474,7 @@ def _sub_offsets(n: int) -> np.ndarray:
 
 def render(carm: CArm, bodies: list[Body], *, fluoro: FluoroscopeSpec, rng=None,
            noise: bool | None = None, distortion: bool | None = None,
-           engine: str = "embree") -> Frame:
+           engine: str = "embree", ray_scene: RayScene | None = None) -> Frame:
     """Render one fluoroscopic frame of ``bodies`` (robot frame) seen by ``carm``.
 
     Parameters
@@ -492,8 +492,10 @@ def render(carm: CArm, bodies: list[Body], *, fluoro: FluoroscopeSpec, rng=None,
     distortion : bool or None
         None renders ``carm`` as it is; False renders its undistorted twin; True requires
         ``carm`` to have a distortion.
-    engine : "embree" or "numpy"
+    engine : "embree", "trimesh" or "numpy"
         Ray-casting engine (``testbed.raycast``).
+    ray_scene : testbed.raycast.RayScene or None
+        The same ``bodies`` prepared once for many frames (engine "embree" only).
 
     Raises ``ValueError`` if the source lies inside a body, or for unknown materials or
     nesting.
@@ -507,6 +509,10 @@ def render(carm: CArm, bodies: list[Body], *, fluoro: FluoroscopeSpec, rng=None,
         material(b.material)
     weights = attenuation_weights(bodies)
     _check_source_outside(carm, bodies)
+    if ray_scene is not None and [b.name for b in ray_scene.bodies] != [b.name for b in bodies]:
+        raise ValueError("render: ray_scene was prepared for other bodies")
+    if ray_scene is None and engine == "embree":
+        ray_scene = RayScene(bodies)
 
     H, W = carm.height_px, carm.width_px
     fov = carm.fov_mask()
@@ -524,7 +530,7 @@ def render(carm: CArm, bodies: list[Body], *, fluoro: FluoroscopeSpec, rng=None,
         else:
             o, d = carm.true_rays(grid + off)
         t_max = carm.sid_mm / (d @ carm.axis_robot)
-        L = body_path_lengths(bodies, o, d, t_max, engine=engine)
+        L = body_path_lengths(bodies, o, d, t_max, engine=engine, scene=ray_scene)
         a = L @ weights
         att += a / len(subs)
         trans += np.exp(-a) / len(subs)

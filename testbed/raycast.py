@@ -14,13 +14,17 @@ the fast path could not resolve (a crack between float32 triangles, a ray grazin
 it is cast again with the exact double-precision reference, so the result is exact or an
 error is raised.
 
-Two engines share this code:
+Three engines share this code:
 
-``"embree"``  trimesh's ``ray_pyembree.RayMeshIntersector`` (Intel Embree via ``embreex``,
-              float32, multiple hits), used only on the rays that meet the mesh's bounding
-              box (a slab test, exact culling).
-``"numpy"``   trimesh's pure-numpy ``ray_triangle.RayMeshIntersector``: the brute-force
-              reference kept for tests and for the rays the fast path could not resolve.
+``"embree"``   Intel Embree through ``embreex`` directly (float32, each mesh in its own scene
+               centred on it): all hits along each ray, each pass restarting the rays that
+               hit 2e-4 mm beyond their last hit, on the rays that meet the mesh's bounding
+               box only (a slab test, exact culling). :class:`RayScene` prepares the meshes
+               of a world once for many frames. The fast path.
+``"trimesh"``  trimesh's ``ray_pyembree.RayMeshIntersector`` (the same Embree, trimesh's
+               multi-hit loop): a second implementation, compared in tests.
+``"numpy"``    trimesh's pure-numpy ``ray_triangle.RayMeshIntersector``: the brute-force
+               reference kept for tests and for the rays the fast paths could not resolve.
 
 Spheres (steel beads) have an analytic chord.
 """
@@ -38,6 +42,7 @@ from testbed.materials import material
 
 __all__ = [
     "Engine",
+    "RayScene",
     "attenuation_weights",
     "body_path_lengths",
     "mesh_chords",
@@ -45,7 +50,11 @@ __all__ = [
     "sphere_chords",
 ]
 
-Engine = Literal["embree", "numpy"]
+Engine = Literal["embree", "trimesh", "numpy"]
+
+# a restarted ray begins this far (mm) beyond its last hit; surfaces closer than this along a
+# ray would be merged (none of the world's are)
+_STEP_MM = 2e-4
 
 # two crossings of one ray closer than this (mm) with the same sense are one crossing
 _MERGE_TOL_MM = 1e-5
@@ -93,16 +102,19 @@ def ray_box_hits(origins, directions, t_max, lo, hi) -> np.ndarray:
     return (enter <= leave) & (leave >= 0.0) & (enter <= t_max)
 
 
-def _crossings(mesh, origins, directions, engine: Engine):
+def _crossings(mesh, origins, directions, engine: Engine, prepared=None):
     """All crossings of the rays with the mesh: ray index, distance t (mm), sense (+1 exit)."""
     if engine == "embree":
+        em = _EmbreeMesh(mesh) if prepared is None else prepared
+        return em.crossings(origins, directions)
+    if engine == "trimesh":
         from trimesh.ray.ray_pyembree import RayMeshIntersector
 
         inter = RayMeshIntersector(mesh, scale_to_box=False)
     elif engine == "numpy":
         inter = ray_triangle.RayMeshIntersector(mesh)
     else:
-        raise ValueError(f"engine: expected 'embree' or 'numpy', got {engine!r}")
+        raise ValueError(f"engine: expected 'embree', 'trimesh' or 'numpy', got {engine!r}")
     tri, ray, loc = inter.intersects_id(
         origins, directions, multiple_hits=True, return_locations=True
     )
@@ -142,7 +154,7 @@ def _signed_sums(n, ray, t, sense, t_max):
 
 def mesh_chords(mesh: trimesh.Trimesh, origins, directions, t_max, *,
                 engine: Engine = "embree", name: str = "mesh",
-                _shift_mm: float = 1e-6) -> np.ndarray:
+                _shift_mm: float = 1e-6, _prepared=None) -> np.ndarray:
     """Length (mm) of each segment ``origin + t d, 0 <= t <= t_max`` inside a closed mesh.
 
     Parameters
@@ -153,8 +165,8 @@ def mesh_chords(mesh: trimesh.Trimesh, origins, directions, t_max, *,
         Ray origins (mm) and unit directions, outside the mesh.
     t_max : float or (N,) float64
         Segment lengths (mm).
-    engine : "embree" or "numpy"
-        The fast path or the brute-force reference (see the module docstring).
+    engine : "embree", "trimesh" or "numpy"
+        The fast path, trimesh's Embree loop, or the brute-force reference (module docstring).
     name : str
         Used in error messages.
 
@@ -168,10 +180,12 @@ def mesh_chords(mesh: trimesh.Trimesh, origins, directions, t_max, *,
     sel = np.flatnonzero(ray_box_hits(o, d, tm, lo, hi))
     if sel.size == 0:
         return out
-    ray, t, sense = _merge(*_crossings(mesh, o[sel], d[sel], engine))
+    ray, t, sense = _crossings(mesh, o[sel], d[sel], engine, _prepared)
+    if engine != "embree":  # the restarted embree loop reports each crossing once
+        ray, t, sense = _merge(ray, t, sense)
     chord, balance = _signed_sums(len(sel), ray, t, sense, tm[sel])
     bad = np.flatnonzero(balance != 0)
-    if bad.size and engine == "embree":
+    if bad.size and engine in ("embree", "trimesh"):
         # the float32 fast path missed or doubled a crossing: redo those rays exactly
         chord[bad] = mesh_chords(mesh, o[sel[bad]], d[sel[bad]], tm[sel[bad]],
                                  engine="numpy", name=name)
@@ -236,13 +250,95 @@ def sphere_chords(centers, radii, origins, directions, t_max) -> np.ndarray:
     return out
 
 
+class _EmbreeMesh:
+    """One closed mesh in its own Embree scene (float32, vertices centred on the mesh)."""
+
+    def __init__(self, mesh: trimesh.Trimesh):
+        from embreex import rtcore_scene
+        from embreex.mesh_construction import TriangleMesh
+
+        self.bounds = np.array(mesh.bounds, dtype=np.float64)
+        self.centre = 0.5 * (self.bounds[0] + self.bounds[1])
+        self.normals = np.asarray(mesh.face_normals, dtype=np.float64)
+        self.scene = rtcore_scene.EmbreeScene()
+        TriangleMesh(self.scene, (mesh.vertices - self.centre).astype(np.float32),
+                     np.ascontiguousarray(mesh.faces, dtype=np.int32))
+
+    def crossings(self, o, d, max_hits: int = 1000):
+        """All crossings: ray index, t (mm), sense (+1 exit, -1 entry). Each pass restarts
+        the rays that hit just beyond their last hit."""
+        oc = o - self.centre
+        d32 = d.astype(np.float32)
+        t0 = np.zeros(len(o))
+        live = np.arange(len(o))
+        rays, faces, ts = [], [], []
+        for _ in range(max_hits):
+            if live.size == 0:
+                break
+            start = (oc[live] + t0[live, None] * d[live]).astype(np.float32)
+            res = self.scene.run(start, d32[live], output=1)
+            hit = res["primID"] != -1
+            if not hit.any():
+                break
+            lv = live[hit]
+            t = t0[lv] + res["tfar"][hit].astype(np.float64)
+            rays.append(lv)
+            faces.append(res["primID"][hit].astype(np.int64))
+            ts.append(t)
+            t0[lv] = t + _STEP_MM
+            live = lv
+        else:
+            raise RuntimeError(f"more than {max_hits} hits along a ray")
+        if not rays:
+            return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
+        ray, face, t = np.concatenate(rays), np.concatenate(faces), np.concatenate(ts)
+        sense = np.sign(np.einsum("ij,ij->i", self.normals[face], d[ray]))
+        keep = sense != 0
+        return ray[keep], t[keep], sense[keep]
+
+
+class RayScene:
+    """The mesh bodies of a world prepared for Embree once, for repeated casting.
+
+    Each mesh has its own Embree scene (meshes of a world may share surfaces, e.g. the
+    canal and the cancellous bone; one scene for all would report only one of two coincident
+    crossings). Build it once per world and call :meth:`path_lengths` for every frame;
+    spheres are handled analytically.
+    """
+
+    def __init__(self, bodies: list[Body]):
+        self.bodies = list(bodies)
+        self._prepared = {j: _EmbreeMesh(b.mesh) for j, b in enumerate(self.bodies)
+                          if b.mesh is not None}
+
+    def path_lengths(self, origins, directions, t_max) -> np.ndarray:
+        """Path length (mm) of every ray through every body, ``(N, B)`` float64."""
+        o, d, tm = _check_rays(origins, directions, t_max)
+        out = np.zeros((len(o), len(self.bodies)))
+        for j, body in enumerate(self.bodies):
+            if body.mesh is None:
+                out[:, j] = sphere_chords(body.sphere_centers, body.sphere_radii, o, d,
+                                          tm).sum(1)
+            else:
+                out[:, j] = mesh_chords(body.mesh, o, d, tm, name=body.name,
+                                        _prepared=self._prepared[j])
+        return out
+
+
 def body_path_lengths(bodies: list[Body], origins, directions, t_max, *,
-                      engine: Engine = "embree") -> np.ndarray:
+                      engine: Engine = "embree", scene: RayScene | None = None) -> np.ndarray:
     """Path length (mm) of every ray through every body.
+
+    ``engine``: "embree" (the fast path; pass a :class:`RayScene` as ``scene`` to reuse the
+    prepared meshes), "trimesh" (trimesh's Embree intersector) or "numpy" (trimesh's
+    brute-force intersector, the reference).
 
     Returns ``(N, B)`` float64: column ``b`` is the length inside ``bodies[b]`` (for a set of
     spheres, the sum over its spheres).
     """
+    if engine == "embree":
+        scene = RayScene(bodies) if scene is None else scene
+        return scene.path_lengths(origins, directions, t_max)
     o, d, tm = _check_rays(origins, directions, t_max)
     out = np.zeros((len(o), len(bodies)))
     for j, body in enumerate(bodies):

@@ -6,6 +6,7 @@ import trimesh
 
 from testbed.bodies import Body
 from testbed.raycast import (
+    RayScene,
     attenuation_weights,
     body_path_lengths,
     mesh_chords,
@@ -39,9 +40,11 @@ def test_embree_matches_numpy_reference_on_random_rays(name):
     o, d = _rays_towards(rng, 400, 60.0)
     t_max = rng.uniform(300.0, 700.0, len(o))  # some segments end inside the mesh
     fast = mesh_chords(mesh, o, d, t_max, engine="embree")
+    via_trimesh = mesh_chords(mesh, o, d, t_max, engine="trimesh")
     ref = mesh_chords(mesh, o, d, t_max, engine="numpy")
     assert (ref > 0).sum() > 100
     assert np.abs(fast - ref).max() < 1e-3
+    assert np.abs(via_trimesh - ref).max() < 1e-3
 
 
 def test_rays_through_edges_and_vertices_are_counted_once():
@@ -51,12 +54,12 @@ def test_rays_through_edges_and_vertices_are_counted_once():
     x, y = np.meshgrid(s, s)
     o = np.c_[x.ravel(), y.ravel(), np.full(x.size, -100.0)]
     d = np.tile([0.0, 0.0, 1.0], (len(o), 1))
-    for engine in ("embree", "numpy"):
-        assert np.allclose(mesh_chords(box, o, d, 500.0, engine=engine), 40.0, atol=1e-4)
+    for engine in ("embree", "trimesh", "numpy"):
+        assert np.allclose(mesh_chords(box, o, d, 500.0, engine=engine), 40.0, atol=1e-3)
     # diagonal rays through opposite vertices
     v = np.array([[-20.0, -20.0, -20.0]])
     dv = np.ones((1, 3)) / np.sqrt(3.0)
-    for engine in ("embree", "numpy"):
+    for engine in ("embree", "trimesh", "numpy"):
         got = mesh_chords(box, v - 100 * dv, dv, 500.0, engine=engine)
         assert got[0] == pytest.approx(40.0 * np.sqrt(3.0), abs=1e-3)
 
@@ -76,7 +79,8 @@ def test_cylinder_chords_match_the_analytic_chord():
     outer = 2 * np.sqrt(R**2 - s**2)
     r_in = R * np.cos(np.pi / n)
     inner = 2 * np.sqrt(r_in**2 - s**2)
-    assert np.all(got <= outer + 1e-6) and np.all(got >= inner - 1e-6)
+    tol = 2e-4  # Embree works in float32
+    assert np.all(got <= outer + tol) and np.all(got >= inner - tol)
     assert np.abs(got - outer).max() < 0.05
     # an oblique ray through the axis: the chord of an ellipse, 2R / sin(angle)
     a = np.radians(50.0)
@@ -138,3 +142,25 @@ def test_nesting_and_source_inside():
         mesh_chords(outer, [[0.0, 0.0, 0.0]], d, 400.0, name="tissue")
     with pytest.raises(ValueError, match="unique"):
         attenuation_weights([bodies[0], bodies[0]])
+
+
+def test_ray_scene_matches_reference_with_shared_surfaces():
+    """A world whose meshes share a surface (a marrow core inside a bone shell that is the
+    difference of two cylinders): the prepared scene agrees with the numpy reference."""
+    outer = trimesh.creation.cylinder(radius=20.0, height=120.0, sections=48)
+    core = trimesh.creation.cylinder(radius=9.0, height=80.0, sections=48)
+    shell = trimesh.boolean.difference([outer, core], engine="manifold")
+    tissue = trimesh.creation.icosphere(subdivisions=3, radius=90.0)
+    bodies = [Body("tissue", "soft_tissue", mesh=tissue),
+              Body("shell", "cortical_bone", mesh=shell, inside="tissue"),
+              Body("core", "marrow", mesh=core, inside="tissue"),
+              Body("beads", "steel", sphere_centers=[[0.0, 0.0, 70.0], [5.0, 5.0, -70.0]],
+                   sphere_radii=3.0)]
+    rng = np.random.default_rng(6)
+    o, d = _rays_towards(rng, 600, 30.0, distance=300.0)
+    scene = RayScene(bodies)
+    fast = scene.path_lengths(o, d, 500.0)
+    ref = body_path_lengths(bodies, o, d, 500.0, engine="numpy")
+    assert (ref[:, 2] > 0).sum() > 50 and (ref[:, 3] > 0).sum() > 0
+    assert np.abs(fast - ref).max() < 1e-3
+    assert np.allclose(body_path_lengths(bodies, o, d, 500.0), fast)
