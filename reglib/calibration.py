@@ -131,12 +131,17 @@ class ThinPlateSpline:
     """A smoothing thin-plate spline from pixels ``(x, y)`` to values (e.g. a 3-D point, mm).
 
     Built by :meth:`fit`; call it with ``(N, 2)`` pixel coordinates to get ``(N, m)``.
+    Calls use a vectorised evaluation (kernel matrix by one matrix product per chunk of
+    pixels) of coefficients solved directly from the same system as scipy's; the library's
+    ``RBFInterpolator`` (``interpolator``, :meth:`reference`) is kept as the reference.
     """
 
     centres_px: np.ndarray
     values: np.ndarray
     smoothing: float
     interpolator: RBFInterpolator = field(repr=False)
+    coef: np.ndarray = field(repr=False)          # (n + 3, m): kernel weights, then affine
+    shift_px: np.ndarray = field(repr=False)      # (2,) the centres' mean (conditioning)
 
     @classmethod
     def fit(cls, xy_px, values, *, smoothing: float = 0.01) -> ThinPlateSpline:
@@ -154,27 +159,59 @@ class ThinPlateSpline:
             raise ValueError(f"smoothing must be >= 0, got {smoothing}")
         if len(xy) < 3:
             raise ValueError(f"thin-plate spline: at least 3 markers are needed, got {len(xy)}")
-        centred = xy - xy.mean(axis=0)
+        shift = xy.mean(axis=0)
+        centred = xy - shift
         sv = np.linalg.svd(centred, compute_uv=False)
         if sv[-1] < 1e-6 * max(sv[0], 1e-300):
             raise ValueError("thin-plate spline: the markers are collinear in the image")
         interp = RBFInterpolator(xy, v, kernel="thin_plate_spline", degree=1,
                                  smoothing=_EIGHT_PI * smoothing)
-        return cls(xy, v, float(smoothing), interp)
+        n = len(xy)
+        A = np.zeros((n + 3, n + 3))
+        A[:n, :n] = _phi(_sq_dist(centred, centred)) + _EIGHT_PI * smoothing * np.eye(n)
+        P = np.column_stack([np.ones(n), centred])
+        A[:n, n:] = P
+        A[n:, :n] = P.T
+        rhs = np.zeros((n + 3, v.shape[1]))
+        rhs[:n] = v
+        coef = np.linalg.solve(A, rhs)
+        return cls(xy, v, float(smoothing), interp, coef, shift)
 
     def __call__(self, xy_px) -> np.ndarray:
         xy = np.asarray(xy_px, dtype=np.float64)
         if xy.ndim != 2 or xy.shape[1] != 2:
             raise ValueError(f"xy_px: expected (N, 2), got {xy.shape}")
+        c = self.centres_px - self.shift_px
+        n = len(c)
         out = np.empty((len(xy), self.values.shape[1]))
-        step = 65536  # bounded memory on whole images
+        step = 32768  # bounded memory on whole images
         for i in range(0, len(xy), step):
-            out[i:i + step] = self.interpolator(xy[i:i + step])
+            q = xy[i:i + step] - self.shift_px
+            out[i:i + step] = (_phi(_sq_dist(q, c)) @ self.coef[:n] + self.coef[n]
+                               + q @ self.coef[n + 1:])
         return out
+
+    def reference(self, xy_px) -> np.ndarray:
+        """The same spline evaluated by ``scipy.interpolate.RBFInterpolator``, (N, m)."""
+        return self.interpolator(np.asarray(xy_px, dtype=np.float64))
 
     def residuals(self) -> np.ndarray:
         """Distance between the spline and the marker values at the markers, ``(n,)``."""
         return np.linalg.norm(self(self.centres_px) - self.values, axis=1)
+
+
+def _sq_dist(a, b) -> np.ndarray:
+    """Squared distances (N, n) between rows of a (N, 2) and b (n, 2), by a matrix product."""
+    d2 = (a * a).sum(axis=1)[:, None] + (b * b).sum(axis=1)[None, :] - 2.0 * (a @ b.T)
+    return np.maximum(d2, 0.0)
+
+
+def _phi(d2) -> np.ndarray:
+    """scipy's thin-plate kernel ``r^2 log r`` of squared distances: ``d2 log(d2) / 2``."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = 0.5 * d2 * np.log(d2)
+    out[d2 <= 0] = 0.0
+    return out
 
 
 # --------------------------------------------------------------------------- detection

@@ -33,6 +33,8 @@ def test_rbf_interpolator_matches_the_paper_svd_solve(lam):
         coef = tps_fit_svd(xy, v, lam)
         q = rng.uniform(-50, 700, (200, 2))
         assert np.allclose(tps(q), tps_evaluate(coef, xy, q), atol=1e-7 * 50)
+        # the vectorised evaluation against scipy's RBFInterpolator on the same spline
+        assert np.allclose(tps(q), tps.reference(q), atol=1e-7 * 50)
 
 
 @pytest.mark.parametrize("lam", [0.0, 0.01, 10.0])
