@@ -369,3 +369,54 @@ def write_overlays(case: CaseData, start: RigidTransform, final: RigidTransform,
         plt.close(fig)
         files[v.name] = str(path)
     return files
+
+
+# --------------------------------------------------------------------------- study helpers
+PAPER_TABLE2 = {  # Table II of the paper (mm); 5 deg #1 and #2 are unreadable in the scan
+    "identity": (1.16, 2.38, 2.40),
+    "rot5_3": (3.05, 2.91, 2.95), "rot5_4": (2.14, 1.61, 2.66), "rot5_5": (2.76, 3.06, 2.69),
+    "rot7_1": (3.08, 3.66, 2.96), "rot7_2": (2.70, 2.52, 3.22), "rot7_3": (2.56, 2.84, 2.38),
+    "rot7_4": (3.48, 4.81, 2.83), "rot7_5": (2.59, 2.32, 3.18),
+}
+
+
+def table2_starts(case: CaseData, seed: int, *, quick: bool = False, about=None) -> dict:
+    """The paper's 11 starts: the true pose, and five 5 deg and five 7 deg rotations about
+    seeded random axes through the pins' centroid (translation keeping it fixed)."""
+    rngs = np.random.SeedSequence([seed, 2]).spawn(10)
+    starts = {"identity": case.ct2robot}
+    n = 2 if quick else 5
+    for j, angle in enumerate((5.0, 7.0)):
+        for k in range(n):
+            starts[f"rot{int(angle)}_{k + 1}"] = perturbed_start(
+                case.ct2robot, case.pins_ct, angle, rngs[5 * j + k], about=about)
+    return starts
+
+
+def registration_rows(case: CaseData, starts: dict, *, oracle=(), fixed_pin=None,
+                      progress: bool = True, **options) -> list[dict]:
+    """Register from every start; long-format rows (``pin_error`` per pin, ``mtre``,
+    ``start_mtre``, ``converged``, ``iterations``, ``time``) with a ``start`` column."""
+    from tqdm import tqdm
+
+    rows = []
+    label = "+".join(sorted(oracle)) or "none"
+    for name, start in tqdm(list(starts.items()), desc=f"registrations (oracle {label})",
+                            disable=not progress, leave=False):
+        t0 = time.perf_counter()
+        res, errs = register_case(case, start, oracle=oracle, fixed_pin=fixed_pin, **options)
+        dt = time.perf_counter() - t0
+        start_errs = pin_errors(start, case.ct2robot, case.pins_ct)
+        base = {"trial": name, "start": name, "oracle": label}
+        for pin, e in errs.items():
+            rows.append({**base, "metric": "pin_error", "value": e, "unit": "mm", "pin": pin})
+        rows += [
+            {**base, "metric": "mtre", "value": float(np.mean(list(errs.values()))),
+             "unit": "mm"},
+            {**base, "metric": "start_mtre", "value": float(np.mean(list(start_errs.values()))),
+             "unit": "mm"},
+            {**base, "metric": "converged", "value": float(res.converged), "unit": ""},
+            {**base, "metric": "iterations", "value": float(res.iterations), "unit": ""},
+            {**base, "metric": "time", "value": dt, "unit": "s"},
+        ]
+    return rows

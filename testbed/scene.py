@@ -107,11 +107,18 @@ class PatientSpec(Spec):
 
 
 class RegistrationSpec(Spec):
-    """``[registration]``: the 2-D/3-D registration run (issue 5 extends it)."""
+    """``[registration]``: the 2-D/3-D registration run.
+
+    ``start_rotation_deg``: the start of ``testbed run`` is the true pose turned by this
+    angle about a seeded random axis through the pins' centroid (through ``fixed_pin`` if
+    set). ``fixed_pin``: a pin located in both CT and robot (the paper's experiment 1); only
+    the rotation about it is optimised.
+    """
 
     method: Literal["lm", "linear", "robust", "ransac"] = "robust"
     start_rotation_deg: Annotated[float, Field(ge=0, le=90)] = 5.0
     max_iterations: Annotated[int, Field(ge=1, le=10_000)] = 50
+    fixed_pin: Literal["proximal", "distal_1", "distal_2"] | None = None
 
 
 class Scene(Spec):
