@@ -18,6 +18,7 @@ seeded noise, never made here.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -129,17 +130,33 @@ def _normals(c: np.ndarray, closed: bool) -> np.ndarray:
     return n / np.where(norm > 0, norm, 1.0)
 
 
-def refine_subpixel(grad_norm, contour_xy, *, search_px: float = 2.5, step_px: float = 0.25,
-                    closed: bool = True) -> np.ndarray:
-    """Move each vertex along its normal to the sub-pixel maximum of ``grad_norm``.
+def _outward(c: np.ndarray, n: np.ndarray, closed: bool) -> np.ndarray:
+    """Flip normals of a closed contour so that they point away from its inside."""
+    if not closed:
+        return n
+    x, y = c[:, 0], c[:, 1]
+    area2 = np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)
+    # _normals gives (dy, -dx): outward for a contour with positive signed area in (x, y).
+    return n if area2 > 0 else -n
 
-    The gradient norm is sampled (bicubic) at ``step_px`` intervals within ``+-search_px``
-    along the normal; a parabola through the largest sample and its two neighbours gives the
-    offset. Vertices whose maximum lies at the end of the search range are left in place.
+
+def refine_subpixel(image, contour_xy, *, search_px: float = 2.5, step_px: float = 0.25,
+                    closed: bool = True, polarity: str | None = None,
+                    max_jump_px: float = 1.0) -> np.ndarray:
+    """Move each vertex along its normal to the sub-pixel position of the edge.
+
+    ``image`` is sampled (bicubic) at ``step_px`` intervals within ``+-search_px`` along the
+    normal. Without ``polarity`` it is taken as a gradient norm and its maximum is sought;
+    with ``polarity="bright_inside"`` (or ``"dark_inside"``) it is taken as a smoothed
+    intensity image and the edge is the maximum of its decrease (increase) outward, so that
+    an inner edge of the opposite sense (the inner side of a cortical shell) is ignored.
+    A parabola through the best sample and its two neighbours gives the offset. A vertex
+    whose best sample lies at the end of the search range, or whose offset differs by more
+    than ``max_jump_px`` from the median offset of its 7 neighbours, takes that median.
 
     Parameters
     ----------
-    grad_norm : (H, W) array, gradient norm of the image.
+    image : (H, W) array (gradient norm, or smoothed intensity with ``polarity``).
     contour_xy : (K, 2) array, (x, y) px.
 
     Returns
@@ -147,12 +164,18 @@ def refine_subpixel(grad_norm, contour_xy, *, search_px: float = 2.5, step_px: f
     (K, 2) array, (x, y) px.
     """
     c = np.asarray(contour_xy, dtype=np.float64)
-    n = _normals(c, closed)
+    n = _outward(c, _normals(c, closed), closed)
     t = np.arange(-search_px, search_px + step_px / 2, step_px)
     px = c[:, None, 0] + t[None, :] * n[:, None, 0]
     py = c[:, None, 1] + t[None, :] * n[:, None, 1]
-    vals = ndimage.map_coordinates(grad_norm, [py.ravel(), px.ravel()], order=3,
+    vals = ndimage.map_coordinates(image, [py.ravel(), px.ravel()], order=3,
                                    mode="nearest").reshape(px.shape)
+    if polarity is not None:
+        if polarity not in ("bright_inside", "dark_inside"):
+            raise ValueError(f"polarity must be None, 'bright_inside' or 'dark_inside', "
+                             f"got {polarity!r}")
+        d = np.gradient(vals, step_px, axis=1)
+        vals = -d if polarity == "bright_inside" else d
     k = np.argmax(vals, axis=1)
     ok = (k > 0) & (k < len(t) - 1)
     kk = np.clip(k, 1, len(t) - 2)
@@ -160,7 +183,18 @@ def refine_subpixel(grad_norm, contour_xy, *, search_px: float = 2.5, step_px: f
     f0, f1, f2 = vals[rows, kk - 1], vals[rows, kk], vals[rows, kk + 1]
     den = f0 - 2 * f1 + f2
     frac = np.where(den < 0, 0.5 * (f0 - f2) / np.where(den < 0, den, -1.0), 0.0)
-    off = np.where(ok, t[kk] + np.clip(frac, -0.5, 0.5) * step_px, 0.0)
+    off = np.where(ok, t[kk] + np.clip(frac, -0.5, 0.5) * step_px, np.nan)
+    # Robustness: an offset far from the median of its neighbours (a jump to another edge,
+    # noise) is replaced by that median, so the contour keeps no spikes or loops.
+    w = 3
+    idx = np.arange(-w, w + 1)[None, :] + np.arange(len(c))[:, None]
+    idx = idx % len(c) if closed else np.clip(idx, 0, len(c) - 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows
+        med = np.nanmedian(off[idx], axis=1)
+    med = np.where(np.isfinite(med), med, 0.0)
+    bad = ~np.isfinite(off) | (np.abs(off - med) > max_jump_px)
+    off = np.where(bad, med, off)
     return c + off[:, None] * n
 
 
@@ -186,9 +220,11 @@ def snake_contour(
     coarse_sigma_px: float = 3.0,
     fine_sigma_px: float = 1.0,
     spacing_px: float = 2.0,
-    coarse_iterations: int = 300,
-    fine_iterations: int = 150,
+    coarse_iterations: int = 200,
+    fine_iterations: int = 80,
     subpixel: bool = True,
+    polarity: str | None = None,
+    search_px: float = 2.5,
     margin_px: float = 20.0,
     closed: bool = True,
     boundary_condition: str = "free",
@@ -208,7 +244,10 @@ def snake_contour(
         full-resolution image.
     spacing_px : vertex spacing of the snake, px.
     coarse_iterations, fine_iterations : iteration caps of the two stages.
-    subpixel : finish with :func:`refine_subpixel` on the fine gradient norm.
+    subpixel : finish with :func:`refine_subpixel` (three passes of +-``search_px``).
+    polarity : None (any edge: the gradient norm's ridge), ``"bright_inside"`` or
+        ``"dark_inside"``: the sub-pixel step then seeks the edge of that sense only (bone
+        is bright inside on CT).
     margin_px : the work is done on a crop of the image around the clicks, this much larger.
     closed : a closed contour (periodic snake) or an open one (``boundary_condition`` of
         skimage, default "free").
@@ -260,17 +299,21 @@ def snake_contour(
     c = resample_polygon(np.clip(c, 0, lim), spacing_px, closed=closed)
 
     # Stage 2: full-resolution potential.
-    grad = ndimage.gaussian_gradient_magnitude(crop, fine_sigma_px)
+    if polarity is None:
+        edge_img = ndimage.gaussian_gradient_magnitude(crop, fine_sigma_px)
+    else:
+        edge_img = ndimage.gaussian_filter(crop, fine_sigma_px)
     pot = gradient_potential(crop, fine_sigma_px)
     c = _run_snake(pot, c, alpha=alpha, beta=beta, gamma=gamma, max_iter=fine_iterations,
                    closed=closed, boundary=boundary_condition)
     c = np.clip(c, 0, lim)
     if subpixel:
         for _ in range(2):
-            c = refine_subpixel(grad, c, closed=closed)
+            c = refine_subpixel(edge_img, c, closed=closed, polarity=polarity,
+                                search_px=search_px)
             c = resample_polygon(np.clip(c, 0, lim), spacing_px, closed=closed,
                                  min_points=len(c) // 2)
-        c = refine_subpixel(grad, c, closed=closed)
+        c = refine_subpixel(edge_img, c, closed=closed, polarity=polarity, search_px=search_px)
     return c + off
 
 
@@ -322,7 +365,8 @@ def contours_from_ct(
     clicks_xy : slice index -> list of click polygons ((K, 2) arrays, (x, y) px), one per
         contour on that slice (one for the femur, two at the condyles). A slice without clicks
         reuses those of the nearest clicked slice (by index; ties go to the lower index).
-    snake_options : keyword options of :func:`snake_contour`.
+    snake_options : keyword options of :func:`snake_contour`; ``polarity`` defaults to
+        ``"bright_inside"`` (bone on CT) and ``search_px`` to 5 (beyond a cortical shell).
 
     Returns
     -------
@@ -338,6 +382,7 @@ def contours_from_ct(
         )
     if not clicks_xy:
         raise ValueError("clicks_xy is empty: give the clicks of at least one slice")
+    snake_options = {"polarity": "bright_inside", "search_px": 5.0, **snake_options}
     keys = np.array(sorted(int(k) for k in clicks_xy))
     out = []
     for k in slice_indices:

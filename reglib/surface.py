@@ -17,9 +17,8 @@ so the surface stays manifold. The result is a consistently oriented manifold su
 boundary (normals point out of the bone); its two ends are open.
 
 Simplification: quadric edge collapse (``fast_simplification``) with the boundary kept, the
-reduction chosen by bisection so that the two-sided distance between the simplified and the
-full surface stays below the tolerance (checked on every vertex against exact point-triangle
-distances).
+largest reduction (of a few tried) for which the two-sided distance between the simplified and the
+full surface stays below the tolerance (checked on every vertex with exact closest points).
 
 Nothing here sees the simulator: contours in, vertices (V, 3) mm and faces (F, 3) out.
 """
@@ -33,6 +32,7 @@ from typing import Literal
 
 import fast_simplification
 import numpy as np
+import trimesh
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -44,7 +44,7 @@ __all__ = [
     "bridge_contours",
     "check_manifold",
     "simplify_surface",
-    "surface_distance_bound",
+    "surface_distances",
     "surface_from_contours",
     "surface_from_ct",
     "tile_pair",
@@ -359,61 +359,13 @@ def check_manifold(vertices, faces) -> dict:
 
 
 # --------------------------------------------------------------------------- simplification
-def _point_triangle_distance(p, tri) -> np.ndarray:
-    """Exact distances from points p (N, 3) to triangles tri (N, 3, 3), pairwise."""
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
-    bp = p - b
-    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
-    cp = p - c
-    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
-    va = d3 * d6 - d5 * d4
-    vb = d5 * d2 - d1 * d6
-    vc = d1 * d4 - d3 * d2
-    # Closest point in barycentric form (Ericson, Real-Time Collision Detection, 5.1.5).
-    res = np.empty_like(p)
-    done = np.zeros(len(p), dtype=bool)
-
-    def put(mask, val):
-        nonlocal done
-        mask = mask & ~done
-        res[mask] = val[mask]
-        done |= mask
-
-    put((d1 <= 0) & (d2 <= 0), a)
-    put((d3 >= 0) & (d4 <= d3), b)
-    put((d6 >= 0) & (d5 <= d6), c)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        v = d1 / (d1 - d3)
-        put((vc <= 0) & (d1 >= 0) & (d3 <= 0), a + v[:, None] * ab)
-        w = d2 / (d2 - d6)
-        put((vb <= 0) & (d2 >= 0) & (d6 <= 0), a + w[:, None] * ac)
-        w2 = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        put((va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0), b + w2[:, None] * (c - b))
-        den = 1.0 / (va + vb + vc)
-        v, w = vb * den, vc * den
-        put(np.ones(len(p), bool), a + ab * v[:, None] + ac * w[:, None])
-    return np.linalg.norm(p - res, axis=1)
-
-
-def surface_distance_bound(points, vertices, faces, *, k: int = 12) -> np.ndarray:
-    """Upper bounds of the distances from points to a triangulated surface (mm).
-
-    Exact point-triangle distances to the ``k`` triangles whose centroids are nearest; the
-    minimum over a subset of the triangles is never below the true distance, and equals it
-    when the closest triangle is among the candidates (always, on the surfaces compared here:
-    a simplified surface and its original).
-    """
-    p = np.asarray(points, dtype=np.float64)
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    tri = v[f]
-    k = min(k, len(f))
-    _, idx = cKDTree(tri.mean(axis=1)).query(p, k=k)
-    idx = idx.reshape(len(p), k)
-    d = _point_triangle_distance(np.repeat(p, k, axis=0), tri[idx.ravel()])
-    return d.reshape(len(p), k).min(axis=1)
+def surface_distances(points, vertices, faces) -> np.ndarray:
+    """Exact distances (mm) from points (N, 3) to a triangulated surface (trimesh's r-tree
+    closest-point query)."""
+    mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64),
+                           process=False)
+    _, d, _ = trimesh.proximity.closest_point(mesh, np.asarray(points, np.float64))
+    return np.asarray(d)
 
 
 def _compact(vertices, faces):
@@ -423,41 +375,34 @@ def _compact(vertices, faces):
     return vertices[used], remap[faces]
 
 
-def simplify_surface(surface: Surface, tol_mm: float, *, max_steps: int = 6) -> Surface:
+def simplify_surface(surface: Surface, tol_mm: float, *,
+                     reductions=(0.85, 0.7, 0.55, 0.4, 0.25, 0.1)) -> Surface:
     """Simplify a surface so that it stays within ``tol_mm`` of the original (both ways).
 
-    Quadric edge collapse (fast_simplification, boundary preserved); the reduction is chosen
-    by bisection, each candidate checked with :func:`surface_distance_bound` from the
-    original vertices to the candidate and back, and required to stay manifold.
+    Quadric edge collapse (fast_simplification, boundary preserved) at the largest of
+    ``reductions`` (fractions of triangles removed) whose result is verified: the exact
+    distances from the original vertices to the result and from the result's vertices to the
+    original are all below ``tol_mm``, and the result is a manifold. If none passes, the
+    surface is returned unsimplified.
     """
     if not 0 <= tol_mm <= 5.0:
         raise ValueError(f"simplify tolerance must be in [0, 5] mm, got {tol_mm}")
-    v0, f0 = surface.vertices, surface.faces
-    best = (v0, f0, 0.0)
     if tol_mm == 0:
         return surface
-    lo, hi = 0.0, 0.97
-    r = 0.8
-    for _ in range(max_steps):
+    v0, f0 = surface.vertices, surface.faces
+    for r in sorted(reductions, reverse=True):
         v, f = fast_simplification.simplify(v0, f0.astype(np.int32), target_reduction=r,
                                             preserve_border=True)
         v, f = _compact(np.asarray(v, np.float64), np.asarray(f, np.int64))
-        ok = len(f) > 0
-        h = np.inf
-        if ok:
-            h = max(surface_distance_bound(v0, v, f).max(),
-                    surface_distance_bound(v, v0, f0).max())
-            ok = h <= tol_mm and check_manifold(v, f)["manifold"]
-        if ok:
-            if len(f) < len(best[1]):
-                best = (v, f, h)
-            lo = r
-        else:
-            hi = r
-        r = 0.5 * (lo + hi)
-    v, f, h = best
-    info = dict(surface.info, simplify_tol_mm=tol_mm, hausdorff_mm=float(h))
-    return Surface(v, f, info)
+        if len(f) == 0 or not check_manifold(v, f)["manifold"]:
+            continue
+        h = max(surface_distances(v0, v, f).max(), surface_distances(v, v0, f0).max())
+        if h <= tol_mm:
+            info = dict(surface.info, simplify_tol_mm=tol_mm, hausdorff_mm=float(h),
+                        reduction=r)
+            return Surface(v, f, info)
+    return Surface(v0, f0, dict(surface.info, simplify_tol_mm=tol_mm, hausdorff_mm=0.0,
+                                reduction=0.0))
 
 
 def surface_from_ct(volume_hu, slice2ct, slice_indices: Sequence[int],

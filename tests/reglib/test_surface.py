@@ -1,0 +1,139 @@
+"""Tiling and surfaces: known contours -> tile -> manifold, oriented, exact vertices; DP vs
+brute force; simplification within its tolerance."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from reglib.surface import (
+    Surface,
+    check_manifold,
+    simplify_surface,
+    surface_distances,
+    surface_from_contours,
+    tile_pair,
+)
+
+
+def _ellipse(cx, cy, a, b, z, n, phase=0.0, clockwise=False):
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False) + phase
+    if clockwise:
+        t = t[::-1]
+    return np.column_stack([cx + a * np.cos(t), cy + b * np.sin(t), np.full(n, z)])
+
+
+def _outward_fraction(vertices, faces, centre_of):
+    tri = vertices[faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    c = tri.mean(axis=1)
+    radial = c[:, :2] - centre_of(c)
+    return np.mean(np.einsum("ij,ij->i", n[:, :2], radial) > 0)
+
+
+def test_tiling_two_circles_gives_an_oriented_strip_on_the_contour_vertices():
+    a = _ellipse(0, 0, 10, 10, 0.0, 24)
+    b = _ellipse(0.5, 0, 9, 9, 2.0, 17, phase=0.4, clockwise=True)
+    faces, cost = tile_pair(a, b)
+    assert faces.shape == (24 + 17, 3)
+    v = np.vstack([a, b])
+    # Every vertex of both contours is used, and only those.
+    assert set(np.unique(faces)) == set(range(41))
+    info = check_manifold(v, faces)
+    assert info["manifold"] and info["max_faces_per_edge"] == 2
+    # A strip: the boundary is exactly the two contours' edges.
+    assert info["boundary_edges"] == 24 + 17
+    m = trimesh.Trimesh(v, faces, process=False)
+    assert m.is_winding_consistent
+    assert _outward_fraction(v, faces, lambda c: np.zeros((len(c), 2))) == 1.0
+    assert cost == pytest.approx(m.area, rel=1e-9)
+
+
+@pytest.mark.parametrize("quality", ["area", "compactness"])
+def test_dynamic_programming_finds_the_brute_force_optimum(quality):
+    rng = np.random.default_rng(42)
+    for _ in range(8):
+        m, n = rng.integers(3, 10, size=2)
+        a = _ellipse(0, 0, 10, 7, 0.0, m) + np.r_[rng.normal(0, 1.0, (m, 2)).T, [np.zeros(m)]].T
+        b = _ellipse(1, 0, 8, 9, 3.0, n) + np.r_[rng.normal(0, 1.0, (n, 2)).T, [np.zeros(n)]].T
+        f_dp, c_dp = tile_pair(a, b, quality=quality)
+        f_bf, c_bf = tile_pair(a, b, quality=quality, method="brute_force")
+        assert c_dp == pytest.approx(c_bf, abs=1e-9)
+        # Start at other pairs too: still the optimum for that start.
+        s = (int(rng.integers(m)), int(rng.integers(n)))
+        assert tile_pair(a, b, quality=quality, start=s)[1] == pytest.approx(
+            tile_pair(a, b, quality=quality, start=s, method="brute_force")[1], abs=1e-9)
+
+
+def test_ellipse_into_two_circles_branching_is_manifold_and_oriented():
+    slices = [
+        [_ellipse(-12, 0, 6, 6, 0.0, 30), _ellipse(12, 0, 6, 6, 0.0, 30)],
+        [_ellipse(-12, 0, 6.5, 6.5, 1.0, 32), _ellipse(12, 0, 6.5, 6.5, 1.0, 32)],
+        [_ellipse(0, 0, 20, 8, 2.0, 70)],
+        [_ellipse(0, 0, 19, 8, 3.0, 66, phase=0.2, clockwise=True)],
+    ]
+    s = surface_from_contours(slices)
+    # The vertices are exactly the contour vertices, in order.
+    np.testing.assert_array_equal(s.vertices, np.vstack([c for sl in slices for c in sl]))
+    assert set(np.unique(s.faces)) == set(range(len(s.vertices)))
+    info = check_manifold(s.vertices, s.faces)
+    assert info["manifold"], info
+    # Open at both ends: the boundary is the lowest two circles and the highest ellipse.
+    assert info["boundary_edges"] == 30 + 30 + 66
+    assert trimesh.Trimesh(s.vertices, s.faces, process=False).is_winding_consistent
+
+    def centre(c):
+        out = np.zeros((len(c), 2))
+        low = c[:, 2] < 1.0
+        out[low, 0] = np.sign(c[low, 0]) * 12
+        return out
+
+    # Normals point outward: everywhere on the two branches, and on all but the crotch
+    # between them (where "outward from the axis" is not defined) above.
+    low = s.vertices[s.faces].mean(axis=1)[:, 2] < 1.0
+    assert _outward_fraction(s.vertices, s.faces[low], centre) == 1.0
+    assert _outward_fraction(s.vertices, s.faces[~low], centre) > 0.9
+    with pytest.raises(ValueError, match="1-2 branching"):
+        surface_from_contours([slices[0], [_ellipse(0, 0, 3, 3, 5.0, 10)] * 3])
+
+
+def test_surface_of_a_cylinder_is_exact_and_simplifies_within_tolerance():
+    rng = np.random.default_rng(0)
+    slices = [[_ellipse(0, 0, 15, 12, z, 90, phase=rng.uniform())] for z in np.arange(0, 30.0, 1)]
+    s = surface_from_contours(slices, quality="compactness")
+    assert check_manifold(s.vertices, s.faces)["manifold"]
+    simp = simplify_surface(s, 0.2)
+    assert simp.n_triangles < 0.5 * s.n_triangles
+    assert check_manifold(simp.vertices, simp.faces)["manifold"]
+    # The verified bound holds, both ways (exact distances, recomputed here).
+    assert simp.info["hausdorff_mm"] <= 0.2
+    assert surface_distances(s.vertices, simp.vertices, simp.faces).max() <= 0.2 + 1e-9
+    assert surface_distances(simp.vertices, s.vertices, s.faces).max() <= 0.2 + 1e-9
+    assert simplify_surface(s, 0.0) is s
+    with pytest.raises(ValueError, match="tolerance"):
+        simplify_surface(s, -1.0)
+
+
+def test_surface_distances_match_brute_force():
+    rng = np.random.default_rng(5)
+    s = surface_from_contours([[_ellipse(0, 0, 5, 4, z, 12)] for z in (0.0, 2.0, 4.0)])
+    pts = rng.uniform(-8, 8, (50, 3))
+    got = surface_distances(pts, s.vertices, s.faces)
+    # Brute force: dense barycentric sampling of every triangle.
+    w = np.array([(i, j) for i in range(41) for j in range(41 - i)]) / 40.0
+    tri = s.vertices[s.faces]
+    dense = (tri[:, None, 0] + w[None, :, :1] * (tri[:, None, 1] - tri[:, None, 0])
+             + w[None, :, 1:] * (tri[:, None, 2] - tri[:, None, 0])).reshape(-1, 3)
+    ref = np.min(np.linalg.norm(pts[:, None] - dense[None], axis=2), axis=1)
+    assert np.all(got <= ref + 1e-9) and np.all(ref - got < 0.1)
+
+
+def test_bad_contours_raise():
+    with pytest.raises(ValueError, match="at least 3 points"):
+        tile_pair(_ellipse(0, 0, 5, 5, 0, 2), _ellipse(0, 0, 5, 5, 1, 8))
+    with pytest.raises(ValueError, match="shape"):
+        tile_pair(np.zeros((5, 2)), _ellipse(0, 0, 5, 5, 1, 8))
+    with pytest.raises(ValueError, match="increasing z"):
+        surface_from_contours([[_ellipse(0, 0, 5, 5, 1, 8)], [_ellipse(0, 0, 5, 5, 0, 8)]])
+    with pytest.raises(ValueError, match="at least 2 slices"):
+        surface_from_contours([[_ellipse(0, 0, 5, 5, 1, 8)]])
+    assert isinstance(Surface(np.zeros((3, 3)), np.array([[0, 1, 2]])).n_triangles, int)
