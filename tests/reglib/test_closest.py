@@ -46,6 +46,32 @@ def test_fast_methods_agree_with_brute_force(method):
         assert np.array_equal(sc, np.broadcast_to(np.arange(cs.n_contours), sc.shape))
 
 
+@pytest.mark.parametrize("within", [0.0, 5.0, 20.0])
+def test_blocks_within_is_exact_where_step_b_looks(within):
+    """With ``within_mm`` the nearest contour and all contours within the limit are exact;
+    the others are either exact too or reported at infinity (never a wrong finite value)."""
+    rng = np.random.default_rng(13)
+    for _ in range(4):
+        cs, o, d = random_case(rng)
+        ref = closest_points(cs, o, d, method="reference")
+        got = closest_points(cs, o, d, method="blocks", within_mm=within)
+        need = ref.distance <= np.maximum(ref.distance.min(axis=1, keepdims=True), within)
+        np.testing.assert_allclose(got.distance[need], ref.distance[need], atol=1e-9, rtol=0)
+        np.testing.assert_allclose(got.p[need], ref.p[need], atol=1e-9, rtol=0)
+        other = ~need
+        finite = np.isfinite(got.distance[other])
+        np.testing.assert_allclose(got.distance[other][finite], ref.distance[other][finite],
+                                   atol=1e-9, rtol=0)
+        assert np.all(got.segment[other][~finite] == -1)
+        # Step B gives the same selection as with all contours computed
+        lim = within
+        np.testing.assert_array_equal(
+            select_contours(got, cs, d, None, max_stab_distance_mm=lim),
+            select_contours(ref, cs, d, None, max_stab_distance_mm=lim))
+    with pytest.raises(ValueError, match="within_mm"):
+        closest_points(cs, o, d, method="dense", within_mm=1.0)
+
+
 def test_reference_is_the_minimum():
     """Independent check of the reference: p on its segment, q on the line, q - p orthogonal
     to the line, and no sampled contour point closer to the line."""

@@ -1,6 +1,7 @@
 """The registration loop, simulate -> estimate -> compare to truth.
 
-The test world is made here: a bone-like closed mesh (shaft capsule, head and neck,
+The test world (``studies.bench_registration.make_scene``, shared with the benchmark): a
+bone-like closed mesh (shaft capsule, head and neck,
 trochanter, two condyles, unioned with manifold3d) cut into a proximal and a distal open
 surface (holes at the cuts), a true pose ``ct2robot``, four views with centers of perspective
 600 mm from the bone, and the true X-ray paths: lines from each center through points
@@ -15,109 +16,17 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from reglib.apparent import apparent_contours, prepare_surface
 from reglib.geometry import RigidTransform
 from reglib.register import View, register, solve_increment
-
-PINS_CT = np.array([[28.0, 0.0, 128.0], [14.0, 6.0, -122.0], [-13.0, 5.0, -120.0]])
-
-
-def bone_mesh():
-    shaft = trimesh.creation.capsule(height=240.0, radius=12.0, count=[24, 24])
-    head = trimesh.creation.icosphere(subdivisions=3, radius=22.0)
-    head.apply_translation([28.0, 0.0, 128.0])
-    neck = trimesh.creation.cylinder(radius=9.0, segment=[[0, 0, 105.0], [24.0, 0, 125.0]],
-                                     sections=24)
-    troch = trimesh.creation.icosphere(subdivisions=2, radius=10.0)
-    troch.apply_translation([-10.0, 4.0, 100.0])
-    c1 = trimesh.creation.icosphere(subdivisions=3, radius=17.0)
-    c1.apply_translation([14.0, 6.0, -122.0])
-    c2 = trimesh.creation.icosphere(subdivisions=3, radius=16.0)
-    c2.apply_translation([-13.0, 5.0, -120.0])
-    return trimesh.boolean.union([shaft, head, neck, troch, c1, c2], engine="manifold")
-
-
-def cut(mesh, keep):
-    sub = mesh.submesh([np.flatnonzero(keep(mesh.triangles_center))], append=True)
-    return np.asarray(sub.vertices), np.asarray(sub.faces)
-
-
-def sample_polyline(points, closed, step):
-    P = np.vstack([points, points[:1]]) if closed else points
-    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))]
-    if s[-1] < step:
-        return np.zeros((0, 3)), np.zeros(0, dtype=int)
-    t = np.arange(step / 2, s[-1], step)
-    seg = np.clip(np.searchsorted(s, t, side="right") - 1, 0, len(P) - 2)
-    return np.column_stack([np.interp(t, s, P[:, k]) for k in range(3)]), seg
-
-
-def true_view(tops, mesh_ct, ct2robot, center_robot, *, step=1.5, probe_mm=0.2, name=""):
-    """True X-ray paths of the external silhouette seen from ``center_robot``."""
-    c_ct = ct2robot.inverse().apply(center_robot)
-    pts = []
-    for top in tops:
-        for k in apparent_contours(top, c_ct):
-            s, seg = sample_polyline(k.points, k.closed, step)
-            if len(s) == 0:
-                continue
-            a, b = k.segments
-            e = (b - a)[seg]
-            dirs = s - c_ct
-            dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-            out = np.cross(dirs, e)          # away from the side the surface projects to
-            out /= np.linalg.norm(out, axis=1, keepdims=True)
-            probe = s + probe_mm * out - c_ct
-            probe /= np.linalg.norm(probe, axis=1, keepdims=True)
-            hit = mesh_ct.ray.intersects_any(np.repeat(c_ct[None], len(s), 0), probe)
-            pts.append(s[~hit])
-    p_r = ct2robot.apply(np.vstack(pts))
-    d = p_r - center_robot
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return View(center=center_robot, origins=np.repeat(center_robot[None], len(d), 0),
-                directions=d, name=name)
+from studies.bench_registration import PINS_CT, make_scene, perturbed, pin_errors
 
 
 @pytest.fixture(scope="module")
 def world():
-    m = bone_mesh()
-    prox = cut(m, lambda c: c[:, 2] > 40.0)
-    dist = cut(m, lambda c: c[:, 2] < -40.0)
-    tops = [prepare_surface(*prox), prepare_surface(*dist)]
+    scene = make_scene()
+    tops = scene.surfaces
     assert tops[0].n_boundary_edges > 0 and tops[1].n_boundary_edges > 0   # open surfaces
-    both = trimesh.Trimesh(np.vstack([prox[0], dist[0]]),
-                           np.vstack([prox[1], dist[1] + len(prox[0])]), process=False)
-    true = RigidTransform.from_rotvec(Rotation.random(random_state=1).as_rotvec(),
-                                      [400.0, 50.0, 300.0])
-
-    def center(target_ct, direction_ct):
-        u = np.asarray(direction_ct, float) / np.linalg.norm(direction_ct)
-        return true.apply(np.asarray(target_ct, float)) + 600.0 * true.apply_vectors(u[None])[0]
-
-    centers = {
-        "proximal_ap": center([0, 0, 100], [0, -1, 0.1]),
-        "proximal_oblique": center([0, 0, 100], [1, -0.7, 0]),
-        "distal_ap": center([0, 0, -100], [0, -1, -0.1]),
-        "distal_oblique": center([0, 0, -100], [0.8, -1, 0]),
-    }
-    views = {k: true_view(tops, both, true, c, name=k) for k, c in centers.items()}
-    return tops, views, true
-
-
-def perturbed(true, deg, mm, rng):
-    """Rotate by ``deg`` about the pin centroid and translate by ``mm``, random directions."""
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    tdir = rng.normal(size=3)
-    tdir /= np.linalg.norm(tdir)
-    m = true.apply(PINS_CT.mean(axis=0))
-    rot = RigidTransform.from_rotvec(np.radians(deg) * axis, m - Rotation.from_rotvec(
-        np.radians(deg) * axis).apply(m))
-    return RigidTransform(np.eye(3), mm * tdir) @ rot @ true
-
-
-def pin_errors(T, true):
-    return np.linalg.norm(T.apply(PINS_CT) - true.apply(PINS_CT), axis=1)
+    return tops, scene.views, scene.true
 
 
 def test_views_have_a_few_hundred_paths(world):
@@ -172,7 +81,6 @@ def test_fixed_point_rotation_only(world):
     assert np.all(err < 0.05), err
 
 
-@pytest.mark.slow
 def test_paper_line_residual_with_solve_pose_reduces_the_error(world):
     """The paper's point-to-line loop (solve_pose, robust): converges more slowly, but from
     2 deg / 5 mm it must bring every pin well below 1 mm in 25 iterations."""
