@@ -348,8 +348,7 @@ class Robot:
         path = os.path.join(self._dir.name, fname)
         with open(path, "w") as f:
             f.write(text)
-        return pybullet.loadURDF(path, useFixedBase=True, physicsClientId=self.client,
-                                 flags=pybullet.URDF_USE_SELF_COLLISION * 0)
+        return pybullet.loadURDF(path, useFixedBase=True, physicsClientId=self.client)
 
     def close(self) -> None:
         if not self._closed:
@@ -393,7 +392,8 @@ class Robot:
     def forward(self, q, *, true: bool = False) -> RigidTransform:
         """``rod2robot`` of the nominal (or true) arm at joints ``q`` (rad, rad, mm, rad, rad).
 
-        Leaves the arm at ``q`` (the other arm is not moved).
+        Leaves that arm at ``q`` (the other arm is not moved; the poses reported after a move
+        are recomputed from the stored joints, so this does not change them).
         """
         q = self._to_internal(q)
         body = self.true_id if true else self.nominal_id
@@ -517,10 +517,6 @@ class Robot:
         q = self.inverse(point_robot, direction_robot)
         self.move_joints(q)
         return q
-
-    def park(self, point_robot, direction_robot) -> np.ndarray:
-        """Alias of :meth:`place_rod` for moving the rod out of the beam."""
-        return self.place_rod(point_robot, direction_robot)
 
     # -- poses after the last move
     @property
