@@ -41,7 +41,7 @@ from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import Field
-from scipy.ndimage import gaussian_filter
+from scipy.ndimage import gaussian_filter, map_coordinates
 from scipy.spatial.transform import Rotation
 
 from reglib.geometry import RigidTransform
@@ -466,6 +466,25 @@ def _check_source_outside(carm: CArm, bodies: list[Body]) -> None:
                 )
 
 
+def _wide_blur(img: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Gaussian blur (zero outside the image) of a wide kernel: computed on a grid coarser by
+    ``sigma / 8`` (at most 4x) and interpolated back (the result is smooth at that scale)."""
+    f = int(np.clip(sigma_px // 8, 1, 4))
+    if f == 1:
+        return gaussian_filter(img, sigma_px, mode="constant")
+    H, W = img.shape
+    h, w = -(-H // f), -(-W // f)
+    pad = np.zeros((h * f, w * f))
+    pad[:H, :W] = img
+    small = pad.reshape(h, f, w, f).mean(axis=(1, 3))
+    small = gaussian_filter(small, sigma_px / f, mode="constant")
+    # back to full resolution: small pixel (i, j) is centred at full (f i + (f-1)/2, ...)
+    rows = (np.arange(H) - (f - 1) / 2) / f
+    cols = (np.arange(W) - (f - 1) / 2) / f
+    return map_coordinates(small, np.meshgrid(rows, cols, indexing="ij"), order=1,
+                           mode="nearest")
+
+
 def _sub_offsets(n: int) -> np.ndarray:
     s = (np.arange(n) + 0.5) / n - 0.5
     x, y = np.meshgrid(s, s)
@@ -545,8 +564,7 @@ def render(carm: CArm, bodies: list[Body], *, fluoro: FluoroscopeSpec, rng=None,
     full[fov] = trans
     if fluoro.glare_fraction > 0:
         g = fluoro.glare_fraction
-        full = (1.0 - g) * full + g * gaussian_filter(full, fluoro.glare_sigma_px,
-                                                      mode="constant")
+        full = (1.0 - g) * full + g * _wide_blur(full, fluoro.glare_sigma_px)
     full[fov] *= 1.0 - fluoro.vignetting * rho**2
     full[~fov] = 0.0
 

@@ -102,6 +102,22 @@ def ray_box_hits(origins, directions, t_max, lo, hi) -> np.ndarray:
     return (enter <= leave) & (leave >= 0.0) & (enter <= t_max)
 
 
+def _cull(bounds, o, d, tm) -> np.ndarray:
+    """Indices of the segments that meet the box ``bounds`` (2, 3): a bounding-sphere test
+    first (one dot product per ray), then the slab test on the survivors. Exact culling."""
+    lo, hi = np.asarray(bounds[0], dtype=np.float64), np.asarray(bounds[1], dtype=np.float64)
+    c = 0.5 * (lo + hi)
+    r2 = 0.25 * float(np.sum((hi - lo) ** 2)) * (1.0 + 1e-9) + 1e-12
+    w = c - o
+    b = np.einsum("ij,ij->i", w, d)
+    perp2 = np.einsum("ij,ij->i", w, w) - b * b
+    h = np.sqrt(np.maximum(r2 - perp2, 0.0))
+    idx = np.flatnonzero((perp2 < r2) & (b + h >= 0.0) & (b - h <= tm))
+    if idx.size == 0:
+        return idx
+    return idx[ray_box_hits(o[idx], d[idx], tm[idx], lo, hi)]
+
+
 def _crossings(mesh, origins, directions, engine: Engine, prepared=None):
     """All crossings of the rays with the mesh: ray index, distance t (mm), sense (+1 exit)."""
     if engine == "embree":
@@ -174,10 +190,12 @@ def mesh_chords(mesh: trimesh.Trimesh, origins, directions, t_max, *,
     -------
     (N,) float64 chord lengths in mm.
     """
-    o, d, tm = _check_rays(origins, directions, t_max)
+    if _prepared is None:
+        o, d, tm = _check_rays(origins, directions, t_max)
+    else:  # called by RayScene, which checked the rays once
+        o, d, tm = origins, directions, t_max
     out = np.zeros(len(o))
-    lo, hi = mesh.bounds
-    sel = np.flatnonzero(ray_box_hits(o, d, tm, lo, hi))
+    sel = _cull(mesh.bounds, o, d, tm)
     if sel.size == 0:
         return out
     ray, t, sense = _crossings(mesh, o[sel], d[sel], engine, _prepared)
@@ -314,6 +332,7 @@ class RayScene:
     def path_lengths(self, origins, directions, t_max) -> np.ndarray:
         """Path length (mm) of every ray through every body, ``(N, B)`` float64."""
         o, d, tm = _check_rays(origins, directions, t_max)
+        o, d = np.ascontiguousarray(o), np.ascontiguousarray(d)
         out = np.zeros((len(o), len(self.bodies)))
         for j, body in enumerate(self.bodies):
             if body.mesh is None:
