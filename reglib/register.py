@@ -341,8 +341,10 @@ def register(surfaces, views, initial: RigidTransform, *,
     surfaces : list of SurfaceTopology (or ``(vertices, faces)`` pairs), CT frame, mm.
     views : list of View (robot frame).
     initial : RigidTransform ``ct2robot``, the start pose.
-    method : pose solver of :func:`reglib.pose.solve_pose` (default "robust", the paper's).
-        Ignored with ``fixed_point_ct`` (a robust rotation about the point is solved then).
+    method : pose solver of :func:`reglib.pose.solve_pose` (default "robust", the paper's),
+        used with ``residual="line"``. With ``residual="normal"`` or ``fixed_point_ct`` the
+        loop's own IRLS solver (:func:`solve_increment`) is used instead: robust (Tukey)
+        unless ``method="linear"``; "lm" and "ransac" then also mean robust.
     closest : Step A method of :func:`reglib.closest.closest_points` (default "blocks",
         restricted to the contours Step B can select; all methods give the same matches).
     selection : "paper" (Step B: external paths take the farthest stabbed contour, else the
