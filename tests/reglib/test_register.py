@@ -127,6 +127,19 @@ def test_paths_of_nothing_fail(world):
     assert res.reason
 
 
+def test_degenerate_geometry_fails_with_reason(world):
+    """All paths the same line, or fewer paths than unknowns: a failure that says so."""
+    tops, views, true = world
+    v = views["proximal_ap"]
+    same = View(center=v.center, origins=np.repeat(v.origins[:1], 50, 0),
+                directions=np.repeat(v.directions[:1], 50, 0), name="same_path")
+    res = register(tops, [same], true)
+    assert not res.converged and "degenerate" in res.reason
+    two = View(center=v.center, origins=v.origins[:2], directions=v.directions[:2])
+    res = register(tops, [two], true)
+    assert not res.converged and "at least 6 matches" in res.reason
+
+
 def test_bad_input_raises():
     with pytest.raises(ValueError, match="center"):
         View(center=[0, 0], origins=np.zeros((1, 3)), directions=[[1.0, 0, 0]])
