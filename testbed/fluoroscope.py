@@ -625,6 +625,11 @@ def render_view(scene, view: int, *, seed: int | None = None, bodies=None,
     source lies inside a body, or the field of view shows no bone.
     """
     n = len(scene.views)
+    if n == 0:
+        raise ValueError(
+            f"scene {scene.scene.name!r} (kind {scene.scene.kind!r}) has no [[views]] to "
+            "render; give an operating-room scene, e.g. experiment2"
+        )
     if not 0 <= view < n:
         raise ValueError(f"--view {view}: the scene has {n} [[views]] (0 to {n - 1})")
     seed = scene.scene.seed if seed is None else seed

@@ -211,3 +211,25 @@ def test_instruments_occlude_the_bone():
     steel = frame.mask(("steel",))
     assert (steel & frame.bone_mask).sum() > 200  # the retractor's blade crosses the femur
     assert frame.image_u8[steel].mean() < frame.image_u8[frame.bone_mask & ~steel].mean() - 20
+
+
+@pytest.mark.slow
+def test_render_command_writes_the_frame_of_a_scene(tmp_path):
+    import cv2
+
+    from testbed.fluoroscope import render_command
+    from testbed.scene import SceneError, find_scene, load_scene
+
+    scene = load_scene(find_scene("experiment2"))
+    assert len(scene.views) == 4
+    assert sorted(v.region for v in scene.views) == ["distal", "distal", "proximal", "proximal"]
+    out = tmp_path / "distal.png"
+    render_command(scene, view=2, out=out, seed=1)
+    img = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
+    assert img.shape == (480, 640) and img.dtype == np.uint8
+    assert img[0, 0] == 0 and img[240, 320] > 0
+    with pytest.raises(SceneError, match="views"):
+        render_command(scene, view=7, out=tmp_path / "x.png", seed=1)
+    with pytest.raises(SceneError, match="no \\[\\[views\\]\\]"):
+        render_command(load_scene(find_scene("points-lines")), view=0,
+                       out=tmp_path / "y.png", seed=1)
