@@ -141,10 +141,10 @@ class RobotSpec(Spec):
     """
 
     urdf: str = "builtin"
-    base_height_mm: float = 500.0
+    base_height_mm: float = 850.0
     link1_mm: Positive = 550.0
     link2_mm: Positive = 450.0
-    slide_range_mm: tuple[float, float] = (-700.0, 500.0)
+    slide_range_mm: tuple[float, float] = (-900.0, 300.0)
     quill_mm: Positive = 250.0
     pitch_drop_mm: Positive = 60.0
     elbow_limit_deg: Annotated[float, Field(gt=0, le=180)] = 160.0
@@ -236,7 +236,7 @@ def robot_urdf(spec: RobotSpec, *, offsets=None) -> str:
         link("base", box((0.3, 0.3, max(h, 0.05)), (0, 0, h / 2))),
         link("link1", box((l1, 0.12, 0.1), (l1 / 2, 0, 0.06))),
         link("link2", box((l2, 0.1, 0.08), (l2 / 2, 0, 0.06))),
-        link("quill", box((0.06, 0.06, q), (0, 0, q / 2))),
+        link("quill", box((0.06, 0.06, q), (0, 0, -q / 2))),     # from link 2 to the wrist
         link("wrist", box((0.07, 0.07, spec.pitch_drop_mm * _M),
                           (0, 0, spec.pitch_drop_mm * _M / 2))),
         # the rod holder: the rod runs along +x from the pitch axis
