@@ -1,7 +1,8 @@
 """Benchmark of the two-plane TPS calibration: fit, and the X-ray path map of a whole view.
 
 Instance: a C-arm view of the testbed (``testbed.fluoroscope``, distortion on), a near and a
-far plane at 60 % and 80 % of the source-to-image distance, a grid of markers in each
+far plane at the default sweep's fractions of the source-to-image distance
+(``testbed.robot.SweepSpec``), a grid of markers in each
 (``--rows`` x ``--beads`` per plane, those inside the field kept) projected exactly. Timed:
 
 - ``fit``: the two thin-plate splines (``reglib.calibration.calibrate``);
@@ -33,12 +34,14 @@ from reglib.calibration import Markers, calibrate, tps_evaluate, tps_fit_svd
 def make_instance(rows: int = 9, beads: int = 8):
     """A distorted view and exactly projected markers of two planes: ``(carm, markers)``."""
     from testbed.fluoroscope import FluoroscopeSpec, ViewSpec, make_carm
+    from testbed.robot import SweepSpec
 
     carm = make_carm(FluoroscopeSpec(), ViewSpec(name="bench", isocenter_mm=(800, 0, 200)))
     R, src, ax = carm.carm2robot.R, carm.source_robot, carm.axis_robot
     frame, plane, bead, xy, robot = [], [], [], [], []
     f = 0
-    for p, frac in enumerate((0.6, 0.8)):
+    sw = SweepSpec()
+    for p, frac in enumerate((sw.near_fraction, sw.far_fraction)):
         radius = frac * carm.fov_radius_mm
         for y in np.linspace(-0.9, 0.9, rows) * radius:
             f += 1

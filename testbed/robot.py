@@ -107,16 +107,20 @@ class SweepSpec(Spec):
     plane and the validation row get one too (otherwise their first frame is compared with
     the previous plane's last row, which lies at the other side of the image). A validation
     row follows, in a plane at ``validation_fraction`` turned by ``validation_angle_deg``.
+
+    The default planes (76 % and 94 % of the SID) lie between the patient (about the
+    isocenter, 65 %) and the intensifier, so the rod clears a patient on the table; planes
+    through the patient's space (e.g. 60 % / 80 %) are reported by ``testbed.workspace``.
     """
 
-    near_fraction: Annotated[float, Field(gt=0.05, lt=0.99)] = 0.6
-    far_fraction: Annotated[float, Field(gt=0.05, lt=0.99)] = 0.8
+    near_fraction: Annotated[float, Field(gt=0.05, lt=0.99)] = 0.76
+    far_fraction: Annotated[float, Field(gt=0.05, lt=0.99)] = 0.94
     tilt_deg: Annotated[float, Field(ge=-45, le=45)] = 0.0
     rod_angle_deg: float = 0.0
     rows_per_plane: Annotated[int, Field(ge=3, le=50)] = 9
     coverage: Annotated[float, Field(gt=0, le=1.2)] = 0.9
     reference_frames: Literal["first", "each"] = "first"
-    validation_fraction: Annotated[float, Field(gt=0.05, lt=0.99)] = 0.7
+    validation_fraction: Annotated[float, Field(gt=0.05, lt=0.99)] = 0.85
     validation_angle_deg: float = 30.0
     validation_offset_mm: float = 5.0
     move_time_s: Positive = 1.0

@@ -38,7 +38,8 @@ def test_plan_lays_rows_in_planes_perpendicular_to_the_beam():
     for p in poses:
         depth = (p.point_robot - carm.source_robot) @ carm.axis_robot
         assert abs(p.direction_robot @ carm.axis_robot) < 1e-12   # rod parallel to the image
-        want = {0: 0.6, 1: 0.8, 2: 0.7}.get(p.plane)
+        want = {0: spec.sweep.near_fraction, 1: spec.sweep.far_fraction,
+                2: spec.sweep.validation_fraction}.get(p.plane)
         if want is not None:
             assert depth == pytest.approx(want * carm.sid_mm)
 
@@ -160,7 +161,7 @@ def test_workspace_names_the_colliding_bodies_of_a_sweep():
         assert not any(p.contacts for p in free.poses)
         assert all(p.unreachable is None for p in free.poses)
         # a block where the near plane's rod lies: every near-plane pose hits it
-        centre = carm.source_robot + 0.6 * carm.sid_mm * carm.axis_robot
+        centre = carm.source_robot + spec.sweep.near_fraction * carm.sid_mm * carm.axis_robot
         ws.add_box("instrument_tray", (30.0, 30.0, 10.0), RigidTransform(np.eye(3), centre))
         rep = check_sweep(ws, carm, poses)
         hit = [p for p in rep.poses if any(c.b == "instrument_tray" for c in p.contacts)]
