@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 from scipy.ndimage import gaussian_filter, map_coordinates
 from scipy.spatial.transform import Rotation
 
@@ -118,6 +118,18 @@ class FluoroscopeSpec(Spec):
     black_u8: Annotated[int, Field(ge=0, le=255)] = 8
     white_u8: Annotated[int, Field(ge=1, le=255)] = 240
     oversample: Annotated[int, Field(ge=1, le=8)] = 1
+
+    @model_validator(mode="after")
+    def _check(self):
+        if self.white_u8 <= self.black_u8:
+            raise ValueError(f"white_u8 ({self.white_u8}) must exceed black_u8 ({self.black_u8})")
+        radius_px = 0.5 * self.fov_diameter_mm / self.pixel_mm
+        if radius_px < 4:
+            raise ValueError(
+                f"fov_diameter_mm / pixel_mm = {2 * radius_px:.1f} px: the field of view must "
+                "span at least 8 pixels"
+            )
+        return self
 
 
 class ViewSpec(Spec):

@@ -189,7 +189,9 @@ def test_bad_input_materials_and_geometry():
         InstrumentSpec(name="clamp", kind="clamp", material="kryptonite")
     with pytest.raises(ValueError, match="unknown material"):
         Body("x", "adamantium", sphere_centers=[[0.0, 0.0, 0.0]], sphere_radii=1.0)
-    with pytest.raises(ValueError, match=r"source_to_isocenter_mm.*sid_mm"):
+    with pytest.raises(ValueError, match="white_u8"):
+        FluoroscopeSpec(black_u8=200, white_u8=100)
+    with pytest.raises(ValueError, match=r"views\[2\]\.source_to_isocenter_mm.*sid_mm"):
         make_carm(FluoroscopeSpec(sid_mm=500.0), ViewSpec(source_to_isocenter_mm=600.0),
                   view_index=2)
     with pytest.raises(ValueError, match="inside='nowhere'"):
