@@ -287,7 +287,7 @@ def snake_contour(
         small = crop[:hh, :ww].reshape(hh // f, f, ww // f, f).mean(axis=(1, 3))
         pot = gradient_potential(small, max(coarse_sigma_px / f, 0.5))
         shift = (f - 1) / 2.0  # centre of a small pixel in full-resolution px
-        c0 = (init - shift) / f
+        c0 = (resample_polygon(init, spacing_px * f, closed=closed) - shift) / f
         c0 = np.clip(c0, 0, np.array([small.shape[1] - 1, small.shape[0] - 1]))
         c = _run_snake(pot, c0, alpha=alpha, beta=beta, gamma=gamma, max_iter=coarse_iterations,
                        closed=closed, boundary=boundary_condition)

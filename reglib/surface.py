@@ -16,9 +16,11 @@ is tiled with the single one; the bridge edge gets one triangle from each side o
 so the surface stays manifold. The result is a consistently oriented manifold surface with
 boundary (normals point out of the bone); its two ends are open.
 
-Simplification: quadric edge collapse (``fast_simplification``) with the boundary kept, the
-largest reduction (of a few tried) for which the two-sided distance between the simplified and the
-full surface stays below the tolerance (checked on every vertex with exact closest points).
+Simplification within a tolerance, verified afterwards with exact closest points (and backed
+off when over): by default each contour is reduced (Douglas-Peucker, scikit-image) and the
+reduced contours tiled again, which keeps the surface manifold by construction; or quadric
+edge collapse (``fast_simplification``, boundary kept) on the tiled surface, accepted only
+when the result is still a manifold.
 
 Nothing here sees the simulator: contours in, vertices (V, 3) mm and faces (F, 3) out.
 """
@@ -45,6 +47,7 @@ __all__ = [
     "check_manifold",
     "simplify_surface",
     "surface_distances",
+    "surface_distances_fast",
     "surface_from_contours",
     "surface_from_ct",
     "tile_pair",
@@ -245,8 +248,9 @@ def _slice_list(slices) -> list[list[np.ndarray]]:
 
 
 def surface_from_contours(slices, *, quality: Quality = "area",
-                          simplify_tol_mm: float | None = None) -> Surface:
-    """Tile a stack of slice contours into one surface.
+                          simplify_tol_mm: float | None = None,
+                          simplify: Literal["contours", "quadric"] = "contours") -> Surface:
+    """Tile a stack of slice contours into one surface, optionally simplified.
 
     Parameters
     ----------
@@ -256,11 +260,17 @@ def surface_from_contours(slices, *, quality: Quality = "area",
         bridge (branching).
     quality : tiling quality, "area" or "compactness".
     simplify_tol_mm : if given (0-0.3 mm is the paper's range), simplify within it.
+    simplify : "contours" (default): every contour is reduced by Douglas-Peucker
+        (``skimage.measure.approximate_polygon``) and the reduced contours are tiled again,
+        the contour tolerance backed off until every vertex of the full surface lies within
+        ``simplify_tol_mm`` of the result (the result's vertices lie on the full surface:
+        they are a subset of its vertices); always a manifold. "quadric": edge collapse on
+        the full surface, :func:`simplify_surface`.
 
     Returns
     -------
     Surface with ``info`` keys ``n_slices``, ``n_triangles_tiled``, ``simplify_tol_mm``,
-    ``hausdorff_mm`` (the verified bound, 0 if not simplified).
+    ``hausdorff_mm`` (the verified distance, 0 if not simplified).
     """
     stack = _slice_list(slices)
     if len(stack) < 2:
@@ -268,6 +278,44 @@ def surface_from_contours(slices, *, quality: Quality = "area",
     z = [np.mean(np.concatenate(s)[:, 2]) for s in stack]
     if np.any(np.diff(z) <= 0):
         raise ValueError("slices must be given in order of increasing z")
+    vertices, faces = _tile_stack(stack, quality)
+    surf = Surface(vertices, faces, {"n_slices": len(stack), "n_triangles_tiled": len(faces),
+                                     "simplify_tol_mm": 0.0, "hausdorff_mm": 0.0})
+    if not simplify_tol_mm:
+        return surf
+    if simplify == "quadric":
+        return simplify_surface(surf, simplify_tol_mm)
+    if simplify != "contours":
+        raise ValueError(f"simplify must be 'contours' or 'quadric', got {simplify!r}")
+    if not 0 < simplify_tol_mm <= 5.0:
+        raise ValueError(f"simplify tolerance must be in [0, 5] mm, got {simplify_tol_mm}")
+    for frac in (1.0, 0.7, 0.5, 0.3):
+        reduced = [[_decimate(c, frac * simplify_tol_mm) for c in s] for s in stack]
+        v, f = _tile_stack(reduced, quality)
+        # The tolerance is measured at the data: the contour points (the full surface's
+        # vertices). Between slices both surfaces only interpolate the contours.
+        h = float(surface_distances_fast(vertices, v, f, tol_mm=simplify_tol_mm).max())
+        if h <= simplify_tol_mm:
+            return Surface(v, f, dict(surf.info, simplify_tol_mm=simplify_tol_mm,
+                                      hausdorff_mm=h, contour_tol_mm=frac * simplify_tol_mm))
+    return surf
+
+
+def _decimate(c: np.ndarray, tol_mm: float) -> np.ndarray:
+    """Douglas-Peucker reduction of a closed planar contour (K, 3) to within ``tol_mm``."""
+    from skimage.measure import approximate_polygon
+
+    closed = np.vstack([c[:, :2], c[:1, :2]])
+    keep = approximate_polygon(closed, tolerance=tol_mm)[:-1]
+    if len(keep) < 3:
+        return c
+    # approximate_polygon returns a subset of the input points: find their indices.
+    _, idx = cKDTree(c[:, :2]).query(keep)
+    idx = np.unique(idx)
+    return c[idx] if len(idx) >= 3 else c
+
+
+def _tile_stack(stack, quality):
     verts, offsets = [], []
     n = 0
     for s in stack:
@@ -282,17 +330,9 @@ def surface_from_contours(slices, *, quality: Quality = "area",
              for s, offs in zip(stack, offsets, strict=True)]
     faces = []
     for k in range(len(stack) - 1):
-        lo, hi = loops[k], loops[k + 1]
-        pairs = _match(lo, hi, vertices, k)
-        for la, lb in pairs:
-            f, _ = _tile_indices(la, lb, vertices, quality, "dp", None)
-            faces.append(f)
-    faces = np.vstack(faces)
-    surf = Surface(vertices, faces, {"n_slices": len(stack), "n_triangles_tiled": len(faces),
-                                     "simplify_tol_mm": 0.0, "hausdorff_mm": 0.0})
-    if simplify_tol_mm:
-        surf = simplify_surface(surf, simplify_tol_mm)
-    return surf
+        for la, lb in _match(loops[k], loops[k + 1], vertices, k):
+            faces.append(_tile_indices(la, lb, vertices, quality, "dp", None)[0])
+    return vertices, np.vstack(faces)
 
 
 def _match(lo, hi, vertices, k):
@@ -368,6 +408,30 @@ def surface_distances(points, vertices, faces) -> np.ndarray:
     return np.asarray(d)
 
 
+def surface_distances_fast(points, vertices, faces, *, tol_mm: float, k: int = 8
+                           ) -> np.ndarray:
+    """Distances from points to a surface, exact wherever they exceed ``tol_mm``.
+
+    First an upper bound: exact point-triangle distances to the ``k`` triangles whose
+    centroids are nearest (a minimum over some triangles is never below the true distance).
+    Points whose bound exceeds ``tol_mm`` get the exact distance of
+    :func:`surface_distances`. So ``result <= tol_mm`` exactly where the true distance is.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    tri = v[f]
+    k = min(k, len(f))
+    _, idx = cKDTree(tri.mean(axis=1)).query(p, k=k)
+    idx = idx.reshape(len(p), k)
+    cp = trimesh.triangles.closest_point(tri[idx.ravel()], np.repeat(p, k, axis=0))
+    d = np.linalg.norm(cp - np.repeat(p, k, axis=0), axis=1).reshape(len(p), k).min(axis=1)
+    over = d > tol_mm
+    if np.any(over):
+        d[over] = surface_distances(p[over], v, f)
+    return d
+
+
 def _compact(vertices, faces):
     used = np.unique(faces)
     remap = np.full(len(vertices), -1, dtype=np.int64)
@@ -396,7 +460,8 @@ def simplify_surface(surface: Surface, tol_mm: float, *,
         v, f = _compact(np.asarray(v, np.float64), np.asarray(f, np.int64))
         if len(f) == 0 or not check_manifold(v, f)["manifold"]:
             continue
-        h = max(surface_distances(v0, v, f).max(), surface_distances(v, v0, f0).max())
+        h = max(surface_distances_fast(v0, v, f, tol_mm=tol_mm).max(),
+                surface_distances_fast(v, v0, f0, tol_mm=tol_mm).max())
         if h <= tol_mm:
             info = dict(surface.info, simplify_tol_mm=tol_mm, hausdorff_mm=float(h),
                         reduction=r)
