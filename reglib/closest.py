@@ -318,55 +318,100 @@ def _group_argmin(values: np.ndarray, group_starts: np.ndarray) -> np.ndarray:
     return np.minimum.reduceat(idx, group_starts)
 
 
-def _closest_blocks(contours: ContourSet, o, d, within=None, block: int = 8) -> ClosestPoints:
-    """Two-level exact pruning: capsules over blocks of ``block`` segments bound the
-    distances; only the segments of blocks whose lower bound ``d - eps`` does not exceed the
-    best upper bound ``d + eps`` of their contour are evaluated exactly. With ``within``,
-    the threshold is instead ``max(within, best upper bound over all contours)`` per line,
-    and contours beyond it are reported at infinite distance."""
+def _ranges(offsets: np.ndarray, size: int):
+    """Blocks of ``size`` consecutive segments within each contour: ``(contour, j0, j1)``
+    (local segment range ``[j0, j1)``), in contour order, and blocks per contour."""
+    nseg = np.diff(offsets)
+    nblk = -(-nseg // size)
+    bc = np.repeat(np.arange(len(nseg)), nblk)
+    j0 = (np.arange(nblk.sum()) - np.repeat(np.cumsum(nblk) - nblk, nblk)) * size
+    return bc, j0, np.minimum(j0 + size, nseg[bc]), nblk
+
+
+def _expand(counts: np.ndarray) -> np.ndarray:
+    """``[0..counts[0]-1, 0..counts[1]-1, ...]``."""
+    return np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+
+
+def _closest_blocks(contours: ContourSet, o, d, within=None, sizes=(64, 8)) -> ClosestPoints:
+    """Exact pruning over a fixed hierarchy of capsules, level by level for all lines.
+
+    Level 0 cuts each contour into blocks of ``sizes[0]`` segments, the next levels into
+    blocks of ``sizes[1]``, ... (each a multiple of the next), the last level is the
+    segments. A block's capsule has its axis from the block's first to its last vertex and
+    radius ``eps`` = the largest distance of its vertices from the axis. Every line is
+    measured against every level-0 capsule; at each level the (line, block) pairs whose
+    lower bound ``d - eps`` does not exceed the threshold are split into their children,
+    and the segments reached at the end are measured exactly. The threshold is the best
+    upper bound ``d + eps`` so far of the pair's contour, or with ``within`` of the line
+    over all contours, raised to ``within`` (contours beyond it come back at infinity).
+    """
     n, nc = len(o), contours.n_contours
-    nseg = np.diff(contours.offsets)
-    nblk = -(-nseg // block)
-    # block b of contour c covers local segments [j0, j1); path rows pbase + j0 .. pbase + j1
-    bc = np.repeat(np.arange(nc), nblk)
-    j0 = (np.arange(nblk.sum()) - np.repeat(np.cumsum(nblk) - nblk, nblk)) * block
-    j1 = np.minimum(j0 + block, nseg[bc])
-    pbase = contours.offsets[:-1] + np.arange(nc)
-    lo, hi = pbase[bc] + j0, pbase[bc] + j1
-    cnt = hi - lo + 1
-    rows = np.repeat(lo, cnt) + (np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt))
-    owner = np.repeat(np.arange(len(lo)), cnt)
     path = contours.path
-    dev = _point_segment_distances(path[rows], path[lo][owner], path[hi][owner])
-    eps = np.maximum.reduceat(dev, np.r_[0, np.cumsum(cnt)[:-1]])
-    # stage 1: every line against every block capsule (exact formula, (N, B))
-    dist_b = _distance_only(o[:, None, :], d[:, None, :], path[lo][None], path[hi][None])
-    lower = dist_b - eps
-    if within is None:
-        upper = np.minimum.reduceat(dist_b + eps, np.r_[0, np.cumsum(nblk)[:-1]], axis=1)
-        thr = np.repeat(upper + 1e-7 * (1.0 + upper), nblk, axis=1)
-    else:
-        upper = np.maximum(np.min(dist_b + eps, axis=1), within)
-        thr = (upper + 1e-7 * (1.0 + upper))[:, None]
-    keep = lower <= thr
-    li, bi = np.nonzero(keep)                          # sorted by line, then block
-    # stage 2: the segments of the kept blocks, exactly
-    ns = j1[bi] - j0[bi]
-    first = contours.offsets[bc[bi]] + j0[bi]
-    seg = np.repeat(first, ns) + (np.arange(ns.sum()) - np.repeat(np.cumsum(ns) - ns, ns))
-    line = np.repeat(li, ns)
-    dist, p, q = _exact(o[line], d[line], contours.starts[seg], contours.ends[seg])
-    key = line * nc + bc[np.repeat(bi, ns)]
-    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
-    win = _group_argmin(dist, starts)
+    pbase = contours.offsets[:-1] + np.arange(nc)
+    levels = []
+    for size in sizes:
+        bc, j0, j1, nblk = _ranges(contours.offsets, size)
+        lo, hi = pbase[bc] + j0, pbase[bc] + j1
+        cnt = hi - lo + 1
+        rows = np.repeat(lo, cnt) + _expand(cnt)
+        owner = np.repeat(np.arange(len(lo)), cnt)
+        dev = _point_segment_distances(path[rows], path[lo][owner], path[hi][owner])
+        eps = np.maximum.reduceat(dev, np.r_[0, np.cumsum(cnt)[:-1]])
+        first = np.r_[0, np.cumsum(nblk)[:-1]]        # first block of each contour
+        levels.append((size, bc, j0, j1, path[lo], path[hi], eps, first))
+
+    def threshold(li, key, upper):
+        """Per pair: the best upper bound of its group (line, or line and contour)."""
+        starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+        best = np.minimum.reduceat(upper, starts)
+        if within is not None:
+            best = np.maximum(best, within)
+        best = best + 1e-7 * (1.0 + best)
+        return np.repeat(best, np.diff(np.r_[starts, len(key)]))
+
+    # level 0: all lines against all top blocks
+    size, bc, j0, j1, a, b, eps, first = levels[0]
+    dist = _distance_only(o[:, None, :], d[:, None, :], a[None], b[None])
+    li, bi = np.nonzero(np.ones(dist.shape, dtype=bool))
+    dist, lower, upper = dist.reshape(-1), (dist - eps).reshape(-1), (dist + eps).reshape(-1)
+    for level in range(len(levels) + 1):
+        key = li if within is not None else li * nc + bc[bi]
+        keep = lower <= threshold(li, key, upper)
+        li, bi = li[keep], bi[keep]
+        if level == len(levels):
+            break
+        # children of the kept blocks at the next level (or segments)
+        c, pj0, pj1 = bc[bi], j0[bi], j1[bi]
+        child = sizes[level + 1] if level + 1 < len(levels) else 1
+        k0 = pj0 // child
+        nch = -(-(pj1 - pj0) // child)
+        li = np.repeat(li, nch)
+        if level + 1 < len(levels):
+            _, bc, j0, j1, a, b, eps, first = levels[level + 1]
+            bi = np.repeat(first[c] + k0, nch) + _expand(nch)
+            dist = _distance_only(o[li], d[li], a[bi], b[bi])
+            lower, upper = dist - eps[bi], dist + eps[bi]
+        else:
+            seg = np.repeat(contours.offsets[c] + pj0, nch) + _expand(nch)
+            dist, p, q = _exact(o[li], d[li], contours.starts[seg], contours.ends[seg])
+            bc = contours.segment_contour
+            bi = seg
+            j0 = j1 = None
+            lower = upper = dist
+    # the kept segments, exact: first minimum per (line, contour)
+    seg = bi
+    dist, p, q = dist[keep], p[keep], q[keep]
+    key = li * nc + bc[seg]
     out_d = np.full((n, nc), np.inf)
     out_p = np.full((n, nc, 3), np.nan)
     out_q = np.full((n, nc, 3), np.nan)
     out_s = np.full((n, nc), -1, dtype=np.int64)
+    if len(key) == 0:
+        return ClosestPoints(out_d, out_p, out_q, out_s)
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    win = _group_argmin(dist, starts)
     kk = key[starts]
-    if within is not None:
-        ok = dist[win] <= thr[kk // nc, 0]
-        kk, win = kk[ok], win[ok]
     out_d.reshape(-1)[kk] = dist[win]
     out_p.reshape(-1, 3)[kk] = p[win]
     out_q.reshape(-1, 3)[kk] = q[win]
@@ -585,10 +630,12 @@ def stabbing(cp: ClosestPoints, contours: ContourSet, directions) -> np.ndarray:
     if cp.distance.shape[1] == 0:
         return np.zeros(cp.distance.shape, dtype=bool)
     valid = cp.segment >= 0
-    e = contours.tangents(cp.segment, np.where(valid[..., None], cp.p, 0.0))
-    with np.errstate(invalid="ignore"):
-        det = np.einsum("ncj,ncj->nc", cp.q - cp.p, np.cross(e, d[:, None, :]))
-        return valid & (det > 0.0)
+    li, ci = np.nonzero(valid)
+    e = contours.tangents(cp.segment[li, ci], cp.p[li, ci])
+    det = np.einsum("kj,kj->k", cp.q[li, ci] - cp.p[li, ci], np.cross(e, d[li]))
+    out = np.zeros(valid.shape, dtype=bool)
+    out[li, ci] = det > 0.0
+    return out
 
 
 def select_contours(cp: ClosestPoints, contours: ContourSet, directions, external=None, *,

@@ -222,8 +222,10 @@ def solve_increment(points, origins, directions, *, normals=None, fixed_point=No
         else:
             J = np.concatenate([-np.einsum("nij,njk->nik", M, _skew_rows(y)), M], axis=2)
             J = J[:, :, :dof]
-        A = np.einsum("n,nji,njk->ik", w, J, J)
-        b = -np.einsum("n,nji,nj->i", w, J, r)
+        J2 = J.reshape(-1, dof)                     # one row per residual component
+        wr = np.repeat(w, J.shape[1])
+        A = J2.T @ (wr[:, None] * J2)
+        b = -J2.T @ (wr * r.reshape(-1))
         sv = np.linalg.svd(A, compute_uv=False)
         if sv[-1] <= 1e-12 * max(sv[0], 1e-300):
             return (RigidTransform(R_tot, t_tot), dist, w, False,
