@@ -14,7 +14,9 @@ Timed, per Step A method (``blocks`` = default, ``dense``, ``reference`` = brute
 ``hierarchy`` = the paper's pure-Python capsule queue, on the first iteration only as it is
 slow in CPython):
 
-- one registration: total wall time, iterations, time per iteration;
+- one registration: total wall time, CPU time of this process (less sensitive to other
+  jobs on a shared machine; numpy is single-threaded here), iterations, time per
+  iteration;
 - per iteration, its parts: apparent contours of both surfaces from the four centers,
   Step A + B for the four views, the pose solve.
 
@@ -199,13 +201,16 @@ def run_benchmark(starts: int = 3, methods=("blocks", "dense", "reference"),
     for i, ss in enumerate(rngs):
         init = perturbed(scene.true, 7.0, 20.0, np.random.default_rng(ss))
         for method in methods:
+            cpu0 = time.process_time()
             res = register(scene.surfaces, views, init, closest=method)
+            cpu = time.process_time() - cpu0
             err = pin_errors(res.ct2robot, scene.true)
             parts = _time_parts(scene, init, method)
             its = max(res.iterations, 1)
             common = {"trial": i, "method": method}
             rows += [
                 {**common, "metric": "time", "value": res.time_s, "unit": "s"},
+                {**common, "metric": "cpu_time", "value": cpu, "unit": "s"},
                 {**common, "metric": "time_per_iteration", "value": res.time_s / its,
                  "unit": "s"},
                 {**common, "metric": "iterations", "value": res.iterations, "unit": ""},
