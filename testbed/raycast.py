@@ -19,7 +19,7 @@ Three engines share this code:
 ``"embree"``   Intel Embree through ``embreex`` directly (float32, each mesh in its own scene
                centred on it): all hits along each ray, each pass restarting the rays that
                hit 2e-4 mm beyond their last hit, on the rays that meet the mesh's bounding
-               box only (a slab test, exact culling). :class:`RayScene` prepares the meshes
+               sphere only (exact, conservative culling). :class:`RayScene` prepares the meshes
                of a world once for many frames. The fast path.
 ``"trimesh"``  trimesh's ``ray_pyembree.RayMeshIntersector`` (the same Embree, trimesh's
                multi-hit loop): a second implementation, compared in tests.
@@ -86,25 +86,23 @@ def ray_box_hits(origins, directions, t_max, lo, hi) -> np.ndarray:
     hi = np.asarray(hi, dtype=np.float64)
     pad = 1e-6 * max(float(np.max(hi - lo)), 1.0)
     lo, hi = lo - pad, hi + pad
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / directions
+    # a zero direction component becomes a tiny one: the slab bounds become +-inf-like with
+    # the right signs (inside the slab: (-big, +big); outside: both of one sign)
+    dd = np.where(directions == 0.0, 1e-300, directions)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        inv = 1.0 / dd
         t1 = (lo - origins) * inv
         t2 = (hi - origins) * inv
-    tmin = np.where(np.isnan(t1), -np.inf, np.minimum(t1, t2))
-    tmax = np.where(np.isnan(t1), np.inf, np.maximum(t1, t2))
-    # a zero direction component: inside the slab or not at all
-    zero = directions == 0.0
-    inside = (origins >= lo) & (origins <= hi)
-    tmin = np.where(zero, np.where(inside, -np.inf, np.inf), tmin)
-    tmax = np.where(zero, np.where(inside, np.inf, -np.inf), tmax)
-    enter = np.max(tmin, axis=1)
-    leave = np.min(tmax, axis=1)
+    enter = np.max(np.minimum(t1, t2), axis=1)
+    leave = np.min(np.maximum(t1, t2), axis=1)
     return (enter <= leave) & (leave >= 0.0) & (enter <= t_max)
 
 
 def _cull(bounds, o, d, tm) -> np.ndarray:
-    """Indices of the segments that meet the box ``bounds`` (2, 3): a bounding-sphere test
-    first (one dot product per ray), then the slab test on the survivors. Exact culling."""
+    """Indices of the segments that may meet the box ``bounds`` (2, 3): those that meet its
+    circumscribed sphere (one dot product per ray). Conservative (never drops a segment that
+    meets the box), so the result stays exact; a tighter slab test (:func:`ray_box_hits`)
+    cost more than the Embree misses it saved on the default scene."""
     lo, hi = np.asarray(bounds[0], dtype=np.float64), np.asarray(bounds[1], dtype=np.float64)
     c = 0.5 * (lo + hi)
     r2 = 0.25 * float(np.sum((hi - lo) ** 2)) * (1.0 + 1e-9) + 1e-12
@@ -112,10 +110,7 @@ def _cull(bounds, o, d, tm) -> np.ndarray:
     b = np.einsum("ij,ij->i", w, d)
     perp2 = np.einsum("ij,ij->i", w, w) - b * b
     h = np.sqrt(np.maximum(r2 - perp2, 0.0))
-    idx = np.flatnonzero((perp2 < r2) & (b + h >= 0.0) & (b - h <= tm))
-    if idx.size == 0:
-        return idx
-    return idx[ray_box_hits(o[idx], d[idx], tm[idx], lo, hi)]
+    return np.flatnonzero((perp2 < r2) & (b + h >= 0.0) & (b - h <= tm))
 
 
 def _crossings(mesh, origins, directions, engine: Engine, prepared=None):
@@ -285,31 +280,34 @@ class _EmbreeMesh:
     def crossings(self, o, d, max_hits: int = 1000):
         """All crossings: ray index, t (mm), sense (+1 exit, -1 entry). Each pass restarts
         the rays that hit just beyond their last hit."""
-        oc = o - self.centre
-        d32 = d.astype(np.float32)
-        t0 = np.zeros(len(o))
+        # the live rays are kept compact (start point, direction, distance so far)
         live = np.arange(len(o))
+        start = (o - self.centre).astype(np.float32)
+        dirs = d.astype(np.float32)
+        t0 = np.zeros(len(o))
         rays, faces, ts = [], [], []
         for _ in range(max_hits):
             if live.size == 0:
                 break
-            start = (oc[live] + t0[live, None] * d[live]).astype(np.float32)
-            res = self.scene.run(start, d32[live], output=1)
-            hit = res["primID"] != -1
-            if not hit.any():
+            res = self.scene.run(start, dirs, output=1)
+            hit = np.flatnonzero(res["primID"] != -1)
+            if hit.size == 0:
                 break
-            lv = live[hit]
-            t = t0[lv] + res["tfar"][hit].astype(np.float64)
-            rays.append(lv)
-            faces.append(res["primID"][hit].astype(np.int64))
+            t = t0[hit] + res["tfar"][hit]
+            live = live[hit]
+            rays.append(live)
+            faces.append(res["primID"][hit])
             ts.append(t)
-            t0[lv] = t + _STEP_MM
-            live = lv
+            t0 = t + _STEP_MM
+            # restart in float64 from the original origin, so that errors do not accumulate
+            start = (o[live] - self.centre + t0[:, None] * d[live]).astype(np.float32)
+            dirs = dirs[hit]
         else:
             raise RuntimeError(f"more than {max_hits} hits along a ray")
         if not rays:
             return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
-        ray, face, t = np.concatenate(rays), np.concatenate(faces), np.concatenate(ts)
+        ray, t = np.concatenate(rays), np.concatenate(ts)
+        face = np.concatenate(faces).astype(np.int64)
         sense = np.sign(np.einsum("ij,ij->i", self.normals[face], d[ray]))
         keep = sense != 0
         return ray[keep], t[keep], sense[keep]
