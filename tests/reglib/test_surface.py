@@ -10,6 +10,7 @@ from reglib.surface import (
     check_manifold,
     simplify_surface,
     surface_distances,
+    surface_distances_fast,
     surface_from_contours,
     tile_pair,
 )
@@ -109,6 +110,12 @@ def test_surface_of_a_cylinder_is_exact_and_simplifies_within_tolerance():
     assert surface_distances(s.vertices, simp.vertices, simp.faces).max() <= 0.2 + 1e-9
     assert surface_distances(simp.vertices, s.vertices, s.faces).max() <= 0.2 + 1e-9
     assert simplify_surface(s, 0.0) is s
+    # Contour-level simplification (the default): a manifold on a subset of the vertices.
+    sc = surface_from_contours(slices, quality="compactness", simplify_tol_mm=0.2)
+    assert sc.n_triangles < 0.6 * s.n_triangles
+    assert check_manifold(sc.vertices, sc.faces)["manifold"]
+    assert {tuple(p) for p in sc.vertices} <= {tuple(p) for p in s.vertices}
+    assert surface_distances(s.vertices, sc.vertices, sc.faces).max() <= 0.2 + 1e-9
     with pytest.raises(ValueError, match="tolerance"):
         simplify_surface(s, -1.0)
 
@@ -125,6 +132,19 @@ def test_surface_distances_match_brute_force():
              + w[None, :, 1:] * (tri[:, None, 2] - tri[:, None, 0])).reshape(-1, 3)
     ref = np.min(np.linalg.norm(pts[:, None] - dense[None], axis=2), axis=1)
     assert np.all(got <= ref + 1e-9) and np.all(ref - got < 0.1)
+
+
+def test_fast_distances_agree_with_exact_where_it_matters():
+    rng = np.random.default_rng(8)
+    slices = [[_ellipse(0, 0, 12, 9, z, 40, phase=rng.uniform())] for z in (0.0, 3.0, 9.0)]
+    s = surface_from_contours(slices)
+    pts = s.vertices[s.faces].mean(axis=1) + rng.normal(0, 0.5, (len(s.faces), 3))
+    exact = surface_distances(pts, s.vertices, s.faces)
+    for tol in (0.1, 0.4):
+        fast = surface_distances_fast(pts, s.vertices, s.faces, tol_mm=tol, k=3)
+        assert np.all(fast >= exact - 1e-9)                 # an upper bound everywhere
+        np.testing.assert_allclose(fast[fast > tol], exact[fast > tol], atol=1e-9)
+        np.testing.assert_array_equal(fast <= tol, exact <= tol)
 
 
 def test_bad_contours_raise():

@@ -1,0 +1,42 @@
+"""Smoke run of the surfaces study (--quick): the table, the figure, sane distances."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from studies import run_study
+from testbed.scene import find_scene
+
+
+def _scene(tmp_path):
+    try:
+        return str(find_scene("experiment2"))
+    except ValueError:
+        path = tmp_path / "scene.toml"
+        path.write_text('[scene]\nkind = "operating_room"\n\n[[views]]\nname = "v"\n')
+        return str(path)
+
+
+@pytest.mark.slow
+def test_surfaces_study_quick(tmp_path):
+    out = run_study("surfaces", tmp_path / "out", scene=_scene(tmp_path), seed=3, quick=True)
+    df = pd.read_csv(out / "results.csv")
+    assert {"trial", "metric", "value", "unit", "surface", "statistic", "method"} <= set(df)
+    d = df[df.metric == "surface_distance"]
+    assert set(d.unit) == {"mm"}
+    assert set(d.surface) == {"proximal", "distal"}
+    assert set(d.statistic) == {"mean", "p95", "max"}
+    assert set(d.method) == {"contours", "marching_cubes"}
+    assert len(d) == 12
+    v = d.set_index(["surface", "method", "statistic"]).value
+    for surface in ("proximal", "distal"):
+        for method in ("contours", "marching_cubes"):
+            mean, p95, mx = (v[surface, method, s] for s in ("mean", "p95", "max"))
+            assert 0 < mean <= p95 <= mx < 10.0
+        # The goal of the issue: contour surfaces within 0.5 mm of the truth on average.
+        assert v[surface, "contours", "mean"] <= 0.5
+    tri = df[(df.metric == "triangles") & (df.method == "contours")].set_index("surface").value
+    assert 500 < tri["proximal"] < 10_000 and 500 < tri["distal"] < 20_000
+    assert np.all(df[df.metric == "time"].value > 0)
+    assert (out / "surfaces_distance.png").stat().st_size > 10_000
+    assert "Distance to the true femur surface" in (out / "report.md").read_text()
