@@ -230,11 +230,14 @@ def xray_contour(
     pts = np.asarray(clicks_xy, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 2:
         raise ValueError(f"clicks_xy: expected a (K, 2) array of (x, y) px, got {pts.shape}")
+    # a click is accepted anywhere in the field, its blurred rim included (the snake works on
+    # the filled image, so a click just outside the eroded mask does no harm)
+    lenient = ndimage.binary_dilation(mask, iterations=4)
     inside = np.zeros(len(pts), dtype=bool)
     r = np.rint(pts[:, 1]).astype(int)
     c = np.rint(pts[:, 0]).astype(int)
     ok = (r >= 0) & (r < img.shape[0]) & (c >= 0) & (c < img.shape[1])
-    inside[ok] = mask[r[ok], c[ok]]
+    inside[ok] = lenient[r[ok], c[ok]]
     if not inside.all():
         bad = np.flatnonzero(~inside).tolist()
         raise ValueError(f"clicks_xy: clicks {bad} lie outside the image's field of view")
