@@ -8,14 +8,16 @@ line.
 Four exact ways to compute Step A, one interface (:func:`closest_points`):
 
 ``"blocks"`` (default)
-    The paper's bounding capsules, flattened to two levels so that numpy can do them for
-    all lines at once: each contour is cut into blocks of 8 consecutive segments, each
-    block bounded by a capsule (axis from its first to its last vertex, radius ``eps`` =
-    the largest distance of its vertices from the axis). Every line is measured against
-    every capsule; only the segments of blocks whose lower bound ``d - eps`` does not
-    exceed the best upper bound ``d + eps`` are then measured exactly. With ``within_mm``
-    (what the registration loop uses) contours farther than ``max(within_mm, nearest)`` are
-    skipped altogether, which is all Step B needs. No Python loop over lines or segments.
+    The paper's bounding capsules as a fixed three-level hierarchy (blocks of 64 and of 8
+    consecutive segments, then the segments), searched level by level for all lines at
+    once so that numpy does the work: each block's capsule has its axis from the block's
+    first to its last vertex and radius ``eps`` = the largest distance of its vertices from
+    the axis; a (line, block) pair is split only while its lower bound ``d - eps`` does not
+    exceed the best upper bound ``d + eps`` found so far, and the segments reached are
+    measured exactly. With ``within_mm`` (what the registration loop uses) contours farther
+    than ``max(within_mm, nearest)`` are skipped altogether, which is all Step B needs. No
+    Python loop over lines or segments. It replaces the paper's priority queue (a loop per
+    line) by a breadth-first pruning with the same bounds.
 ``"dense"``
     All line-segment pairs of a view at once, as one matrix product plus element-wise
     numpy on ``(N, S)`` arrays (coordinates re-centred on the contours so that the expanded
@@ -586,10 +588,10 @@ def closest_points(contours: ContourSet, origins, directions, *,
     contours : ContourSet (mm, same frame as the lines).
     origins, directions : (N, 3) mm and unit; lines sorted so that neighbours follow each
         other help ``"hierarchy"`` (warm start), and do not matter to the others.
-    method : "blocks" (default: two-level capsule pruning, vectorised, the fastest
-        measured), "dense" (all pairs by matrix products), "hierarchy" (the paper's capsule
-        tree and priority queue, pure Python) or "reference" (plain brute force). See the
-        module docstring.
+    method : "blocks" (default: capsule hierarchy pruned level by level for all lines,
+        vectorised; with ``within_mm`` the fastest measured), "dense" (all pairs by matrix
+        products), "hierarchy" (the paper's capsule tree and priority queue, pure Python)
+        or "reference" (plain brute force). See the module docstring.
     within_mm : only with "blocks": per line, contours farther than
         ``max(within_mm, distance to the nearest contour)`` are not computed and come back
         at ``inf`` distance (NaN points, segment -1). The nearest contour and every contour
