@@ -199,7 +199,8 @@ def _figure(path, phantom, items):
         ax.set_ylim(c[1] - r, c[1] + r)
         ax.set_zlim(c[2] - r, c[2] + r)
         ax.view_init(elev=15, azim=-60)
-        ax.set_title(f"{title}: {surf.n_triangles} triangles, mean {d.mean():.2f} mm", fontsize=9)
+        ax.set_title(f"{title}: {surf.n_triangles} triangles, vertex mean {d.mean():.2f} mm",
+                     fontsize=9)
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("y (mm)")
         ax.set_zlabel("z (mm)")
