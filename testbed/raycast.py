@@ -273,6 +273,8 @@ class _EmbreeMesh:
         self.bounds = np.array(mesh.bounds, dtype=np.float64)
         self.centre = 0.5 * (self.bounds[0] + self.bounds[1])
         self.normals = np.asarray(mesh.face_normals, dtype=np.float64)
+        # a line crosses a convex surface at most twice: no pass is needed after the second
+        self.max_crossings = 2 if mesh.is_convex else None
         self.scene = rtcore_scene.EmbreeScene()
         TriangleMesh(self.scene, (mesh.vertices - self.centre).astype(np.float32),
                      np.ascontiguousarray(mesh.faces, dtype=np.int32))
@@ -286,7 +288,8 @@ class _EmbreeMesh:
         dirs = d.astype(np.float32)
         t0 = np.zeros(len(o))
         rays, faces, ts = [], [], []
-        for _ in range(max_hits):
+        passes = max_hits if self.max_crossings is None else self.max_crossings
+        for _ in range(passes):
             if live.size == 0:
                 break
             res = self.scene.run(start, dirs, output=1)
@@ -303,7 +306,8 @@ class _EmbreeMesh:
             start = (o[live] - self.centre + t0[:, None] * d[live]).astype(np.float32)
             dirs = dirs[hit]
         else:
-            raise RuntimeError(f"more than {max_hits} hits along a ray")
+            if self.max_crossings is None:
+                raise RuntimeError(f"more than {max_hits} hits along a ray")
         if not rays:
             return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
         ray, t = np.concatenate(rays), np.concatenate(ts)
