@@ -15,7 +15,7 @@ frame differences, identification, two-plane TPS), and the result is scored:
 - ``sweep_time`` (s), ``dose`` (mrem), ``markers_found`` / ``markers_expected``,
   ``time`` (s, compute time of detection + calibration);
 - ``workspace_collisions``: bodies colliding during the sweep with the C-arm, table and
-  patient (``testbed.workspace``; the sweep itself is rendered with the rod alone);
+  patient (``testbed.workspace``); the sweep is rendered with the patient in the beam;
 - sensitivity (``experiment`` = ``smoothing`` / ``beads`` / ``rows``): ``validation_max``,
   ``validation_mean``, ``ray_error_iso_mean`` and ``ray_error_iso_max`` against the
   smoothing parameter, the number of beads used per row and the number of rod positions
@@ -91,27 +91,19 @@ def calibrate_view(scene, view_index: int, rng, *, quick: bool = False) -> list[
         rows.append(dict(metric=metric, value=float(value), unit=unit, view=view, **extra))
 
     with Robot(scene.robot, rng=robot_rng) as robot:
-        # workspace: table and patient, if the scene has them (the sweep is rendered with the
-        # rod alone: the calibration is taken before the patient is in the beam)
-        ws = Workspace(robot)
-        try:
-            from testbed.fluoroscope import _world_bodies
+        # the patient, foam, table and instruments of the scene: obstacles for the workspace
+        # check, and in the beam while the sweep is taken (static, they cancel in the frame
+        # differences but cost photons and add edges)
+        from testbed.world import world_bodies
 
-            world = list(_world_bodies(scene, world_rng))
-        except Exception:  # noqa: BLE001 - a scene without a phantom: nothing around
-            world = []
-        meshes = [b.mesh.vertices for b in world if b.mesh is not None and b.inside is None]
-        if world:
-            ws.add_bodies(world, kind="patient")
-        has_table = any(b.material == "table" for b in world)
-        if scene.patient.on_table and meshes and not has_table:
-            v = np.vstack(meshes)
-            ws.add_table(np.r_[v[:, :2].mean(axis=0), v[:, 2].min() - 1.0])
+        world = list(world_bodies(scene, rng=world_rng))
+        ws = Workspace(robot)
+        ws.add_bodies(world, kind="patient")
         report = check_sweep(ws, carm, plan_sweep(carm, robot.spec))
         pairs = sorted(report.colliding_pairs())
         row("workspace_collisions", len(pairs), "count",
             detail="; ".join(f"{a}-{b}" for a, b in pairs))
-        sweep = run_sweep(robot, carm, scene.fluoroscope, rng=noise_rng)
+        sweep = run_sweep(robot, carm, scene.fluoroscope, bodies=world, rng=noise_rng)
     row("sweep_time", sweep.duration_s, "s")
     row("dose", sweep.dose_mrem, "mrem")
 
