@@ -278,11 +278,23 @@ def pin_errors(estimate: RigidTransform, truth: RigidTransform, pins_ct: dict) -
             for k in PIN_NAMES if k in pins_ct}
 
 
+def registration_options(spec) -> dict:
+    """Keyword options of ``reglib.register.register`` from a ``[registration]`` section."""
+    return dict(method=spec.method, max_iterations=spec.max_iterations, residual=spec.residual,
+                tukey_a=spec.tukey_a, selection=spec.selection,
+                max_stab_distance_mm=spec.max_stab_distance_mm)
+
+
 def register_case(case: CaseData, start: RigidTransform, *, oracle=(), fixed_pin=None,
                   **options):
-    """Register the case from ``start``; returns (RegistrationResult, pin errors dict)."""
+    """Register the case from ``start``; returns (RegistrationResult, pin errors dict).
+
+    ``options`` go to ``reglib.register.register``; by default those of the scene's
+    ``[registration]`` section.
+    """
     from reglib.register import register
 
+    options = {**registration_options(case.scene.registration), **options}
     surfaces, views = reglib_inputs(case, oracle)
     fixed = case.pins_ct[fixed_pin] if fixed_pin else None
     res = register(surfaces, views, start, fixed_point_ct=fixed, **options)
@@ -300,8 +312,7 @@ def run_case(scene, *, scene_path, seed, out=None) -> dict:
                             np.random.SeedSequence(seed).spawn(6)[5], about=fixed_pin)
     start_err = pin_errors(start, case.ct2robot, case.pins_ct)
     t0 = time.perf_counter()
-    res, errs = register_case(case, start, fixed_pin=fixed_pin, method=reg.method,
-                              max_iterations=reg.max_iterations)
+    res, errs = register_case(case, start, fixed_pin=fixed_pin)
     timings = dict(case.timings)
     timings["registration"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_all
