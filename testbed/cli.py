@@ -80,7 +80,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("run", help="the main job on a scene (default scene if none)")
-    r.add_argument("scene", nargs="?", default=None, help="scene file or name")
+    r.add_argument("scene", nargs="?", default=None,
+                   help="scene file or name (default: experiment2)")
     r.add_argument("--json", action="store_true", help="print one JSON object")
     r.add_argument("--seed", type=int, default=None, help="override the scene's seed")
     r.add_argument("--out", type=Path, default=None, help="folder for figures (optional)")

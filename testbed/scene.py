@@ -231,7 +231,7 @@ def scenes_dir() -> Path:
     return Path(__file__).resolve().parents[1] / "scenes"
 
 
-DEFAULT_SCENE = "points-lines"
+DEFAULT_SCENE = "experiment2"
 
 
 def find_scene(name_or_path: str | os.PathLike | None) -> Path:

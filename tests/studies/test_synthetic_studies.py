@@ -11,7 +11,7 @@ from testbed.cli import main
 
 @pytest.mark.slow
 def test_main_job_json(tmp_path, capsys):
-    assert main(["run", "--json", "--out", str(tmp_path)]) == 0
+    assert main(["run", "points-lines", "--json", "--out", str(tmp_path)]) == 0
     out = json.loads(capsys.readouterr().out)
     assert {"pins", "mtre_mm", "converged", "timings"} <= set(out)
     assert out["converged"] and out["mtre_mm"] < 1e-9
