@@ -236,7 +236,8 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
     independent of what lies behind; with ``response="log"`` the frames already are log
     intensities, as from a logarithmic video amplifier, and are differenced as they are,
     with ``"linear"`` their logarithm is taken); blobs are the connected regions of the
-    smoothed ``d`` above ``max(n_sigma * noise, rel_threshold * peak)``. Each centroid is the
+    smoothed ``d`` above ``rel_threshold`` times the peak of the region (above the noise,
+    ``n_sigma`` robust standard deviations) they lie in. Each centroid is the
     mean over a disc about the blob weighted by ``d`` above a floor (the median of a ring
     around the disc, the background, plus ``centroid_floor`` times the blob's height above
     it: this drops the rod's faint band under the bead), iterated with the disc re-centred.
@@ -276,8 +277,15 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
     peak = ds.max()
     if peak <= 0:
         return np.zeros((0, 2)), np.zeros(0)
-    thr = max(n_sigma * noise, rel_threshold * peak)
-    labels, n = ndimage.label(ds > thr)
+    # relative threshold per region: each connected region above the noise gets
+    # rel_threshold times its own peak (a bright newcomer elsewhere, e.g. an instrument
+    # moved into the field, does not raise the threshold for the beads)
+    low = max(n_sigma * noise, 0.02 * peak)
+    regions, n_regions = ndimage.label(ds > low)
+    region_peak = np.zeros(n_regions + 1)
+    region_peak[1:] = ndimage.maximum(ds, regions, np.arange(1, n_regions + 1))
+    thr = np.maximum(low, rel_threshold * region_peak[regions])
+    labels, n = ndimage.label((ds > thr) & (regions > 0))
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0)
     idx = np.arange(1, n + 1)

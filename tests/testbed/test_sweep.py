@@ -175,3 +175,16 @@ def test_workspace_names_the_colliding_bodies_of_a_sweep():
         ws.add_table(carm.source_robot - np.r_[0.0, 0.0, 60.0])
         rep = check_sweep(ws, carm, poses)
         assert ("carm_source", "table") in {(c.a, c.b) for c in rep.carm_contacts}
+
+
+@pytest.mark.slow
+def test_an_instrument_moved_into_the_field_is_a_stray_blob(clean_sweep):
+    carm, sw = clean_sweep
+    f = int(np.flatnonzero(sw.plane == 0)[1])
+    x, y = np.rint(carm.project(sw.beads_true[f, 4][None])[0]).astype(int)
+    frames = sw.frames.copy()
+    frames[f:, y + 50:y + 63, x - 6:x + 7] = 3     # appears in frame f, beside the rod's row
+    m = find_markers(SweepData(**(sw.for_calibration() | {"frames": frames})))
+    clean = find_markers(SweepData(**sw.for_calibration()))
+    assert np.array_equal(m.bead[m.frame == f], clean.bead[clean.frame == f])
+    assert any(f"frame {f}:" in p and "stray blob" in p for p in m.problems)
