@@ -237,7 +237,8 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
     intensities, as from a logarithmic video amplifier, and are differenced as they are,
     with ``"linear"`` their logarithm is taken); blobs are the connected regions of the
     smoothed ``d`` above ``rel_threshold`` times the peak of the region (above the noise,
-    ``n_sigma`` robust standard deviations) they lie in. Each centroid is the
+    ``n_sigma`` robust standard deviations) they lie in, and above half ``rel_threshold``
+    times the frame's peak. Each centroid is the
     mean over a disc about the blob weighted by ``d`` above a floor (the median of a ring
     around the disc, the background, plus ``centroid_floor`` times the blob's height above
     it: this drops the rod's faint band under the bead), iterated with the disc re-centred.
@@ -284,7 +285,8 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
     regions, n_regions = ndimage.label(ds > low)
     region_peak = np.zeros(n_regions + 1)
     region_peak[1:] = ndimage.maximum(ds, regions, np.arange(1, n_regions + 1))
-    thr = np.maximum(low, rel_threshold * region_peak[regions])
+    # never below half the global relative threshold: noise specks are regions of their own
+    thr = np.maximum(max(low, 0.5 * rel_threshold * peak), rel_threshold * region_peak[regions])
     labels, n = ndimage.label((ds > thr) & (regions > 0))
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0)

@@ -175,13 +175,20 @@ def run(ctx) -> pd.DataFrame:
     params = [dict(view_index=i, quick=bool(ctx.quick)) for i in views]
     df = run_study_trials(ctx, _trial, params, progress=False)
     if "failed" in set(df["metric"]):
-        fails = df.attrs.get("failures", {})
-        ctx.report("Failed views", "\n".join(f"- {k}: {v}" for k, v in dict(fails).items()))
+        from studies.runner import read_failures
+
+        fails = read_failures(ctx.out)
+        ctx.report("Failed views", "\n".join(
+            f"- trial {r.trial}: {r.error[:400]}" for r in fails.itertuples()))
     _write_report(ctx, df)
     return df
 
 
 def _write_report(ctx, df: pd.DataFrame) -> None:
+    if "view" not in df.columns:
+        ctx.report("Validation distances per view", "No view was calibrated (see the "
+                   "failures above).")
+        return
     def per_view(metric, agg):
         d = df[df.metric == metric]
         return d.groupby("view")["value"].agg(agg) if len(d) else pd.Series(dtype=float)

@@ -511,6 +511,17 @@ class Robot:
         self._set(self.nominal_id, self.q_read)
         self._set(self.true_id, self.q_true)
 
+    def set_true_joints(self, q_user) -> None:
+        """Put the true arm at joints (rad, rad, mm, rad, rad) without a move (no encoder
+        draw): for collision checks of a planned pose. The next move overrides it."""
+        self.q_true = self._to_internal(q_user)
+        self._set(self.true_id, self.q_true)
+
+    @property
+    def true_joints(self) -> np.ndarray:
+        """The true arm's joints (rad, rad, mm, rad, rad)."""
+        return self._to_user(self.q_true)
+
     def place_rod(self, point_robot, direction_robot) -> np.ndarray:
         """Put bead 0 at ``point_robot`` (3,) mm with the rod along ``direction_robot`` (3,).
 

@@ -239,7 +239,7 @@ def check_sweep(workspace: Workspace, carm, poses, *, margin_mm: float = 0.0,
     robot = workspace.robot
     workspace.add_carm(carm, name=carm_name)
     report = WorkspaceReport(view=carm.name)
-    q_true = robot.q_true.copy()
+    q_true = robot.true_joints
     try:
         report.carm_contacts = workspace.carm_contacts(margin_mm=margin_mm)
         for i, pose in enumerate(poses):
@@ -248,10 +248,10 @@ def check_sweep(workspace: Workspace, carm, poses, *, margin_mm: float = 0.0,
             except ValueError as exc:
                 report.poses.append(PoseCheck(i, pose.plane, (), str(exc)))
                 continue
-            robot._set(robot.true_id, robot._to_internal(q))
+            robot.set_true_joints(q)
             contacts = tuple(workspace.robot_contacts(margin_mm=margin_mm))
             report.poses.append(PoseCheck(i, pose.plane, contacts))
     finally:
-        robot._set(robot.true_id, q_true)
+        robot.set_true_joints(q_true)
         workspace.remove(carm_name)
     return report
