@@ -186,5 +186,5 @@ def test_an_instrument_moved_into_the_field_is_a_stray_blob(clean_sweep):
     frames[f:, y + 50:y + 63, x - 6:x + 7] = 3     # appears in frame f, beside the rod's row
     m = find_markers(SweepData(**(sw.for_calibration() | {"frames": frames})))
     clean = find_markers(SweepData(**sw.for_calibration()))
-    assert np.array_equal(m.bead[m.frame == f], clean.bead[clean.frame == f])
+    assert sorted(m.bead[m.frame == f]) == sorted(clean.bead[clean.frame == f])
     assert any(f"frame {f}:" in p and "stray blob" in p for p in m.problems)
