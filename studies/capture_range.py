@@ -289,6 +289,7 @@ def summary(df: pd.DataFrame) -> pd.DataFrame:
         "final_mtre_p90": g["final_mtre"].quantile(0.9),
         "time_median": g["time"].median(),
     }).reset_index()
+    out["bin"] = out["bin"].astype(int)
     return out
 
 
@@ -358,7 +359,7 @@ def _figures(ctx, df, s, edges):
     centres = 0.5 * (edges[:-1] + edges[1:])
     fig, ax = plt.subplots(figsize=(6, 4))
     for method, d in s.groupby("method"):
-        ax.plot(centres[d["bin"]], 100 * d["success_rate"], "o-", label=method)
+        ax.plot(centres[d["bin"].to_numpy(int)], 100 * d["success_rate"], "o-", label=method)
     ax.axhline(100 * CAPTURE_RATE, color="grey", ls="--", lw=1)
     ax.set_xlabel("initial mTRE at the pins (mm)")
     ax.set_ylabel(f"success rate (final mTRE < {SUCCESS_MM:g} mm), %")
