@@ -5,8 +5,9 @@ registration.
 Each trial is a :func:`studies.capture_range.trial`: one random case of the scene (world, CT,
 reconstructed surfaces, X-ray frames and snake contours; oracle calibration, no sweep) and
 its starts registered by the chosen pose methods. The default trial is a reduced one (3 bins
-of initial mTRE, 0-30 mm, one start each, method ``robust``) so that the benchmark takes a
-few minutes; ``--starts-per-bin``, ``--methods`` and ``--bins`` make it the study's own.
+of initial mTRE, 0-30 mm, one start each, registered by the study's three methods) so that
+the benchmark takes a few minutes; ``--starts-per-bin``, ``--methods`` and ``--bins`` make
+it the study's own.
 
 The same trials (same seeds) run on each worker count, into a fresh runner database; the
 rows other than times must be identical across worker counts (``same_rows``). There is no
@@ -20,19 +21,26 @@ Run: ``python -m studies.bench_trials [--trials 2] [--workers 1 2]``.
 
 from __future__ import annotations
 
-import argparse
-import tempfile
-import time
-from pathlib import Path
+import os
 
-import pandas as pd
+# One BLAS thread per process (as in CI), set before numpy is imported: otherwise a single
+# worker borrows the second core and the efficiency of 2 workers is understated.
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
-from studies.runner import make_trials, read_trials, run_trials
+import argparse  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import pandas as pd  # noqa: E402
+
+from studies.runner import make_trials, read_trials, run_trials  # noqa: E402
 
 
 def benchmark(*, n_trials: int = 2, workers=(1, 2), scene: str = "experiment2", seed: int = 0,
-              starts_per_bin: int = 1, bins=(0.0, 10.0, 20.0, 30.0), methods=("robust",),
-              out_root=None) -> pd.DataFrame:
+              starts_per_bin: int = 1, bins=(0.0, 10.0, 20.0, 30.0),
+              methods=("robust", "linear", "ransac"), out_root=None) -> pd.DataFrame:
     """Time the same capture-range trials on each worker count; one row per count.
 
     Columns: ``workers``, ``trials``, ``wall_s``, ``trials_per_min``, ``efficiency``
@@ -87,7 +95,7 @@ def main(argv=None) -> int:
     ap.add_argument("--starts-per-bin", type=int, default=1)
     ap.add_argument("--bins", type=float, nargs="+", default=[0.0, 10.0, 20.0, 30.0],
                     help="bin edges of initial mTRE (mm)")
-    ap.add_argument("--methods", nargs="+", default=["robust"])
+    ap.add_argument("--methods", nargs="+", default=["robust", "linear", "ransac"])
     args = ap.parse_args(argv)
     res = benchmark(n_trials=args.trials, workers=args.workers, scene=args.scene,
                     seed=args.seed, starts_per_bin=args.starts_per_bin, bins=args.bins,

@@ -217,7 +217,7 @@ def trial(tr) -> list[dict]:
         else np.asarray(BIN_EDGES_MM)
     methods = p["methods"].split(",")
     rng = tr.rng()
-    scene_rng, sim_ss, start_rng = rng.spawn(3)
+    scene_rng, sim_ss, start_rng, solver_rng = rng.spawn(4)
     t0 = time.perf_counter()
     scene = case_scene(load_scene(tr.scene), scene_rng, jitter_deg=float(p["jitter_deg"]))
     case = simulate_without_sweeps(scene, int(sim_ss.integers(0, 2**63 - 1)))
@@ -235,8 +235,12 @@ def trial(tr) -> list[dict]:
             for method in methods:
                 if method != PRIMARY and j >= int(p["others_per_bin"]):
                     continue
+                opts = dict(METHODS[method])
+                if method == "ransac":  # its sampling: seeded per start (register has no rng)
+                    opts["solver_options"] = {"rng": np.random.default_rng(
+                        solver_rng.integers(0, 2**63 - 1))}
                 t1 = time.perf_counter()
-                res = register(surfaces, views, start, **METHODS[method])
+                res = register(surfaces, views, start, **opts)
                 dt = time.perf_counter() - t1
                 m1 = mtre(res.ct2robot, truth, pins)
                 base = {"method": method, "bin": b, "start": k}
