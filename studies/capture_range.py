@@ -338,7 +338,8 @@ def run(ctx) -> pd.DataFrame:
         f"{size['starts_per_bin']} start(s) per bin and case for {PRIMARY}, "
         f"{size['others_per_bin']} for the other methods; {len(failures)} failed trial(s)."
         " Calibration: **oracle** (the true pixel -> ray map of each C-arm; no sweep is "
-        "simulated), surfaces and X-ray contours estimated by reglib.",
+        "simulated), surfaces and X-ray contours estimated by reglib. With fewer than 20 "
+        "starts in a bin, >= 95 % means every start of the bin: one failure ends the range.",
         f"Time per case: simulation and estimation {sim.median():.1f} s (median); "
         f"registration {reg.median():.2f} s per start and method (median), "
         f"{reg.sum() / max(len(sim), 1):.1f} s per case in all."]))

@@ -42,6 +42,10 @@ SCENE = {
 }
 TRUE_INPUTS = ("calibration", "surfaces", "contours")
 N_STARTS = 5
+# registration options written out, so that a change of the scene defaults does not change
+# what this suite measures: reglib's own defaults (across-contour residual, Tukey 4.685)
+REGISTRATION = {"method": "robust", "residual": "normal", "tukey_a": 4.685,
+                "selection": "paper", "max_stab_distance_mm": 10.0, "max_iterations": 50}
 
 
 @pytest.fixture(scope="module")
@@ -65,7 +69,7 @@ def _register_all(case, starts, *, oracle=(), fixed_pin=None):
 
     out = []
     for s in starts:
-        res, errs = register_case(case, s, oracle=oracle, fixed_pin=fixed_pin)
+        res, errs = register_case(case, s, oracle=oracle, fixed_pin=fixed_pin, **REGISTRATION)
         out.append((max(errs.values()), bool(res.converged)))
     return out
 
@@ -77,9 +81,10 @@ def test_calibration_validation_distances():
     rows = calibrate_view(parse_scene(SCENE), 0, np.random.default_rng(SEED))
     d = np.array([r["value"] for r in rows if r["metric"] == "validation_distance"])
     assert len(d) >= 8, "too few validation markers detected"
-    # measured: 8 markers, max 0.098 mm, mean 0.058 mm (paper: 0.1-0.4 mm)
-    assert d.max() < 0.15
-    assert d.mean() < 0.09
+    # measured: 8 markers, max 0.098 mm, mean 0.058 mm (commit ceaed24); max 0.136 mm, mean
+    # 0.072 mm after the per-region detection threshold (f9a48f4). Paper: 0.1-0.4 mm.
+    assert d.max() < 0.2
+    assert d.mean() < 0.11
 
 
 def test_surfaces_mean_distance_to_true_femur(case):
