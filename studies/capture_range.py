@@ -49,13 +49,15 @@ BIN_EDGES_MM = tuple(float(x) for x in range(0, 33, 3))   # 0, 3, ..., 30
 JITTER_DEG = 3.0
 SHAPE_VARIATION = 1.0
 #: pose method -> keyword arguments of reglib.register.register. "robust" and "linear" use
-#: the loop's own solver on the across-contour residual (the default); "ransac" the paper's
-#: point-to-path residual with reglib.pose's RANSAC solver.
-#: "ransac" is capped at 25 iterations (about 0.25 s each on a 4-view case; with 50 it costs
-#: 12 s per start and its pins still move by hundredths of a mm).
+#: the loop's own solver on the across-contour residual (register's default); "robust-line"
+#: and "ransac" the paper's point-to-path residual (the scenes' [registration] default) with
+#: reglib.pose's robust (Tukey) and RANSAC solvers. The line-residual methods are capped at
+#: 25 iterations (about 0.25 s each on a 4-view case; with 50 a start costs 12 s and the pins
+#: still move by hundredths of a mm).
 METHODS = {
-    "robust": {"method": "robust"},
-    "linear": {"method": "linear"},
+    "robust": {"method": "robust", "residual": "normal"},
+    "linear": {"method": "linear", "residual": "normal"},
+    "robust-line": {"method": "robust", "residual": "line", "max_iterations": 25},
     "ransac": {"method": "ransac", "residual": "line", "max_iterations": 25},
 }
 #: the default pipeline's method: it registers every start; the others the first
