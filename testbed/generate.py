@@ -16,6 +16,7 @@ calibration): those are what a user of the dataset computes.
 from __future__ import annotations
 
 import json
+import re
 import time
 from pathlib import Path
 
@@ -54,6 +55,8 @@ ENTRY_DOC = {
                             "answer)"),
     "meshes/{body}": ("truth", "phantom bodies in the ct frame, mm: femur, canal, cancellous, "
                       "soft_tissue, pin_<name>"),
+    "meshes/robot_{body}": ("truth", "the table (foam, top) and the instruments' meshes in the "
+                            "robot frame, mm"),
     "points/pins_ct": ("truth", "pin centres, ct mm, by name"),
     "points/pins_robot": ("truth", "pin centres, robot mm, by name"),
     "points/landmarks_ct": ("truth", "anatomical landmarks of the femur, ct mm, by name"),
@@ -153,6 +156,10 @@ def simulate_entries(scene, case_ss: np.random.SeedSequence, *, progress: bool =
     for name, m in meshes.items():
         if m is not None:
             put("meshes", name, m, "truth")
+    for body in [*world.table, *world.instruments]:  # already in the robot frame
+        if body.mesh is not None:
+            put("meshes", "robot_" + re.sub(r"[^A-Za-z0-9_.\-]", "_", body.name), body.mesh,
+                "truth")
     put("points", "pins_ct", {k: np.asarray(v, float) for k, v in ph.pins.items()}, "truth")
     put("points", "pins_robot", {k: np.asarray(v, float) for k, v in world.pins_robot.items()},
         "truth")
