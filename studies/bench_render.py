@@ -39,10 +39,10 @@ def bench_world(scene, rng):
     import trimesh
 
     from testbed.bodies import Body
-    from testbed.fluoroscope import _world_bodies
     from testbed.instruments import InstrumentSpec, make_instrument
+    from testbed.world import world_bodies
 
-    bodies = list(_world_bodies(scene, rng))
+    bodies = list(world_bodies(scene, rng))
     names = {b.name for b in bodies}
     view = scene.views[0]
     iso = np.asarray(view.isocenter_mm, dtype=np.float64)

@@ -603,32 +603,6 @@ def render(carm: CArm, bodies: list[Body], *, fluoro: FluoroscopeSpec, rng=None,
 
 
 # --------------------------------------------------------------------------- scene wiring
-def _world_bodies(scene, rng) -> list[Body]:
-    """Bodies in the robot frame for a scene (until ``testbed.world`` exists).
-
-    The phantom (``testbed.phantom.make_phantom``, ct frame) moved by
-    ``scene.patient.ct2robot()``, plus the OR instruments of ``testbed.instruments``.
-    """
-    try:
-        from testbed.world import world_bodies  # the lead's module, when it exists
-    except ImportError:
-        world_bodies = None
-    if world_bodies is not None:
-        return list(world_bodies(scene, rng=rng))
-    bodies: list[Body] = []
-    try:
-        from testbed.phantom import make_phantom
-    except ImportError:
-        make_phantom = None
-    if make_phantom is not None:
-        phantom = make_phantom(scene.phantom, rng)
-        bodies += [b.transformed(scene.patient.ct2robot()) for b in phantom.bodies()]
-    from testbed.instruments import scene_instruments
-
-    bodies += scene_instruments(scene)
-    return bodies
-
-
 def render_view(scene, view: int, *, seed: int | None = None, bodies=None,
                 distortion: bool | None = None, noise: bool | None = None) -> Frame:
     """Render view number ``view`` (0-based) of an operating-room scene.
@@ -648,7 +622,9 @@ def render_view(scene, view: int, *, seed: int | None = None, bodies=None,
     ss = np.random.SeedSequence(seed)
     world_ss, noise_ss = ss.spawn(2)
     if bodies is None:
-        bodies = _world_bodies(scene, np.random.default_rng(world_ss))
+        from testbed.world import world_bodies
+
+        bodies = world_bodies(scene, np.random.default_rng(world_ss))
     vspec = scene.views[view]
     carm = make_carm(scene.fluoroscope, vspec, distortion=distortion, view_index=view)
     try:
