@@ -32,7 +32,7 @@ from scipy.spatial.transform import Rotation
 
 from reglib.apparent import SurfaceTopology, apparent_contours, prepare_surface
 from reglib.closest import ContourSet, closest_points, select_contours
-from reglib.geometry import RigidTransform, as_lines
+from reglib.geometry import RigidTransform, as_lines, skew
 from reglib.pose import solve_pose, tukey_weights
 
 __all__ = [
@@ -220,7 +220,7 @@ def solve_increment(points, origins, directions, *, normals=None, fixed_point=No
         if M is None:
             J = np.concatenate([np.cross(y, nrm), nrm], axis=1)[:, None, :dof]
         else:
-            J = np.concatenate([-np.einsum("nij,njk->nik", M, _skew_rows(y)), M], axis=2)
+            J = np.concatenate([-np.einsum("nij,njk->nik", M, skew(y)), M], axis=2)
             J = J[:, :, :dof]
         J2 = J.reshape(-1, dof)                     # one row per residual component
         wr = np.repeat(w, J.shape[1])
@@ -242,14 +242,6 @@ def solve_increment(points, origins, directions, *, normals=None, fixed_point=No
         s = max(float(np.median(dist)) / 0.6745, 1e-12 * scale)
         w = tukey_weights(dist / s, tukey_a)
     return RigidTransform(R_tot, t_tot), dist, w, ok, message
-
-
-def _skew_rows(x):
-    S = np.zeros(x.shape + (3,))
-    S[:, 0, 1], S[:, 0, 2] = -x[:, 2], x[:, 1]
-    S[:, 1, 0], S[:, 1, 2] = x[:, 2], -x[:, 0]
-    S[:, 2, 0], S[:, 2, 1] = -x[:, 1], x[:, 0]
-    return S
 
 
 # --------------------------------------------------------------------------- one view

@@ -106,15 +106,7 @@ def simulate_without_sweeps(scene, seed, *, n_clicks: int = 8, click_noise_px: f
     World, CT, reconstructed surfaces, X-ray frames and snake contours are simulated and
     estimated as in :func:`studies.end_to_end.simulate_case`.
     """
-    from reglib.xray_contours import xray_contours
-    from studies.end_to_end import (
-        CaseData,
-        ViewData,
-        _clicks_along,
-        _mask_outline,
-        _region_cut,
-    )
-    from studies.surfaces import reconstruct_surfaces
+    from studies.end_to_end import CaseData, ViewData, estimate_surfaces, snake_contours
     from testbed.ct import scan
     from testbed.fluoroscope import make_carm, render
     from testbed.world import build_world
@@ -130,14 +122,7 @@ def simulate_without_sweeps(scene, seed, *, n_clicks: int = 8, click_noise_px: f
     timings["world+ct"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     click_rng = np.random.default_rng(click_ss)
-    recon = reconstruct_surfaces(world.phantom, ct, rng=click_rng)
-    femur = world.phantom.femur
-    surfaces, true_surfaces = {}, {}
-    for region, (surf, _contours) in recon.items():
-        surfaces[region] = (np.asarray(surf.vertices, float), np.asarray(surf.faces, np.int64))
-        z = surf.vertices[:, 2]
-        true_surfaces[region] = _region_cut(np.asarray(femur.vertices, float),
-                                            np.asarray(femur.faces, np.int64), z.min(), z.max())
+    surfaces, true_surfaces = estimate_surfaces(world, ct, click_rng)
     timings["surfaces"] = time.perf_counter() - t0
     views = []
     xray_rngs = np.random.default_rng(xray_ss).spawn(len(scene.views))
@@ -147,14 +132,8 @@ def simulate_without_sweeps(scene, seed, *, n_clicks: int = 8, click_noise_px: f
         frame = render(carm, world.bodies, fluoro=scene.fluoroscope, rng=xray_rngs[i])
         timings["xray"] = timings.get("xray", 0.0) + time.perf_counter() - t0
         t0 = time.perf_counter()
-        mask = frame.mask(("cortical_bone", "cancellous_bone", "marrow"))
-        traces = [{"clicks_xy": _clicks_along(c, n_clicks, click_noise_px, click_rng),
-                   "label": "external", "closed": False}
-                  for c in _mask_outline(mask, frame.fov)]
-        found = xray_contours(frame.image_u8, traces) if traces else []
-        xy = np.vstack([c.points_xy for c in found]) if found else np.zeros((0, 2))
-        ext = (np.concatenate([np.full(len(c.points_xy), c.label == "external")
-                               for c in found]) if found else np.zeros(0, bool))
+        xy, ext = snake_contours(frame, click_rng, n_clicks=n_clicks,
+                                 click_noise_px=click_noise_px)
         timings["contours"] = timings.get("contours", 0.0) + time.perf_counter() - t0
         views.append(ViewData(name=vspec.name, region=vspec.region, carm=carm,
                               calibration=None, contour_xy=xy, contour_external=ext,

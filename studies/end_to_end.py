@@ -131,13 +131,50 @@ def _region_cut(mesh_vertices, mesh_faces, z_lo, z_hi):
     return mesh_vertices[used], inv.reshape(-1, 3)
 
 
+# --------------------------------------------------------------------------- estimation steps
+FEMUR_MATERIALS = ("cortical_bone", "cancellous_bone", "marrow")
+
+
+def estimate_surfaces(world, ct, click_rng):
+    """CT surfaces from snake contours (clicks simulated from the truth with ``click_rng``),
+    and the true femur cut to the same z ranges: two dicts region -> (vertices, faces)."""
+    from studies.surfaces import reconstruct_surfaces
+
+    recon = reconstruct_surfaces(world.phantom, ct, rng=click_rng)
+    femur = world.phantom.femur
+    surfaces, true_surfaces = {}, {}
+    for region, (surf, _contours) in recon.items():
+        surfaces[region] = (np.asarray(surf.vertices, float), np.asarray(surf.faces, np.int64))
+        z = surf.vertices[:, 2]
+        true_surfaces[region] = _region_cut(np.asarray(femur.vertices, float),
+                                            np.asarray(femur.faces, np.int64), z.min(), z.max())
+    return surfaces, true_surfaces
+
+
+def snake_contours(frame, click_rng, *, n_clicks: int = 8, click_noise_px: float = 1.0,
+                   femur_mask=None):
+    """Bone contours on an X-ray frame by ``reglib.xray_contours`` from a simulated user's
+    clicks along the true outline. Returns points (N, 2) px and their external flags (N,)."""
+    from reglib.xray_contours import xray_contours
+
+    if femur_mask is None:
+        femur_mask = frame.mask(FEMUR_MATERIALS)
+    traces = [{"clicks_xy": _clicks_along(c, n_clicks, click_noise_px, click_rng),
+               "label": "external", "closed": False}
+              for c in _mask_outline(femur_mask, frame.fov)]
+    found = xray_contours(frame.image_u8, traces) if traces else []
+    if not found:
+        return np.zeros((0, 2)), np.zeros(0, bool)
+    xy = np.vstack([c.points_xy for c in found])
+    ext = np.concatenate([np.full(len(c.points_xy), c.label == "external") for c in found])
+    return xy, ext
+
+
 # --------------------------------------------------------------------------- simulation
 def simulate_case(scene, seed: int, *, n_clicks: int = 8, click_noise_px: float = 1.0,
                   progress: bool = False) -> CaseData:
     """Simulate a case and run every estimation stage up to (not including) registration."""
     from reglib.calibration import SweepData, calibrate, find_markers
-    from reglib.xray_contours import xray_contours
-    from studies.surfaces import reconstruct_surfaces
     from testbed.ct import scan
     from testbed.fluoroscope import make_carm, render
     from testbed.robot import Robot
@@ -163,15 +200,9 @@ def simulate_case(scene, seed: int, *, n_clicks: int = 8, click_noise_px: float 
     tick("ct", t0)
     t0 = time.perf_counter()
     click_rng = np.random.default_rng(click_ss)
-    recon = reconstruct_surfaces(world.phantom, ct, rng=click_rng)
+    surfaces, true_surfaces = estimate_surfaces(world, ct, click_rng)
     tick("surfaces", t0)
-    surfaces, true_surfaces = {}, {}
     femur = world.phantom.femur
-    for region, (surf, _contours) in recon.items():
-        surfaces[region] = (np.asarray(surf.vertices, float), np.asarray(surf.faces, np.int64))
-        z = surf.vertices[:, 2]
-        true_surfaces[region] = _region_cut(np.asarray(femur.vertices, float),
-                                            np.asarray(femur.faces, np.int64), z.min(), z.max())
 
     views = []
     robot_rngs = np.random.default_rng(robot_ss).spawn(len(scene.views))
@@ -196,14 +227,9 @@ def simulate_case(scene, seed: int, *, n_clicks: int = 8, click_noise_px: float 
         tick("xray (simulation)", t0)
         # the user's clicks, from the true outline; the snake does the rest
         t0 = time.perf_counter()
-        femur_mask = frame.mask(("cortical_bone", "cancellous_bone", "marrow"))
-        chains = _mask_outline(femur_mask, frame.fov)
-        traces = [{"clicks_xy": _clicks_along(c, n_clicks, click_noise_px, click_rng),
-                   "label": "external", "closed": False} for c in chains]
-        found = xray_contours(frame.image_u8, traces) if traces else []
-        xy = (np.vstack([c.points_xy for c in found]) if found else np.zeros((0, 2)))
-        ext = (np.concatenate([np.full(len(c.points_xy), c.label == "external") for c in found])
-               if found else np.zeros(0, bool))
+        femur_mask = frame.mask(FEMUR_MATERIALS)
+        xy, ext = snake_contours(frame, click_rng, n_clicks=n_clicks,
+                                 click_noise_px=click_noise_px, femur_mask=femur_mask)
         tick("contours", t0)
         # truth: the femur's apparent contour, projected exactly
         sil = _silhouette_points(femur_robot, carm.source_robot)
