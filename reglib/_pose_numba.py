@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from reglib.geometry import MAD_TO_SIGMA
+
 STATUS_CONVERGED = 0
 STATUS_MAX_ITER = 1
 STATUS_FEW_WEIGHTS = 2
@@ -85,8 +87,13 @@ def _trust_step(C, g, r):
 
 
 @njit(cache=True)
-def iterate(p, o, Nb, R0, t0, robust, r, max_iterations, tol, a, fixed_scale, scale):
-    """Linearised iterations. Returns ``(R, t, iterations, status)``."""
+def iterate(p, o, Nb, R0, t0, robust, r, max_iterations, tol, a, fixed_scale, scale,
+            flat_cost):
+    """Linearised iterations. Returns ``(R, t, iterations, status)``.
+
+    Not robust ("linear"), it also stops, converged, when two iterations in a row changed
+    the cost (sum of squared distances) by at most ``flat_cost`` of it (as the reference).
+    """
     n = p.shape[0]
     R = R0.copy()
     tt = t0.copy()
@@ -100,6 +107,8 @@ def iterate(p, o, Nb, R0, t0, robust, r, max_iterations, tol, a, fixed_scale, sc
     row = np.empty(6)
     status = STATUS_MAX_ITER
     tol_t = tol * scale
+    cost_prev = np.inf
+    flat = 0
     it = 0
     for it in range(1, max_iterations + 1):  # noqa: B007 (returned)
         for i in range(n):
@@ -111,8 +120,21 @@ def iterate(p, o, Nb, R0, t0, robust, r, max_iterations, tol, a, fixed_scale, sc
             res[0, i] = r0
             res[1, i] = r1
             dist[i] = np.sqrt(r0 * r0 + r1 * r1)
+        if not robust:
+            cost = 0.0
+            for i in range(n):
+                cost += dist[i] * dist[i]
+            if abs(cost_prev - cost) <= flat_cost * cost_prev:
+                flat += 1
+            else:
+                flat = 0
+            cost_prev = cost
+            if flat >= 2:
+                status = STATUS_CONVERGED
+                it -= 1
+                break
         if robust:
-            s = fixed_scale if fixed_scale > 0 else np.median(dist) / 0.6745
+            s = fixed_scale if fixed_scale > 0 else np.median(dist) / MAD_TO_SIGMA
             if s < 1e-12 * scale:
                 s = 1e-12 * scale
             cnt = 0
@@ -191,6 +213,16 @@ def iterate(p, o, Nb, R0, t0, robust, r, max_iterations, tol, a, fixed_scale, sc
 
 
 @njit(cache=True)
+def unit_cross(ax, ay, az, bx, by, bz):
+    """The unit vector along ``a x b`` (scalars in, a 3-tuple out)."""
+    cx = ay * bz - az * by
+    cy = az * bx - ax * bz
+    cz = ax * by - ay * bx
+    nc = np.sqrt(cx * cx + cy * cy + cz * cz)
+    return cx / nc, cy / nc, cz / nc
+
+
+@njit(cache=True)
 def perp_basis(d):
     """Same as reglib.pose._perp_basis: (2, N, 3) unit vectors orthogonal to each row."""
     n = d.shape[0]
@@ -201,13 +233,7 @@ def perp_basis(d):
             ax, ay, az = 0.0, 1.0, 0.0
         else:  # a = e_x
             ax, ay, az = 1.0, 0.0, 0.0
-        n1x = ay * vz - az * vy
-        n1y = az * vx - ax * vz
-        n1z = ax * vy - ay * vx
-        nn = np.sqrt(n1x * n1x + n1y * n1y + n1z * n1z)
-        n1x /= nn
-        n1y /= nn
-        n1z /= nn
+        n1x, n1y, n1z = unit_cross(ax, ay, az, vx, vy, vz)
         out[0, i, 0] = n1x
         out[0, i, 1] = n1y
         out[0, i, 2] = n1z

@@ -26,6 +26,8 @@ import numpy as np
 from scipy import ndimage
 from skimage.segmentation import active_contour
 
+from reglib.geometry import arc_length
+
 __all__ = [
     "SliceContours",
     "contours_from_ct",
@@ -83,11 +85,7 @@ def resample_polygon(points_xy, spacing: float, *, closed: bool = True,
     -------
     (M, 2) array, ``min_points <= M <= max_points``.
     """
-    p = np.asarray(points_xy, dtype=np.float64)
-    if closed:
-        p = np.vstack([p, p[:1]])
-    seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
+    p, s = arc_length(points_xy, closed=closed)
     total = s[-1]
     if total <= 0:
         raise ValueError("polygon has zero length (all points coincide)")
@@ -142,7 +140,8 @@ def _outward(c: np.ndarray, n: np.ndarray, closed: bool) -> np.ndarray:
 
 def refine_subpixel(image, contour_xy, *, search_px: float = 2.5, step_px: float = 0.25,
                     closed: bool = True, polarity: str | None = None,
-                    max_jump_px: float = 1.0) -> np.ndarray:
+                    max_jump_px: float = 1.0, normal_sigma: float = 0.0,
+                    neighbour_edges: bool = False) -> np.ndarray:
     """Move each vertex along its normal to the sub-pixel position of the edge.
 
     ``image`` is sampled (bicubic) at ``step_px`` intervals within ``+-search_px`` along the
@@ -150,21 +149,42 @@ def refine_subpixel(image, contour_xy, *, search_px: float = 2.5, step_px: float
     with ``polarity="bright_inside"`` (or ``"dark_inside"``) it is taken as a smoothed
     intensity image and the edge is the maximum of its decrease (increase) outward, so that
     an inner edge of the opposite sense (the inner side of a cortical shell) is ignored.
-    A parabola through the best sample and its two neighbours gives the offset. A vertex
-    whose best sample lies at the end of the search range, or whose offset differs by more
-    than ``max_jump_px`` from the median offset of its 7 neighbours, takes that median.
+    A parabola through the best sample and its two neighbours gives the offset.
+
+    A vertex whose best sample lies at the end of the search range, or whose edge point
+    disagrees by more than ``max_jump_px`` with its neighbours', takes the median offset of
+    its 7 neighbours. Agreement is judged on the offsets (against that median: a jump to
+    another edge while the contour is still off) and, with ``neighbour_edges``, also on
+    the positions: the vertex is kept when its edge point lies within ``max_jump_px`` of
+    the edge points of the next vertex on either side, measured along its normal. Without
+    that second test a vertex the snake left off the edge (a tooth of 1-3 px whose
+    neighbours are already on the edge) is held where it is, its offset differing from
+    theirs: on CT slices of the distal femur single vertices stayed 1-2.5 mm inside the
+    bone, dents of the tiled surface that made dozens of spurious apparent contours and
+    pulled the registration 6 mm off (``tests/reglib/test_distal_mechanism.py``).
+    ``normal_sigma`` > 0 takes the normals of the contour smoothed over that many vertices,
+    so that a tooth does not turn its own normal along the edge.
 
     Parameters
     ----------
     image : (H, W) array (gradient norm, or smoothed intensity with ``polarity``).
     contour_xy : (K, 2) array, (x, y) px.
+    normal_sigma : Gaussian smoothing (in vertices) of the contour whose normals are used
+        (0: the contour's own central differences).
+    neighbour_edges : also accept an edge point that lies on the neighbours' edge curve
+        (see above; :func:`contours_from_ct` turns it on).
 
     Returns
     -------
     (K, 2) array, (x, y) px.
     """
     c = np.asarray(contour_xy, dtype=np.float64)
-    n = _outward(c, _normals(c, closed), closed)
+    if normal_sigma < 0:
+        raise ValueError(f"normal_sigma: expected >= 0 vertices, got {normal_sigma}")
+    shape = (c if normal_sigma == 0 else
+             ndimage.gaussian_filter1d(c, normal_sigma, axis=0,
+                                       mode="wrap" if closed else "nearest"))
+    n = _outward(c, _normals(shape, closed), closed)
     t = np.arange(-search_px, search_px + step_px / 2, step_px)
     px = c[:, None, 0] + t[None, :] * n[:, None, 0]
     py = c[:, None, 1] + t[None, :] * n[:, None, 1]
@@ -193,7 +213,16 @@ def refine_subpixel(image, contour_xy, *, search_px: float = 2.5, step_px: float
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows
         med = np.nanmedian(off[idx], axis=1)
     med = np.where(np.isfinite(med), med, 0.0)
-    bad = ~np.isfinite(off) | (np.abs(off - med) > max_jump_px)
+    # the edge points of the next vertex on either side, along this vertex's normal
+    edge = c + off[:, None] * n                      # NaN where no edge was found
+    side = np.arange(len(c))[:, None] + np.array([-1, 1])[None, :]
+    side = side % len(c) if closed else np.clip(side, 0, len(c) - 1)
+    along = np.einsum("ijk,ik->ij", edge[side] - c[:, None, :], n)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # both neighbours without an edge
+        beside = np.nanmean(along, axis=1)
+    on_their_curve = (np.abs(off - beside) <= max_jump_px) & neighbour_edges  # NaN: False
+    bad = ~np.isfinite(off) | ((np.abs(off - med) > max_jump_px) & ~on_their_curve)
     off = np.where(bad, med, off)
     return c + off[:, None] * n
 
@@ -228,6 +257,8 @@ def snake_contour(
     margin_px: float = 20.0,
     closed: bool = True,
     boundary_condition: str = "free",
+    normal_sigma: float = 0.0,
+    neighbour_edges: bool = False,
 ) -> np.ndarray:
     """A contour from a few clicks: a snake on a coarse, then on a fine potential.
 
@@ -248,6 +279,8 @@ def snake_contour(
     polarity : None (any edge: the gradient norm's ridge), ``"bright_inside"`` or
         ``"dark_inside"``: the sub-pixel step then seeks the edge of that sense only (bone
         is bright inside on CT).
+    normal_sigma, neighbour_edges : of the sub-pixel step (:func:`refine_subpixel`);
+        :func:`contours_from_ct` turns both on (1 vertex, True).
     margin_px : the work is done on a crop of the image around the clicks, this much larger.
     closed : a closed contour (periodic snake) or an open one (``boundary_condition`` of
         skimage, default "free").
@@ -310,10 +343,12 @@ def snake_contour(
     if subpixel:
         for _ in range(2):
             c = refine_subpixel(edge_img, c, closed=closed, polarity=polarity,
-                                search_px=search_px)
+                                search_px=search_px, normal_sigma=normal_sigma,
+                                neighbour_edges=neighbour_edges)
             c = resample_polygon(np.clip(c, 0, lim), spacing_px, closed=closed,
                                  min_points=len(c) // 2)
-        c = refine_subpixel(edge_img, c, closed=closed, polarity=polarity, search_px=search_px)
+        c = refine_subpixel(edge_img, c, closed=closed, polarity=polarity, search_px=search_px,
+                            normal_sigma=normal_sigma, neighbour_edges=neighbour_edges)
     return c + off
 
 
@@ -366,7 +401,9 @@ def contours_from_ct(
         contour on that slice (one for the femur, two at the condyles). A slice without clicks
         reuses those of the nearest clicked slice (by index; ties go to the lower index).
     snake_options : keyword options of :func:`snake_contour`; ``polarity`` defaults to
-        ``"bright_inside"`` (bone on CT) and ``search_px`` to 5 (beyond a cortical shell).
+        ``"bright_inside"`` (bone on CT), ``search_px`` to 5 (beyond a cortical shell),
+        ``normal_sigma`` to 1 and ``neighbour_edges`` to True (no vertex left off the edge:
+        see :func:`refine_subpixel`).
 
     Returns
     -------
@@ -382,7 +419,8 @@ def contours_from_ct(
         )
     if not clicks_xy:
         raise ValueError("clicks_xy is empty: give the clicks of at least one slice")
-    snake_options = {"polarity": "bright_inside", "search_px": 5.0, **snake_options}
+    snake_options = {"polarity": "bright_inside", "search_px": 5.0, "normal_sigma": 1.0,
+                     "neighbour_edges": True, **snake_options}
     keys = np.array(sorted(int(k) for k in clicks_xy))
     out = []
     for k in slice_indices:

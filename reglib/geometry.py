@@ -25,6 +25,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 __all__ = [
+    "MAD_TO_SIGMA",
+    "arc_length",
+    "robust_scale",
     "RigidTransform",
     "as_points",
     "as_lines",
@@ -321,3 +324,27 @@ def closest_point_to_lines(origins, directions, weights=None) -> np.ndarray:
     if s[-1] < 1e-9 * max(s[0], 1e-300):
         raise ValueError("closest_point_to_lines: lines are (nearly) parallel; no finite point")
     return np.linalg.solve(A, b)
+
+
+#: the median of |z| for a standard normal z: median(|r|) / MAD_TO_SIGMA estimates sigma
+MAD_TO_SIGMA = 0.6745
+
+
+def robust_scale(residuals) -> float:
+    """A robust standard deviation of residuals: ``median(|r|) / 0.6745`` (the scale of the
+    paper's Tukey weights)."""
+    return float(np.median(np.abs(np.asarray(residuals, dtype=np.float64)))) / MAD_TO_SIGMA
+
+
+def arc_length(points, *, closed: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Cumulative arc length along a polyline of (K, D) points (any unit).
+
+    Returns ``(P, s)``: the vertices (with the first repeated at the end when ``closed``) and
+    ``s`` (len(P),), ``s[0] = 0``, ``s[-1]`` the length; ``np.interp(t, s, P[:, k])`` then
+    samples the polyline at arc lengths ``t``.
+    """
+    P = np.asarray(points, dtype=np.float64)
+    if closed:
+        P = np.vstack([P, P[:1]])
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+    return P, s

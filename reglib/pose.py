@@ -18,7 +18,9 @@ Four methods, one entry point :func:`solve_pose`:
     minimise it subject to ``|u| <= r`` (default 0.1), solved exactly (the translation is
     eliminated, then the trust-region problem in ``u`` is solved by eigen-decomposition and
     a secular equation, which is what the paper's generalized SVD computes), apply the exact
-    Cayley rotation, iterate until the increments are small.
+    Cayley rotation, iterate until the increments are small or the cost stops decreasing
+    (two iterations in a row within ``FLAT_COST`` of it: on noisy data the increments
+    shrink only linearly, and 10-25 iterations reach the cost of 100).
 ``"robust"``
     The same linearised step, each point weighted by Tukey's biweight of its distance
     (``a = 2``, scale ``s = median(d) / 0.6745``); the 6x6 normal equations are formed with
@@ -26,8 +28,18 @@ Four methods, one entry point :func:`solve_pose`:
 ``"ransac"``
     Beyond the paper: minimal samples of three point-line pairs solved exactly (all real
     solutions of the three distance constraints along the lines, found by bracketing a 1-D
-    function and bisection), scored by their inliers, then refined by Tukey's biweight
-    with a scale fixed from the inliers. Survives far more than 40 % outliers.
+    function and regula falsi), scored by their inliers (MSAC for ties), then refined by
+    Tukey's biweight with a scale fixed from the inliers. Survives far more than 40 %
+    outliers. The lines are rays from their origins (cheirality): a hypothesis that puts a
+    sample point behind its origin is rejected and points behind never count as inliers, so
+    the exact mirror pose of planar points behind the source cannot win. The hypothesis loop
+    runs compiled (:mod:`reglib._ransac_numba`, about 12 us per trial) with the numpy loop
+    kept as its reference. A pose with fewer inliers than :func:`ransac_min_inliers`, or one
+    degree of freedom of which rests on one pair, is not converged.
+
+Every method's answer is judged before ``converged`` is reported: the rank of the (weighted)
+problem at the solution (parallel or identical lines, collinear points: undetermined) and,
+unless ``cheirality=False``, no inlier behind its line's origin.
 
 Linearisations rotate about the centroid of the current points, not about the origin, so
 that the trust radius ``r`` means the same in mm-scale robot coordinates as in the unit
@@ -36,17 +48,30 @@ cube. All methods start from ``initial`` (default: identity, as in the paper).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
-from reglib.geometry import RigidTransform, as_lines, as_points, cayley, skew
+from reglib.geometry import (
+    MAD_TO_SIGMA,
+    RigidTransform,
+    as_lines,
+    as_points,
+    cayley,
+    robust_scale,
+    skew,
+)
 
-__all__ = ["PoseResult", "solve_pose", "tukey_weights", "p3l_solutions", "MIN_POINTS"]
+__all__ = ["PoseResult", "solve_pose", "tukey_weights", "p3l_solutions", "MIN_POINTS",
+           "ransac_min_inliers"]
 
 Method = Literal["lm", "linear", "robust", "ransac"]
+#: "linear" stops (converged) when two iterations in a row changed its cost by at most this
+#: fraction of it: the cost stopped decreasing, the iterations only shuffle rounding errors
+FLAT_COST = 1e-10
 MIN_POINTS = {"lm": 3, "linear": 3, "robust": 4, "ransac": 4}  # robust: needs redundancy
 
 
@@ -115,7 +140,61 @@ def _check_inputs(points, origins, directions, method: str):
             "points: all points are collinear; the rotation about their common line is "
             "undetermined"
         )
+    # the lines: all parallel (a translation along them is free) or all one line
+    ev_d = np.linalg.eigvalsh(d.T @ d / len(d))
+    if not ev_d[1] > 1e-12:
+        off = (o - o[0]) - np.outer((o - o[0]) @ d[0], d[0])
+        if np.sqrt(np.max(np.sum(off * off, axis=1))) <= 1e-9 * max(1.0, np.abs(o).max()):
+            raise ValueError("lines: all lines are the same line; the pose is undetermined "
+                             "(degenerate geometry)")
+        raise ValueError("lines: all lines are parallel; the translation along them is "
+                         "undetermined (degenerate geometry)")
     return p, o, d
+
+
+def _check_options(method, *, max_iterations, tol, r, tukey_a, threshold, max_trials,
+                   confidence, backend):
+    """Clear ValueErrors for option values :func:`solve_pose` cannot use."""
+    if method not in MIN_POINTS:
+        raise ValueError(f"method: expected one of {sorted(MIN_POINTS)}, got {method!r}")
+    if backend not in ("auto", "numpy", "numba"):
+        raise ValueError(f"backend: expected 'auto', 'numpy' or 'numba', got {backend!r}")
+
+    def number(name, val, ok, what, allow_none=False):
+        if val is None and allow_none:
+            return
+        try:
+            good = bool(np.isfinite(float(val))) and bool(ok(float(val)))
+        except (TypeError, ValueError):
+            good = False
+        if isinstance(val, bool) or not good:
+            raise ValueError(f"{name}: expected {what}, got {val!r}")
+
+    for name, val in (("max_iterations", max_iterations), ("max_trials", max_trials)):
+        if isinstance(val, bool) or not isinstance(val, int | np.integer) or val < 1:
+            raise ValueError(f"{name}: expected an integer >= 1, got {val!r}")
+    number("tol", tol, lambda v: v >= 0, "a finite number >= 0")
+    number("r", r, lambda v: v > 0, "a finite trust radius > 0 (or None)", allow_none=True)
+    number("tukey_a", tukey_a, lambda v: v > 0, "a finite Tukey constant > 0")
+    number("threshold", threshold, lambda v: v > 0, "a finite inlier distance > 0 (or None)",
+           allow_none=True)
+    number("confidence", confidence, lambda v: 0 < v < 1, "a probability in (0, 1)")
+
+
+def _check_initial(initial) -> tuple[np.ndarray, np.ndarray]:
+    """``initial`` as (R (3, 3), t (3,)): a rotation (orthonormal, det +1) and finite."""
+    try:
+        R, t = (np.asarray(x, dtype=np.float64) for x in initial)
+    except (TypeError, ValueError):
+        raise ValueError("initial: expected a RigidTransform or a pair (R (3, 3), t (3,))"
+                         ) from None
+    if R.shape != (3, 3) or t.shape != (3,) or not (np.all(np.isfinite(R))
+                                                    and np.all(np.isfinite(t))):
+        raise ValueError(f"initial: expected a finite R (3, 3) and t (3,), got {R.shape} and "
+                         f"{t.shape}")
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise ValueError("initial: R is not a rotation (R^T R = I and det R = +1 are needed)")
+    return R, t
 
 
 # --------------------------------------------------------------------------- building blocks
@@ -265,7 +344,8 @@ def _iterate_linearised(p, o, d, R0, t0, *, robust, r, max_iterations, tol, a,
         R, tt, it, status = kernel.iterate(
             p, o, Nb, np.ascontiguousarray(R0, dtype=np.float64),
             np.ascontiguousarray(t0, dtype=np.float64), robust, r if r is not None else -1.0,
-            max_iterations, tol, a, -1.0 if fixed_scale is None else float(fixed_scale), scale)
+            max_iterations, tol, a, -1.0 if fixed_scale is None else float(fixed_scale), scale,
+            FLAT_COST)
         messages = {
             0: "",
             1: f"no convergence after {max_iterations} iterations",
@@ -275,7 +355,7 @@ def _iterate_linearised(p, o, d, R0, t0, *, robust, r, max_iterations, tol, a,
         }
         dist = kernel.distances(p, o, d, R, tt)
         if robust:
-            s = fixed_scale if fixed_scale is not None else _median(dist) / 0.6745
+            s = fixed_scale if fixed_scale is not None else _median(dist) / MAD_TO_SIGMA
             weights = tukey_weights(dist / max(s, 1e-12 * scale), a)
         else:
             weights = np.ones(len(p))
@@ -289,10 +369,11 @@ def _iterate_linearised(p, o, d, R0, t0, *, robust, r, max_iterations, tol, a,
     message = ""
     it = 0
     tol_t = tol * scale
+    cost_prev, flat = np.inf, 0
     for it in range(1, max_iterations + 1):
         if robust:
             dist = _distances(P, o, d)
-            s = fixed_scale if fixed_scale is not None else _median(dist) / 0.6745
+            s = fixed_scale if fixed_scale is not None else _median(dist) / MAD_TO_SIGMA
             s = max(s, 1e-12 * scale)
             weights = tukey_weights(dist / s, a)
             wsum = weights.sum()
@@ -303,7 +384,15 @@ def _iterate_linearised(p, o, d, R0, t0, *, robust, r, max_iterations, tol, a,
             m = (weights @ P) / wsum
         else:
             m = P.mean(axis=0)
-        C, g, _ = _linear_system(P, o, Nb, m, weights)
+        C, g, dist = _linear_system(P, o, Nb, m, weights)
+        if not robust:  # "linear": stop once the cost no longer decreases
+            cost = float(dist @ dist)
+            flat = flat + 1 if abs(cost_prev - cost) <= FLAT_COST * cost_prev else 0
+            cost_prev = cost
+            if flat >= 2:
+                converged = True
+                it -= 1  # no step taken in this iteration
+                break
         u, t, ok = _trust_region_step(C, g, r)
         if not ok:
             message = f"singular linear system at iteration {it} (degenerate geometry)"
@@ -318,7 +407,7 @@ def _iterate_linearised(p, o, d, R0, t0, *, robust, r, max_iterations, tol, a,
         message = f"no convergence after {max_iterations} iterations"
     dist = _distances(P, o, d)
     if robust and weights is not None:
-        s = fixed_scale if fixed_scale is not None else _median(dist) / 0.6745
+        s = fixed_scale if fixed_scale is not None else _median(dist) / MAD_TO_SIGMA
         weights = tukey_weights(dist / max(s, 1e-12 * scale), a)
     else:
         weights = np.ones(len(p))
@@ -469,33 +558,58 @@ def p3l_solutions(p, o, d, *, grid: int = 200):
     return _kabsch(A, X)
 
 
-def _solve_ransac(p, o, d, R0, t0, *, threshold, max_trials, confidence, rng,
-                  max_iterations, tol, a, r, backend):
+def _ransac_samples(rng, n: int, count: int) -> np.ndarray:
+    """``count`` uniformly drawn triples of distinct indices in ``range(n)``: (count, 3)."""
+    i0 = rng.integers(0, n, count)
+    i1 = rng.integers(0, n - 1, count)
+    i1 += i1 >= i0
+    lo, hi = np.minimum(i0, i1), np.maximum(i0, i1)
+    i2 = rng.integers(0, n - 2, count)
+    i2 += i2 >= lo
+    i2 += i2 >= hi
+    return np.stack([i0, i1, i2], axis=1).astype(np.int64)
+
+
+def _sample_is_degenerate(q) -> bool:
+    """Three points (3, 3) nearly collinear: the doubled triangle area below 1e-6 of the
+    longest squared side (the minimal problem is then ill-posed)."""
+    u, v = q[1] - q[0], q[2] - q[0]
+    area2 = np.sqrt(np.sum(np.cross(u, v) ** 2))
+    return not area2 >= 1e-6 * max(u @ u, v @ v, (v - u) @ (v - u))
+
+
+def _ransac_hypotheses_numpy(p, o, d, samples, thr, confidence, max_trials, grid,
+                             cheirality):
+    """The hypothesis loop in numpy: the reference of ``_ransac_numba.hypotheses`` (same
+    arguments and returns; see there)."""
     n = len(p)
-    scale = _scale_of(p)
-    thr = threshold if threshold is not None else 0.02 * scale
-    rng = np.random.default_rng(rng)
-    best_count, best_R, best_t, best_cost = -1, None, None, np.inf
+    best_R, best_t, best_count, best_cost = np.eye(3), np.zeros(3), -1, np.inf
     needed = max_trials
-    trial = 0
+    trial = behind = 0
     while trial < min(needed, max_trials):
+        idx = samples[trial]
         trial += 1
-        idx = rng.choice(n, 3, replace=False)
-        pi = p[idx]
-        c = pi - pi.mean(0)
-        sv = np.linalg.svd(c, compute_uv=False)
-        if sv[1] < 1e-6 * max(sv[0], 1e-300):
+        if _sample_is_degenerate(p[idx]):
             continue
-        Rs, ts = p3l_solutions(pi, o[idx], d[idx])
+        Rs, ts = p3l_solutions(p[idx], o[idx], d[idx], grid=grid)
         if len(Rs) == 0:
             continue
-        P = np.einsum("kij,nj->kni", Rs, p) + ts[:, None, :]  # (K, N, 3)
-        w_ = P - o
-        e = w_ - np.sum(w_ * d, axis=-1, keepdims=True) * d
-        dist = np.sqrt(np.sum(e * e, axis=-1))
-        inl = dist < thr
+        if cheirality:  # the sample's own points in front of their lines' origins
+            X = np.einsum("kij,nj->kni", Rs, p[idx]) + ts[:, None, :] - o[idx]
+            front = np.all(np.sum(X * d[idx], axis=-1) > 0, axis=1)
+            behind += int(np.count_nonzero(~front))
+            Rs, ts = Rs[front], ts[front]
+            if len(Rs) == 0:
+                continue
+        w_ = np.einsum("kij,nj->kni", Rs, p) + ts[:, None, :] - o  # (K, N, 3)
+        s = np.sum(w_ * d, axis=-1)
+        e = w_ - s[..., None] * d
+        q = np.sum(e * e, axis=-1)
+        inl = q < thr * thr
+        if cheirality:
+            inl &= s > 0
         counts = inl.sum(1)
-        costs = np.sum(np.minimum(dist, thr) ** 2, axis=1)  # MSAC score for ties
+        costs = np.sum(np.where(inl, q, thr * thr), axis=1)  # MSAC score for ties
         k = int(np.lexsort((costs, -counts))[0])
         if counts[k] > best_count or (counts[k] == best_count and costs[k] < best_cost):
             best_count, best_cost = int(counts[k]), float(costs[k])
@@ -505,29 +619,235 @@ def _solve_ransac(p, o, d, R0, t0, *, threshold, max_trials, confidence, rng,
                 needed = trial
             elif frac > 0:
                 needed = int(np.ceil(np.log(1 - confidence) / np.log(1 - frac**3)))
-    if best_R is None or best_count < 3:
+    return best_R, best_t, best_count, best_cost, trial, behind
+
+
+def _ransac_kernel(backend):
+    if backend == "numpy":
+        return None
+    try:
+        from reglib import _ransac_numba
+    except ImportError:  # numba missing: the numpy reference serves
+        if backend == "numba":
+            raise ValueError("backend 'numba' asked for but numba is not installed") from None
+        return None
+    return _ransac_numba
+
+
+def ransac_min_inliers(n: int) -> int:
+    """Fewest inliers (of ``n`` point-line pairs) for a RANSAC pose to mean anything.
+
+    A minimal sample fits its own three pairs exactly, so three inliers say nothing; on
+    random lines the best of 2000 hypotheses gathers up to two or three more by chance.
+    Required: three pairs beyond the sample and a tenth of all pairs (below that the
+    2000 trials find an all-inlier sample with less than 86 % probability anyway), but
+    never more than ``n``.
+    """
+    return int(min(n, max(6, np.ceil(0.1 * n))))
+
+
+def _solve_ransac(p, o, d, R0, t0, *, threshold, max_trials, confidence, rng,
+                  max_iterations, tol, a, r, backend, cheirality=True, grid=200):
+    n = len(p)
+    scale = _scale_of(p)
+    thr = threshold if threshold is not None else 0.02 * scale
+    rng = np.random.default_rng(rng)
+    samples = _ransac_samples(rng, n, max_trials)
+    kernel = _ransac_kernel(backend)
+    loop = kernel.hypotheses if kernel is not None else _ransac_hypotheses_numpy
+    best_R, best_t, best_count, _, trial, behind = loop(
+        p, o, d, samples, float(thr), float(confidence), int(max_trials), int(grid),
+        bool(cheirality))
+    if best_count < 3:
         dist = _distances(p @ R0.T + t0, o, d)
         w = np.zeros(n)
+        why = (f" ({behind} put their sample behind the lines' origins)" if behind else "")
         return PoseResult(R0, t0, dist, w, w > 0, 0, False, "ransac",
-                          f"no minimal sample gave a pose with >= 3 inliers in {trial} trials",
-                          trial)
+                          f"no minimal sample gave a pose in {trial} trials{why}", trial)
+    best_R, best_t = np.asarray(best_R), np.asarray(best_t)
     # refine: Tukey with a scale fixed from the inliers of the best hypothesis
     dist = _distances(p @ best_R.T + best_t, o, d)
     inl = dist < thr
-    s = max(np.median(dist[inl]) / 0.6745, thr / (2 * a))
+    s = max(robust_scale(dist[inl]), thr / (2 * a))
     res = _iterate_linearised(p, o, d, best_R, best_t, robust=True, r=r,
                               max_iterations=max_iterations, tol=tol, a=max(a, 3.0),
                               fixed_scale=s, method="ransac", backend=backend)
+    converged, message = res.converged, res.message
+    need = ransac_min_inliers(n)
+    k = int(np.count_nonzero(res.inliers))
+    if converged and k < need:
+        converged, message = False, (
+            f"only {k} of {n} pairs are inliers (the best hypothesis had {best_count}); at "
+            f"least {need} are needed for the pose to mean anything (a minimal sample fits "
+            "its own 3 exactly): the points do not fit the lines")
     return PoseResult(res.R, res.t, res.residuals, res.weights, res.inliers, res.iterations,
-                      res.converged, "ransac", res.message, trial)
+                      converged, "ransac", message, trial)
 
 
 # --------------------------------------------------------------------------- entry point
+# --------------------------------------------------------------------------- constrained IRLS
+def _solve_irls(points, origins, directions, *, normals=None, fixed_point=None,
+                robust: bool = True, tukey_a: float = 2.0, max_iterations: int = 20,
+                tol: float = 1e-10):
+    """Rigid update that puts ``points`` on their lines: robust Gauss-Newton (IRLS).
+
+    The paper's linearised robust solver for the two cases of :func:`solve_pose`'s
+    ``fixed_point`` and ``normals``: a rotation about a fixed point (experiment 1) and a
+    residual measured only along a given normal of each line (the across-contour residual of
+    :func:`reglib.register.register`). The update is
+    linearised as ``x' = x + w x (x - m) + tau`` about the (weighted) centroid ``m`` of the
+    points, or about ``fixed_point`` (then ``tau = 0``), and each step is applied exactly
+    (rotation vector ``w``). Weights: Tukey's biweight, ``a = tukey_a``, scale
+    ``median(|r|) / 0.6745``.
+
+    Parameters
+    ----------
+    points : (N, 3) mm, the matched points with the current pose applied (lines' frame).
+    origins, directions : (N, 3) mm and unit, the lines.
+    normals : (N, 3) unit vectors orthogonal to the directions, or None. With normals the
+        residual is the scalar ``n . (x - o)`` (distance to the plane through the line with
+        normal n); without, the 3-vector ``(I - d d^T)(x - o)`` (distance to the line).
+    fixed_point : (3,) mm or None; when given only a rotation about it is solved.
+
+    Returns
+    -------
+    (update: RigidTransform in the lines' frame, residuals (N,) mm at the end,
+     weights (N,), ok: bool, message: str)
+    """
+    x = np.array(points, dtype=np.float64)
+    o, d = as_lines(origins, directions)
+    if x.shape != o.shape:
+        raise ValueError(f"points {x.shape} and lines {o.shape} must have the same shape")
+    dof = 3 if fixed_point is not None else 6
+    need = 2 if fixed_point is not None else 3
+    if normals is not None:
+        nrm = np.asarray(normals, dtype=np.float64)
+        if nrm.shape != x.shape:
+            raise ValueError(f"normals {nrm.shape} must have the shape of points {x.shape}")
+        need = dof
+    if len(x) < need:
+        raise ValueError(f"at least {need} point-line pairs are needed with "
+                         f"{'normals' if normals is not None else 'a fixed point'}, "
+                         f"got {len(x)}")
+    M = None if normals is not None else np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+    f = None if fixed_point is None else np.asarray(fixed_point, dtype=np.float64).reshape(3)
+    scale = float(np.sqrt(np.mean(np.sum((x - x.mean(0)) ** 2, axis=1)))) or 1.0
+    R_tot, t_tot = np.eye(3), np.zeros(3)
+    w = np.ones(len(x))
+
+    def residuals(x):
+        if M is None:
+            r = np.einsum("ij,ij->i", nrm, x - o)
+            return r[:, None], np.abs(r)
+        r = np.einsum("nij,nj->ni", M, x - o)
+        return r, np.linalg.norm(r, axis=1)
+
+    ok, message = True, ""
+    for _ in range(max_iterations):
+        r, dist = residuals(x)
+        if robust:
+            s = max(robust_scale(dist), 1e-12 * scale)
+            w = tukey_weights(dist / s, tukey_a)
+            if np.count_nonzero(w) < need:
+                return (RigidTransform(R_tot, t_tot), dist, w, False,
+                        f"fewer than {need} matches kept by the biweight")
+        m = f if f is not None else (w @ x) / w.sum()
+        y = x - m
+        if M is None:
+            J = np.concatenate([np.cross(y, nrm), nrm], axis=1)[:, None, :dof]
+        else:
+            J = np.concatenate([-np.einsum("nij,njk->nik", M, skew(y)), M], axis=2)
+            J = J[:, :, :dof]
+        J2 = J.reshape(-1, dof)                     # one row per residual component
+        wr = np.repeat(w, J.shape[1])
+        A = J2.T @ (wr[:, None] * J2)
+        b = -J2.T @ (wr * r.reshape(-1))
+        sv = np.linalg.svd(A, compute_uv=False)
+        if sv[-1] <= 1e-12 * max(sv[0], 1e-300):
+            return (RigidTransform(R_tot, t_tot), dist, w, False,
+                    "the update is undetermined by the matches (degenerate geometry)")
+        delta = np.linalg.solve(A, b)
+        Q = Rotation.from_rotvec(delta[:3]).as_matrix()
+        tau = delta[3:] if dof == 6 else np.zeros(3)
+        x = y @ Q.T + m + tau
+        R_tot, t_tot = Q @ R_tot, Q @ (t_tot - m) + m + tau
+        if delta[:3] @ delta[:3] < tol * tol and tau @ tau < (tol * scale) ** 2:
+            break
+    _, dist = residuals(x)
+    if robust:
+        s = max(robust_scale(dist), 1e-12 * scale)
+        w = tukey_weights(dist / s, tukey_a)
+    return RigidTransform(R_tot, t_tot), dist, w, ok, message
+
+
+def _undetermined(P, o, d, weights, *, single_pairs: bool = False) -> str:
+    """Why the pose is not determined by the pairs at the moved points ``P`` (N, 3), or "".
+
+    The rank test of the problem itself: the (weighted) Jacobian of the point-line residuals
+    with respect to a rotation about the kept points' centroid (scaled by their RMS radius)
+    and a translation must have rank 6. Parallel or identical lines (a translation along
+    them is free), collinear points (a rotation about their line), lines in one plane with
+    the points in it, and too few kept pairs all fail it. With ``single_pairs`` a pose one
+    degree of freedom of which rests on a single pair fails too (the pair's leverage, the
+    largest eigenvalue of its 2x2 block of ``J C^-1 J^T``, is 1: without it the rank drops;
+    e.g. collinear inliers whose free rotation one outlier happens to fix). Exactly
+    determined problems (three pairs) have leverage 1 everywhere, so only RANSAC, whose
+    inliers must be redundant, asks for it.
+    """
+    keep = weights > 0
+    k = int(np.count_nonzero(keep))
+    if k < 3:
+        return f"degenerate geometry: only {k} pairs kept, 3 at least are needed"
+    Pk, dk, wk = P[keep], d[keep], np.sqrt(weights[keep])
+    m = (wk**2 @ Pk) / np.sum(wk**2)
+    size = _scale_of(Pk)
+    Nb = _perp_basis(dk)
+    J = np.empty((2, k, 6))
+    J[:, :, :3] = _cross(Nb, (Pk - m)[None]) / size
+    J[:, :, 3:] = Nb
+    J *= wk[None, :, None]
+    Jf = J.reshape(-1, 6)
+    ev = np.linalg.eigvalsh(Jf.T @ Jf)
+    if not ev[0] > 1e-12 * ev[-1]:
+        rank = int(np.count_nonzero(ev > 1e-12 * ev[-1]))
+        return (f"degenerate geometry: the {k} kept point-line pairs determine the pose only "
+                f"up to {6 - rank} degree(s) of freedom (rank {rank} of 6: parallel or "
+                "identical lines, collinear points, or points and lines in one plane)")
+    if single_pairs:
+        G = np.linalg.solve(Jf.T @ Jf, J.reshape(-1, 6).T).reshape(6, 2, k)
+        B = np.einsum("rkj,jsk->krs", J, G)  # (k, 2, 2): each pair's block of J C^-1 J^T
+        tr, det = B[:, 0, 0] + B[:, 1, 1], B[:, 0, 0] * B[:, 1, 1] - B[:, 0, 1] * B[:, 1, 0]
+        lev = 0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))
+        if np.max(lev) > 1.0 - 1e-6:
+            return (f"degenerate geometry: one degree of freedom of the pose rests on a single "
+                    f"pair of the {k} kept (its leverage is 1; without it the pose is "
+                    "undetermined: e.g. collinear inliers and one stray pair)")
+    return ""
+
+
+def _verdict(res: PoseResult, p, o, d, cheirality: bool) -> PoseResult:
+    """The solution's own checks: rank (a degenerate problem) and cheirality (a mirror
+    pose with inliers behind their lines' origins) turn ``converged`` off."""
+    if not res.converged:
+        return res
+    P = p @ res.R.T + res.t
+    why = _undetermined(P, o, d, res.weights, single_pairs=res.method == "ransac")
+    if not why and cheirality:
+        depth = np.sum((P - o) * d, axis=1)
+        bad = res.inliers & ~(depth > 0)
+        if np.any(bad):
+            why = (f"cheirality: {int(np.count_nonzero(bad))} of the "
+                   f"{int(np.count_nonzero(res.inliers))} inliers lie behind their lines' "
+                   "origins (a mirror pose behind the source)")
+    return res if not why else replace(res, converged=False, message=why)
+
+
 def solve_pose(points, origins, directions, method: Method = "robust", *, initial=None,
                max_iterations: int = 100, tol: float = 1e-12, r: float = 0.1,
                tukey_a: float = 2.0, threshold: float | None = None, max_trials: int = 2000,
-               confidence: float = 0.999, rng=None, check: bool = True,
-               backend: Literal["auto", "numpy", "numba"] = "auto") -> PoseResult:
+               confidence: float = 0.999, rng=0, check: bool = True,
+               backend: Literal["auto", "numpy", "numba"] = "auto", normals=None,
+               fixed_point=None, cheirality: bool = True) -> PoseResult:
     """Rigid transform that puts ``points`` on their ``lines``.
 
     Parameters
@@ -536,48 +856,96 @@ def solve_pose(points, origins, directions, method: Method = "robust", *, initia
     origins, directions : (N, 3) each; lines in the target frame (e.g. ``robot``), unit
         directions. Point i corresponds to line i.
     method : "lm" | "linear" | "robust" | "ransac" (see the module docstring).
-    initial : RigidTransform or (R, t), the starting pose (default identity).
+    initial : RigidTransform or (R, t), the starting pose (default identity); R must be a
+        rotation (``R^T R = I``, ``det R = +1``) and both finite, else ValueError.
     max_iterations : iterations of the linearised methods (LM: 10x as many evaluations).
     tol : stop when the Cayley increment |u| < tol and |t| < tol * (size of the cloud).
+        "linear" also stops, converged, when its cost (the sum of squared distances) stopped
+        decreasing: two iterations in a row changed it by at most 1e-10 of itself.
     r : trust radius on the Cayley increment per iteration (paper: 0.1).
     tukey_a : Tukey's constant a, in units of the robust scale (paper: 2).
     threshold : "ransac" inlier distance (units of the input); default 2 % of the RMS radius
         of the point cloud.
     max_trials, confidence : "ransac" sampling limits.
-    rng : seed or numpy Generator for "ransac".
-    check : validate the input (shape, finite values, unit directions, degenerate points).
-    backend : the linearised iterations run compiled with numba ("auto" when numba is
-        installed) or in numpy (the reference implementation).
+    rng : seed or numpy Generator for "ransac" (default 0: the same call, the same pose).
+    check : validate the input (shape, finite values, unit directions, degenerate points
+        and lines).
+    backend : the linearised iterations and the RANSAC hypothesis loop run compiled with
+        numba ("auto" when numba is installed) or in numpy (the reference implementation).
+    normals : (N, 3) unit vectors orthogonal to the directions, or None. Given, the residual
+        of a pair is only its component along the normal (the distance to the plane through
+        the line with that normal: the across-contour residual of the registration loop).
+    fixed_point : (3,) point (target frame) or None. Given, only a rotation about it is
+        solved (the paper's experiment 1, a located pin).
+        With ``normals`` or ``fixed_point`` the solve is a Gauss-Newton IRLS
+        (:func:`_solve_irls`), Tukey-weighted for "robust" and unweighted for "linear";
+        ``max_iterations`` and ``tol`` apply to it, and "lm" and "ransac" are refused.
+    cheirality : the lines are rays leaving their origins along their directions (X-ray
+        paths from the source): "ransac" rejects a hypothesis that puts one of its sample
+        points behind its origin and never counts a point behind as an inlier, and no
+        method reports ``converged`` when an inlier lies behind its origin (the mirror
+        pose that planar points admit). False: full lines, origins anywhere on them.
 
     Returns
     -------
-    PoseResult (falsy when not converged; ``message`` says why).
+    PoseResult (falsy when not converged; ``message`` says why). Besides the method's own
+    failures, ``converged`` is False for a degenerate problem (the kept pairs determine the
+    pose only up to some motion: the rank test), for a cheirality violation, and for a
+    "ransac" pose with fewer inliers than :func:`ransac_min_inliers`.
 
     Raises
     ------
     ValueError for bad input: unknown method, fewer points than the method needs, NaN or
-    inf, shapes that disagree, zero or non-unit directions, coincident or collinear points.
+    inf, shapes that disagree, zero or non-unit directions, coincident or collinear points,
+    parallel or identical lines, an ``initial`` that is not a rigid transform, and
+    option values out of range (``tukey_a``, ``tol``, ``r``, ``threshold``,
+    ``max_iterations``, ``max_trials``, ``confidence``).
     """
-    if check:
-        p, o, d = _check_inputs(points, origins, directions, method)
-    else:
-        p, o, d = (np.asarray(x, dtype=np.float64) for x in (points, origins, directions))
+    _check_options(method, max_iterations=max_iterations, tol=tol, r=r, tukey_a=tukey_a,
+                   threshold=threshold, max_trials=max_trials, confidence=confidence,
+                   backend=backend)
+    if normals is not None or fixed_point is not None:
+        if method not in ("robust", "linear"):
+            raise ValueError(f"method {method!r} cannot solve with normals or a fixed point; "
+                             "use 'robust' or 'linear'")
+        x = as_points(points, "points")
+        T0 = (RigidTransform(np.eye(3), np.zeros(3)) if initial is None
+              else initial if isinstance(initial, RigidTransform)
+              else RigidTransform(*_check_initial(initial)))
+        U, dist, w, ok, msg = _solve_irls(T0.apply(x), origins, directions, normals=normals,
+                                          fixed_point=fixed_point, robust=method == "robust",
+                                          tukey_a=tukey_a, max_iterations=max_iterations,
+                                          tol=max(tol, 1e-10))
+        T = U @ T0
+        res = PoseResult(T.R, T.t, dist, w, w > 0, max_iterations, bool(ok), method, msg)
+        if res.converged and cheirality:
+            o, d = as_lines(origins, directions)
+            depth = np.sum((T.apply(x) - o) * d, axis=1)
+            bad = res.inliers & ~(depth > 0)
+            if np.any(bad):
+                res = replace(res, converged=False, message=(
+                    f"cheirality: {int(np.count_nonzero(bad))} of the "
+                    f"{int(np.count_nonzero(res.inliers))} inliers lie behind their lines' "
+                    "origins (a mirror pose behind the source)"))
+        return res
     if initial is None:
         R0, t0 = np.eye(3), np.zeros(3)
     elif isinstance(initial, RigidTransform):
         R0, t0 = initial.R.copy(), initial.t.copy()
     else:
-        R0, t0 = (np.asarray(x, dtype=np.float64) for x in initial)
+        R0, t0 = _check_initial(initial)
+    if check:
+        p, o, d = _check_inputs(points, origins, directions, method)
+    else:
+        p, o, d = (np.asarray(x, dtype=np.float64) for x in (points, origins, directions))
     if method == "lm":
-        return _solve_lm(p, o, d, R0, t0, max_iterations=max_iterations, tol=max(tol, 1e-15))
-    if method == "linear":
-        return _iterate_linearised(p, o, d, R0, t0, robust=False, r=r,
-                                   max_iterations=max_iterations, tol=tol, a=tukey_a,
-                                   method="linear", backend=backend)
-    if method == "robust":
-        return _iterate_linearised(p, o, d, R0, t0, robust=True, r=r,
-                                   max_iterations=max_iterations, tol=tol, a=tukey_a,
-                                   method="robust", backend=backend)
-    return _solve_ransac(p, o, d, R0, t0, threshold=threshold, max_trials=max_trials,
-                         confidence=confidence, rng=rng, max_iterations=max_iterations,
-                         tol=tol, a=tukey_a, r=r, backend=backend)
+        res = _solve_lm(p, o, d, R0, t0, max_iterations=max_iterations, tol=max(tol, 1e-15))
+    elif method in ("linear", "robust"):
+        res = _iterate_linearised(p, o, d, R0, t0, robust=method == "robust", r=r,
+                                  max_iterations=max_iterations, tol=tol, a=tukey_a,
+                                  method=method, backend=backend)
+    else:
+        res = _solve_ransac(p, o, d, R0, t0, threshold=threshold, max_trials=max_trials,
+                            confidence=confidence, rng=rng, max_iterations=max_iterations,
+                            tol=tol, a=tukey_a, r=r, backend=backend, cheirality=cheirality)
+    return _verdict(res, p, o, d, cheirality)

@@ -11,11 +11,12 @@ once:
    path;
 3. the pose is solved from all matched points (CT frame) and paths (robot frame), starting at
    the current pose (:func:`reglib.pose.solve_pose`, robust by default), or, with a fixed
-   point, a rotation about that point only (:func:`solve_increment`);
+   point, a rotation about that point only (``solve_pose`` with ``fixed_point``);
 4. stop when the step is below ``tol_step_mm``, the residual below ``tol_residual_mm``, or
    after ``max_iterations``; fail (``converged=False`` with a ``reason``) on an empty view, a
-   view without apparent contour, a pose solve that breaks down, too few inliers, or a pose
-   that runs away from the start (divergence).
+   view without apparent contour, a pose solve that breaks down, too few inliers, a pose
+   that runs away from the start (divergence), or a final pose that puts kept surface
+   points behind a view's centre of perspective (cheirality: a mirror pose).
 
 Frames: surfaces in ``ct`` (mm); views (centers and paths) in ``robot`` (mm); the result is
 ``ct2robot`` (``x_robot = R x_ct + t``).
@@ -23,17 +24,18 @@ Frames: surfaces in ``ct`` (mm); views (centers and paths) in ``robot`` (mm); th
 
 from __future__ import annotations
 
+import inspect
 import time
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from reglib.apparent import SurfaceTopology, apparent_contours, prepare_surface
 from reglib.closest import ContourSet, closest_points, select_contours
-from reglib.geometry import RigidTransform, as_lines, skew
-from reglib.pose import solve_pose, tukey_weights
+from reglib.geometry import RigidTransform, as_lines
+from reglib.pose import _check_options as _check_pose_options
+from reglib.pose import solve_pose
 
 __all__ = [
     "IterationRecord",
@@ -41,7 +43,6 @@ __all__ = [
     "View",
     "match_view",
     "register",
-    "solve_increment",
 ]
 
 
@@ -152,98 +153,6 @@ class RegistrationResult:
         return float(np.mean(self.weights > 0)) if self.weights.size else 0.0
 
 
-# --------------------------------------------------------------------------- own solver
-def solve_increment(points, origins, directions, *, normals=None, fixed_point=None,
-                    robust: bool = True, tukey_a: float = 2.0, max_iterations: int = 20,
-                    tol: float = 1e-10):
-    """Rigid update that puts ``points`` on their lines: robust Gauss-Newton (IRLS).
-
-    The paper's linearised robust solver, written for the two cases ``solve_pose`` does not
-    cover: a rotation about a fixed point (experiment 1) and a residual measured only along
-    a given normal of each line (the "normal" residual of :func:`register`). The update is
-    linearised as ``x' = x + w x (x - m) + tau`` about the (weighted) centroid ``m`` of the
-    points, or about ``fixed_point`` (then ``tau = 0``), and each step is applied exactly
-    (rotation vector ``w``). Weights: Tukey's biweight, ``a = tukey_a``, scale
-    ``median(|r|) / 0.6745``.
-
-    Parameters
-    ----------
-    points : (N, 3) mm, the matched points with the current pose applied (lines' frame).
-    origins, directions : (N, 3) mm and unit, the lines.
-    normals : (N, 3) unit vectors orthogonal to the directions, or None. With normals the
-        residual is the scalar ``n . (x - o)`` (distance to the plane through the line with
-        normal n); without, the 3-vector ``(I - d d^T)(x - o)`` (distance to the line).
-    fixed_point : (3,) mm or None; when given only a rotation about it is solved.
-
-    Returns
-    -------
-    (update: RigidTransform in the lines' frame, residuals (N,) mm at the end,
-     weights (N,), ok: bool, message: str)
-    """
-    x = np.array(points, dtype=np.float64)
-    o, d = as_lines(origins, directions)
-    if x.shape != o.shape:
-        raise ValueError(f"points {x.shape} and lines {o.shape} must have the same shape")
-    dof = 3 if fixed_point is not None else 6
-    need = 2 if fixed_point is not None else 3
-    if normals is not None:
-        nrm = np.asarray(normals, dtype=np.float64)
-        if nrm.shape != x.shape:
-            raise ValueError(f"normals {nrm.shape} must have the shape of points {x.shape}")
-        need = dof
-    if len(x) < need:
-        raise ValueError(f"solve_increment needs at least {need} matches, got {len(x)}")
-    M = None if normals is not None else np.eye(3)[None] - d[:, :, None] * d[:, None, :]
-    f = None if fixed_point is None else np.asarray(fixed_point, dtype=np.float64).reshape(3)
-    scale = float(np.sqrt(np.mean(np.sum((x - x.mean(0)) ** 2, axis=1)))) or 1.0
-    R_tot, t_tot = np.eye(3), np.zeros(3)
-    w = np.ones(len(x))
-
-    def residuals(x):
-        if M is None:
-            r = np.einsum("ij,ij->i", nrm, x - o)
-            return r[:, None], np.abs(r)
-        r = np.einsum("nij,nj->ni", M, x - o)
-        return r, np.linalg.norm(r, axis=1)
-
-    ok, message = True, ""
-    for _ in range(max_iterations):
-        r, dist = residuals(x)
-        if robust:
-            s = max(float(np.median(dist)) / 0.6745, 1e-12 * scale)
-            w = tukey_weights(dist / s, tukey_a)
-            if np.count_nonzero(w) < need:
-                return (RigidTransform(R_tot, t_tot), dist, w, False,
-                        f"fewer than {need} matches kept by the biweight")
-        m = f if f is not None else (w @ x) / w.sum()
-        y = x - m
-        if M is None:
-            J = np.concatenate([np.cross(y, nrm), nrm], axis=1)[:, None, :dof]
-        else:
-            J = np.concatenate([-np.einsum("nij,njk->nik", M, skew(y)), M], axis=2)
-            J = J[:, :, :dof]
-        J2 = J.reshape(-1, dof)                     # one row per residual component
-        wr = np.repeat(w, J.shape[1])
-        A = J2.T @ (wr[:, None] * J2)
-        b = -J2.T @ (wr * r.reshape(-1))
-        sv = np.linalg.svd(A, compute_uv=False)
-        if sv[-1] <= 1e-12 * max(sv[0], 1e-300):
-            return (RigidTransform(R_tot, t_tot), dist, w, False,
-                    "the update is undetermined by the matches (degenerate geometry)")
-        delta = np.linalg.solve(A, b)
-        Q = Rotation.from_rotvec(delta[:3]).as_matrix()
-        tau = delta[3:] if dof == 6 else np.zeros(3)
-        x = y @ Q.T + m + tau
-        R_tot, t_tot = Q @ R_tot, Q @ (t_tot - m) + m + tau
-        if delta[:3] @ delta[:3] < tol * tol and tau @ tau < (tol * scale) ** 2:
-            break
-    _, dist = residuals(x)
-    if robust:
-        s = max(float(np.median(dist)) / 0.6745, 1e-12 * scale)
-        w = tukey_weights(dist / s, tukey_a)
-    return RigidTransform(R_tot, t_tot), dist, w, ok, message
-
-
 # --------------------------------------------------------------------------- one view
 def match_view(surfaces, view: View, ct2robot: RigidTransform, *, closest: str = "blocks",
                selection: Literal["paper", "closest"] = "paper",
@@ -317,6 +226,25 @@ def _as_topologies(surfaces):
     return out
 
 
+#: solve_pose's checked options and their defaults
+_POSE_DEFAULTS = {"max_iterations": 100, "tol": 1e-12, "r": 0.1, "tukey_a": 2.0,
+                  "threshold": None, "max_trials": 2000, "confidence": 0.999,
+                  "backend": "auto"}
+
+
+def _check_solver_options(method, opts):
+    """``solver_options`` holds only what ``solve_pose`` takes and register does not set."""
+    params = set(inspect.signature(solve_pose).parameters)
+    mine = {"points", "origins", "directions", "method", "initial", "normals", "fixed_point"}
+    unknown = sorted(set(opts) - params)
+    if unknown:
+        raise ValueError(f"solver_options: unknown option(s) {unknown} of solve_pose")
+    taken = sorted(set(opts) & mine)
+    if taken:
+        raise ValueError(f"solver_options: {taken} are set by register itself (use its "
+                         "method, initial and fixed_point_ct arguments)")
+
+
 def register(surfaces, views, initial: RigidTransform, *,
              method: Literal["robust", "lm", "linear", "ransac"] = "robust",
              closest: Literal["blocks", "dense", "hierarchy", "reference"] = "blocks",
@@ -327,6 +255,7 @@ def register(surfaces, views, initial: RigidTransform, *,
              tol_step_mm: float = 1e-4, tol_residual_mm: float = 0.0,
              stall_window: int = 5, tol_stall_mm: float = 0.1, max_motion_mm: float = 150.0,
              max_rotation_deg: float = 45.0, min_inlier_fraction: float = 0.2,
+             stale_window: int = 10,
              solver_iterations: int = 20, solver_options: dict | None = None
              ) -> RegistrationResult:
     """Register CT surfaces to the X-ray paths of several views (the paper's loop).
@@ -338,8 +267,8 @@ def register(surfaces, views, initial: RigidTransform, *,
     initial : RigidTransform ``ct2robot``, the start pose.
     method : pose solver of :func:`reglib.pose.solve_pose` (default "robust", the paper's),
         used with ``residual="line"``. With ``residual="normal"`` or ``fixed_point_ct`` the
-        loop's own IRLS solver (:func:`solve_increment`) is used instead: robust (Tukey)
-        unless ``method="linear"``; "lm" and "ransac" then also mean robust.
+        solve is ``solve_pose``'s constrained IRLS (``normals``, ``fixed_point``): robust
+        (Tukey) or ``"linear"``; "lm" and "ransac" are refused there (ValueError).
     closest : Step A method of :func:`reglib.closest.closest_points` (default "blocks",
         restricted to the contours Step B can select; all methods give the same matches).
     selection : "paper" (Step B: external paths take the farthest stabbed contour, else the
@@ -352,7 +281,7 @@ def register(surfaces, views, initial: RigidTransform, *,
         "normal" (only the component across the apparent contour, i.e. the distance from
         the point to the plane through the path along the contour; the matched point may
         slide along the contour, which converges in far fewer iterations, like
-        point-to-plane ICP). "normal" and ``fixed_point_ct`` use :func:`solve_increment`.
+        point-to-plane ICP). "normal" and ``fixed_point_ct`` use ``solve_pose``'s IRLS.
         Default "normal": on a 7 deg / 20 mm start it converges exactly in 4-20
         iterations, where "line" still moves by 0.02-0.1 mm per iteration after 60.
     fixed_point_ct : (3,) mm or None; a CT point whose robot position ``initial(point)`` is
@@ -373,17 +302,32 @@ def register(surfaces, views, initial: RigidTransform, *,
         matches keep switching between neighbouring contour points and the pose jitters by
         a few hundredths of a mm forever, so ``tol_step_mm`` alone is never met (seen on the
         experiment2 scene: 0.05 mm steps after 50 iterations, pins at 0.2-0.3 mm).
+    stale_window : with ``method="linear"`` (plain least squares: outlier matches are not
+        rejected, and the loop can cycle for ever; seen on the test bone, a period-4 cycle of
+        0.5-2.2 mm steps from every 7 deg / 20 mm start), stop, not converged, when the
+        median point-path distance has not improved on its best by 1 % for this many
+        iterations (0 disables). The robust methods are not affected.
     max_motion_mm, max_rotation_deg : divergence limits on the distance from ``initial``
         (bounding-box corner displacement, rotation angle).
     min_inlier_fraction : fail when the solver keeps a smaller share of the matches.
     solver_iterations : inner iterations of the pose solver per loop iteration (the matches
         change at every iteration anyway).
-    solver_options : extra keyword arguments for ``solve_pose``.
+    solver_options : extra keyword arguments for ``solve_pose``. With ``method="ransac"``
+        its ``rng`` (a seed, default 0) seeds one generator used by every iteration, so
+        that a call is reproducible.
 
     Returns
     -------
     RegistrationResult; ``converged=False`` with a ``reason`` on failure, never a silent
-    wrong pose.
+    wrong pose. A result whose kept surface points (the matches the last solve kept) lie
+    behind their view's centre of perspective is never converged (reason "cheirality: ...").
+
+    Raises
+    ------
+    ValueError naming the argument: an ``initial`` that is not a rigid transform (not a
+    rotation, or NaN), an unknown ``method``, ``residual`` or ``selection``, "lm" or
+    "ransac" with ``residual="normal"`` or a fixed point, and option values out of range
+    (``tukey_a <= 0``, NaN or negative tolerances, ``stall_window < 0``, ...).
     """
     t_start = time.perf_counter()
     tops = _as_topologies(surfaces)
@@ -395,6 +339,11 @@ def register(surfaces, views, initial: RigidTransform, *,
             raise ValueError(f"views[{i}]: expected a View, got {type(v).__name__}")
     if not isinstance(initial, RigidTransform):
         raise ValueError(f"initial: expected a RigidTransform ct2robot, got {type(initial)}")
+    R0 = np.asarray(initial.R, dtype=np.float64)
+    if (not np.all(np.isfinite(R0)) or not np.all(np.isfinite(initial.t))
+            or not np.allclose(R0.T @ R0, np.eye(3), atol=1e-6) or np.linalg.det(R0) < 0):
+        raise ValueError("initial: its 3x3 part is not a rotation (orthonormal, det +1) or it "
+                         "holds NaN/inf; a rigid ct2robot is expected")
     if max_iterations < 1:
         raise ValueError(f"max_iterations: expected >= 1, got {max_iterations}")
     fixed_robot = None
@@ -405,11 +354,46 @@ def register(surfaces, views, initial: RigidTransform, *,
         fixed_robot = initial.apply(fp)
     if residual not in ("line", "normal"):
         raise ValueError(f"residual: expected 'line' or 'normal', got {residual!r}")
+    if method not in ("robust", "lm", "linear", "ransac"):
+        raise ValueError(f"method: expected 'robust', 'lm', 'linear' or 'ransac', got "
+                         f"{method!r}")
+    if (residual == "normal" or fixed_point_ct is not None) and method not in ("robust",
+                                                                               "linear"):
+        raise ValueError(f"method {method!r} cannot be used with residual='normal' or a fixed "
+                         "point (their solve is an IRLS); use 'robust' or 'linear'")
+    for name, val, ok in (("tukey_a", tukey_a, lambda v: v > 0),
+                          ("tol_step_mm", tol_step_mm, lambda v: v >= 0),
+                          ("tol_residual_mm", tol_residual_mm, lambda v: v >= 0),
+                          ("tol_stall_mm", tol_stall_mm, lambda v: v >= 0),
+                          ("max_motion_mm", max_motion_mm, lambda v: v > 0),
+                          ("max_rotation_deg", max_rotation_deg, lambda v: v > 0),
+                          ("min_inlier_fraction", min_inlier_fraction, lambda v: 0 <= v <= 1),
+                          ("max_stab_distance_mm", max_stab_distance_mm, lambda v: v > 0)):
+        try:
+            good = bool(ok(float(val))) and not np.isnan(float(val))
+        except (TypeError, ValueError):
+            good = False
+        if not good:
+            raise ValueError(f"{name}: got {val!r}, which is not a valid value (see "
+                             "register's docstring)")
+    for name, val, lo in (("stall_window", stall_window, 0), ("stale_window", stale_window, 0),
+                          ("solver_iterations", solver_iterations, 1)):
+        if isinstance(val, bool) or not isinstance(val, int | np.integer) or val < lo:
+            raise ValueError(f"{name}: expected an integer >= {lo}, got {val!r}")
     if selection not in ("paper", "closest"):
         raise ValueError(f"selection: expected 'paper' or 'closest', got {selection!r}")
     opts = dict(solver_options or {})
+    _check_solver_options(method, opts)
     opts.setdefault("max_iterations", solver_iterations)
     opts.setdefault("tukey_a", tukey_a)
+    if method == "ransac":
+        # one generator for the whole loop: each iteration draws new samples, and the same
+        # call gives the same result (seed ``solver_options["rng"]``, default 0)
+        opts["rng"] = np.random.default_rng(opts.get("rng", 0))
+    try:
+        _check_pose_options(method, **{k: opts.get(k, v) for k, v in _POSE_DEFAULTS.items()})
+    except ValueError as err:
+        raise ValueError(f"solver_options: {err}") from None
     corners = _corners(tops)
 
     def fail(reason, T=initial, it=0, history=(), **kw):
@@ -425,9 +409,16 @@ def register(surfaces, views, initial: RigidTransform, *,
     view_index = np.concatenate([np.full(v.n_paths, i) for i, v in enumerate(views)])
     o_r = np.vstack([v.origins for v in views])
     d_r = np.vstack([v.directions for v in views])
+    # each path's source: the view's centre of perspective, as the point of the path nearest
+    # to it (the paths' own origins are on the near calibration plane, which may lie beyond
+    # the bone); "in front" is measured from there
+    c_r = np.vstack([v.center for v in views])[view_index]
+    src_r = o_r + np.sum((c_r - o_r) * d_r, axis=1, keepdims=True) * d_r
     T = initial
     history: list[IterationRecord] = []
+    poses: list[RigidTransform] = []
     last = None
+    best_median, best_at = np.inf, 0
     reason = ""
     converged = False
     it = 0
@@ -451,20 +442,25 @@ def register(surfaces, views, initial: RigidTransform, *,
                 nn = np.linalg.norm(normals, axis=1, keepdims=True)
                 normals = normals / np.where(nn > 0, nn, 1.0)
             try:
-                U, dist, w, ok, msg = solve_increment(
-                    T.apply(p_ct), o_r, d_r, normals=normals, fixed_point=fixed_robot,
-                    robust=method != "linear", tukey_a=tukey_a,
-                    max_iterations=solver_iterations)
+                inc = solve_pose(T.apply(p_ct), o_r, d_r, method=method, normals=normals,
+                                 fixed_point=fixed_robot, tukey_a=tukey_a,
+                                 max_iterations=solver_iterations, tol=1e-10,
+                                 cheirality=False)  # judged below, from the views' centres
             except ValueError as err:
                 return fail(f"pose solve refused the matches at iteration {it}: {err}", T=T,
                             it=it, history=history)
-            if not ok:
-                return fail(f"pose solve failed at iteration {it}: {msg}", T=T, it=it,
-                            history=history)
-            T_new = U @ T
+            if not inc.converged:
+                return fail(f"pose solve failed at iteration {it}: {inc.message}", T=T,
+                            it=it, history=history)
+            T_new = inc.transform @ T
+            dist, w = inc.residuals, inc.weights
         else:
             try:
-                res = solve_pose(p_ct, o_r, d_r, method=method, initial=T, **opts)
+                # RANSAC's hypotheses are judged by cheirality from the sources; the
+                # others' results below, from the views' centres
+                res = solve_pose(p_ct, src_r if method == "ransac" else o_r, d_r,
+                                 method=method, initial=T,
+                                 **{"cheirality": method == "ransac", **opts})
             except ValueError as err:
                 return fail(f"pose solve refused the matches at iteration {it}: {err}", T=T,
                             it=it, history=history)
@@ -479,7 +475,8 @@ def register(surfaces, views, initial: RigidTransform, *,
         rms = float(np.sqrt(np.mean(dist[inl] ** 2))) if inl.any() else float("inf")
         history.append(IterationRecord(it, rms, float(np.median(dist)), step_mm, step_deg, frac,
                                        len(dist), time.perf_counter() - t0))
-        last = (dist, w)
+        last = (dist, w, p_ct)
+        poses.append(T_new)
         T = T_new
         moved_mm, moved_deg = _motion(T, initial, corners)
         if moved_mm > max_motion_mm or moved_deg > max_rotation_deg:
@@ -500,17 +497,50 @@ def register(surfaces, views, initial: RigidTransform, *,
             reason = f"inlier RMS residual {rms:.2e} mm below tol_residual_mm={tol_residual_mm}"
             break
         window = [h.step_mm for h in history[-stall_window:]] if stall_window > 0 else []
-        if len(window) == stall_window and max(window) < tol_stall_mm and \
-                window[-1] > 0.5 * window[0]:
+        if stall_window > 0 and len(window) == stall_window and max(window) < tol_stall_mm \
+                and window[-1] > 0.5 * window[0]:
             converged = True
             reason = (f"the last {stall_window} steps were all below tol_stall_mm="
                       f"{tol_stall_mm} (largest {max(window):.3g} mm) and no longer shrink: "
                       "the matches only alternate between neighbouring contour points")
             break
+        # a limit cycle: the matches flip between two sets and the pose between two poses
+        # (seen with noisy clinic contours: a constant 0.35 mm step for ever); it has
+        # settled when the pose comes back to where it was two and four iterations ago
+        if stall_window > 0 and len(poses) >= 5 and \
+                _motion(poses[-1], poses[-3], corners)[0] < tol_stall_mm and \
+                _motion(poses[-2], poses[-4], corners)[0] < tol_stall_mm and \
+                _motion(poses[-1], poses[-5], corners)[0] < tol_stall_mm:
+            converged = True
+            reason = (f"the pose alternates between two poses {step_mm:.3g} mm apart "
+                      f"(returns within tol_stall_mm={tol_stall_mm} mm every second "
+                      "iteration): the matches flip between two sets of contour points")
+            break
+        med = history[-1].median_mm
+        if med < 0.99 * best_median:
+            best_median, best_at = med, it
+        if method == "linear" and stale_window > 0 and it - best_at >= stale_window:
+            reason = (f"stopped improving: the median point-path distance has not improved "
+                      f"on its best ({best_median:.3g} mm at iteration {best_at}) for "
+                      f"{stale_window} iterations, the pose still moves by {step_mm:.3g} mm "
+                      "per iteration (least squares cycling between match sets)")
+            break
     else:
         reason = (f"no convergence after {max_iterations} iterations (last step "
                   f"{history[-1].step_mm:.3g} mm)")
-    dist, w = last
+    dist, w, p_ct = last
+    if converged:
+        # cheirality: the registered surface points the solve kept must lie in front of
+        # their view's centre of perspective (a mirror pose puts them behind the source)
+        depth = np.sum((T.apply(p_ct) - c_r) * d_r, axis=1)
+        behind = (w > 0) & ~(depth > 0)
+        if np.any(behind):
+            names = sorted({views[i].name or str(i) for i in view_index[behind]})
+            converged = False
+            reason = (f"cheirality: {int(np.count_nonzero(behind))} of the "
+                      f"{int(np.count_nonzero(w > 0))} kept surface points lie behind the "
+                      f"centre of perspective of view(s) {', '.join(names)} (a mirror or "
+                      f"runaway pose; the loop had stopped with: {reason})")
     per_view = np.array([float(np.mean(w[view_index == i] > 0)) for i in range(len(views))])
     return RegistrationResult(
         ct2robot=T, converged=converged, reason=reason, iterations=it, history=tuple(history),

@@ -42,6 +42,7 @@ from scipy.spatial import cKDTree
 from reglib.contours import contours_from_ct
 
 __all__ = [
+    "SURFACE_SIMPLIFY_TOL_MM",
     "Surface",
     "bridge_contours",
     "check_manifold",
@@ -54,6 +55,8 @@ __all__ = [
 ]
 
 Quality = Literal["area", "compactness"]
+#: simplification tolerance of the CT surfaces (mm); the paper simplified within 0.0-0.3 mm
+SURFACE_SIMPLIFY_TOL_MM = 0.3
 
 
 @dataclass(frozen=True)
@@ -472,7 +475,8 @@ def simplify_surface(surface: Surface, tol_mm: float, *,
 
 def surface_from_ct(volume_hu, slice2ct, slice_indices: Sequence[int],
                     clicks_xy: Mapping[int, Sequence[np.ndarray]], *,
-                    quality: Quality = "area", simplify_tol_mm: float | None = 0.2,
+                    quality: Quality = "area",
+                    simplify_tol_mm: float | None = SURFACE_SIMPLIFY_TOL_MM,
                     snake_options: dict | None = None):
     """One bone surface from CT slices: snake contours, tiling, simplification.
 

@@ -40,21 +40,41 @@ def available_studies() -> dict[str, str]:
     return dict(sorted(out.items()))
 
 
+#: studies that cannot use parallel workers, and why
+SERIAL_STUDIES = {"table1": "it times pose solves, and parallel workers would share the cores "
+                            "it measures"}
+
+
 def run_study(name: str, out: Path, *, scene=None, seed=None, quick=False, workers=1,
-              scheduler=None) -> Path:
+              scheduler=None, retries: int = 2) -> Path:
     """Run study ``name`` into folder ``out``; returns ``out``.
 
     ``workers``: processes for the trials; ``scheduler``: a Dask scheduler address (or
-    Client / cluster) to run them on instead. Rerunning into the same ``out`` resumes.
+    Client / cluster) to run them on instead; ``retries``: how many more times a trial whose
+    worker was lost is run. Rerunning into the same ``out`` resumes. Raises ``ValueError``
+    before any work for an unknown study, a scene of another kind than the study's default
+    scene (e.g. an operating room for ``fig9``), or workers asked of a serial study.
     """
     from studies.common import finish_study, start_study
+    from testbed.scene import find_scene, load_scene
 
     known = available_studies()
     if name not in known:
-        raise SystemExit(f"testbed study: unknown study {name!r}; known: {', '.join(known)}")
+        raise ValueError(f"testbed study: unknown study {name!r}; known: {', '.join(known)}")
     mod = importlib.import_module(_module_name(name))
+    if name in SERIAL_STUDIES and (workers != 1 or scheduler is not None):
+        raise ValueError(f"testbed study {name}: --workers and --scheduler are refused: "
+                         f"{SERIAL_STUDIES[name]}")
+    if scene is not None:
+        want = load_scene(find_scene(mod.DEFAULT_SCENE)).scene.kind
+        path = find_scene(scene)
+        got = load_scene(path).scene.kind
+        if got != want:
+            raise ValueError(f"{path}: [scene] kind = {got!r}, but study {name} needs a "
+                             f"scene of kind {want!r} (e.g. {mod.DEFAULT_SCENE})")
     ctx = start_study(name, out, scene=scene or mod.DEFAULT_SCENE, seed=seed, quick=quick,
                       workers=workers, scheduler=scheduler)
+    ctx.retries = int(retries)
     df = mod.run(ctx)
     finish_study(ctx, df)
     return out

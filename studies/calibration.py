@@ -29,6 +29,8 @@ import time
 import numpy as np
 import pandas as pd
 
+from reglib.markers import VALIDATION
+from reglib.pipeline import TPS_SMOOTHING
 from studies.common import markdown_table
 
 TITLE = "Two-plane TPS calibration: validation distances per view, ray errors, sensitivity"
@@ -56,7 +58,7 @@ def _ray_error_at_depth(cal, carm, depth_point, step: int = 4) -> np.ndarray:
 
 
 def _subset(markers, keep):
-    from reglib.calibration import Markers
+    from reglib.markers import Markers
 
     return Markers(markers.view, markers.frame[keep], markers.plane[keep], markers.bead[keep],
                    markers.xy_px[keep], markers.robot[keep], list(markers.problems),
@@ -68,13 +70,14 @@ def _score(markers, carm, iso, smoothing):
     from reglib.calibration import calibrate
 
     cal = calibrate(markers, smoothing=smoothing, min_markers=8, min_rows=2)
-    xy, pts = markers.select(2)
+    xy, pts = markers.select(VALIDATION)
     return cal.distances(xy, pts), _ray_error_at_depth(cal, carm, iso)
 
 
 def calibrate_view(scene, view_index: int, rng, *, quick: bool = False) -> list[dict]:
     """Sweep, calibrate and score one view; returns long-format rows (see module doc)."""
-    from reglib.calibration import SweepData, calibrate, find_markers
+    from reglib.calibration import calibrate
+    from reglib.markers import SweepData, find_markers
     from testbed.fluoroscope import make_carm
     from testbed.robot import Robot
     from testbed.sweep import plan_sweep, run_sweep
@@ -82,7 +85,9 @@ def calibrate_view(scene, view_index: int, rng, *, quick: bool = False) -> list[
 
     vspec = scene.views[view_index]
     view = vspec.name
-    carm = make_carm(scene.fluoroscope, vspec, view_index=view_index)
+    # the sweep sees the intensifier as during calibration; the truth is the acquisition's
+    carm = make_carm(scene.fluoroscope, vspec, view_index=view_index, stage="acquisition")
+    sweep_carm = make_carm(scene.fluoroscope, vspec, view_index=view_index, stage="calibration")
     iso = np.asarray(vspec.isocenter_mm, dtype=float)
     robot_rng, noise_rng, world_rng = rng.spawn(3)
     rows: list[dict] = []
@@ -99,24 +104,24 @@ def calibrate_view(scene, view_index: int, rng, *, quick: bool = False) -> list[
         world = list(world_bodies(scene, rng=world_rng))
         ws = Workspace(robot)
         ws.add_bodies(world, kind="patient")
-        report = check_sweep(ws, carm, plan_sweep(carm, robot.spec))
+        report = check_sweep(ws, sweep_carm, plan_sweep(sweep_carm, robot.spec))
         pairs = sorted(report.colliding_pairs())
         row("workspace_collisions", len(pairs), "count",
             detail="; ".join(f"{a}-{b}" for a, b in pairs))
-        sweep = run_sweep(robot, carm, scene.fluoroscope, bodies=world, rng=noise_rng)
+        sweep = run_sweep(robot, sweep_carm, scene.fluoroscope, bodies=world, rng=noise_rng)
     row("sweep_time", sweep.duration_s, "s")
     row("dose", sweep.dose_mrem, "mrem")
 
     t0 = time.perf_counter()
     markers = find_markers(SweepData(**sweep.for_calibration()))
-    cal = calibrate(markers, smoothing=0.01)
-    xy, pts = markers.select(2)
+    cal = calibrate(markers, smoothing=TPS_SMOOTHING)
+    xy, pts = markers.select(VALIDATION)
     dist = cal.distances(xy, pts)
     row("time", time.perf_counter() - t0, "s", stage="detect+calibrate")
     row("markers_found", len(markers.bead), "count")
     row("markers_expected", markers.expected, "count")
     row("problems", len(markers.problems), "count", detail=" | ".join(markers.problems))
-    vsel = markers.plane == 2
+    vsel = markers.plane == VALIDATION
     true_pts = sweep.beads_true[markers.frame[vsel], markers.bead[vsel]]
     dist_true = cal.distances(xy, true_pts)
     for b, dv, dt in zip(markers.bead[vsel], dist, dist_true):
@@ -128,7 +133,7 @@ def calibrate_view(scene, view_index: int, rng, *, quick: bool = False) -> list[
     row("cop_error", np.linalg.norm(cal.center_of_perspective() - carm.source_robot), "mm")
 
     # sensitivity: smoothing, beads per row, rod positions per plane (subsets of this sweep)
-    def sens(experiment, param, keep, smoothing=0.01):
+    def sens(experiment, param, keep, smoothing=TPS_SMOOTHING):
         try:
             dv, er = _score(_subset(markers, keep), carm, iso, smoothing)
         except ValueError:
@@ -143,12 +148,12 @@ def calibrate_view(scene, view_index: int, rng, *, quick: bool = False) -> list[
     n = robot.spec.rod.n_beads
     for k in (4, 6, n):
         idx = np.round(np.linspace(0, n - 1, k)).astype(int)
-        keep = np.isin(markers.bead, idx) | (markers.plane == 2)
+        keep = np.isin(markers.bead, idx) | (markers.plane == VALIDATION)
         sens("beads", k, keep)
     frames_of = {p: np.unique(markers.frame[markers.plane == p]) for p in (0, 1)}
     n_rows = robot.spec.sweep.rows_per_plane
     for k in sorted({2, 3, (n_rows + 1) // 2, n_rows}):
-        keep = markers.plane == 2
+        keep = markers.plane == VALIDATION
         for p in (0, 1):
             plan_frames = np.flatnonzero(sweep.plane == p)
             chosen = plan_frames[np.round(np.linspace(0, len(plan_frames) - 1, k)).astype(int)]

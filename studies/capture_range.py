@@ -10,11 +10,12 @@ the last bin of the unbroken run of bins from 0 mm at >= 95 %).
 One trial = one random case and all its starts for every method, so the slow simulation is
 done once per case:
 
-- the case: a random femur (``[phantom] shape_variation``, default 1.0 population standard
-  deviation, its own ``shape_seed``), the scene's views with their C-arm angles (orbital,
-  angular) jittered by up to ``JITTER_DEG``, and its own image noise and user clicks; the CT
+- the case: a random femur (left or right, every shape parameter drawn uniformly over its
+  documented range, :func:`random_femur`), the scene's views re-aimed at its anatomy with
+  their C-arm angles (orbital, angular) jittered by up to ``JITTER_DEG``, and its own image
+  noise and user clicks; the CT
   surfaces are reconstructed and the X-ray contours traced by reglib as in the end-to-end
-  job (:mod:`studies.end_to_end`);
+  job (:func:`studies.end_to_end.prepare_case` with ``sweeps=False``);
 - **oracle calibration**: the X-ray paths of the contour pixels are the true pixel -> ray
   map of each C-arm instead of a two-plane calibration from a simulated sweep. The sweep
   simulation dominates a case's time (about 15 s per view) and its error (validation
@@ -43,159 +44,164 @@ import time
 import numpy as np
 import pandas as pd
 
-from reglib.geometry import RigidTransform
-
 TITLE = "capture range: registration success rate vs initial mTRE (0-30 mm), per pose method"
-DEFAULT_SCENE = "experiment2"
+#: the issue's conditions: the ideal profile's magnitudes (the method's capture range, not
+#: the clinic's noise); any operating-room scene can be given with --scene
+DEFAULT_SCENE = "experiment2-ideal"
 
 SUCCESS_MM = 2.0
 CAPTURE_RATE = 0.95
 BIN_EDGES_MM = tuple(float(x) for x in range(0, 33, 3))   # 0, 3, ..., 30
 JITTER_DEG = 3.0
-SHAPE_VARIATION = 1.0
-#: pose method -> keyword arguments of reglib.register.register. "robust" and "linear" use
-#: the loop's own solver on the across-contour residual (register's default); "robust-line"
-#: and "ransac" the paper's point-to-path residual (the scenes' [registration] default) with
-#: reglib.pose's robust (Tukey) and RANSAC solvers. The line-residual methods are capped at
-#: 25 iterations (about 0.25 s each on a 4-view case; with 50 a start costs 12 s and the pins
-#: still move by hundredths of a mm).
+#: method -> keyword arguments of studies.end_to_end.register_case. "default" is reglib's
+#: default (reglib.estimate's coarse-fine strategy: the point-to-path residual to come near,
+#: then the across-contour residual to converge); the others run the loop once
+#: ("single"): "robust" and "linear" with the across-contour residual and the loop's own
+#: solver, "robust-line" and "ransac" with the paper's point-to-path residual and
+#: reglib.pose's robust (Tukey) and RANSAC solvers (capped at 25 iterations: with 50 a start
+#: costs 12 s and the pins still move by hundredths of a mm).
 METHODS = {
-    "robust": {"method": "robust", "residual": "normal"},
-    "linear": {"method": "linear", "residual": "normal"},
-    "robust-line": {"method": "robust", "residual": "line", "max_iterations": 25},
-    "ransac": {"method": "ransac", "residual": "line", "max_iterations": 25},
+    "default": {},
+    "robust": {"strategy": "single", "method": "robust", "residual": "normal"},
+    "linear": {"strategy": "single", "method": "linear", "residual": "normal"},
+    "robust-line": {"strategy": "single", "method": "robust", "residual": "line",
+                    "max_iterations": 25},
+    "ransac": {"strategy": "single", "method": "ransac", "residual": "line",
+               "max_iterations": 25},
 }
 #: the default pipeline's method: it registers every start; the others the first
 #: ``others_per_bin`` starts of each bin (they cost 5-10x more per start)
-PRIMARY = "robust"
+PRIMARY = "default"
+#: the method's own quality figures written per start (reglib.pipeline.match_quality), to
+#: study the verdict against the truth
+QUALITY_ROWS = (("median_residual_mm", "mm"), ("p90_residual_mm", "mm"), ("near_fraction", ""),
+                ("inlier_fraction", ""), ("max_view_median_mm", "mm"),
+                ("min_view_inlier_fraction", ""), ("iterations", ""))
 DEFAULT_SIZE = {"cases": 6, "starts_per_bin": 3, "others_per_bin": 1}
 QUICK_SIZE = {"cases": 2, "starts_per_bin": 1, "others_per_bin": 1}
 QUICK_BINS_MM = (0.0, 10.0, 20.0, 30.0)
 
 
 # --------------------------------------------------------------------------- the case
+#: the femur's shape parameters, each drawn uniformly over its whole documented range
+#: (the bounds of testbed.phantom.PhantomSpec)
+SHAPE_FIELDS = ("length_mm", "head_radius_mm", "neck_length_mm", "neck_radius_mm",
+                "neck_shaft_angle_deg", "anteversion_deg", "shaft_diameter_mm",
+                "cortical_thickness_mm", "end_cortex_mm", "shaft_bow_mm", "condyle_width_mm",
+                "notch_width_mm", "condyle_depth_mm")
+#: how many femurs to draw at most before giving up on one case (implausible combinations,
+#: e.g. a neck wider than the head, are drawn again)
+MAX_SHAPE_DRAWS = 50
+
+
+def _bounds(field: str) -> tuple[float, float]:
+    from testbed.phantom import PhantomSpec
+
+    lo = hi = None
+    for m in PhantomSpec.model_fields[field].metadata:
+        lo = getattr(m, "ge", lo)
+        hi = getattr(m, "le", hi)
+    if lo is None or hi is None:
+        raise ValueError(f"PhantomSpec.{field} has no documented range")
+    return float(lo), float(hi)
+
+
+def _region_centres(phantom) -> dict[str, np.ndarray]:
+    """ct-frame centres of the anatomy a radiographer aims each region's views at."""
+    lm = phantom.landmarks
+    prox = np.mean([lm["head_center"], lm["lesser_trochanter"], lm["greater_trochanter"]],
+                   axis=0)
+    dist = np.mean([lm["medial_condyle"], lm["lateral_condyle"]], axis=0)
+    return {"proximal": prox, "distal": dist}
+
+
+def random_femur(base, rng):
+    """A ``PhantomSpec`` of ``base`` with a random side and every shape parameter drawn over
+    its documented range, rejecting implausible femurs (the phantom cannot be built, or the
+    thigh does not enclose the bone). Returns ``(spec, phantom)``."""
+    from testbed.phantom import make_phantom
+
+    last = None
+    for _ in range(MAX_SHAPE_DRAWS):
+        upd = {f: float(rng.uniform(*_bounds(f))) for f in SHAPE_FIELDS}
+        upd["side"] = str(rng.choice(["left", "right"]))
+        upd["shape_variation"] = 0.0
+        if upd["neck_radius_mm"] >= 0.9 * upd["head_radius_mm"] \
+                or upd["notch_width_mm"] >= 0.45 * upd["condyle_width_mm"] \
+                or upd["cortical_thickness_mm"] >= 0.35 * upd["shaft_diameter_mm"]:
+            continue
+        # the thigh and knee envelopes grow with the bone, as they do in patients
+        upd["thigh_radius_mm"] = max(base.thigh_radius_mm, upd["shaft_diameter_mm"] + 45.0)
+        upd["knee_radius_mm"] = max(base.knee_radius_mm,
+                                    0.5 * upd["condyle_width_mm"] + 25.0,
+                                    0.5 * upd["condyle_depth_mm"] + 25.0)
+        try:
+            spec = base.model_copy(update=upd)
+            spec = type(base).model_validate(spec.model_dump())
+            ph = make_phantom(spec)
+        except (ValueError, RuntimeError) as exc:
+            last = exc
+            continue
+        inside = ph.soft_tissue.contains(ph.femur.vertices[:: max(1, len(ph.femur.vertices)
+                                                                   // 500)])
+        if inside.all():
+            return spec, ph
+        last = ValueError("the thigh does not enclose the femur")
+    raise ValueError(f"no plausible femur in {MAX_SHAPE_DRAWS} draws (last: {last})")
+
+
 def case_scene(scene, rng, *, jitter_deg: float = JITTER_DEG):
-    """The scene of one random case: its own femur shape and jittered C-arm angles.
+    """The scene of one random case: a random femur, views re-aimed at its anatomy with
+    jittered C-arm angles.
 
     Parameters
     ----------
     scene : testbed.scene.Scene
         An operating-room scene with views.
     rng : numpy.random.Generator
-        Draws the femur's ``shape_seed`` and the angle offsets.
+        Draws the femur (side and every shape parameter over its documented range,
+        :func:`random_femur`) and the angle offsets.
     jitter_deg : float
         Offsets of each view's ``orbital_deg`` and ``angular_deg``, uniform in
         ``[-jitter_deg, jitter_deg]`` (deg).
+
+    Each view keeps its offset from the centre of its region's anatomy (head, neck and
+    trochanters; the condyles) in the scene's femur: the radiographer centres the C-arm on
+    the anatomy of this femur as on the scene's; on the other side the oblique angles
+    (``angular_deg``, about the femur's long axis) are mirrored.
     """
-    variation = scene.phantom.shape_variation or SHAPE_VARIATION
-    phantom = scene.phantom.model_copy(update={
-        "shape_variation": variation, "shape_seed": int(rng.integers(0, 2**31 - 1))})
+    from testbed.phantom import make_phantom
+
+    ct2robot = scene.patient.ct2robot()
+    old = _region_centres(make_phantom(scene.phantom))
+    spec, ph = random_femur(scene.phantom, rng)
+    new = _region_centres(ph)
     views = []
+    # the other side is the mirror image across the femur's long axis (robot y): the
+    # obliques turn the other way about it
+    mirror = -1.0 if spec.side != scene.phantom.side else 1.0
     for v in scene.views:
         d_orb, d_ang = rng.uniform(-jitter_deg, jitter_deg, size=2)
-        views.append(v.model_copy(update={
-            "orbital_deg": float(np.clip(v.orbital_deg + d_orb, -180.0, 180.0)),
-            "angular_deg": float(np.clip(v.angular_deg + d_ang, -180.0, 180.0))}))
-    return scene.model_copy(update={"phantom": phantom, "views": tuple(views)})
-
-
-def simulate_without_sweeps(scene, seed, *, n_clicks: int = 8, click_noise_px: float = 1.0):
-    """A :class:`studies.end_to_end.CaseData` like ``simulate_case`` but with no calibration
-    sweep (``calibration`` is None in every view: use ``oracle=("calibration",)``).
-
-    World, CT, reconstructed surfaces, X-ray frames and snake contours are simulated and
-    estimated as in :func:`studies.end_to_end.simulate_case`.
-    """
-    from studies.end_to_end import CaseData, ViewData, estimate_surfaces, snake_contours
-    from testbed.ct import scan
-    from testbed.fluoroscope import make_carm, render
-    from testbed.world import build_world
-
-    if scene.scene.kind != "operating_room" or not scene.views:
-        raise ValueError(f"scene {scene.scene.name!r}: the capture-range study needs an "
-                         "operating_room scene with [[views]]")
-    world_ss, ct_ss, click_ss, xray_ss = np.random.SeedSequence(seed).spawn(4)
-    timings: dict[str, float] = {}
-    t0 = time.perf_counter()
-    world = build_world(scene, np.random.default_rng(world_ss))
-    ct = scan(world.phantom, scene.ct, np.random.default_rng(ct_ss))
-    timings["world+ct"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    click_rng = np.random.default_rng(click_ss)
-    surfaces, true_surfaces = estimate_surfaces(world, ct, click_rng)
-    timings["surfaces"] = time.perf_counter() - t0
-    views = []
-    xray_rngs = np.random.default_rng(xray_ss).spawn(len(scene.views))
-    for i, vspec in enumerate(scene.views):
-        t0 = time.perf_counter()
-        carm = make_carm(scene.fluoroscope, vspec, view_index=i)
-        frame = render(carm, world.bodies, fluoro=scene.fluoroscope, rng=xray_rngs[i])
-        timings["xray"] = timings.get("xray", 0.0) + time.perf_counter() - t0
-        t0 = time.perf_counter()
-        xy, ext = snake_contours(frame, click_rng, n_clicks=n_clicks,
-                                 click_noise_px=click_noise_px)
-        timings["contours"] = timings.get("contours", 0.0) + time.perf_counter() - t0
-        views.append(ViewData(name=vspec.name, region=vspec.region, carm=carm,
-                              calibration=None, contour_xy=xy, contour_external=ext,
-                              true_contour_xy=np.zeros((0, 2)), true_external=np.zeros(0, bool),
-                              frame=frame))
-    return CaseData(scene, seed, world, surfaces, true_surfaces, views, timings)
+        update = {"orbital_deg": float(np.clip(v.orbital_deg + d_orb, -180.0, 180.0)),
+                  "angular_deg": float(np.clip(mirror * v.angular_deg + d_ang, -180.0, 180.0))}
+        region = getattr(v, "region", "")
+        if region in new:
+            shift = ct2robot.apply(new[region]) - ct2robot.apply(old[region])
+            update["isocenter_mm"] = tuple(float(x) for x in np.asarray(v.isocenter_mm) + shift)
+        views.append(v.model_copy(update=update))
+    # no sweep is simulated here (oracle calibration), and the views are re-aimed at each
+    # femur: the workspace of these random cases is not checked (the report says so)
+    workspace = scene.workspace.model_copy(update={"check": False})
+    return scene.model_copy(update={"phantom": spec, "views": tuple(views),
+                                    "workspace": workspace})
 
 
 # --------------------------------------------------------------------------- the starts
-def mtre(pose: RigidTransform, truth: RigidTransform, targets_ct) -> float:
-    """Mean distance (mm) between the targets (N, 3) ct mm mapped by ``pose`` and ``truth``."""
-    t = np.asarray(targets_ct, dtype=np.float64)
-    return float(np.mean(np.linalg.norm(pose.apply(t) - truth.apply(t), axis=1)))
-
-
-def start_at_mtre(truth: RigidTransform, targets_ct, target_mm: float, rng,
-                  *, tol_mm: float = 1e-3) -> RigidTransform:
-    """A start ``ct2robot`` whose mTRE at ``targets_ct`` (N, 3) ct mm is ``target_mm``.
-
-    A random direction in the 6-D space (rotation vector about the targets' centroid, in rad
-    times their mean distance to it, i.e. mm at the targets; translation in mm), uniform on
-    the sphere, is scaled by bisection until the mTRE matches within ``tol_mm``.
-    """
-    if not np.isfinite(target_mm) or target_mm < 0:
-        raise ValueError(f"target_mm: expected a finite mTRE >= 0 mm, got {target_mm}")
-    rng = np.random.default_rng(rng)
-    t = np.asarray(targets_ct, dtype=np.float64)
-    if t.ndim != 2 or t.shape[1] != 3 or len(t) < 1:
-        raise ValueError(f"targets_ct: expected an (N, 3) array of points, got {t.shape}")
-    centre = truth.apply(t.mean(axis=0))
-    radius = max(float(np.mean(np.linalg.norm(t - t.mean(axis=0), axis=1))), 1.0)
-    u = rng.normal(size=6)
-    u /= np.linalg.norm(u)
-
-    def pose(s):
-        rot = RigidTransform.from_rotvec(s * u[:3] / radius)
-        about = RigidTransform(rot.R, centre - rot.R @ centre + s * u[3:])
-        return about @ truth
-
-    if target_mm == 0:
-        return truth
-    lo, hi = 0.0, target_mm
-    while mtre(pose(hi), truth, t) < target_mm:
-        hi *= 2.0
-        if hi > 1e4:
-            raise ValueError(f"target_mm = {target_mm}: cannot reach that mTRE")
-    for _ in range(100):
-        mid = 0.5 * (lo + hi)
-        if mtre(pose(mid), truth, t) < target_mm:
-            lo = mid
-        else:
-            hi = mid
-        if hi - lo < 1e-9 or abs(mtre(pose(mid), truth, t) - target_mm) < tol_mm:
-            break
-    return pose(0.5 * (lo + hi))
-
-
 # --------------------------------------------------------------------------- one trial
 def trial(tr) -> list[dict]:
     """One random case, and every start of every bin registered by every method."""
-    from reglib.register import register
-    from studies.end_to_end import PIN_NAMES, reglib_inputs
+    from studies.end_to_end import prepare_case, register_case
+    from studies.scoring import PIN_NAMES, mtre, start_at_mtre
     from testbed.scene import load_scene
 
     p = tr.params
@@ -206,8 +212,7 @@ def trial(tr) -> list[dict]:
     scene_rng, sim_ss, start_rng, solver_rng = rng.spawn(4)
     t0 = time.perf_counter()
     scene = case_scene(load_scene(tr.scene), scene_rng, jitter_deg=float(p["jitter_deg"]))
-    case = simulate_without_sweeps(scene, int(sim_ss.integers(0, 2**63 - 1)))
-    surfaces, views = reglib_inputs(case, oracle=("calibration",))
+    case = prepare_case(scene, int(sim_ss.integers(0, 2**63 - 1)), sweeps=False)
     sim_time = time.perf_counter() - t0
     pins = np.array([case.pins_ct[k] for k in PIN_NAMES])
     truth = case.ct2robot
@@ -226,15 +231,18 @@ def trial(tr) -> list[dict]:
                     opts["solver_options"] = {"rng": np.random.default_rng(
                         solver_rng.integers(0, 2**63 - 1))}
                 t1 = time.perf_counter()
-                res = register(surfaces, views, start, **opts)
+                est, _ = register_case(case, start, **opts)
                 dt = time.perf_counter() - t1
-                m1 = mtre(res.ct2robot, truth, pins)
+                m1 = mtre(est.ct2robot, truth, pins)
                 base = {"method": method, "bin": b, "start": k}
                 rows += [
                     {**base, "metric": "start_mtre", "value": m0, "unit": "mm"},
                     {**base, "metric": "final_mtre", "value": m1, "unit": "mm"},
                     {**base, "metric": "success", "value": float(m1 < SUCCESS_MM), "unit": ""},
-                    {**base, "metric": "converged", "value": float(res.converged), "unit": ""},
+                    {**base, "metric": "converged", "value": float(est.converged), "unit": ""},
+                    {**base, "metric": "accepted", "value": float(est.accepted), "unit": ""},
+                    *({**base, "metric": k, "value": float(est.quality[k]), "unit": u}
+                      for k, u in QUALITY_ROWS if k in est.quality),
                     {**base, "metric": "time", "value": dt, "unit": "s"},
                 ]
             k += 1
@@ -319,12 +327,14 @@ def run(ctx) -> pd.DataFrame:
         f"Largest initial mTRE (at the three pins) up to which >= {CAPTURE_RATE:.0%} of the "
         f"starts end with a final mTRE < {SUCCESS_MM:g} mm, per pose method "
         "(published capture ranges for 2-D/3-D registration: 4-11 mm):", "", *lines, "",
-        f"Cases: {size['cases']} random femurs (shape variation {SHAPE_VARIATION:g} SD unless "
-        f"the scene sets one), C-arm angles jittered by up to {JITTER_DEG:g} deg, "
+        f"Cases: {size['cases']} random femurs (left or right, every shape parameter uniform "
+        "over its documented range), views re-aimed at each femur's anatomy, C-arm angles "
+        f"jittered by up to {JITTER_DEG:g} deg, "
         f"{size['starts_per_bin']} start(s) per bin and case for {PRIMARY}, "
         f"{size['others_per_bin']} for the other methods; {len(failures)} failed trial(s)."
         " Calibration: **oracle** (the true pixel -> ray map of each C-arm; no sweep is "
-        "simulated), surfaces and X-ray contours estimated by reglib. With fewer than 20 "
+        "simulated, and the workspace of these re-aimed random views is not checked), "
+        "surfaces and X-ray contours estimated by reglib. With fewer than 20 "
         "starts in a bin, >= 95 % means every start of the bin: one failure ends the range.",
         f"Time per case: simulation and estimation {sim.median():.1f} s (median); "
         f"registration {reg.median():.2f} s per start and method (median), "
@@ -337,8 +347,37 @@ def run(ctx) -> pd.DataFrame:
     ctx.report("Success rate per bin", markdown_table(tab, ".3g"))
     if failures:
         ctx.report("Failed trials", "\n".join(f"- trial {k}: {v}" for k, v in failures.items()))
+    flags = flag_scores(ok)
+    ctx.report("The method's own verdict against the truth", markdown_table(flags, ".3f") + (
+        f"\n\nPer method: `accepted` (the method's verdict, computed without the truth) "
+        f"against success (final mTRE < {SUCCESS_MM:g} mm). Precision: the share of accepted "
+        "results that are right; recall: the share of right results that were accepted."))
     _figures(ctx, ok, s, edges)
-    return df
+    rows = [{"trial": -1, "metric": "capture_range", "value": cr[m], "unit": "mm", "method": m}
+            for m in cr]
+    for r in flags.itertuples(index=False):
+        rows += [{"trial": -1, "metric": "flag_precision", "value": r.precision, "unit": "",
+                  "method": r.method},
+                 {"trial": -1, "metric": "flag_recall", "value": r.recall, "unit": "",
+                  "method": r.method}]
+    return pd.concat([df, pd.DataFrame(rows)], ignore_index=True)
+
+
+def flag_scores(df: pd.DataFrame) -> pd.DataFrame:
+    """Per method: precision and recall of ``accepted`` against success (final mTRE below
+    :data:`SUCCESS_MM`), and the counts behind them."""
+    w = df[df.metric.isin(["accepted", "final_mtre"])].pivot_table(
+        index=["trial", "method", "start"], columns="metric", values="value").reset_index()
+    out = []
+    for m, d in w.groupby("method"):
+        ok = d["final_mtre"] < SUCCESS_MM
+        acc = d["accepted"] > 0.5
+        tp, fp, fn = int((acc & ok).sum()), int((acc & ~ok).sum()), int((~acc & ok).sum())
+        out.append({"method": m, "starts": len(d), "accepted": int(acc.sum()),
+                    "successes": int(ok.sum()), "false accepts": fp, "false rejects": fn,
+                    "precision": tp / (tp + fp) if tp + fp else float("nan"),
+                    "recall": tp / (tp + fn) if tp + fn else float("nan")})
+    return pd.DataFrame(out)
 
 
 def _figures(ctx, df, s, edges):

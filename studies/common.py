@@ -103,9 +103,12 @@ def finish_study(ctx: StudyContext, df: pd.DataFrame) -> None:
     df.to_csv(ctx.out / "results.csv", index=False)
     now = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
     resolved = json.dumps(ctx.scene.model_dump(mode="json"), indent=2)
-    parts = [
-        f"# Study `{ctx.name}`",
-        "",
+    parts = [f"# Study `{ctx.name}`", ""]
+    ws = getattr(ctx.scene, "workspace", None)
+    if ws is not None and not ws.check and ctx.scene.scene.kind == "operating_room":
+        parts += ["**The workspace was not checked** (`[workspace] check = false`): the "
+                  "views and sweeps of this scene may not be physically possible.", ""]
+    parts += [
         f"- scene: `{ctx.scene_path}` ({ctx.scene.scene.name})",
         f"- seed: {ctx.seed}",
         f"- git commit: `{git_commit()}`",

@@ -1,41 +1,270 @@
-"""Error budget: where the error at the pins comes from.
+"""Error budget: where the error at the pins comes from, by stage and by error source.
 
-The Table II cases of one simulated ``experiment2`` case, registered with the estimated
-inputs, then with one input replaced by its truth at a time (true calibration: the true
-pixel -> ray map; true surfaces: the phantom's femur over the scanned regions; true X-ray
-contours: the femur's exact apparent contour), then with all three (what is left is the
-registration itself: matching on apparent contours and the tessellation). The drop in error
-when a stage is made perfect is the share of that stage.
+Two attributions of the Table II error (the quick Table II starts of each case: identity,
+two 5 deg and two 7 deg rotations):
+
+- **by source** (the world): the scene (the clinic profile, e.g. ``experiment2``) is
+  compared field by field with its ideal profile (``<name>-ideal`` in ``scenes/``, e.g.
+  ``experiment2-ideal``); every field that differs is an error source (fields that belong
+  together, such as the distortion's coefficients, are one source: :data:`SOURCE_GROUPS`).
+  Each source is switched **off** in the clinic (set to its ideal value) and **on alone** in
+  the ideal profile; the drop (off) and the rise (alone) of the mean pin error against the
+  clinic and the ideal runs are its share, drawn as a tornado chart. Nothing here knows the
+  sources' names: a field added to the profiles is a new source.
+- **by stage** (the method): on the clinic cases, each estimated input of the registration
+  is replaced by its truth (true calibration, true surfaces, true X-ray contours, all
+  three); the drop in error when a stage is made perfect is the share of that stage.
+
+Each trial is one case of one configuration (``config``: ``clinic``, ``ideal``, ``off`` or
+``alone``, with ``source``); case ``i`` has the same seed in every configuration, so the
+configurations differ only by the source.
 """
 
 from __future__ import annotations
 
+import json
+import re
+
+import numpy as np
 import pandas as pd
 
 from studies.common import markdown_table
-from studies.end_to_end import registration_rows, simulate_case, table2_starts
-from studies.table2 import case_summary
+from studies.end_to_end import case_rows, prepare_case, registration_rows, table2_starts
 
-TITLE = "error budget: pin errors with true calibration, surfaces or contours substituted"
+TITLE = "error budget: pin errors by error source (off / on alone) and by stage (truth in)"
 DEFAULT_SCENE = "experiment2"
-CONFIGS = ((), ("calibration",), ("surfaces",), ("contours",),
-           ("calibration", "surfaces", "contours"))
+ORACLE_CONFIGS = ((), ("calibration",), ("surfaces",), ("contours",),
+                  ("calibration", "surfaces", "contours"))
+CASES = 3
+QUICK_CASES = 1
+#: fields of the scene that form one error source: regex on the dotted field path -> source
+SOURCE_GROUPS = (
+    (r"^fluoroscope\.distortion_drift", "distortion drift"),
+    (r"^fluoroscope\.(distortion|pincushion_|distortion_|earth_field|s_rotation|s_shift|"
+     r"local_distortion)", "intensifier distortion"),
+    (r"^fluoroscope\.(focal_spot)", "focal-spot blur"),
+    (r"^fluoroscope\.(mtf|intensifier_blur|video_blur)", "intensifier and video blur"),
+    (r"^fluoroscope\.video_noise", "camera noise"),
+    (r"^fluoroscope\.(scatter)", "scatter"),
+    (r"^fluoroscope\.(noise|photons_per_pixel|abc_photons)", "quantum noise"),
+    (r"^fluoroscope\.(video_|gain|offset|black_u8|white_u8|display_range)", "video"),
+    (r"^fluoroscope\.(glare|vignetting)", "glare and vignetting"),
+    (r"^robot\.(kinematic|absolute|link_error|joint_offset|calibration_error)",
+     "robot accuracy"),
+    (r"^robot\.rod\.sag", "rod sag"),
+    (r"^robot\.rod\.(bead_|youngs|density)", "bead placement"),
+    (r"^robot\.rod_mount", "rod mounting"),
+    (r"^ct\.(metal_streaks|streak_hu)", "CT metal streaks"),
+    (r"^ct\.(max_slice_thickness_mm|slice_thickness_mm)", "CT slice thickness"),
+    (r"^ct\.noise_hu", "CT noise"),
+    (r"^operator\.ct_", "operator on CT"),
+    (r"^operator\.", "operator on X-ray"),
+)
+#: paths that are not error sources (names, the views' poses are the same in both profiles)
+NOT_SOURCES = (r"^scene\.", r"^views", r"^registration\.", r"^workspace\.")
+
+
+# --------------------------------------------------------------------------- profiles
+def _flatten(d, prefix="") -> dict:
+    out = {}
+    if isinstance(d, dict):
+        for k, v in d.items():
+            out.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+    else:
+        out[prefix] = d
+    return out
+
+
+def _set(d: dict, path: str, value) -> None:
+    keys = path.split(".")
+    for k in keys[:-1]:
+        d = d[k]
+    d[keys[-1]] = value
+
+
+def source_of(path: str) -> str:
+    """The error source a scene field belongs to (its own path when no group matches)."""
+    for pattern, name in SOURCE_GROUPS:
+        if re.search(pattern, path):
+            return name
+    return path
+
+
+def error_sources(clinic, ideal) -> dict[str, dict[str, tuple]]:
+    """Source -> {field path: (clinic value, ideal value)} for every field that differs."""
+    a = _flatten(clinic.model_dump(mode="json"))
+    b = _flatten(ideal.model_dump(mode="json"))
+    out: dict[str, dict[str, tuple]] = {}
+    for path in sorted(set(a) | set(b)):
+        if any(re.search(p, path) for p in NOT_SOURCES):
+            continue
+        if a.get(path) != b.get(path):
+            out.setdefault(source_of(path), {})[path] = (a.get(path), b.get(path))
+    return out
+
+
+def variant(base, fields: dict[str, object]):
+    """``base`` scene with the dotted ``fields`` set (validated like a scene file)."""
+    from testbed.scene import parse_scene
+
+    d = base.model_dump(mode="json")
+    for path, value in fields.items():
+        _set(d, path, value)
+    return parse_scene(d, source=f"{base.scene.name} (error-budget variant)")
+
+
+def ideal_scene_path(scene_path) -> str | None:
+    """The ideal profile of a scene: ``<name>-ideal`` beside it or among the named scenes."""
+    from pathlib import Path
+
+    from testbed.scene import SceneError, find_scene
+
+    p = Path(scene_path)
+    cand = p.with_name(p.stem + "-ideal.toml")
+    if cand.is_file():
+        return str(cand)
+    try:
+        return str(find_scene(p.stem + "-ideal"))
+    except (SceneError, ValueError):
+        return None
+
+
+# --------------------------------------------------------------------------- trials
+def _scene_of(tr):
+    from testbed.scene import load_scene
+
+    clinic = load_scene(tr.scene)
+    cfg = tr.params["config"]
+    if cfg == "clinic":
+        return clinic
+    ideal = load_scene(tr.params["ideal"])
+    if cfg == "ideal":
+        return ideal
+    fields = error_sources(clinic, ideal)[tr.params["source"]]
+    if cfg == "off":
+        return variant(clinic, {k: v[1] for k, v in fields.items()})
+    return variant(ideal, {k: v[0] for k, v in fields.items()})  # "alone"
+
+
+def trial(tr) -> list[dict]:
+    """One case of one configuration; the clinic configuration adds the stage budget."""
+    case = prepare_case(_scene_of(tr), tr.seed_sequence)
+    starts = table2_starts(case, tr.seed_sequence, quick=True)
+    rows = case_rows(case)
+    oracles = ORACLE_CONFIGS if tr.params["config"] == "clinic" else ((),)
+    for oracle in oracles:
+        rows += registration_rows(case, starts, oracle=oracle)
+    return rows
+
+
+def trial_params(scene_path, *, cases: int) -> list[dict]:
+    """Per case: the clinic configuration, and with an ideal profile the ideal one and each
+    source off and alone."""
+    from testbed.scene import load_scene
+
+    ideal = ideal_scene_path(scene_path)
+    params = [{"config": "clinic", "source": "", "ideal": ideal or "", "case": i}
+              for i in range(cases)]
+    if ideal is None:
+        return params
+    sources = error_sources(load_scene(scene_path), load_scene(ideal))
+    for i in range(cases):
+        params.append({"config": "ideal", "source": "", "ideal": ideal, "case": i})
+        for s in sources:
+            for cfg in ("off", "alone"):
+                params.append({"config": cfg, "source": s, "ideal": ideal, "case": i})
+    return params
 
 
 def run(ctx) -> pd.DataFrame:
-    case = simulate_case(ctx.scene, ctx.seed)
-    starts = table2_starts(case, ctx.seed, quick=True)  # identity, 2 x 5 deg, 2 x 7 deg
-    rows = []
-    for oracle in CONFIGS:
-        rows += registration_rows(case, starts, oracle=oracle)
-    df = pd.DataFrame(rows)
-    ctx.report("Case", case_summary(case))
-    pe = df[df.metric == "pin_error"]
-    t = pe.groupby("oracle")["value"].agg(["mean", "median", "max"]).reset_index()
-    base = t.set_index("oracle").loc["none", "mean"]
-    t["share of mean error removed"] = 1.0 - t["mean"] / base
-    ctx.report("Pin errors (mm) by substituted truth",
-               "Mean, median and max over the pins and the starts; `none` is the realistic "
-               "pipeline, `calibration+contours+surfaces` leaves only the registration's own "
-               "error.\n\n" + markdown_table(t, ".3f"))
+    from studies.runner import Trial, run_trials
+    from testbed.simulate import case_seed
+
+    n = QUICK_CASES if ctx.quick else CASES
+    params = trial_params(ctx.scene_path, cases=n)
+    # every configuration of case i is simulated from case i's seed (not the trial index's)
+    trials = [Trial.from_seed_sequence(i, str(ctx.scene_path), case_seed(ctx.seed, p["case"]),
+                                       p) for i, p in enumerate(params)]
+    df = run_trials(trial, trials, out_dir=ctx.out, workers=int(ctx.workers),
+                    scheduler=ctx.scheduler, retries=getattr(ctx, "retries", 2))
+    pe = df[(df.metric == "pin_error")]
+    if pe.empty:
+        ctx.report("Pin errors (mm)", "No registration finished.")
+        return df
+    ideal = params[0]["ideal"]
+    if ideal:
+        from testbed.scene import load_scene
+
+        src = error_sources(ctx.scene, load_scene(ideal))
+        ctx.report("Error sources", f"The clinic profile `{ctx.scene_path}` against its ideal "
+                   f"profile `{ideal}`, field by field:\n\n" + markdown_table(pd.DataFrame(
+                       [{"source": s, "field": f, "clinic": json.dumps(v[0]),
+                         "ideal": json.dumps(v[1])}
+                        for s, fields in src.items() for f, v in fields.items()])))
+        t = source_table(pe)
+        ctx.report("By source: mean pin error (mm), off and alone",
+                   "`clinic`: every source at its clinic magnitude; `ideal`: every source at "
+                   "its ideal magnitude. `off`: the clinic with this source at its ideal "
+                   "magnitude; `alone`: the ideal profile with only this source at its clinic "
+                   "magnitude. `removed` = clinic - off, `added` = alone - ideal.\n\n"
+                   + markdown_table(t, ".3f"))
+        _tornado(ctx, t)
+    else:
+        ctx.report("By source", f"No ideal profile (`{ctx.scene.scene.name}-ideal`) was found "
+                   "beside the scene or among the named scenes: only the stage budget is run.")
+    stage = pe[pe.config == "clinic"].groupby("oracle")["value"].agg(
+        ["mean", "median", "max"]).reset_index()
+    base = stage.set_index("oracle")["mean"].get("none", float("nan"))
+    stage["share of mean error removed"] = 1.0 - stage["mean"] / base
+    ctx.report("By stage: pin errors (mm) with truth substituted",
+               "Clinic cases. Mean, median and max over the pins, the starts and the cases; "
+               "`none` is the realistic pipeline, `calibration+contours+surfaces` leaves only "
+               "the registration's own error.\n\n" + markdown_table(stage, ".3f"))
     return df
+
+
+def source_table(pe: pd.DataFrame) -> pd.DataFrame:
+    """Per source: the mean pin error off and alone, what switching it off removes and what
+    it adds alone (mm); from the ``pin_error`` rows without oracle."""
+    pe = pe[pe.oracle == "none"]
+    mean = pe.groupby(["config", "source"])["value"].mean()
+    clinic = float(mean.get(("clinic", ""), np.nan))
+    ideal = float(mean.get(("ideal", ""), np.nan))
+    rows = []
+    for s in sorted(set(pe.source) - {""}):
+        off = float(mean.get(("off", s), np.nan))
+        alone = float(mean.get(("alone", s), np.nan))
+        rows.append({"source": s, "off": off, "alone": alone, "removed": clinic - off,
+                     "added": alone - ideal})
+    t = pd.DataFrame(rows)
+    if len(t):
+        t = t.sort_values("removed", ascending=False, key=lambda x: x.abs())
+    head = pd.DataFrame([{"source": "(clinic)", "off": clinic, "alone": np.nan,
+                          "removed": np.nan, "added": np.nan},
+                         {"source": "(ideal)", "off": np.nan, "alone": ideal,
+                          "removed": np.nan, "added": np.nan}])
+    return pd.concat([head, t], ignore_index=True)
+
+
+def _tornado(ctx, t: pd.DataFrame) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = t[~t.source.str.startswith("(")].iloc[::-1]
+    if t.empty:
+        return
+    fig, ax = plt.subplots(figsize=(7, 0.45 * len(t) + 1.5))
+    y = np.arange(len(t))
+    ax.barh(y, -t["removed"], color="tab:blue", label="removed when off (clinic - off)")
+    ax.barh(y, t["added"], color="tab:red", label="added alone (alone - ideal)")
+    ax.axvline(0, color="k", lw=0.8)
+    ax.set_yticks(y, t["source"])
+    ax.set_xlabel("change of the mean pin error (mm)")
+    ax.legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(ctx.figure("error_budget_tornado.png", "Each error source's share of the mean "
+                           "pin error: removed when switched off in the clinic (left), added "
+                           "when on alone in the ideal profile (right)"), dpi=110)
+    plt.close(fig)

@@ -25,7 +25,7 @@ def distortion_figure(scene, view: int, out_dir: Path, *, seed: int = 0,
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from studies.bench_render import bench_world
+    from studies.bench.render import bench_world
     from testbed.fluoroscope import make_carm, render
 
     out_dir = Path(out_dir)

@@ -3,10 +3,13 @@
 - A ``synthetic`` scene (``points-lines``, the default until the operating-room job lands):
   one seeded instance solved by every pose method, then the quick versions of the ``fig9``
   and ``table1`` studies written under ``--out`` (default ``runs/<scene name>``).
-- An ``operating_room`` scene: the end-to-end registration (``studies.end_to_end``).
+- An ``operating_room`` scene: the end-to-end registration (``studies.end_to_end``); the
+  overlay figures only when ``out`` is given.
 
 The result is a JSON-ready dict with at least ``pins`` (name -> error), ``mtre_mm``,
-``converged`` and ``timings`` (stage -> s), as DESIGN.md asks.
+``converged``, ``accepted`` and ``timings`` (stage -> s), as DESIGN.md asks. Files are
+written after the computation; a write that fails does not lose the result: the dict then
+holds ``write_error`` (the message) and the command line prints the result before the error.
 """
 
 from __future__ import annotations
@@ -17,14 +20,21 @@ from pathlib import Path
 import numpy as np
 
 
-def run_main_job(scene, *, scene_path, seed=None, out=None) -> dict:
+def run_main_job(scene, *, scene_path, seed=None, out=None, progress: bool = False) -> dict:
     seed = scene.scene.seed if seed is None else int(seed)
-    out = Path(out) if out is not None else Path("runs") / scene.scene.name
     if scene.scene.kind == "synthetic":
+        out = Path(out) if out is not None else Path("runs") / scene.scene.name
         return _synthetic_job(scene, scene_path=scene_path, seed=seed, out=out)
-    from studies.end_to_end import run_case
+    from studies.end_to_end import run_case, write_overlays
 
-    return run_case(scene, scene_path=scene_path, seed=seed, out=out)
+    result, case, start, est = run_case(scene, seed=seed, progress=progress)
+    result["scene_path"] = str(scene_path)
+    if out is not None:
+        try:
+            result["outputs"] = write_overlays(case, start, est.ct2robot, Path(out))
+        except OSError as exc:
+            result["write_error"] = f"--out {out}: could not write the figures ({exc})"
+    return result
 
 
 def _synthetic_job(scene, *, scene_path, seed, out) -> dict:
@@ -86,6 +96,9 @@ def _synthetic_job(scene, *, scene_path, seed, out) -> dict:
 def format_result(result: dict) -> str:
     """Human-readable summary of :func:`run_main_job`'s result."""
     lines = [f"scene {result['scene']} ({result.get('kind', '')}), seed {result.get('seed')}"]
+    if str(result.get("workspace", "")).startswith("not checked"):
+        lines.insert(0, "WARNING: the workspace was not checked ([workspace] check = false): "
+                     "this acquisition may not be physically possible")
     if result.get("kind") == "synthetic":
         lines.append("pose from points and lines, one instance (max landmark error):")
         for m, r in result["methods"].items():
@@ -101,7 +114,8 @@ def format_result(result: dict) -> str:
         lines.append("error at the pins after registration:")
         for pin, e in result["pins"].items():
             lines.append(f"  {pin:10s} {e:7.3f} mm")
-        lines.append(f"mTRE {result['mtre_mm']:.3f} mm; converged: {result['converged']}")
+        lines.append(f"mTRE {result['mtre_mm']:.3f} mm; converged: {result['converged']}; "
+                     f"accepted: {result['accepted']}")
         for k, v in result.get("extra_lines", []):
             lines.append(f"{k}: {v}")
     lines.append("timings (s): " + ", ".join(f"{k} {v:.2f}" for k, v in result["timings"].items()))

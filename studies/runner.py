@@ -73,6 +73,7 @@ import pandas as pd
 __all__ = [
     "DB_NAME",
     "FAILED_METRIC",
+    "StudyDatabaseError",
     "Trial",
     "TrialResult",
     "make_trials",
@@ -280,12 +281,24 @@ CREATE INDEX IF NOT EXISTS rows_trial ON rows (trial, row);
 """
 
 
+class StudyDatabaseError(ValueError):
+    """``trials.sqlite`` cannot be read: the message says what to do."""
+
+
 def _connect(db_path: Path) -> sqlite3.Connection:
-    con = sqlite3.connect(db_path, timeout=60.0, isolation_level=None)
-    con.execute("PRAGMA journal_mode=WAL")
-    # NORMAL is durable against a killed process (not against power loss) in WAL mode.
-    con.execute("PRAGMA synchronous=NORMAL")
-    con.executescript(_SCHEMA)
+    try:
+        con = sqlite3.connect(db_path, timeout=60.0, isolation_level=None)
+        con.execute("PRAGMA journal_mode=WAL")
+        # NORMAL is durable against a killed process (not against power loss) in WAL mode.
+        con.execute("PRAGMA synchronous=NORMAL")
+        con.executescript(_SCHEMA)
+        con.execute("SELECT key, trial, status FROM trials LIMIT 1").fetchall()
+        con.execute("SELECT key, row, metric FROM rows LIMIT 1").fetchall()
+    except sqlite3.DatabaseError as exc:
+        raise StudyDatabaseError(
+            f"{db_path}: not a readable study database ({exc}); move it away (e.g. "
+            f"mv {db_path} {db_path}.bad) to start the study again, or use another --out"
+        ) from None
     return con
 
 
@@ -407,10 +420,12 @@ def _lost(trial: Trial, why: str) -> TrialResult:
                              f"alone ({why})")
 
 
-def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str) -> None:
+def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str,
+              retries: int = 2) -> None:
     """Process pool with at most ``workers`` trials in flight, so that when a worker dies
     (BrokenProcessPool) the suspects are known: they are rerun one at a time in a fresh
-    one-worker pool, and a trial that kills its worker even alone is recorded as failed."""
+    one-worker pool (``retries`` more times if the worker dies again), and a trial that
+    kills its worker every time even alone is recorded as failed."""
     ctx = multiprocessing.get_context(mp_context)
     if mp_context == "forkserver":
         # Workers fork from one server that has imported these once (no effect once the
@@ -424,11 +439,14 @@ def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str) -> None:
     while queue or suspects:
         if suspects:
             trial = suspects.pop(0)
-            with cf.ProcessPoolExecutor(1, mp_context=ctx) as ex:
-                try:
-                    res = ex.submit(execute_trial, trial_fn, trial).result()
-                except BrokenProcessPool as exc:
-                    res = _lost(trial, str(exc) or type(exc).__name__)
+            for attempt in range(retries + 1):
+                with cf.ProcessPoolExecutor(1, mp_context=ctx) as ex:
+                    try:
+                        res = ex.submit(execute_trial, trial_fn, trial).result()
+                        break
+                    except BrokenProcessPool as exc:
+                        res = _lost(trial, f"{str(exc) or type(exc).__name__}; "
+                                    f"{attempt + 1} attempt(s) alone")
             record(trial, res)
             continue
         ex = cf.ProcessPoolExecutor(workers, mp_context=ctx)
@@ -460,7 +478,38 @@ def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str) -> None:
             ex.shutdown(wait=not running, cancel_futures=True)
 
 
-def _run_dask(trial_fn, todo, record, *, scheduler) -> None:
+#: error types of a lost worker or connection (Dask), not of the trial itself: retried
+LOST_WORKER_ERRORS = ("KilledWorker", "CommClosedError", "StreamClosedError",
+                      "FutureCancelledError", "CancelledError")
+#: seconds to wait for a Dask scheduler before giving up
+SCHEDULER_TIMEOUT_S = 10.0
+
+
+def _client(address: str):
+    """A Dask client for ``address``, or ValueError within SCHEDULER_TIMEOUT_S."""
+    import socket
+    from urllib.parse import urlparse
+
+    from distributed import Client
+
+    u = urlparse(address)
+    if u.scheme not in ("tcp", "tls") or not u.hostname or not u.port:
+        raise ValueError(f"--scheduler {address!r}: expected an address tcp://HOST:PORT")
+    try:
+        with socket.create_connection((u.hostname, u.port), timeout=SCHEDULER_TIMEOUT_S):
+            pass
+    except OSError as exc:
+        raise ValueError(f"--scheduler {address}: no scheduler answers there "
+                         f"({exc.strerror or exc}); start one (dask scheduler) or check the "
+                         "address") from None
+    try:
+        return Client(address, timeout=SCHEDULER_TIMEOUT_S)
+    except (OSError, TimeoutError) as exc:
+        raise ValueError(f"--scheduler {address}: cannot connect within "
+                         f"{SCHEDULER_TIMEOUT_S:g} s ({exc})") from None
+
+
+def _run_dask(trial_fn, todo, record, *, scheduler, retries: int = 2) -> None:
     try:
         from distributed import Client, as_completed
     except ImportError as exc:  # pragma: no cover - depends on the installation
@@ -470,24 +519,36 @@ def _run_dask(trial_fn, todo, record, *, scheduler) -> None:
     if isinstance(scheduler, Client):
         client = scheduler
     elif isinstance(scheduler, str):
-        client, own = Client(scheduler), True
+        client, own = _client(scheduler), True
     elif hasattr(scheduler, "scheduler_address"):
         client, own = Client(scheduler), True
     else:
         raise ValueError("scheduler: expected an address 'tcp://HOST:PORT', a "
                          f"dask.distributed.Client or a cluster, got {type(scheduler).__name__}")
     futures = {}
+    attempts: dict[str, int] = {}
     try:
         for t in todo:
             fut = client.submit(execute_trial, trial_fn, t, pure=False)
             futures[fut] = t
-        for fut in as_completed(list(futures)):
+        pending = as_completed(list(futures))
+        for fut in pending:
             t = futures.pop(fut)
             try:
                 res = fut.result()
-            except Exception as exc:  # e.g. KilledWorker
+            except Exception as exc:  # e.g. KilledWorker: the worker, not the trial
+                lost = type(exc).__name__ in LOST_WORKER_ERRORS
+                attempts[t.key] = attempts.get(t.key, 0) + 1
+                if lost and attempts[t.key] <= retries:
+                    again = client.submit(execute_trial, trial_fn, t, pure=False,
+                                          key=f"{t.key}-retry{attempts[t.key]}")
+                    futures[again] = t
+                    pending.add(again)
+                    continue
+                why = (f" (after {attempts[t.key]} attempts: a lost worker each time)"
+                       if lost else "")
                 res = TrialResult(t.key, t.index, "failed", (),
-                                  error=f"{type(exc).__name__}: {exc}",
+                                  error=f"{type(exc).__name__}: {exc}{why}",
                                   traceback=traceback.format_exc())
             record(t, res)
     finally:
@@ -509,6 +570,7 @@ def run_trials(
     resume: bool = True,
     retry_failed: bool = False,
     mp_context: Literal["spawn", "forkserver"] | None = None,
+    retries: int = 2,
 ) -> pd.DataFrame:
     """Run ``trials`` with ``trial_fn``, storing each result as it finishes; return all rows.
 
@@ -536,6 +598,9 @@ def run_trials(
         emptied first and every trial runs.
     retry_failed : bool
         With ``resume``, run again the trials stored as failed.
+    retries : int
+        How many more times a trial whose worker was lost (a dead pool process; Dask's
+        KilledWorker or a closed connection) is run before it is recorded as failed.
     mp_context : {"spawn", "forkserver"}, optional
         Start method of the process pool; default ``forkserver`` where the platform has it
         (workers fork from one server process that imported ``studies.runner`` and the trial
@@ -562,6 +627,8 @@ def run_trials(
         raise ValueError("trial_fn: expected a callable trial_fn(trial) -> list[dict]")
     if isinstance(workers, bool) or not isinstance(workers, numbers.Integral) or workers < 1:
         raise ValueError(f"workers: expected an int >= 1, got {workers!r}")
+    if isinstance(retries, bool) or not isinstance(retries, numbers.Integral) or retries < 0:
+        raise ValueError(f"retries: expected an int >= 0, got {retries!r}")
     if mp_context is None:
         methods = multiprocessing.get_all_start_methods()
         mp_context = "forkserver" if "forkserver" in methods else "spawn"
@@ -603,11 +670,12 @@ def run_trials(
             if not todo:
                 pass
             elif scheduler is not None:
-                _run_dask(trial_fn, todo, record, scheduler=scheduler)
+                _run_dask(trial_fn, todo, record, scheduler=scheduler, retries=retries)
             elif workers == 1:
                 _run_local(trial_fn, todo, record)
             else:
-                _run_pool(trial_fn, todo, record, workers=int(workers), mp_context=mp_context)
+                _run_pool(trial_fn, todo, record, workers=int(workers), mp_context=mp_context,
+                          retries=retries)
         finally:
             bar.close()
     finally:
@@ -638,5 +706,6 @@ def run_study_trials(ctx, trial_fn: Callable[[Trial], list[dict]],
     trials = make_trials(str(ctx.scene_path), int(ctx.seed), params)
     if scheduler is None:
         scheduler = getattr(ctx, "scheduler", None)
+    kwargs.setdefault("retries", getattr(ctx, "retries", 2))
     return run_trials(trial_fn, trials, out_dir=ctx.out, workers=int(ctx.workers),
                       scheduler=scheduler, progress=progress, **kwargs)

@@ -1,16 +1,14 @@
 """Study ``surfaces``: CT bone surfaces from snake contours, scored against the true femur.
 
-The chain of the paper (NOTES.md s2) on the simulated CT of the scene's phantom, at the
-scene's slice protocol (the clinical one by default): simulated user clicks (a few points on
-the true cross-section plus seeded noise, given on some slices and reused on the next ones),
-two-stage snakes, tiling by dynamic programming, simplification within a tolerance. The
-reconstructed proximal and distal surfaces are compared with the true femur surface
-(distances from the reconstruction to the truth, mm), beside marching cubes on the same
-volume (``skimage.measure.marching_cubes`` with the slices' true z positions).
-
-The helpers :func:`simulated_clicks` and :func:`reconstruct_surfaces` are reused by the
-registration studies: they are the simulated user, the only place where the truth (the true
-cross-sections) touches the CT contours.
+The chain of the paper (NOTES.md s2) on the simulated CT of each case, at the scene's slice
+protocol: the simulated operator's clicks (``testbed.operator``: a few points near the bone's
+outline on the slice, with a seeded error, reused on the next slices), two-stage snakes,
+tiling by dynamic programming, simplification within a tolerance. The reconstructed proximal
+and distal surfaces are compared with the true femur surface (distances from the
+reconstruction to the truth, mm), beside marching cubes on the same volume
+(``skimage.measure.marching_cubes`` with the slices' true z positions). Each trial is one
+case (world and CT of case ``i`` of the study seed, as :func:`testbed.simulate.simulate_ct`
+makes them); the figure shows case 0.
 """
 
 from __future__ import annotations
@@ -22,103 +20,61 @@ import pandas as pd
 import trimesh
 from scipy import ndimage
 
+from reglib.pipeline import SURFACE_SIMPLIFY_TOL_MM
 from reglib.surface import Surface, surface_from_ct
 from studies.common import markdown_table
-from testbed.ct import CTScan, CTSpec, scan
+from testbed.ct import CTScan
 from testbed.materials import material
-from testbed.phantom import Phantom, make_phantom
+from testbed.phantom import Phantom
 
 TITLE = "CT surfaces from snake contours (tiling, simplification) vs marching cubes, vs truth"
 DEFAULT_SCENE = "experiment2"
+CASES = 3
+QUICK_CASES = 1
+#: the operator clicks again after this distance along the slices (the paper reuses clicks)
+RECLICK_EVERY_MM = 6.0
 
-__all__ = ["TITLE", "DEFAULT_SCENE", "run", "true_sections", "simulated_clicks",
-           "reconstruct_surfaces", "distances_to_truth", "marching_cubes_surface"]
-
-
-# --------------------------------------------------------------------------- the simulated user
-def true_sections(phantom: Phantom, z_mm: float, *, min_area_mm2: float = 20.0) -> list:
-    """The true femur cross-section at z: a list of (K, 2) polygons (x, y) in ct mm."""
-    sec = phantom.femur.section(plane_origin=[0.0, 0.0, z_mm], plane_normal=[0.0, 0.0, 1.0])
-    if sec is None:
-        return []
-    out = []
-    for d in sec.discrete:
-        p = np.asarray(d, dtype=np.float64)[:, :2]
-        x, y = p[:, 0], p[:, 1]
-        if 0.5 * abs(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)) >= min_area_mm2:
-            out.append(p)
-    return out
+__all__ = ["TITLE", "DEFAULT_SCENE", "run", "reconstruct_surfaces", "distances_to_truth",
+           "marching_cubes_surface"]
 
 
-def simulated_clicks(polygon_px, n_clicks: int, noise_px: float, rng) -> np.ndarray:
-    """A user's clicks along a true contour: ``n_clicks`` points evenly spaced by arc length
-    (random phase) plus Gaussian noise of ``noise_px``; returns (n_clicks, 2) (x, y) px."""
-    rng = np.random.default_rng(rng)
-    p = np.asarray(polygon_px, dtype=np.float64)
-    closed = np.vstack([p, p[:1]])
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(closed, axis=0), axis=1))])
-    t = (rng.uniform() + np.arange(n_clicks)) / n_clicks * s[-1]
-    pts = np.column_stack([np.interp(t, s, closed[:, 0]), np.interp(t, s, closed[:, 1])])
-    return pts + rng.normal(0.0, noise_px, pts.shape)
-
-
-def _region_plan(phantom: Phantom, ct: CTScan, region: str, click_every_mm: float):
-    """Slices to contour in a region, and which of them the user clicks on."""
-    head = phantom.landmarks.get("head_center")
-    slices, polys = [], []
-    for k in ct.regions[region]:
-        z = float(ct.slice_z_mm[k])
-        sec = true_sections(phantom, z)
-        if not sec:
-            continue
-        if region == "proximal" and len(sec) > 1:
-            # The femoral head has separated from the neck and trochanter: stop (the head is
-            # left out, as in the paper).
-            break
-        if region == "proximal" and head is not None and z > head[2]:
-            break
-        slices.append(int(k))
-        polys.append(sec)
-    clicked, last_z, last_n = [], -np.inf, -1
-    for k, sec in zip(slices, polys, strict=True):
-        z = float(ct.slice_z_mm[k])
-        if len(sec) != last_n or z - last_z >= click_every_mm:
-            clicked.append(k)
-            last_z, last_n = z, len(sec)
-    return slices, dict(zip(slices, polys, strict=True)), clicked
-
-
-def reconstruct_surfaces(phantom: Phantom, ct: CTScan, *, rng=None, n_clicks: int = 10,
-                         click_noise_px: float = 1.0, click_every_mm: float = 0.0,
-                         simplify_tol_mm: float = 0.3, quality: str = "area",
-                         regions=("proximal", "distal"), timings: dict | None = None) -> dict:
-    """Proximal and distal surfaces from the CT, the user simulated from the truth.
-
-    Returns region name -> (Surface, list of SliceContours). ``click_every_mm``: the user
-    clicks again after this distance in z (and whenever the number of contours changes); 0:
-    on every slice. ``timings`` (if given) receives seconds per stage.
-    """
-    rng = np.random.default_rng(rng)
+def reconstruct_surfaces(ct: CTScan, clicks: dict, *,
+                         simplify_tol_mm: float = SURFACE_SIMPLIFY_TOL_MM,
+                         quality: str = "area", timings: dict | None = None) -> dict:
+    """Surfaces from the CT and the operator's clicks (region -> ``CtClicks``): region ->
+    ``(Surface, list of SliceContours)``; ``timings`` (if given) receives s per region."""
     out = {}
-    for region in regions:
-        slices, polys, clicked = _region_plan(phantom, ct, region, click_every_mm)
-        if len(slices) < 2:
-            raise ValueError(f"region {region!r}: fewer than 2 slices cross the femur")
-        clicks = {}
-        for k in clicked:
-            secs = sorted(polys[k], key=lambda p: float(np.mean(p[:, 0])))
-            clicks[k] = [simulated_clicks(ct.ct_to_pixel(np.column_stack([p, np.zeros(len(p))])),
-                                          n_clicks, click_noise_px, rng) for p in secs]
+    for region, cc in sorted(clicks.items()):
         t0 = time.perf_counter()
-        surf, contours = surface_from_ct(ct.volume_hu, ct.slice2ct, slices, clicks,
-                                         quality=quality, simplify_tol_mm=simplify_tol_mm)
+        out[region] = surface_from_ct(ct.volume_hu, ct.slice2ct, [int(k) for k in cc.slices],
+                                      cc.clicks, quality=quality,
+                                      simplify_tol_mm=simplify_tol_mm)
         if timings is not None:
             timings[f"surface_{region}"] = time.perf_counter() - t0
-        out[region] = (surf, contours)
     return out
 
 
-# --------------------------------------------------------------------------- scoring
+def _case_scene(scene, quick: bool):
+    op = scene.operator.model_copy(update={"ct_reclick_every_mm": RECLICK_EVERY_MM})
+    update = {"operator": op}
+    if quick:  # a smaller version for smoke tests: coarser meshes and sampling
+        update["phantom"] = scene.phantom.model_copy(
+            update={"segments": min(scene.phantom.segments, 32)})
+        update["ct"] = scene.ct.model_copy(update={"supersample": 1})
+    return scene.model_copy(update=update)
+
+
+def _case(tr, quick):
+    from testbed.scene import load_scene
+    from testbed.simulate import simulate_ct
+
+    t0 = time.perf_counter()
+    ctc = simulate_ct(_case_scene(load_scene(tr.scene), quick), tr.seed_sequence)
+    timings = {"world+ct": time.perf_counter() - t0}
+    recon = reconstruct_surfaces(ctc.ct, ctc.clicks, timings=timings)
+    return ctc, recon, timings
+
+
 def distances_to_truth(phantom: Phantom, vertices, faces, *, n_samples: int = 20000,
                        rng=None) -> np.ndarray:
     """Distances (mm) from points of a surface (its vertices and area-weighted samples) to
@@ -211,59 +167,71 @@ def _figure(path, phantom, items):
 
 
 # --------------------------------------------------------------------------- the study
-def run(ctx) -> pd.DataFrame:
-    scene = ctx.scene
-    rng = np.random.default_rng(ctx.seed)
-    t0 = time.perf_counter()
-    ph_spec = scene.phantom
-    ct_spec: CTSpec = scene.ct
-    if ctx.quick:  # a smaller version for smoke tests: coarser meshes and sampling
-        ph_spec = ph_spec.model_copy(update={"segments": min(ph_spec.segments, 32)})
-        ct_spec = ct_spec.model_copy(update={"supersample": 1})
-    phantom = make_phantom(ph_spec)
-    t_ph = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    ct = scan(phantom, ct_spec, rng=rng)
-    t_ct = time.perf_counter() - t0
-    timings = {"phantom": t_ph, "ct": t_ct}
-    recon = reconstruct_surfaces(phantom, ct, rng=rng, timings=timings, click_every_mm=6.0)
+def trial(tr) -> list[dict]:
+    quick = bool(tr.params["quick"])
+    ctc, recon, timings = _case(tr, quick)
+    phantom, ct = ctc.world.phantom, ctc.ct
+    rng = tr.rng()
     rows = []
-    items = []
     for region, (surf, contours) in recon.items():
         zr = (min(c.z_mm for c in contours), max(c.z_mm for c in contours))
         mc = marching_cubes_surface(ct, region, zr)
-        for method, s in (("contours", surf), ("marching_cubes", mc)):
-            d = distances_to_truth(phantom, s.vertices, s.faces, rng=rng,
-                                   n_samples=2000 if ctx.quick else 20000)
+        for method, srf in (("contours", surf), ("marching_cubes", mc)):
+            d = distances_to_truth(phantom, srf.vertices, srf.faces, rng=rng,
+                                   n_samples=2000 if quick else 20000)
             for stat, val in _stats(d).items():
-                rows.append(dict(trial=0, metric="surface_distance", value=val, unit="mm",
+                rows.append(dict(metric="surface_distance", value=val, unit="mm",
                                  surface=region, statistic=stat, method=method))
-            rows.append(dict(trial=0, metric="triangles", value=float(s.n_triangles),
-                             unit="count", surface=region, statistic="", method=method))
-            items.append((f"{region}, {method}", s, d[:len(s.vertices)]))
-        rows.append(dict(trial=0, metric="slices", value=float(len(contours)), unit="count",
+            rows.append(dict(metric="triangles", value=float(srf.n_triangles), unit="count",
+                             surface=region, statistic="", method=method))
+        rows.append(dict(metric="slices", value=float(len(contours)), unit="count",
                          surface=region, statistic="", method="contours"))
-        rows.append(dict(trial=0, metric="simplification_bound", unit="mm",
+        rows.append(dict(metric="simplification_bound", unit="mm",
                          value=float(surf.info.get("hausdorff_mm", 0.0)), surface=region,
                          statistic="max", method="contours"))
     for stage, sec in timings.items():
-        rows.append(dict(trial=0, metric="time", value=float(sec), unit="s", surface="",
+        rows.append(dict(metric="time", value=float(sec), unit="s", surface="",
                          statistic=stage, method=""))
-    df = pd.DataFrame(rows)
-    fig = ctx.figure("surfaces_distance.png",
-                     "Reconstructed surfaces coloured by their distance to the true femur (mm)")
-    _figure(fig, phantom, items)
-    tab = df[df.metric == "surface_distance"].pivot_table(
-        index=["surface", "method"], columns="statistic", values="value").reset_index()
-    tri = df[df.metric == "triangles"][["surface", "method", "value"]].rename(
-        columns={"value": "triangles"})
+    return rows
+
+
+def run(ctx) -> pd.DataFrame:
+    from studies.runner import run_study_trials
+
+    n = QUICK_CASES if ctx.quick else CASES
+    df = run_study_trials(ctx, trial, [{"case": i, "quick": bool(ctx.quick)} for i in range(n)])
+    ok = df[df.metric == "surface_distance"]
+    if ok.empty:
+        ctx.report("Distance to the true femur surface (mm)", "No case finished.")
+        return df
+    tab = ok.pivot_table(index=["surface", "method"], columns="statistic", values="value",
+                         aggfunc="mean").reset_index()
+    tri = df[df.metric == "triangles"].groupby(["surface", "method"])["value"].mean().rename(
+        "triangles").reset_index()
     tab = tab.merge(tri, on=["surface", "method"])[["surface", "method", "mean", "p95", "max",
                                                       "triangles"]]
-    tab["triangles"] = tab["triangles"].astype(int)
+    tab["triangles"] = tab["triangles"].round().astype(int)
     ctx.report("Distance to the true femur surface (mm)",
-               markdown_table(tab) + "\n\nCT: " + f"{len(ct.slice_z_mm)} slices, "
-               f"{ct.pixel_mm} mm pixels; the paper's surfaces had 1664 (proximal) and 3913 "
-               "(distal) triangles; goal: mean <= 0.5 mm.")
-    ctx.report("Time per stage (s)", markdown_table(pd.DataFrame(
-        {"stage": list(timings), "seconds": list(timings.values())})))
+               markdown_table(tab) + f"\n\nMean over {df['trial'].nunique()} case(s) of each "
+               "case's statistic. The paper's surfaces had 1664 (proximal) and 3913 (distal) "
+               "triangles; goal: mean <= 0.5 mm.")
+    t = df[df.metric == "time"].groupby("statistic")["value"].median()
+    ctx.report("Time per stage (s, median over the cases)", markdown_table(pd.DataFrame(
+        {"stage": list(t.index), "seconds": list(t.values)})))
+    # the figure: case 0 again (same seed, same surfaces)
+    from studies.runner import make_trials
+
+    tr0 = make_trials(str(ctx.scene_path), int(ctx.seed), [{"case": 0, "quick": ctx.quick}])[0]
+    ctc, recon, _ = _case(tr0, bool(ctx.quick))
+    items = []
+    rng = np.random.default_rng(0)
+    for region, (surf, contours) in recon.items():
+        zr = (min(c.z_mm for c in contours), max(c.z_mm for c in contours))
+        for method, srf in (("contours", surf),
+                            ("marching_cubes", marching_cubes_surface(ctc.ct, region, zr))):
+            d = distances_to_truth(ctc.world.phantom, srf.vertices, srf.faces, rng=rng,
+                                   n_samples=1)
+            items.append((f"{region}, {method}", srf, d[:len(srf.vertices)]))
+    _figure(ctx.figure("surfaces_distance.png", "Reconstructed surfaces of case 0 coloured by "
+                       "their distance to the true femur (mm)"), ctc.world.phantom, items)
     return df

@@ -1,13 +1,14 @@
 """Table I of the paper: time per pose solve for 20, 100 and 1000 points, per method.
 
-Timed in this process on the paper's synthetic set-up (``scenes/points-lines.toml``), on two
-kinds of data: ``clean`` (noise-free) and ``noisy`` (Gaussian noise of 0.01, a hundredth of
-the cloud, on every point). Each configuration is timed ``repeats`` times on fresh seeded
-instances; the table gives the median. Beside our methods, PoseLib (C++, the ``poselib``
-package of the ``bench`` extra) on the same data as the reference measured in the same run:
-``poselib_ransac`` is its full estimator (P3P RANSAC + LM refinement; the bundle is central,
-so its pinhole solver applies) and ``poselib_refine`` its LM refinement alone from the same
-identity start as ours. The paper's figures (IBM RS6000, 1997) are printed beside.
+Timed (CPU time) in this process on the paper's synthetic set-up
+(``scenes/points-lines.toml``), on two kinds of data: ``clean`` (noise-free) and ``noisy``
+(Gaussian noise of 0.01, a hundredth of the cloud, on every point). Each configuration is
+timed ``repeats`` times on fresh seeded instances; the table gives the median. Beside our
+methods, PoseLib (C++, the ``poselib`` package of the ``bench`` extra) on the same data as
+the reference measured in the same run: ``poselib_ransac`` is its full estimator (P3P
+RANSAC + LM refinement; the bundle is central, so its pinhole solver applies) and
+``poselib_refine`` its LM refinement alone from the same identity start as ours. The
+paper's figures (IBM RS6000, 1997) are printed beside.
 
 This is a benchmark, not a test: the ratio to PoseLib is what carries over between machines.
 """
@@ -85,9 +86,9 @@ def time_solves(spec, n_points, noise, repeats, seed, methods=METHODS, *, with_p
     for name, solve in solvers.items():
         solve(cases[0])  # warm-up (numba compilation, caches)
         for k, case in enumerate(cases):
-            t0 = time.perf_counter()
+            t0 = time.process_time()  # CPU time: the machine is shared
             out = solve(case)
-            dt = time.perf_counter() - t0
+            dt = time.process_time() - t0
             est = out.transform if hasattr(out, "transform") else RigidTransform(*out)
             rows.append({"method": name, "n_points": n_points, "repeat": k,
                          "time_s": dt,
@@ -138,9 +139,12 @@ def _report(ctx, raw):
     if "poselib_ransac" in t:
         t["robust / poselib_ransac"] = t["robust"] / t["poselib_ransac"]
         t["robust / poselib_refine"] = t["robust"] / t["poselib_refine"]
+        if "ransac" in t:  # issue 13's goal: within 3x on the noisy rows
+            t["ransac / poselib_ransac"] = t["ransac"] / t["poselib_ransac"]
     ctx.report("Median time per solve (ms)",
-               "Median over fresh seeded instances, this machine, one core; the paper's "
-               "IBM RS6000 times beside. Ratios are ours over PoseLib's.\n\n"
+               "Median CPU time over fresh seeded instances, this machine, one core; the "
+               "paper's IBM RS6000 times beside. Ratios are ours over PoseLib's (goal for "
+               "RANSAC on the noisy rows: at most 3).\n\n"
                + markdown_table(t, ".3g"))
     err = raw.groupby(["n_points", "method"])["error"].median().unstack("method").reset_index()
     ctx.report("Median max landmark error of the timed solves", markdown_table(err, ".2g"))

@@ -1,61 +1,167 @@
-"""Table II of the paper: error at the pins after registration from 11 starts.
+"""Table II of the paper: error at the pins after registration from 11 starts, over many cases.
 
-One simulated case of the default scene (``experiment2``: four views, two proximal and two
-distal, femur on an OR table); registration from the true pose and from five 5 deg and five
-7 deg rotations about random axes through the pins' centroid (seeded). The error at each pin
-is the distance between its position under the estimated and the true ``ct2robot``.
+Each trial is one simulated case of the scene (``experiment2``: four views, two proximal and
+two distal, femur on an OR table; case ``i`` of the study seed, as ``testbed run`` and
+``testbed generate`` simulate it): registration from the true pose and from five 5 deg and
+five 7 deg rotations about seeded random axes through the pins' centroid. The error at each
+pin is the distance between its position under the estimated and the true ``ct2robot``.
+
+The report puts, per pin, the simulated distribution over the cases (median and IQR over
+every case and perturbed start; the identity start apart) beside the paper's values, and the
+calibration validation of every view beside the paper's 0.1-0.4 mm, with the targets of a
+clinic-realistic simulation: mean pin error 1.8-4.2 mm, each pin's median within a factor
+of 1.5 of the paper's, validation within 0.1-0.4 mm.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import pandas as pd
 
 from studies.common import markdown_table
-from studies.end_to_end import PAPER_TABLE2, registration_rows, simulate_case, table2_starts
+from studies.end_to_end import (
+    PAPER_TABLE2,
+    PIN_NAMES,
+    case_rows,
+    prepare_case,
+    registration_rows,
+    table2_starts,
+)
+from studies.scoring import (
+    REFERENCE_CT_SIGMA_MM,
+    REFERENCE_ROBOT_SIGMA_MM,
+    judge_seed,
+    pin_errors,
+    pin_reference,
+)
 
 TITLE = "the paper's Table II: pin errors after registration from 11 perturbed starts"
 DEFAULT_SCENE = "experiment2"
+CASES = 20
+QUICK_CASES = 1
+#: the targets of a clinic-realistic simulation (issue: the testbed's errors must predict
+#: the paper's)
+TARGET_MEAN_MM = (1.8, 4.2)
+TARGET_MEDIAN_RATIO = 1.5
+TARGET_VALIDATION_MM = (0.1, 0.4)
+#: the judge's seed salt of the pin-based reference registration
+REFERENCE_SALT = 3
+
+
+def paper_medians() -> dict[str, float]:
+    """Per pin, the median of the paper's Table II over its readable perturbed starts."""
+    rows = [v for k, v in PAPER_TABLE2.items() if k != "identity"]
+    return {p: float(np.median([r[i] for r in rows])) for i, p in enumerate(PIN_NAMES)}
+
+
+def trial(tr) -> list[dict]:
+    """One case and its 11 (quick: 5) starts."""
+    from testbed.scene import load_scene
+
+    case = prepare_case(load_scene(tr.scene), tr.seed_sequence)
+    starts = table2_starts(case, tr.seed_sequence, quick=bool(tr.params["quick"]))
+    reference = pin_reference(case.sim.truth, judge_seed(tr.seed_sequence, REFERENCE_SALT))
+    ref_rows = [{"metric": "reference_error", "value": e, "unit": "mm", "pin": p}
+                for p, e in pin_errors(reference, case.ct2robot, case.pins_ct).items()]
+    return case_rows(case) + ref_rows + registration_rows(case, starts, reference=reference)
 
 
 def run(ctx) -> pd.DataFrame:
-    case = simulate_case(ctx.scene, ctx.seed)
-    starts = table2_starts(case, ctx.seed, quick=ctx.quick)
-    df = pd.DataFrame(registration_rows(case, starts))
-    ctx.report("Case", case_summary(case))
-    ctx.report("Pin errors (mm) beside the paper's Table II", table2_markdown(df))
+    from studies.runner import run_study_trials
+
+    n = QUICK_CASES if ctx.quick else CASES
+    df = run_study_trials(ctx, trial, [{"case": i, "quick": bool(ctx.quick)} for i in range(n)])
+    ok = df[df.metric != "failed"]
+    ctx.report("Pin errors (mm) beside the paper's Table II", table2_markdown(ok))
+    ref = ok[ok.metric == "reference_error"]
+    if len(ref):
+        ctx.report("Against the paper's kind of reference",
+                   "The paper measured its errors against a pin-based registration, itself in "
+                   "error: here the pins located in CT and touched by the robot, each with a "
+                   f"Gaussian error ({REFERENCE_CT_SIGMA_MM} mm and {REFERENCE_ROBOT_SIGMA_MM} "
+                   "mm per axis), registered by least squares. That reference lies "
+                   f"{ref['value'].median():.2f} mm (median, {ref['value'].max():.2f} mm at "
+                   "most) from the truth at the pins; the errors against it:\n\n"
+                   + table2_markdown(ok, "pin_error_vs_reference"))
+    ctx.report("Calibration validation (mm) beside the paper's 0.1-0.4 mm",
+               validation_markdown(ok))
+    ctx.report("Targets of a clinic-realistic simulation", targets_markdown(ok))
+    failures = df.attrs.get("failures", {})
+    if failures:
+        ctx.report("Failed cases", "\n".join(f"- case {k}: {v}" for k, v in failures.items()))
     return df
 
 
-def case_summary(case) -> str:
-    lines = [f"- views: {', '.join(v.name for v in case.views)}",
-             "- surfaces: " + ", ".join(f"{k} {len(f)} triangles"
-                                        for k, (_, f) in sorted(case.surfaces.items())),
-             "- contour pixels per view: " + ", ".join(f"{v.name} {len(v.contour_xy)}"
-                                                       for v in case.views),
-             "- acquisition (sweeps): " + ", ".join(f"{v.name} {v.sweep_time_s:.0f} s"
-                                                   for v in case.views),
-             "- stage times (s): " + ", ".join(f"{k} {t:.1f}" for k, t in case.timings.items())]
-    return "\n".join(lines)
+def _iqr(x) -> str:
+    q1, q3 = np.percentile(x, [25, 75])
+    return f"{q1:.2f}-{q3:.2f}"
 
 
-def table2_markdown(df: pd.DataFrame) -> str:
-    pe = df[df.metric == "pin_error"].pivot_table(index="start", columns="pin", values="value",
-                                                   sort=False)
-    conv = df[df.metric == "converged"].set_index("start")["value"]
-    start = df[df.metric == "start_mtre"].set_index("start")["value"]
+def table2_markdown(df: pd.DataFrame, metric: str = "pin_error") -> str:
+    pe = df[df.metric == metric]
+    if pe.empty:
+        return "No registration finished."
+    paper = paper_medians()
+    ident = PAPER_TABLE2["identity"]
     rows = []
-    for name in pe.index:
-        paper = PAPER_TABLE2.get(name)
+    for i, pin in enumerate(PIN_NAMES):
+        pert = pe[(pe.pin == pin) & (pe.start != "identity")]["value"].to_numpy()
+        idn = pe[(pe.pin == pin) & (pe.start == "identity")]["value"].to_numpy()
         rows.append({
-            "start": name, "start mTRE": start[name],
-            "proximal": pe.loc[name, "proximal"], "distal 1": pe.loc[name, "distal_1"],
-            "distal 2": pe.loc[name, "distal_2"], "converged": bool(conv[name]),
-            "paper proximal": paper[0] if paper else float("nan"),
-            "paper distal 1": paper[1] if paper else float("nan"),
-            "paper distal 2": paper[2] if paper else float("nan"),
+            "pin": pin,
+            "median (perturbed)": float(np.median(pert)) if pert.size else np.nan,
+            "IQR (perturbed)": _iqr(pert) if pert.size else "",
+            "paper median": paper[pin],
+            "ratio": float(np.median(pert)) / paper[pin] if pert.size else np.nan,
+            "median (identity)": float(np.median(idn)) if idn.size else np.nan,
+            "IQR (identity)": _iqr(idn) if idn.size else "",
+            "paper identity": ident[i],
         })
-    t = pd.DataFrame(rows)
-    worst = pe.values.max()
-    return (markdown_table(t, ".2f")
-            + f"\n\nLargest pin error: {worst:.2f} mm (goal: below 1.0 mm at every pin; "
-            "paper: 1.2-3.7 mm, once 4.8 mm).")
+    n_cases = df["trial"].nunique()
+    conv = df[df.metric == "converged"]["value"]
+    acc = df[df.metric == "accepted"]["value"]
+    return (markdown_table(pd.DataFrame(rows), ".2f")
+            + f"\n\n{n_cases} case(s), {len(conv)} registrations: {conv.mean():.0%} converged, "
+            f"{acc.mean():.0%} accepted by the method's own verdict. Paper: 1.2-3.7 mm, once "
+            "4.8 mm; per-pin medians of its readable rows "
+            + ", ".join(f"{k} {v:.2f}" for k, v in paper.items()) + " mm.")
+
+
+def validation_markdown(df: pd.DataFrame) -> str:
+    v = df[(df.metric == "validation_distance") & (df.statistic == "max")]
+    if v.empty:
+        return "No calibration was validated."
+    t = v.groupby("view")["value"].agg(["median", "min", "max"]).reset_index()
+    ok = df[df.metric == "calibration_ok"].groupby("view")["value"].mean().rename(
+        "share passed").reset_index()
+    return markdown_table(t.merge(ok, on="view"), ".3f") + (
+        "\n\nLargest distance per view and case between the validation row's robot-reported "
+        "bead positions and the calibrated X-ray paths of their images (median, min and max "
+        "over the cases); a view fails above 1 mm.")
+
+
+def targets_markdown(df: pd.DataFrame) -> str:
+    pe = df[(df.metric == "pin_error")]
+    if pe.empty:
+        return "No registration finished: no target can be checked."
+    paper = paper_medians()
+    mean = float(pe["value"].mean())
+    lines = []
+
+    def check(ok, text):
+        lines.append(f"- {'met' if ok else '**missed**'}: {text}")
+
+    check(TARGET_MEAN_MM[0] <= mean <= TARGET_MEAN_MM[1],
+          f"mean pin error {mean:.2f} mm (target {TARGET_MEAN_MM[0]}-{TARGET_MEAN_MM[1]} mm)")
+    for pin in PIN_NAMES:
+        m = float(pe[(pe.pin == pin) & (pe.start != "identity")]["value"].median())
+        r = m / paper[pin]
+        check(1 / TARGET_MEDIAN_RATIO <= r <= TARGET_MEDIAN_RATIO,
+              f"{pin}: median {m:.2f} mm = {r:.2f} x the paper's {paper[pin]:.2f} mm (target "
+              f"within {TARGET_MEDIAN_RATIO}x)")
+    v = df[(df.metric == "validation_distance") & (df.statistic == "max")]["value"]
+    if len(v):
+        check(bool(((v >= TARGET_VALIDATION_MM[0]) & (v <= TARGET_VALIDATION_MM[1])).all()),
+              f"calibration validation {v.min():.2f}-{v.max():.2f} mm over every view and case "
+              f"(target {TARGET_VALIDATION_MM[0]}-{TARGET_VALIDATION_MM[1]} mm)")
+    return "\n".join(lines)

@@ -47,6 +47,12 @@ class CTSpec(Spec):
     ``distal_height_mm`` above them, proximal from ``proximal_depth_mm`` below the top of the
     femoral head to above it. ``slice_thickness_mm``: the reconstructed thickness, at most the
     local spacing (None: the local spacing, capped at ``max_slice_thickness_mm``).
+
+    Clinic defaults (``docs/error-model.md``): contiguous slices, i.e. the thickness equals the
+    spacing up to ``max_slice_thickness_mm`` = 10 mm (so 6 mm on the coarse part of the
+    clinical schedule: partial volume over the whole gap); metal streaks from the pins on
+    (``streak_hu``); noise ``noise_hu``. The ideal profile caps the thickness at 2 mm and
+    turns the streaks off.
     """
 
     pixel_mm: Annotated[float, Field(ge=0.3, le=2.0)] = 0.8
@@ -63,11 +69,11 @@ class CTSpec(Spec):
     uniform_range_mm: Vec2 | None = None
     slice_z_mm: tuple[float, ...] = ()
     slice_thickness_mm: Positive | None = None
-    max_slice_thickness_mm: Positive = 2.0
+    max_slice_thickness_mm: Positive = 10.0
     subslice_mm: Positive = 0.5
     supersample: Annotated[int, Field(ge=1, le=8)] = 3
     noise_hu: NonNegative = 15.0
-    metal_streaks: bool = False
+    metal_streaks: bool = True
     streak_hu: NonNegative = 300.0
 
     @model_validator(mode="after")

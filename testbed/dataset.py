@@ -64,8 +64,17 @@ __all__ = [
 ]
 
 FORMAT_NAME = "xray-reg-testbed-case"
-FORMAT_VERSION = 1
-SUPPORTED_VERSIONS = (1,)
+FORMAT_VERSION = 2
+#: version 1 (before the operator's clicks were part of the observation) is not read: its
+#: cases lack what reglib.estimate needs; generate them again
+SUPPORTED_VERSIONS = (2,)
+#: entry names that are always truth in the cases of ``testbed generate``, whatever
+#: case.json says (fnmatch patterns): such a case calling one an observation is refused
+TRUTH_ENTRIES = ("arrays/xray_float_*", "arrays/sweep_truth_*", "arrays/rays_*",
+                 "transforms/*", "meshes/*", "points/*")
+#: keys of meta that only the truth may see (the resolved scene, seeds)
+TRUTH_META_KEYS = ("truth",)
+INDEX_FILE = "dataset.json"
 GROUPS = ("volumes", "images", "arrays", "meshes", "transforms", "points")
 ROLES = ("observation", "truth")
 CASE_FILE = "case.json"
@@ -405,10 +414,69 @@ def _read_doc(case_dir: Path) -> dict:
     for key in ("meta", "entries", "sha256"):
         if key not in doc:
             raise ValueError(f"{path}: the field {key!r} is missing")
+        if not isinstance(doc[key], dict):
+            raise ValueError(f"{path}: the field {key!r} must be a table (JSON object), got "
+                             f"{type(doc[key]).__name__}")
+    for key, rec in doc["entries"].items():
+        if not isinstance(rec, dict):
+            raise ValueError(f"{path}: entry {key!r} must be a table, got "
+                             f"{type(rec).__name__}")
+        files = rec.get("files")
+        if (not isinstance(files, list) or not files
+                or not all(isinstance(f, str) and f for f in files)):
+            raise ValueError(f"{path}: entry {key!r}: 'files' must be a non-empty list of "
+                             f"file names, got {files!r}")
+    for rel, digest in doc["sha256"].items():
+        if not isinstance(digest, str) or len(digest) != 64:
+            raise ValueError(f"{path}: sha256 of {rel!r} must be 64 hex digits, got {digest!r}")
     return doc
 
 
+def _check_index(case_dir: Path) -> None:
+    """A case inside a generated dataset: its ``case.json`` must have the SHA-256 that the
+    dataset's index (``../dataset.json``) recorded when the case was written."""
+    index = case_dir.parent / INDEX_FILE
+    if not index.is_file():
+        return
+    try:
+        idx = json.loads(index.read_text())
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{index}: unreadable dataset index ({exc})") from None
+    hashes = idx.get("case_json_sha256") if isinstance(idx, dict) else None
+    if not isinstance(hashes, dict) or case_dir.name not in hashes:
+        raise ValueError(f"{case_dir / CASE_FILE}: {index} holds no checksum of this case; "
+                         "the case was not written by testbed generate into this dataset")
+    if _sha256(case_dir / CASE_FILE) != hashes[case_dir.name]:
+        raise ValueError(f"{case_dir / CASE_FILE}: SHA-256 differs from {index}; case.json "
+                         "was changed after the case was written")
+
+
+def _check_roles(case_dir: Path, doc: dict) -> None:
+    """A case of ``testbed generate`` (by its meta or its dataset index) never has a truth
+    entry (:data:`TRUTH_ENTRIES`) marked as observation; other writers name freely."""
+    from fnmatch import fnmatchcase
+
+    generated = (doc.get("meta", {}).get("generator") == "testbed generate"
+                 or (case_dir.parent / INDEX_FILE).is_file())
+    if not generated:
+        return
+    for key, rec in doc["entries"].items():
+        if rec.get("role") == "observation" and any(fnmatchcase(key, p) for p in TRUTH_ENTRIES):
+            raise ValueError(f"{case_dir / CASE_FILE}: entry {key!r} is ground truth but is "
+                             "marked 'observation'; refusing to put truth into the Observation")
+
+
 def _check_files(case_dir: Path, doc: dict, verify: bool) -> None:
+    listed = {"transforms.json", "points.json"}
+    for key, rec in doc["entries"].items():
+        files = rec.get("files") if isinstance(rec, dict) else None
+        if not isinstance(files, list) or not files:
+            raise ValueError(f"{case_dir / CASE_FILE}: entry {key!r} lists no files")
+        listed.update(files)
+    unchecked = sorted(listed - set(doc["sha256"]))
+    if unchecked:
+        raise ValueError(f"{case_dir / unchecked[0]}: no SHA-256 in {CASE_FILE} (every file "
+                         "of a case must have its checksum)")
     for rel, digest in doc["sha256"].items():
         path = case_dir / rel
         if not path.is_file():
@@ -416,6 +484,15 @@ def _check_files(case_dir: Path, doc: dict, verify: bool) -> None:
         if verify and _sha256(path) != digest:
             raise ValueError(f"{path}: SHA-256 differs from {CASE_FILE}; the file was changed "
                              "or truncated")
+
+
+def _same_layout(path: Path, a: np.ndarray, rec, what: str) -> None:
+    """The dtype and shape of an array read from ``path`` are those ``case.json`` records."""
+    if not isinstance(rec, dict) or str(a.dtype) != rec.get("dtype") \
+            or list(a.shape) != rec.get("shape"):
+        want = (f"{rec.get('dtype')!r} {rec.get('shape')!r}" if isinstance(rec, dict)
+                else repr(rec))
+        raise ValueError(f"{path}: {what} is {a.dtype} {a.shape}, {CASE_FILE} says {want}")
 
 
 def _read_entry(case_dir: Path, group: str, name: str, rec: dict, transforms: dict,
@@ -435,6 +512,9 @@ def _read_entry(case_dir: Path, group: str, name: str, rec: dict, transforms: di
             raise ValueError(f"{path}: header affine disagrees with voxel2ct in {CASE_FILE}")
         return Volume(data, aff)
     if group == "images":
+        if rec.get("dtype") != "uint8":
+            raise ValueError(f"{case_dir / CASE_FILE}: entry {what!r}: images are uint8, "
+                             f"{CASE_FILE} says {rec.get('dtype')!r}")
         frames = [_png_read(case_dir / rel) for rel in rec["files"]]
         img = np.stack(frames)
         if len(rec["shape"]) == 2:
@@ -447,9 +527,16 @@ def _read_entry(case_dir: Path, group: str, name: str, rec: dict, transforms: di
         path = case_dir / rec["files"][0]
         if path.suffix == ".npz":
             with np.load(path, allow_pickle=False) as z:
+                if sorted(z.files) != sorted(rec["keys"]):
+                    raise ValueError(f"{path}: holds arrays {sorted(z.files)}, {CASE_FILE} "
+                                     f"says {sorted(rec['keys'])}")
                 out = {k: z[k] for k in rec["keys"]}
+            for k, a in out.items():
+                _same_layout(path, a, rec["keys"][k], f"array {k!r}")
             return out
-        return np.load(path, allow_pickle=False)
+        a = np.load(path, allow_pickle=False)
+        _same_layout(path, a, rec, "array")
+        return a
     if group == "meshes":
         import trimesh
 
@@ -473,14 +560,27 @@ def _read_entry(case_dir: Path, group: str, name: str, rec: dict, transforms: di
     raise ValueError(f"{case_dir / CASE_FILE}: unknown group {group!r} in entry {what!r}")
 
 
+def _read_json_table(path: Path) -> dict:
+    try:
+        out = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(out, dict):
+        raise ValueError(f"{path}: expected a JSON object, got {type(out).__name__}")
+    return out
+
+
 def _load(case_dir: Path, verify: bool) -> tuple[dict, dict]:
     case_dir = Path(case_dir)
     if case_dir.name == CASE_FILE:
         case_dir = case_dir.parent
     doc = _read_doc(case_dir)
+    if verify:
+        _check_index(case_dir)
+    _check_roles(case_dir, doc)
     _check_files(case_dir, doc, verify)
-    transforms = json.loads((case_dir / "transforms.json").read_text())
-    points = json.loads((case_dir / "points.json").read_text())
+    transforms = _read_json_table(case_dir / "transforms.json")
+    points = _read_json_table(case_dir / "points.json")
     case: dict[str, Any] = {"meta": doc["meta"], **{g: {} for g in GROUPS}}
     roles = {}
     for key, rec in doc["entries"].items():
@@ -488,7 +588,15 @@ def _load(case_dir: Path, verify: bool) -> tuple[dict, dict]:
         if group not in GROUPS or rec.get("role") not in ROLES:
             raise ValueError(f"{case_dir / CASE_FILE}: entry {key!r} has an unknown group or "
                              f"role {rec.get('role')!r}")
-        case[group][name] = _read_entry(case_dir, group, name, rec, transforms, points)
+        try:
+            case[group][name] = _read_entry(case_dir, group, name, rec, transforms, points)
+        except (ValueError, FileNotFoundError) as exc:
+            if str(case_dir) in str(exc):  # already names the file
+                raise
+            raise ValueError(f"{case_dir / CASE_FILE}: entry {key!r}: {exc}") from exc
+        except Exception as exc:  # a malformed record or an unreadable file (verify=False)
+            raise ValueError(f"{case_dir / CASE_FILE}: entry {key!r} (files {rec['files']}) "
+                             f"cannot be read: {type(exc).__name__}: {exc}") from exc
         roles[key] = rec["role"]
     return case, roles
 
@@ -505,13 +613,21 @@ def load_case(case_dir, *, verify: bool = True) -> dict[str, Any]:
 
 
 def load(path, *, verify: bool = True) -> tuple[Observation, Truth]:
-    """Read a case and split it by role into ``(Observation, Truth)``; both carry ``meta``."""
+    """Read a case and split it by role into ``(Observation, Truth)``.
+
+    The truth's ``meta`` is the whole of it; the observation's leaves out
+    :data:`TRUTH_META_KEYS` (the resolved scene and the seeds). With ``verify``, the
+    SHA-256 of every file and, inside a generated dataset, of ``case.json`` itself (kept in
+    ``dataset.json``) are checked; entries that are ground truth by name
+    (:data:`TRUTH_ENTRIES`) are never put into the observation. Every error names the file.
+    """
     case, roles = _load(Path(path), verify)
     parts = {r: {g: {} for g in GROUPS} for r in ROLES}
     for key, role in roles.items():
         group, _, name = key.partition("/")
         parts[role][group][name] = case[group][name]
-    return (Observation(**parts["observation"], meta=case["meta"]),
+    obs_meta = {k: v for k, v in case["meta"].items() if k not in TRUTH_META_KEYS}
+    return (Observation(**parts["observation"], meta=obs_meta),
             Truth(**parts["truth"], meta=case["meta"]))
 
 

@@ -22,9 +22,15 @@ Frames and conventions (DESIGN.md):
   pixel -> ray map is kept as truth (:meth:`CArm.pixel_ray_map`).
 - X-ray formation: per-body path lengths by ray casting (``testbed.raycast``),
   Beer-Lambert with per-material coefficients (nested bodies count
-  ``mu(body) - mu(enclosing body)``), Poisson quantum noise, veiling glare (a wide Gaussian
-  blur of a fraction of the light), vignetting, and an 8-bit video frame with a logarithmic
-  video amplifier. Outside the circular field of view the image is dark (0).
+  ``mu(body) - mu(enclosing body)``); then the imaging chain of ``testbed.detector``:
+  focal-spot blur, scatter, Poisson quantum noise (with automatic brightness control),
+  intensifier and video blur (an MTF), veiling glare (a wide Gaussian blur of a fraction of
+  the light), vignetting, and an 8-bit video frame with a logarithmic video amplifier and
+  camera noise. Outside the circular field of view the image is dark (0). Magnitudes and
+  references: ``docs/error-model.md``.
+- The distortion has a local, higher-order part (the intensifier's own, the same at every
+  pose) and a drift between the calibration sweep and the acquisition of the patient frame
+  (``make_carm(..., stage=)``).
 
 Pose of the C-arm (``ViewSpec``), robot frame with ``+z`` up: with both rotations zero the
 beam points up (source under the table) and the image axes ``x, y`` are the robot's ``x, y``.
@@ -35,22 +41,23 @@ beam points up (source under the table) and the image axes ``x, y`` are the robo
 from __future__ import annotations
 
 import math
+import zlib
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
-from scipy.ndimage import gaussian_filter, map_coordinates
 from scipy.spatial.transform import Rotation
 
 from reglib.geometry import RigidTransform
 from testbed.bodies import Body
+from testbed.detector import form_image
 from testbed.materials import material
 from testbed.raycast import RayScene, attenuation_weights, body_path_lengths
 from testbed.spec import Positive, Spec, Vec2, Vec3
 
 __all__ = [
+    "IDEAL_FLUOROSCOPE",
     "CArm",
     "Distortion",
     "FluoroscopeSpec",
@@ -58,8 +65,8 @@ __all__ = [
     "ViewSpec",
     "make_carm",
     "make_distortion",
+    "sinusoid_terms",
     "render",
-    "render_command",
     "render_view",
 ]
 
@@ -67,6 +74,12 @@ BONE_MATERIALS = ("cortical_bone", "cancellous_bone")
 
 
 # --------------------------------------------------------------------------- scene sections
+IDEAL_FLUOROSCOPE = dict(focal_spot_mm=0.0, mtf50_lp_per_mm=0.0, scatter_to_primary=0.0,
+                         abc_photons_per_pixel=0.0, video_noise_u8=0.0,
+                         distortion_local_mm=0.0, distortion_drift_mm=0.0)
+"""Field values of the ideal profile (docs/error-model.md): the clinic sources off."""
+
+
 class FluoroscopeSpec(Spec):
     """``[fluoroscope]``: the C-arm and its image intensifier (defaults: a 9-inch mobile C-arm).
 
@@ -92,8 +105,26 @@ class FluoroscopeSpec(Spec):
     relative brightness lost at the edge of the field (0.25, ``1 - v rho^2``);
     ``display_range`` natural-log units of intensity spread over the video range (6.0);
     ``black_u8`` and ``white_u8`` the video levels of the darkest and of the unattenuated
-    intensity (8, 240); ``oversample`` rays per pixel side (1: one ray through each pixel
-    centre; 2: four rays per pixel, averaged as the detector integrates).
+    intensity (8, 240): the video's offset and gain; ``oversample`` rays per pixel side (1: one
+    ray through each pixel centre; 2: four rays per pixel, averaged as the detector
+    integrates).
+
+    Clinic error sources (``testbed.detector``; each default is the clinical magnitude, with
+    its figure and reference in ``docs/error-model.md``; the value in brackets switches it
+    off, as in ``scenes/experiment2-ideal.toml``):
+    ``focal_spot_mm`` nominal focal spot (0.6 mm [0]), blurring a body at magnification ``M``
+    by ``focal_spot_mm (M - 1)`` FWHM at the input plane; ``mtf50_lp_per_mm`` frequency at the
+    input plane where the intensifier + video chain passes 50 % modulation (0.65 [0 = no
+    blur]); ``scatter_to_primary`` scatter-to-primary ratio behind a uniform region (0.5, with
+    the intensifier's grid [0]) spread by a Gaussian of ``scatter_sigma_mm`` (40 mm at the
+    input plane); ``abc_photons_per_pixel`` the median detected quanta per pixel and frame that
+    the automatic brightness control holds in the field (150 [0 = off: then
+    ``photons_per_pixel`` quanta of the unattenuated beam]); ``video_noise_u8`` camera noise in
+    grey levels (0.8 [0]); ``distortion_local_mm`` RMS of the local, higher-order distortion
+    left after the pincushion and S terms (0.3 mm at the input plane [0]);
+    ``distortion_drift_mm`` RMS change of the distortion between the calibration sweep and the
+    acquisition (0.2 mm [0]); ``distortion_seed`` draws the intensifier's local field and, per
+    view, its drift.
     """
 
     sid_mm: Positive = 1000.0
@@ -110,7 +141,7 @@ class FluoroscopeSpec(Spec):
     s_rotation_deg_per_uT: Annotated[float, Field(ge=-1, le=1)] = 0.03
     s_shift_mm_per_uT: Annotated[float, Field(ge=-1, le=1)] = 0.04
     noise: bool = True
-    photons_per_pixel: Positive = 5000.0
+    photons_per_pixel: Annotated[float, Field(ge=1.0, le=1e7)] = 5000.0
     glare_fraction: Annotated[float, Field(ge=0, lt=1)] = 0.12
     glare_sigma_px: Positive = 30.0
     vignetting: Annotated[float, Field(ge=0, lt=1)] = 0.25
@@ -118,6 +149,33 @@ class FluoroscopeSpec(Spec):
     black_u8: Annotated[int, Field(ge=0, le=255)] = 8
     white_u8: Annotated[int, Field(ge=1, le=255)] = 240
     oversample: Annotated[int, Field(ge=1, le=8)] = 1
+    focal_spot_mm: Annotated[float, Field(ge=0, le=3)] = 0.6
+    """Nominal focal spot (mm, FWHM); docs/error-model.md "focal spot". Ideal: 0."""
+    mtf50_lp_per_mm: Annotated[float, Field(ge=0, le=20)] = 0.65
+    """Intensifier + video MTF50 at the input plane (lp/mm); docs/error-model.md "MTF".
+    Ideal: 0 (no blur)."""
+    scatter_to_primary: Annotated[float, Field(ge=0, le=20)] = 0.5
+    """Scatter-to-primary ratio (unitless); docs/error-model.md "scatter". Ideal: 0."""
+    scatter_sigma_mm: Positive = 40.0
+    """Width (Gaussian sigma, mm at the input plane) of the scatter; docs/error-model.md."""
+    abc_photons_per_pixel: Annotated[float, Field(ge=0, le=1e7)] = 150.0
+    """Median detected quanta per pixel held by the brightness control (photons);
+    docs/error-model.md "quantum noise". Ideal: 0 (off: ``photons_per_pixel`` applies)."""
+    video_noise_u8: Annotated[float, Field(ge=0, le=50)] = 0.8
+    """Camera noise (grey levels, sigma); docs/error-model.md "video". Ideal: 0."""
+    distortion_local_mm: Annotated[float, Field(ge=0, le=5)] = 0.3
+    """RMS local, higher-order distortion (mm, input plane); docs/error-model.md. Ideal: 0."""
+    distortion_drift_mm: Annotated[float, Field(ge=0, le=5)] = 0.2
+    """RMS distortion change between sweep and acquisition (mm, input plane);
+    docs/error-model.md "drift". Ideal: 0."""
+    distortion_seed: Annotated[int, Field(ge=0)] = 0
+    """Seed of the intensifier's local distortion field and of each view's drift."""
+
+    def ideal(self) -> FluoroscopeSpec:
+        """The same fluoroscope with the clinic error sources of issue 11 off (the ideal
+        profile of docs/error-model.md: no focal-spot, MTF or scatter blur, no brightness
+        control or camera noise, no local distortion or drift); other fields kept."""
+        return self.model_copy(update=IDEAL_FLUOROSCOPE)
 
     @model_validator(mode="after")
     def _check(self):
@@ -161,8 +219,12 @@ class Distortion:
     of view (px) that normalises ``rho``; ``k1, k2`` pincushion coefficients;
     ``rotation_edge_rad`` the S-rotation at ``rho = 1``; ``shift_px`` (2,) the shift.
 
-    ``distort(u) = c + Rot(theta_edge * rho^2) (u - c) (1 + k1 rho^2 + k2 rho^4) + shift``,
-    ``rho = |u - c| / radius_px``.
+    ``distort(u) = c + Rot(theta_edge * rho^2) (u - c) (1 + k1 rho^2 + k2 rho^4) + shift
+    + sum_k a_k sin(2 pi f_k . (u - c) + phi_k)``, ``rho = |u - c| / radius_px``.
+
+    ``local``: the local, higher-order part (docs/error-model.md, "local distortion" and
+    "drift"): terms ``(a_x px, a_y px, f_x 1/px, f_y 1/px, phi rad)``, plane waves of the
+    displacement (:func:`sinusoid_terms`); empty for none.
     """
 
     center_px: tuple[float, float]
@@ -171,6 +233,20 @@ class Distortion:
     k2: float
     rotation_edge_rad: float
     shift_px: tuple[float, float]
+    local: tuple[tuple[float, float, float, float, float], ...] = ()
+
+    def _local_arrays(self):
+        t = np.asarray(self.local, dtype=np.float64).reshape(-1, 5)
+        return t[:, :2], t[:, 2:4], t[:, 4]
+
+    def local_displacement(self, xy_px) -> np.ndarray:
+        """The local part of the displacement ``(N, 2)`` px at undistorted pixels ``(N, 2)``."""
+        u = np.asarray(xy_px, dtype=np.float64)
+        if not self.local:
+            return np.zeros_like(u)
+        a, f, ph = self._local_arrays()
+        arg = 2.0 * np.pi * ((u - np.asarray(self.center_px)) @ f.T) + ph  # (..., K)
+        return np.sin(arg) @ a
 
     def distort(self, xy_px) -> np.ndarray:
         """Distorted pixels ``(N, 2)`` of undistorted (pinhole) pixels ``(N, 2)`` (x, y)."""
@@ -182,7 +258,10 @@ class Distortion:
         th = self.rotation_edge_rad * rho2[..., 0]
         cs, sn = np.cos(th), np.sin(th)
         q = np.stack([cs * p[..., 0] - sn * p[..., 1], sn * p[..., 0] + cs * p[..., 1]], -1)
-        return c + q + np.asarray(self.shift_px)
+        out = c + q + np.asarray(self.shift_px)
+        if self.local:
+            out = out + self.local_displacement(u)
+        return out
 
     def jacobian(self, xy_px) -> np.ndarray:
         """``d distort / d u`` at undistorted pixels ``(N, 2)``: ``(N, 2, 2)`` (analytic)."""
@@ -201,7 +280,12 @@ class Distortion:
                  + dth * jq[..., :, None] * p[..., None, :])
         cs, sn = np.cos(th), np.sin(th)
         rot = np.stack([np.stack([cs, -sn], -1), np.stack([sn, cs], -1)], -2)
-        return rot @ inner
+        J = rot @ inner
+        if self.local:
+            a, f, ph = self._local_arrays()
+            arg = 2.0 * np.pi * (p @ f.T) + ph  # (..., K)
+            J = J + np.einsum("...k,ki,kj->...ij", np.cos(arg), a, 2.0 * np.pi * f)
+        return J
 
     def undistort(self, xy_px, *, tol_px: float = 1e-10, max_iter: int = 50) -> np.ndarray:
         """Undistorted pixels ``(N, 2)`` of distorted pixels ``(N, 2)``: ``distort``'s inverse.
@@ -226,19 +310,63 @@ class Distortion:
         )
 
 
+def sinusoid_terms(rms_px: float, radius_px: float, rng, *, n_terms: int = 12,
+                   periods: tuple[float, float] = (0.25, 0.8)) -> tuple:
+    """Random plane-wave terms of a smooth displacement field for :class:`Distortion`.
+
+    ``n_terms`` waves with uniform random directions, periods uniform in ``periods`` (in units
+    of ``radius_px``), Gaussian amplitude vectors and uniform phases, scaled so that the RMS
+    displacement over the plane (expected over phases) is ``rms_px``:
+    ``sqrt(sum_k |a_k|^2 / 2) = rms_px``. Returns a tuple of ``(a_x, a_y, f_x, f_y, phi)``;
+    empty when ``rms_px == 0``.
+    """
+    if rms_px <= 0:
+        return ()
+    rng = np.random.default_rng(rng)
+    ang = rng.uniform(0.0, 2.0 * np.pi, n_terms)
+    per = rng.uniform(periods[0], periods[1], n_terms) * radius_px
+    f = np.stack([np.cos(ang), np.sin(ang)], 1) / per[:, None]
+    a = rng.normal(0.0, 1.0, (n_terms, 2))
+    a *= rms_px / math.sqrt(np.sum(a * a) / 2.0)
+    ph = rng.uniform(0.0, 2.0 * np.pi, n_terms)
+    return tuple(tuple(float(v) for v in row) for row in np.column_stack([a, f, ph]))
+
+
+def _view_key(view_name: str) -> int:
+    return zlib.crc32(view_name.encode("utf-8"))
+
+
 def make_distortion(fluoro: FluoroscopeSpec, carm2robot: RigidTransform,
-                    principal_px) -> Distortion:
-    """The distortion of the intensifier at the pose ``carm2robot`` (see FluoroscopeSpec)."""
+                    principal_px, *, view_name: str = "view",
+                    stage: Literal["calibration", "acquisition"] = "acquisition") -> Distortion:
+    """The distortion of the intensifier at the pose ``carm2robot`` (see FluoroscopeSpec).
+
+    The local field (``distortion_local_mm``) belongs to the intensifier: drawn from
+    ``distortion_seed`` alone, the same at every pose. The drift (``distortion_drift_mm``) is
+    what changed between the calibration sweep and the acquisition of the patient frame: drawn
+    from ``distortion_seed`` and ``view_name``, added only at ``stage="acquisition"``.
+    """
+    if stage not in ("calibration", "acquisition"):
+        raise ValueError(f"stage must be 'calibration' or 'acquisition', got {stage!r}")
     b_carm = carm2robot.R.T @ np.asarray(fluoro.earth_field_uT, dtype=np.float64)
     # electrons travel along +z; the Lorentz force v x B deflects them along z x B
     shift_mm = fluoro.s_shift_mm_per_uT * np.array([-b_carm[1], b_carm[0]])
+    radius_px = 0.5 * fluoro.fov_diameter_mm / fluoro.pixel_mm
+    local = sinusoid_terms(fluoro.distortion_local_mm / fluoro.pixel_mm, radius_px,
+                           np.random.default_rng([fluoro.distortion_seed, 1]))
+    if stage == "acquisition":
+        local = local + sinusoid_terms(
+            fluoro.distortion_drift_mm / fluoro.pixel_mm, radius_px,
+            np.random.default_rng([fluoro.distortion_seed, 2, _view_key(view_name)]),
+            n_terms=8, periods=(0.8, 3.0))
     return Distortion(
         center_px=tuple(np.asarray(principal_px) + np.asarray(fluoro.distortion_center_px)),
-        radius_px=0.5 * fluoro.fov_diameter_mm / fluoro.pixel_mm,
+        radius_px=radius_px,
         k1=fluoro.pincushion_k1,
         k2=fluoro.pincushion_k2,
         rotation_edge_rad=math.radians(fluoro.s_rotation_deg_per_uT * b_carm[2]),
         shift_px=tuple(shift_mm / fluoro.pixel_mm),
+        local=local,
     )
 
 
@@ -389,10 +517,14 @@ def view_pose(view: ViewSpec) -> RigidTransform:
 
 
 def make_carm(fluoro: FluoroscopeSpec, view: ViewSpec, *, distortion: bool | None = None,
-              view_index: int | None = None) -> CArm:
+              view_index: int | None = None,
+              stage: Literal["calibration", "acquisition"] = "acquisition") -> CArm:
     """The C-arm of ``view`` with the intensifier of ``fluoro``.
 
     ``distortion``: None follows ``fluoro.distortion``; True/False forces it.
+    ``stage``: ``"calibration"`` for the sweep frames, ``"acquisition"`` (default) for the
+    patient frame and its true rays; they differ by the drift ``distortion_drift_mm``
+    (:func:`make_distortion`).
     Raises ``ValueError`` naming the field if the isocenter lies beyond the input plane.
     """
     where = f"views[{view_index}]" if view_index is not None else f"view {view.name!r}"
@@ -408,7 +540,8 @@ def make_carm(fluoro: FluoroscopeSpec, view: ViewSpec, *, distortion: bool | Non
         (fluoro.height_px - 1) / 2.0 + fluoro.principal_offset_px[1],
     )
     use = fluoro.distortion if distortion is None else bool(distortion)
-    dist = make_distortion(fluoro, carm2robot, principal) if use else None
+    dist = (make_distortion(fluoro, carm2robot, principal, view_name=view.name, stage=stage)
+            if use else None)
     return CArm(
         carm2robot=carm2robot,
         sid_mm=float(fluoro.sid_mm),
@@ -429,7 +562,7 @@ class Frame:
 
     ``image_u8`` (H, W) uint8: the 8-bit video frame (what the clinic has).
     ``image`` (H, W) float32: detected intensity before quantisation, relative to the
-    unattenuated beam at the centre (noise, glare and vignetting included).
+    unattenuated beam at the centre (blur, scatter, noise, glare and vignetting included).
     ``attenuation`` (H, W) float32: the line integral of mu along each pixel's X-ray path
     (dimensionless; mean over the sub-rays when oversampling).
     ``path_mm``: body name -> (H, W) float32 path length through that body (mm).
@@ -478,23 +611,19 @@ def _check_source_outside(carm: CArm, bodies: list[Body]) -> None:
                 )
 
 
-def _wide_blur(img: np.ndarray, sigma_px: float) -> np.ndarray:
-    """Gaussian blur (zero outside the image) of a wide kernel: computed on a grid coarser by
-    ``sigma / 8`` (at most 4x) and interpolated back (the result is smooth at that scale)."""
-    f = int(np.clip(sigma_px // 8, 1, 4))
-    if f == 1:
-        return gaussian_filter(img, sigma_px, mode="constant")
-    H, W = img.shape
-    h, w = -(-H // f), -(-W // f)
-    pad = np.zeros((h * f, w * f))
-    pad[:H, :W] = img
-    small = pad.reshape(h, f, w, f).mean(axis=(1, 3))
-    small = gaussian_filter(small, sigma_px / f, mode="constant")
-    # back to full resolution: small pixel (i, j) is centred at full (f i + (f-1)/2, ...)
-    rows = (np.arange(H) - (f - 1) / 2) / f
-    cols = (np.arange(W) - (f - 1) / 2) / f
-    return map_coordinates(small, np.meshgrid(rows, cols, indexing="ij"), order=1,
-                           mode="nearest")
+def _magnification(carm: CArm, bodies: list[Body]) -> float:
+    """SID over the source-to-bone distance along the beam: the magnification of the focal-
+    spot blur (one value per image, at the centre of the bone bodies' bounds; the isocenter's
+    650 mm when no bone is in the scene). See docs/error-model.md, "focal spot"."""
+    centres = []
+    for b in bodies:
+        if b.material in BONE_MATERIALS and b.mesh is not None:
+            centres.append(np.mean(b.mesh.bounds, axis=0))
+    depth = 650.0
+    if centres:
+        depth = float((np.mean(centres, axis=0) - carm.source_robot) @ carm.axis_robot)
+    depth = float(np.clip(depth, 1e-3 * carm.sid_mm, carm.sid_mm))
+    return carm.sid_mm / depth
 
 
 def _sub_offsets(n: int) -> np.ndarray:
@@ -567,22 +696,11 @@ def render(carm: CArm, bodies: list[Body], *, fluoro: FluoroscopeSpec, rng=None,
         trans += np.exp(-a) / len(subs)
         lengths += L / len(subs)
 
-    rho = carm.rho_map()[fov]
-    rng = np.random.default_rng(rng)
-    if use_noise:
-        n0 = fluoro.photons_per_pixel
-        trans = rng.poisson(n0 * trans) / n0
     full = np.zeros((H, W))
     full[fov] = trans
-    if fluoro.glare_fraction > 0:
-        g = fluoro.glare_fraction
-        full = (1.0 - g) * full + g * _wide_blur(full, fluoro.glare_sigma_px)
-    full[fov] *= 1.0 - fluoro.vignetting * rho**2
-    full[~fov] = 0.0
-
-    level = 1.0 + np.log(np.maximum(full, 1e-12)) / fluoro.display_range
-    video = fluoro.black_u8 + (fluoro.white_u8 - fluoro.black_u8) * np.clip(level, 0.0, 1.0)
-    video = np.where(fov, np.clip(np.rint(video), 0, 255), 0).astype(np.uint8)
+    full, video = form_image(full, fov, carm.rho_map(), fluoro,
+                             magnification=_magnification(carm, bodies),
+                             noise=use_noise, rng=np.random.default_rng(rng))
 
     att_img = np.zeros((H, W), dtype=np.float32)
     att_img[fov] = att
@@ -640,19 +758,3 @@ def render_view(scene, view: int, *, seed: int | None = None, bodies=None,
             "and the orbital/angular angles against patient.position_mm"
         )
     return frame
-
-
-def render_command(scene, *, view: int, out: Path, seed: int | None) -> None:
-    """``testbed render``: write the 8-bit frame of view ``view`` to ``out`` (PNG)."""
-    from testbed.scene import SceneError
-
-    try:
-        frame = render_view(scene, view, seed=seed)
-    except ValueError as exc:
-        raise SceneError(str(exc)) from None
-    import cv2
-
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(out), frame.image_u8):
-        raise SceneError(f"--out {out}: could not write the image (is it a .png path?)")

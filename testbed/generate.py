@@ -1,49 +1,63 @@
 """``testbed generate``: a synthetic dataset with perfect ground truth, case by case.
 
-Each case is simulated from its own seed (case ``i`` gets child ``i`` of
-``numpy.random.SeedSequence(seed).spawn(cases)``) and written with
-:func:`testbed.dataset.write_case` into ``out/case_0000``, ``out/case_0001``, ...; an existing
-complete case folder is kept (rerunning the command resumes). The entries of a case, their
+Case ``i`` of a dataset of seed ``S`` is :func:`testbed.simulate.simulate` of the scene with
+the case seed ``(S, i)`` (child ``i`` of ``numpy.random.SeedSequence(S)``): the same case as
+``testbed run --seed S`` for ``i = 0``, and as a study's case of that seed. It is written with
+:func:`testbed.dataset.write_case` into ``out/case_0000``, ``out/case_0001``, ...; an
+existing complete case folder is kept (rerunning the command resumes), and a folder that
+holds a dataset of another scene, seed or format is refused. The entries of a case, their
 roles (observation / truth), units and frames are listed in :data:`ENTRY_DOC` and in
 ``docs/dataset-format.md`` (section "What `testbed generate` writes").
 
-Only the simulator runs here (``testbed`` never uses reglib beyond ``reglib.geometry``), so
-the dataset holds the raw observations (CT volume, X-ray frames, calibration sweeps with
-the robot-reported rod poses) and the truth, not reglib's estimates (its surfaces or
-calibration): those are what a user of the dataset computes.
+The observation holds everything reglib's one call needs (``reglib.estimate``): the CT and
+its slice geometry, the operator's clicks on CT slices and X-ray frames, the X-ray frames,
+the calibration sweeps with the robot-reported rod and bead positions. Only the simulator
+runs here: the dataset holds no estimate of reglib's.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
-import re
-import time
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["ENTRY_DOC", "GENERATOR_VERSION", "case_seed", "generate_command", "simulate_entries"]
+__all__ = ["ENTRY_DOC", "GENERATOR_VERSION", "case_entries", "case_seed", "generate_command",
+           "scene_digest"]
 
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 
-#: entry name pattern -> (role, description); ``{view}`` is the view's name.
+#: entry name pattern -> (role, description); ``{view}`` is a view's name, ``{region}`` a CT
+#: region's (``proximal``, ``distal``).
 ENTRY_DOC = {
     "volumes/ct": ("observation", "CT volume in HU (float32), data[i, j, k] = (column, row, "
-                   "slice); voxel2ct maps (i, j, k, 1) to ct mm (exact only when the slices "
-                   "are equally spaced, see arrays/ct_slices)"),
+                   "slice), NIfTI order; reglib reads it as [slice, row, col] after "
+                   "transposing; voxel2ct maps (i, j, k, 1) to ct mm (exact only when the "
+                   "slices are equally spaced, see arrays/ct_slices)"),
     "arrays/ct_slices": ("observation", "npz: z_mm (K,) slice positions along ct z, "
                          "thickness_mm (K,), slice2ct (K, 4, 4) maps (col, row, 0, 1) of "
                          "slice k to ct mm (authoritative), uniform () bool"),
+    "arrays/ct_clicks_{region}": ("observation", "npz, the operator's work on a CT region: "
+                                  "slices (S,) the slices to contour, clicks_xy (P, 2) px "
+                                  "(x, y) = (col, row), slice (P,) and contour (P,) the slice "
+                                  "and the cross-section of each click; slices without clicks "
+                                  "reuse the nearest clicked slice's"),
     "images/xray_{view}": ("observation", "the X-ray frame of the view, 8-bit video (H, W)"),
     "arrays/xray_fov_{view}": ("observation", "(H, W) bool, the circular field of view"),
+    "arrays/xray_clicks_{view}": ("observation", "npz, the operator's traces on the frame: "
+                                  "clicks_xy (P, 2) px, trace (P,) the trace of each click, "
+                                  "external (T,) bool (the bone's external outline), closed "
+                                  "(T,) bool"),
     "arrays/xray_float_{view}": ("truth", "(H, W) float32 detected intensity before 8-bit "
                                  "quantisation (noise, glare, vignetting included)"),
     "images/sweep_{view}": ("observation", "(F, H, W) 8-bit frames of the calibration sweep, "
                             "one after each rod move"),
-    "arrays/sweep_{view}": ("observation", "npz: plane (F,) int plane code (-1: reference "
-                            "frame), beads_reported (F, n, 3) robot mm (NaN on reference "
-                            "frames), rod2robot_reported (F, 4, 4) the robot-reported rod "
-                            "pose, joints (F, 5) rad/mm, time_s (F,), bead_positions_mm (n,)"),
+    "arrays/sweep_{view}": ("observation", "npz: plane (F,) int plane code (-1 reference, 0 "
+                            "near, 1 far, 2 validation), beads_reported (F, n, 3) robot mm (NaN "
+                            "on reference frames), rod2robot_reported (F, 4, 4) the "
+                            "robot-reported rod pose, joints (F, 5) rad/mm, time_s (F,), "
+                            "bead_positions_mm (n,)"),
     "arrays/sweep_truth_{view}": ("truth", "npz: beads_true (F, n, 3) robot mm, "
                                   "rod2robot_true (F, 4, 4) the true rod pose"),
     "arrays/rays_{view}": ("truth", "npz: origins (H, W, 3), directions (H, W, 3) unit, robot "
@@ -63,164 +77,40 @@ ENTRY_DOC = {
 }
 
 
-def case_seed(seed: int, index: int, cases: int) -> np.random.SeedSequence:
-    """The seed of case ``index``: child ``index`` of ``SeedSequence(seed).spawn(cases)``."""
-    if not 0 <= index < cases:
+def case_seed(seed: int, index: int, cases: int | None = None) -> np.random.SeedSequence:
+    """The seed of case ``index``: child ``index`` of ``SeedSequence(seed)`` (the same for any
+    number of cases; ``cases``, when given, is checked to exceed ``index``)."""
+    from testbed.simulate import case_seed as _case_seed
+
+    if cases is not None and not 0 <= index < cases:
         raise ValueError(f"case index {index}: expected 0 <= index < cases = {cases}")
-    return np.random.SeedSequence(int(seed)).spawn(int(cases))[index]
+    return _case_seed(seed, index)
 
 
-def _case_scene(scene, shape_ss: np.random.SeedSequence):
-    """The scene of one case: its own femur shape seed (used when shape_variation > 0)."""
-    shape_seed = int(shape_ss.generate_state(1, dtype=np.uint32)[0])
-    phantom = scene.phantom.model_copy(update={"shape_seed": shape_seed})
-    return scene.model_copy(update={"phantom": phantom})
+def scene_digest(scene) -> str:
+    """SHA-256 of the resolved scene (its JSON dump), to recognise a dataset's scene."""
+    text = json.dumps(scene.model_dump(mode="json"), sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
-def simulate_entries(scene, case_ss: np.random.SeedSequence, *, progress: bool = False):
-    """Simulate one case and return ``(case dict, truth entry list, timings)``.
-
-    Parameters
-    ----------
-    scene : testbed.scene.Scene
-        An operating-room scene with ``[[views]]``.
-    case_ss : numpy.random.SeedSequence
-        The case's seed; every random choice is drawn from its children.
-    progress : bool
-        Show a tqdm bar over the sweep frames of each view.
-
-    Returns
-    -------
-    case : dict
-        ``meta`` and the groups of :func:`testbed.dataset.write_case`.
-    truth : list of str
-        The truth entries (``"group/name"``).
-    timings : dict
-        Stage -> wall time (s).
-    """
-    from tqdm import tqdm
-
-    from testbed.ct import scan
-    from testbed.dataset import Volume
-    from testbed.fluoroscope import make_carm, render
-    from testbed.robot import Robot
-    from testbed.sweep import run_sweep
-    from testbed.world import build_world
-
-    if scene.scene.kind != "operating_room" or not scene.views:
-        raise ValueError(f"scene {scene.scene.name!r}: testbed generate needs an "
-                         "operating_room scene with [[views]]")
-    shape_ss, world_ss, ct_ss, robot_ss, xray_ss = case_ss.spawn(5)
-    scene = _case_scene(scene, shape_ss)
-    timings: dict[str, float] = {}
-    groups = {g: {} for g in ("volumes", "images", "arrays", "meshes", "transforms", "points")}
-    truth: list[str] = []
-
-    def put(group, name, value, role):
-        if name in groups[group]:
-            raise ValueError(f"{group}/{name}: two entries of that name (view names must be "
-                             "unique)")
-        groups[group][name] = value
-        if role == "truth":
-            truth.append(f"{group}/{name}")
-
-    t0 = time.perf_counter()
-    world = build_world(scene, np.random.default_rng(world_ss))
-    timings["world"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    ct = scan(world.phantom, scene.ct, np.random.default_rng(ct_ss))
-    z = np.asarray(ct.slice_z_mm, dtype=np.float64)
-    dz = np.diff(z)
-    uniform = bool(len(z) < 2 or np.ptp(dz) <= 1e-6)
-    if uniform:
-        voxel2ct = ct.voxel2ct
-    else:  # the NIfTI header needs one affine: the first slice and the mean spacing
-        voxel2ct = np.eye(4)
-        voxel2ct[0, 0] = voxel2ct[1, 1] = ct.pixel_mm
-        voxel2ct[2, 2] = float(np.mean(dz))
-        voxel2ct[:3, 3] = (*ct.origin_xy_mm, z[0])
-    data = np.ascontiguousarray(np.asarray(ct.volume_hu).transpose(2, 1, 0))
-    put("volumes", "ct", Volume(data, voxel2ct), "observation")
-    put("arrays", "ct_slices", {"z_mm": z, "thickness_mm": np.asarray(ct.slice_thickness_mm,
-                                                                      dtype=np.float64),
-                                "slice2ct": np.asarray(ct.slice2ct, dtype=np.float64),
-                                "uniform": np.array(uniform)}, "observation")
-    timings["ct"] = time.perf_counter() - t0
-
-    ph = world.phantom
-    put("transforms", "ct2robot", world.ct2robot, "truth")
-    meshes = {"femur": ph.femur, "canal": ph.canal, "cancellous": ph.cancellous,
-              "soft_tissue": ph.soft_tissue}
-    meshes.update({f"pin_{k}": m for k, m in ph.pin_meshes.items()})
-    for name, m in meshes.items():
-        if m is not None:
-            put("meshes", name, m, "truth")
-    for body in [*world.table, *world.instruments]:  # already in the robot frame
-        if body.mesh is not None:
-            put("meshes", "robot_" + re.sub(r"[^A-Za-z0-9_.\-]", "_", body.name), body.mesh,
-                "truth")
-    put("points", "pins_ct", {k: np.asarray(v, float) for k, v in ph.pins.items()}, "truth")
-    put("points", "pins_robot", {k: np.asarray(v, float) for k, v in world.pins_robot.items()},
-        "truth")
-    if ph.landmarks:
-        put("points", "landmarks_ct", {k: np.asarray(v, float) for k, v in ph.landmarks.items()},
-            "truth")
-
-    robot_rngs = np.random.default_rng(robot_ss).spawn(len(scene.views))
-    xray_rngs = np.random.default_rng(xray_ss).spawn(len(scene.views))
-    for i, vspec in enumerate(scene.views):
-        v = vspec.name
-        carm = make_carm(scene.fluoroscope, vspec, view_index=i)
-        put("transforms", f"carm2robot_{v}", carm.carm2robot, "truth")
-
-        t0 = time.perf_counter()
-        sweep_rng, noise_rng = robot_rngs[i].spawn(2)
-        rep_poses, true_poses = [], []
-        with Robot(scene.robot, rng=sweep_rng) as robot:
-            bar = tqdm(desc=f"sweep {v}", disable=not progress, leave=False, unit="frame")
-
-            def record(k, n, robot=robot, bar=bar, rep=rep_poses, tru=true_poses):
-                # called after frame k is rendered: the robot is still at that frame's pose
-                rep.append(robot.reported_rod2robot.as_matrix())
-                tru.append(robot.true_rod2robot.as_matrix())
-                bar.total = n
-                bar.update(1)
-
-            sweep = run_sweep(robot, carm, scene.fluoroscope, rng=noise_rng, progress=record)
-            bar.close()
-        timings["sweeps"] = timings.get("sweeps", 0.0) + time.perf_counter() - t0
-        put("images", f"sweep_{v}", sweep.frames, "observation")
-        put("arrays", f"sweep_{v}", {
-            "plane": np.asarray(sweep.plane), "beads_reported": sweep.beads_reported,
-            "rod2robot_reported": np.array(rep_poses), "joints": sweep.joints,
-            "time_s": np.asarray(sweep.time_s, dtype=np.float64),
-            "bead_positions_mm": np.asarray(sweep.bead_positions_mm, dtype=np.float64)},
-            "observation")
-        put("arrays", f"sweep_truth_{v}", {"beads_true": sweep.beads_true,
-                                           "rod2robot_true": np.array(true_poses)}, "truth")
-
-        t0 = time.perf_counter()
-        frame = render(carm, world.bodies, fluoro=scene.fluoroscope, rng=xray_rngs[i])
-        timings["xray"] = timings.get("xray", 0.0) + time.perf_counter() - t0
-        put("images", f"xray_{v}", frame.image_u8, "observation")
-        put("arrays", f"xray_fov_{v}", np.asarray(frame.fov, dtype=bool), "observation")
-        put("arrays", f"xray_float_{v}", np.asarray(frame.image, dtype=np.float32), "truth")
-        o, d = carm.pixel_ray_map()
-        put("arrays", f"rays_{v}", {"origins": o, "directions": d}, "truth")
-
-    meta = {
-        "generator": "testbed generate",
-        "generator_version": GENERATOR_VERSION,
-        "scene": scene.model_dump(mode="json"),
-        "seed": {"entropy": int(case_ss.entropy), "spawn_key": [int(k) for k in
-                                                                 case_ss.spawn_key]},
-        "views": [v.name for v in scene.views],
-        "ct_uniform_slices": uniform,
-        "units": {"length": "mm", "angle": "rad", "pixel": "px (x, y) = (col, row)"},
-        "entries": {k: {"role": r, "description": d} for k, (r, d) in ENTRY_DOC.items()},
-    }
-    return {"meta": meta, **groups}, truth, timings
+def case_entries(sim) -> tuple[dict, list[str]]:
+    """A :class:`testbed.simulate.Simulation` as the ``case`` dict of
+    :func:`testbed.dataset.write_case` and its list of truth entries."""
+    obs, tru = sim.observation, sim.truth
+    groups = ("volumes", "images", "arrays", "meshes", "transforms", "points")
+    case = {"meta": {**obs.meta, "truth": tru.meta,
+                     "generator": "testbed generate", "generator_version": GENERATOR_VERSION,
+                     "entries": {k: {"role": r, "description": d}
+                                 for k, (r, d) in ENTRY_DOC.items()}}}
+    truth = []
+    for g in groups:
+        o, t = dict(getattr(obs, g)), dict(getattr(tru, g))
+        both = sorted(set(o) & set(t))
+        if both:
+            raise ValueError(f"{g}: entries {both} are both observation and truth")
+        case[g] = {**o, **t}
+        truth += [f"{g}/{k}" for k in t]
+    return case, truth
 
 
 def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = None,
@@ -237,10 +127,13 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
         Number of cases (>= 1).
     out : path
         The dataset folder; case ``i`` goes to ``out/case_{i:04d}``. Cases already complete
-        there are kept (a rerun resumes); ``out/dataset.json`` lists the cases.
+        there are kept (a rerun resumes); ``out/dataset.json`` lists the cases with the
+        SHA-256 of each ``case.json``, the scene's digest, the seed and the versions. A
+        folder holding a dataset of another scene, seed or version is refused
+        (``ValueError``), as is a non-empty folder without ``dataset.json``.
     seed : int, optional
-        The dataset's seed (default: the scene's); case ``i`` is simulated from child ``i``
-        of ``SeedSequence(seed).spawn(cases)``.
+        The dataset's seed (default: the scene's); case ``i`` is simulated from the case seed
+        ``(seed, i)`` (:func:`testbed.simulate.case_seed`).
     progress : bool
         A tqdm progress bar over the cases.
 
@@ -251,31 +144,70 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
     """
     from tqdm import tqdm
 
-    from testbed.dataset import CASE_FILE, write_case
+    from testbed.dataset import CASE_FILE, FORMAT_VERSION, write_case
+    from testbed.simulate import simulate
 
     if isinstance(cases, bool) or not isinstance(cases, int | np.integer) or cases < 1:
         raise ValueError(f"--cases: expected an integer >= 1, got {cases!r}")
     seed = scene.scene.seed if seed is None else seed
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise ValueError(f"--seed: expected an integer >= 0, got {seed!r}")
+    if scene.scene.kind != "operating_room" or not scene.views:
+        raise ValueError(f"scene {scene.scene.name!r} (kind {scene.scene.kind!r}): testbed "
+                         "generate needs an operating_room scene with [[views]], e.g. "
+                         "experiment2")
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out}: exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
-    children = np.random.SeedSequence(int(seed)).spawn(int(cases))
-    dirs = []
-    for i in tqdm(range(cases), desc="cases", disable=not progress, unit="case"):
-        case_dir = out / f"case_{i:04d}"
-        dirs.append(case_dir)
-        if (case_dir / CASE_FILE).is_file():
-            continue
-        case, truth, timings = simulate_entries(scene, children[i])
-        case["meta"].update(case_index=i, dataset_seed=int(seed), scene_path=str(scene_path),
-                            timings_s=timings)
-        write_case(case_dir, case, truth=truth)
+    digest = scene_digest(scene)
     summary = {"generator": "testbed generate", "generator_version": GENERATOR_VERSION,
-               "scene_path": str(scene_path), "scene_name": scene.scene.name,
-               "seed": int(seed), "cases": [d.name for d in dirs]}
-    (out / "dataset.json").write_text(json.dumps(summary, indent=2))
-    return dirs
+               "format_version": FORMAT_VERSION, "scene_path": str(scene_path),
+               "scene_name": scene.scene.name, "scene_sha256": digest, "seed": int(seed)}
+    index = out / "dataset.json"
+    old = {}
+    if index.is_file():
+        try:
+            old = json.loads(index.read_text())
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"{index}: unreadable dataset index ({exc}); move the folder away "
+                             "or choose another --out") from None
+        for key, what in (("scene_sha256", "scene"), ("seed", "seed"),
+                          ("generator_version", "generator version"),
+                          ("format_version", "format version")):
+            if old.get(key) != summary[key]:
+                raise ValueError(
+                    f"--out {out}: holds a dataset of another {what} ({key} "
+                    f"{old.get(key)!r}, scene {old.get('scene_name')!r}, seed "
+                    f"{old.get('seed')!r}); this run has {summary[key]!r}: choose another "
+                    "folder (cases of different scenes or seeds are never mixed)")
+    elif out.is_dir() and any(out.iterdir()):
+        raise ValueError(f"--out {out}: the folder is not empty and holds no dataset.json; "
+                         "choose a new or empty folder")
+    # an impossible acquisition is refused before anything is written (each case is checked
+    # again when it is simulated: its femur may differ)
+    from testbed.simulate import case_world
+    from testbed.workspace import require_feasible
 
+    require_feasible(*case_world(scene, case_seed(int(seed), 0)))
+    out.mkdir(parents=True, exist_ok=True)
+    n_all = max(int(cases), len(old.get("cases", [])))
+    dirs = [out / f"case_{i:04d}" for i in range(n_all)]
+    hashes = dict(old.get("case_json_sha256", {}))
+
+    def write_index():
+        index.write_text(json.dumps({**summary, "cases": [d.name for d in dirs],
+                                     "case_json_sha256": hashes}, indent=2))
+
+    write_index()
+    for i in tqdm(range(cases), desc="cases", disable=not progress, unit="case"):
+        case_dir = dirs[i]
+        if (case_dir / CASE_FILE).is_file() and case_dir.name in hashes:
+            continue
+        sim = simulate(scene, case_seed(int(seed), i), truth_rays=True, progress=progress)
+        case, truth = case_entries(sim)
+        case["meta"].update(case_index=i, dataset_seed=int(seed), scene_path=str(scene_path),
+                            timings_s=sim.timings)
+        write_case(case_dir, case, truth=truth)
+        hashes[case_dir.name] = hashlib.sha256((case_dir / CASE_FILE).read_bytes()).hexdigest()
+        write_index()
+    return dirs[:cases]

@@ -10,15 +10,19 @@ Frames (DESIGN.md): ``robot`` is the robot base (z up, the frame of calibration)
 its origin at the centre of bead 0 and its +x axis along the rod towards the tip; the beads
 sit at ``x = RodSpec.bead_positions_mm()`` on that axis.
 
-Imperfection, as a real robot has it. The controller knows only the *nominal* kinematic
-model; the *true* arm differs from it by small kinematic offsets (joint origins moved by
+Imperfection, as a real robot has it (magnitudes and references: ``docs/error-model.md``).
+The controller knows only the *nominal* kinematic model; the *true* arm differs from it by
+small kinematic offsets (joint origins moved by
 ``kinematic_offset_mm`` and turned by ``kinematic_offset_deg``, drawn once per robot from its
 ``rng``). After a move, the servo stops where the encoders read the commanded angles, but the
 encoders err by ``encoder_noise_deg`` / ``encoder_noise_mm`` (a fresh draw per move), so the
 true joints differ from the read ones. The robot *reports* the nominal model at the read
 joints (:attr:`Robot.reported_rod2robot`); the world holds the true model at the true joints
 (:attr:`Robot.true_rod2robot`). Beads are rendered at the true pose; the calibration only
-ever sees the reported one.
+ever sees the reported one. The rod itself is mounted with a small error
+(``rod_mount_error_mm``/``_deg``, after the tip calibration), its beads sit off their nominal
+places (``RodSpec.bead_along_error_mm``/``bead_across_error_mm``, drawn once per robot), and it
+sags under gravity as a cantilever (``RodSpec.sag``); only the true beads see these.
 
 pybullet works in metres inside this module (its collision margins are tuned for metres);
 everything that leaves the module is in mm.
@@ -75,6 +79,19 @@ class RodSpec(Spec):
     tip_length_mm: Positive = 12.0
     tip_diameter_mm: Positive = 4.0
     tip_material: str = "steel"
+    bead_along_error_mm: NonNegative = 0.1
+    """Bead placement error along the rod (mm, sigma per bead); docs/error-model.md "bead
+    placement". Ideal: 0."""
+    bead_across_error_mm: NonNegative = 0.05
+    """Bead placement error across the rod (mm, sigma per bead and axis); docs/error-model.md.
+    Ideal: 0."""
+    sag: bool = True
+    """Rod sag under gravity (a cantilever from the holder); docs/error-model.md "rod sag".
+    Ideal: false."""
+    youngs_modulus_gpa: Positive = 3.0
+    """Young's modulus of the rod material (GPa; ULTEM/PEI, docs/error-model.md "rod sag")."""
+    density_g_cm3: Positive = 1.27
+    """Density of the rod material (g/cm3; ULTEM 1000); the steel tip adds 7.9 g/cm3."""
 
     @model_validator(mode="after")
     def _check(self):
@@ -89,6 +106,34 @@ class RodSpec(Spec):
     def bead_positions_mm(self) -> np.ndarray:
         """Bead centres along the rod axis, ``(n_beads,)`` mm from bead 0 (rod frame x)."""
         return np.concatenate([[0.0], np.cumsum(self.bead_spacings_mm)])
+
+    def sag_mm(self, x_mm, gravity_across: float = 1.0) -> np.ndarray:
+        """Deflection (mm) under gravity of rod-frame points at ``x_mm`` (n,), the rod held as
+        a cantilever at the wrist's pitch axis (``x = -mount_mm``).
+
+        Euler-Bernoulli beam of the rod's circular section with its own weight (uniform load)
+        and the steel tip as a point load at the free end:
+        ``w(s) = q s^2 (6 L^2 - 4 L s + s^2) / (24 E I) + P s^2 (3 L - s) / (6 E I)``, ``s``
+        from the holder, ``L`` to the end of the tip. ``gravity_across`` is the component of
+        gravity across the rod (1 for a horizontal rod, 0 for a vertical one). Zero when
+        ``sag`` is off.
+        """
+        x = np.asarray(x_mm, dtype=np.float64)
+        if not self.sag:
+            return np.zeros_like(x)
+        g = 9.81 * float(gravity_across)
+        s_m = (x + self.mount_mm) * _M
+        L = (self.mount_mm + self.bead_positions_mm()[-1] + self.tip_gap_mm
+             + self.tip_length_mm) * _M
+        E = self.youngs_modulus_gpa * 1e9
+        r = 0.5 * self.diameter_mm * _M
+        inertia = np.pi * r**4 / 4.0
+        q = self.density_g_cm3 * 1e3 * np.pi * r**2 * g             # N/m
+        r_tip = 0.5 * self.tip_diameter_mm * _M
+        P = 7.9e3 * np.pi * r_tip**2 * self.tip_length_mm * _M * g  # N
+        w = (q * s_m**2 * (6 * L**2 - 4 * L * s_m + s_m**2) / (24 * E * inertia)
+             + P * s_m**2 * (3 * L - s_m) / (6 * E * inertia))
+        return w / _M
 
     @property
     def n_beads(self) -> int:
@@ -155,8 +200,18 @@ class RobotSpec(Spec):
     pitch_limit_deg: Annotated[float, Field(gt=0, le=180)] = 120.0
     encoder_noise_deg: NonNegative = 0.0005
     encoder_noise_mm: NonNegative = 0.002
-    kinematic_offset_mm: NonNegative = 0.02
-    kinematic_offset_deg: NonNegative = 0.002
+    kinematic_offset_mm: NonNegative = 0.075
+    """Kinematic-parameter errors, translation of each joint origin (mm, sigma per axis):
+    the robot's absolute accuracy; docs/error-model.md "robot absolute accuracy".
+    Ideal (today's repeatability-level robot): 0.02."""
+    kinematic_offset_deg: NonNegative = 0.0075
+    """Kinematic-parameter errors, rotation of each joint origin (deg, sigma per axis);
+    docs/error-model.md. Ideal: 0.002."""
+    rod_mount_error_mm: NonNegative = 0.1
+    """Rod mounting error after the tip calibration, translation (mm, sigma per axis);
+    docs/error-model.md "rod mounting". Ideal: 0."""
+    rod_mount_error_deg: NonNegative = 0.05
+    """Rod mounting error, rotation (deg, sigma per axis); docs/error-model.md. Ideal: 0."""
     ik_tolerance_mm: Positive = 1e-3
     rod: RodSpec = RodSpec()
     sweep: SweepSpec = SweepSpec()
@@ -168,10 +223,25 @@ class RobotSpec(Spec):
             raise ValueError("slide_range_mm: expected (low, high) with low < high")
         return self
 
+    def ideal(self) -> RobotSpec:
+        """The ideal profile of docs/error-model.md: repeatability-level kinematic offsets
+        (0.02 mm, 0.002 deg), no rod mounting or bead placement error, no sag; encoder noise
+        kept."""
+        rod = self.rod.model_copy(update=dict(bead_along_error_mm=0.0,
+                                              bead_across_error_mm=0.0, sag=False))
+        return self.model_copy(update=dict(kinematic_offset_mm=0.02, kinematic_offset_deg=0.002,
+                                           rod_mount_error_mm=0.0, rod_mount_error_deg=0.0,
+                                           rod=rod))
+
     def without_errors(self) -> RobotSpec:
-        """The same robot with no encoder noise and no kinematic offsets (a perfect robot)."""
+        """The same robot with no encoder noise, kinematic offsets, rod mounting or bead errors
+        and no sag (a perfect robot and rod)."""
+        rod = self.rod.model_copy(update=dict(bead_along_error_mm=0.0,
+                                              bead_across_error_mm=0.0, sag=False))
         return self.model_copy(update=dict(encoder_noise_deg=0.0, encoder_noise_mm=0.0,
-                                           kinematic_offset_mm=0.0, kinematic_offset_deg=0.0))
+                                           kinematic_offset_mm=0.0, kinematic_offset_deg=0.0,
+                                           rod_mount_error_mm=0.0, rod_mount_error_deg=0.0,
+                                           rod=rod))
 
 
 # --------------------------------------------------------------------------- URDF
@@ -264,11 +334,13 @@ def robot_urdf(spec: RobotSpec, *, offsets=None) -> str:
 
 
 # --------------------------------------------------------------------------- rod bodies
-def rod_bodies(rod: RodSpec, rod2robot: RigidTransform, *, name: str = "rod") -> list[Body]:
+def rod_bodies(rod: RodSpec, rod2robot: RigidTransform, *, name: str = "rod",
+               beads_robot=None) -> list[Body]:
     """The rod as world bodies (robot frame, mm): ULTEM cylinder, steel beads, steel tip.
 
-    The beads are exact spheres nested in the cylinder; the tip is a steel cylinder beyond the
-    rod's far end (in air).
+    The beads are exact spheres nested in the cylinder, at ``beads_robot`` (n_beads, 3) mm
+    when given (the true, misplaced and sagging beads), else on the nominal axis; the tip is a
+    steel cylinder beyond the rod's far end (in air).
     """
     s = rod.bead_positions_mm()
     start = -rod.mount_mm + 10.0  # the cylinder starts just past the holder
@@ -282,7 +354,10 @@ def rod_bodies(rod: RodSpec, rod2robot: RigidTransform, *, name: str = "rod") ->
     to_tip = RigidTransform.from_rotvec([0.0, np.pi / 2, 0.0],
                                         [end + rod.tip_length_mm / 2, 0.0, 0.0])
     tip.apply_transform((rod2robot @ to_tip).as_matrix())
-    beads = rod2robot.apply(np.column_stack([s, np.zeros_like(s), np.zeros_like(s)]))
+    if beads_robot is None:
+        beads = rod2robot.apply(np.column_stack([s, np.zeros_like(s), np.zeros_like(s)]))
+    else:
+        beads = np.asarray(beads_robot, dtype=np.float64).reshape(len(s), 3)
     return [
         Body(name, rod.material, mesh=cyl),
         Body(f"{name}_beads", rod.bead_material, sphere_centers=beads,
@@ -317,6 +392,20 @@ class Robot:
         off[:, :3] = self.rng.normal(0.0, sp.kinematic_offset_mm, (5, 3))
         off[:, 3:] = np.radians(self.rng.normal(0.0, sp.kinematic_offset_deg, (5, 3)))
         self.kinematic_offsets = off
+        # the rod as mounted and as made (drawn only when on, so the ideal profile's random
+        # stream is today's)
+        self.rod_mount_error = RigidTransform(np.eye(3), np.zeros(3))
+        if sp.rod_mount_error_mm > 0 or sp.rod_mount_error_deg > 0:
+            t = self.rng.normal(0.0, sp.rod_mount_error_mm, 3)
+            rv = np.radians(self.rng.normal(0.0, sp.rod_mount_error_deg, 3))
+            self.rod_mount_error = RigidTransform.from_rotvec(rv, t)
+        n_b = sp.rod.n_beads
+        self.bead_errors_mm = np.zeros((n_b, 3))
+        if sp.rod.bead_along_error_mm > 0:
+            self.bead_errors_mm[:, 0] = self.rng.normal(0.0, sp.rod.bead_along_error_mm, n_b)
+        if sp.rod.bead_across_error_mm > 0:
+            self.bead_errors_mm[:, 1:] = self.rng.normal(0.0, sp.rod.bead_across_error_mm,
+                                                         (n_b, 2))
         self._dir = tempfile.TemporaryDirectory(prefix="testbed_robot_")
         if sp.urdf == "builtin":
             nominal_text, true_text = robot_urdf(sp), robot_urdf(sp, offsets=off)
@@ -542,17 +631,39 @@ class Robot:
 
     @property
     def true_rod2robot(self) -> RigidTransform:
-        """The rod's true pose: the true arm at the true joints (simulator only)."""
+        """The rod's true pose: the true arm at the true joints, times the rod's mounting
+        error (simulator only)."""
         self._set(self.true_id, self.q_true)
-        return self._link_pose(self.true_id, self.bead0_link)
+        return self._link_pose(self.true_id, self.bead0_link) @ self.rod_mount_error
+
+    def true_bead_local(self, rod2robot_true: RigidTransform | None = None) -> np.ndarray:
+        """True bead centres in the (true) rod frame, ``(n_beads, 3)`` mm: nominal positions
+        plus placement errors plus the sag under gravity at the rod's current orientation."""
+        pose = self.true_rod2robot if rod2robot_true is None else rod2robot_true
+        rod = self.spec.rod
+        s = rod.bead_positions_mm()
+        local = np.column_stack([s, np.zeros_like(s), np.zeros_like(s)]) + self.bead_errors_mm
+        if rod.sag:
+            d = pose.R[:, 0]
+            g = np.array([0.0, 0.0, -1.0])  # gravity, robot frame (z up)
+            g_perp = g - (g @ d) * d
+            mag = float(np.linalg.norm(g_perp))
+            if mag > 1e-12:
+                w = rod.sag_mm(s, gravity_across=mag)      # (n,) mm along g_perp
+                local = local + np.outer(w, pose.R.T @ (g_perp / mag))
+        return local
 
     def bead_positions(self, *, true: bool = False) -> np.ndarray:
-        """Bead centres in the robot frame, ``(n_beads, 3)`` mm (reported, or ``true``)."""
+        """Bead centres in the robot frame, ``(n_beads, 3)`` mm: reported (the nominal rod
+        at the reported pose) or ``true`` (misplaced, sagging beads on the true rod)."""
+        if true:
+            pose = self.true_rod2robot
+            return pose.apply(self.true_bead_local(pose))
         s = self.spec.rod.bead_positions_mm()
         local = np.column_stack([s, np.zeros_like(s), np.zeros_like(s)])
-        pose = self.true_rod2robot if true else self.reported_rod2robot
-        return pose.apply(local)
+        return self.reported_rod2robot.apply(local)
 
     def rod_bodies(self) -> list[Body]:
-        """The rod at its true pose, as world bodies (robot frame)."""
-        return rod_bodies(self.spec.rod, self.true_rod2robot)
+        """The rod at its true pose, with its true beads, as world bodies (robot frame)."""
+        pose = self.true_rod2robot
+        return rod_bodies(self.spec.rod, pose, beads_robot=pose.apply(self.true_bead_local(pose)))

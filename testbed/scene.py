@@ -19,6 +19,8 @@ Sections:
 ``[[views]]``       one table per C-arm pose (``testbed.fluoroscope``)
 ``[robot]``         robot, rod, sweeps (``testbed.robot``)
 ``[[instruments]]`` OR instruments that may occlude the anatomy (``testbed.instruments``)
+``[operator]``      the simulated user's clicks on CT slices and X-ray frames (``testbed.operator``)
+``[workspace]``     the feasibility check of every view and sweep pose (``testbed.workspace``)
 ``[registration]``  the registration run (start perturbation, solver options)
 """
 
@@ -34,10 +36,12 @@ from pydantic import Field, ValidationError, model_validator
 from testbed.ct import CTSpec
 from testbed.fluoroscope import FluoroscopeSpec, ViewSpec
 from testbed.instruments import InstrumentSpec
+from testbed.operator import OperatorSpec
 from testbed.phantom import PhantomSpec
 from testbed.robot import RobotSpec
 from testbed.spec import Positive as Pos
-from testbed.spec import Spec, Vec3
+from testbed.spec import SceneError, Spec, Vec3
+from testbed.workspace import WorkspaceSpec
 
 __all__ = [
     "Scene",
@@ -51,10 +55,6 @@ __all__ = [
     "parse_scene",
     "scenes_dir",
 ]
-
-
-class SceneError(ValueError):
-    """A scene file could not be read or is invalid; the message names file and field."""
 
 
 class SceneMeta(Spec):
@@ -140,6 +140,8 @@ class Scene(Spec):
     views: tuple[ViewSpec, ...] = ()
     robot: RobotSpec = RobotSpec()
     instruments: tuple[InstrumentSpec, ...] = ()
+    operator: OperatorSpec = OperatorSpec()
+    workspace: WorkspaceSpec = WorkspaceSpec()
     registration: RegistrationSpec = RegistrationSpec()
 
     @model_validator(mode="after")
@@ -224,25 +226,42 @@ def load_scene(path):
 
 
 def scenes_dir() -> Path:
-    """The folder of named scenes: ``$TESTBED_SCENES`` or the project's ``scenes/``."""
+    """The folder of named scenes: ``$TESTBED_SCENES``, or the ``scenes`` package (the
+    project's ``scenes/``, installed with the project as package data)."""
     env = os.environ.get("TESTBED_SCENES")
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[1] / "scenes"
+    try:
+        import scenes
+
+        return Path(scenes.__file__).resolve().parent
+    except ImportError:  # a source tree that is not installed
+        return Path(__file__).resolve().parents[1] / "scenes"
 
 
 DEFAULT_SCENE = "experiment2"
 
 
 def find_scene(name_or_path: str | os.PathLike | None) -> Path:
-    """Resolve a scene argument: an existing path, or a name in :func:`scenes_dir`."""
+    """Resolve a scene argument: a path to a file, or a bare name in :func:`scenes_dir`.
+
+    An argument with a folder in it (``a/b.toml``, ``./b.toml``) must be an existing file; a
+    bare name (``experiment2`` or ``experiment2.toml``) is a file of that name in the current
+    folder if there is one, else a named scene. Raises :class:`SceneError` otherwise.
+    """
     if name_or_path is None:
         name_or_path = DEFAULT_SCENE
-    p = Path(name_or_path)
+    text = os.fspath(name_or_path)
+    p = Path(text)
     if p.is_file():
         return p
+    if p.exists():
+        raise SceneError(f"{text}: is a folder, not a scene file")
+    bare = len(p.parts) == 1 and not any(sep in text for sep in ("/", os.sep))
+    if not bare:
+        raise SceneError(f"{text}: no such scene file")
     cand = scenes_dir() / (p.name if p.suffix == ".toml" else p.name + ".toml")
     if cand.is_file():
         return cand
     known = sorted(x.stem for x in scenes_dir().glob("*.toml"))
-    raise SceneError(f"{name_or_path}: no such scene file or named scene (known: {known})")
+    raise SceneError(f"{text}: no such scene file or named scene (known: {', '.join(known)})")

@@ -81,16 +81,11 @@ class Sweep:
     poses: list
 
     def for_calibration(self) -> dict:
-        """The fields a clinic has, as keyword arguments of ``reglib.calibration.SweepData``
+        """The fields a clinic has, as keyword arguments of ``reglib.markers.SweepData``
         (no truth)."""
         return dict(view=self.view, frames=self.frames, plane=self.plane,
                     beads_robot=self.beads_reported, bead_positions_mm=self.bead_positions_mm,
                     mask=self.fov)
-
-
-def _unit(v):
-    v = np.asarray(v, dtype=float)
-    return v / np.linalg.norm(v)
 
 
 def _rotate(v, axis, angle_rad):

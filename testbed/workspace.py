@@ -14,13 +14,17 @@ Frames and units: robot frame, mm (pybullet gets metres inside).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Annotated
 
 import numpy as np
 import pybullet
+from pydantic import Field
 
 from reglib.geometry import RigidTransform
+from testbed.spec import Spec
 
-__all__ = ["Contact", "PoseCheck", "WorkspaceReport", "Workspace", "check_sweep"]
+__all__ = ["Contact", "PoseCheck", "WorkspaceReport", "Workspace", "WorkspaceError",
+           "WorkspaceSpec", "check_scene_workspace", "check_sweep", "require_feasible"]
 
 _M = 1e-3
 
@@ -255,3 +259,96 @@ def check_sweep(workspace: Workspace, carm, poses, *, margin_mm: float = 0.0,
         robot.set_true_joints(q_true)
         workspace.remove(carm_name)
     return report
+
+
+# --------------------------------------------------------------------------- scene check
+class WorkspaceSpec(Spec):
+    """``[workspace]``: the check that every view and sweep pose can be taken.
+
+    ``check``: check the scene before any simulation (default true; false skips it and the
+    reports say so in their first lines); ``margin_mm``: bodies closer than this count as
+    colliding (0: touching or overlapping).
+    """
+
+    check: bool = True
+    margin_mm: Annotated[float, Field(ge=0, le=100)] = 0.0
+
+
+class WorkspaceError(ValueError):
+    """A scene whose acquisition is physically impossible; the message names the view, the
+    pose and the colliding pair."""
+
+
+def check_scene_workspace(scene, world) -> list[WorkspaceReport]:
+    """Check every view of ``scene`` and every pose of its calibration sweep.
+
+    ``world`` is the scene's :class:`testbed.world.World` (robot frame): the patient's
+    outermost bodies (as convex hulls), the table and foam, and the instruments are the
+    obstacles, with the C-arm of each view (source housing, intensifier, the C). The robot's
+    links, quill and rod are checked against all of them at every sweep pose, and the C-arm
+    against the others.
+    """
+    from testbed.fluoroscope import make_carm
+    from testbed.robot import Robot
+    from testbed.sweep import plan_sweep
+
+    reports = []
+    with Robot(scene.robot, rng=0) as robot:
+        ws = Workspace(robot)
+        ws.add_bodies(world.patient_bodies, kind="patient")
+        ws.add_bodies(world.table, kind="table")
+        ws.add_bodies(world.instruments, kind="instrument")
+        for i, vspec in enumerate(scene.views):
+            carm = make_carm(scene.fluoroscope, vspec, view_index=i)
+            reports.append(check_sweep(ws, carm, plan_sweep(carm, robot.spec),
+                                       margin_mm=scene.workspace.margin_mm))
+    return reports
+
+
+def _first_problem(scene, report: WorkspaceReport, poses) -> str:
+    name = scene.scene.name
+    if report.carm_contacts:
+        c = min(report.carm_contacts, key=lambda c: c.distance_mm)
+        return (f"scene {name}: view {report.view}: the C-arm's {c.a} collides with {c.b} "
+                f"({_gap(c)})")
+    for p in report.poses:
+        plane = _PLANES.get(p.plane, str(p.plane))
+        if p.unreachable:
+            return (f"scene {name}: view {report.view}, sweep pose {p.index} (plane {plane}): "
+                    f"unreachable ({_clip(p.unreachable.splitlines()[0])})")
+        if p.contacts:
+            c = min(p.contacts, key=lambda c: c.distance_mm)
+            return (f"scene {name}: view {report.view}, sweep pose {p.index} (plane {plane}): "
+                    f"{c.a} collides with {c.b} ({_gap(c)}; {len(report.colliding_pairs())} "
+                    f"colliding pair(s) in the view)")
+    return f"scene {name}: view {report.view}: ok"
+
+
+_PLANES = {-1: "reference", 0: "near", 1: "far", 2: "validation"}
+
+
+def _clip(text: str, limit: int = 200) -> str:
+    """``text`` cut at a word boundary to at most ``limit`` characters."""
+    if len(text) <= limit:
+        return text
+    return text[:limit].rsplit(" ", 1)[0] + " ..."
+
+
+def _gap(c: Contact) -> str:
+    return (f"overlap {-c.distance_mm:.1f} mm" if c.distance_mm < 0
+            else f"{c.distance_mm:.1f} mm apart, within the margin")
+
+
+def require_feasible(scene, world) -> list[WorkspaceReport]:
+    """:func:`check_scene_workspace`, raising :class:`WorkspaceError` (one line: view, pose,
+    colliding pair) for the first view that cannot be taken. Skipped (returns []) when the
+    scene says ``[workspace] check = false``."""
+    if not scene.workspace.check:
+        return []
+    reports = check_scene_workspace(scene, world)
+    for r in reports:
+        if not r.ok:
+            raise WorkspaceError(_first_problem(scene, r, None) + "; move the view "
+                                 "(views[].isocenter_mm, orbital_deg, angular_deg) or set "
+                                 "[workspace] check = false")
+    return reports

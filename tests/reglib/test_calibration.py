@@ -7,17 +7,13 @@ from scipy.spatial.transform import Rotation
 
 from reglib.calibration import (
     Calibration,
-    Markers,
-    SweepData,
     ThinPlateSpline,
     calibrate,
-    detect_markers,
-    find_markers,
-    identify_row,
     tps_evaluate,
     tps_fit_svd,
 )
 from reglib.geometry import RigidTransform
+from reglib.markers import Markers, SweepData, detect_markers, find_markers, identify_row
 
 BEADS = np.r_[0.0, np.cumsum([14.0, 27.0, 16.0, 12.0, 30.0, 21.0, 24.0])]
 

@@ -159,3 +159,220 @@ def test_unknown_method():
     c = _case(0)
     with pytest.raises(ValueError, match="method"):
         solve_pose(c.points, c.origins, c.directions, "gauss")
+
+
+# --------------------------------------------------------------------------- RANSAC twins
+def _ransac_cases():
+    """Random cases of every kind: noise-free, noisy, outliers, coplanar points."""
+    rng = np.random.default_rng(21)
+    for k in range(24):
+        n = int(rng.integers(6, 160))
+        noise, frac = ((0.0, 0.0), (0.01, 1.0), (0.33, 0.5))[k % 3]
+        yield k, make_points_lines(SPEC, rng, n_points=n, noise_std=noise, outlier_fraction=frac)
+
+
+def test_ransac_numba_loop_matches_numpy_reference():
+    pytest.importorskip("numba")
+    for k, c in _ransac_cases():
+        a = solve_pose(c.points, c.origins, c.directions, "ransac", rng=k, backend="numpy")
+        b = solve_pose(c.points, c.origins, c.directions, "ransac", rng=k, backend="numba")
+        assert a.ransac_trials == b.ransac_trials, k
+        assert a.converged == b.converged and a.message == b.message, k
+        np.testing.assert_allclose(a.R, b.R, atol=1e-9)
+        np.testing.assert_allclose(a.t, b.t, atol=1e-9)
+        np.testing.assert_array_equal(a.inliers, b.inliers)
+        if k % 3 == 0:  # noise-free: both find the truth
+            assert landmark_error(b.transform, c.points2lines, c.landmarks) < 1e-9
+
+
+def test_ransac_numba_minimal_solver_matches_numpy_reference():
+    pytest.importorskip("numba")
+    from reglib import _ransac_numba
+
+    grid = _ransac_numba.cosine_grid(200)
+    Rs, ts = np.empty((64, 3, 3)), np.empty((64, 3))
+    for seed in range(100):
+        c = _case(1000 + seed, n_points=3)
+        R1, t1 = p3l_solutions(c.points, c.origins, c.directions)
+        k = _ransac_numba.p3l(c.points, c.origins, c.directions, grid, Rs, ts)
+        assert k == len(R1), seed
+        # same roots; the rotation from the triangles' frames instead of an SVD differs
+        # where a root sits on a branch end (square-root behaviour): 1e-6 at most
+        np.testing.assert_allclose(Rs[:k], R1, atol=1e-5)
+        np.testing.assert_allclose(ts[:k], t1, atol=1e-5)
+        for R, t in zip(Rs[:k], ts[:k]):
+            w = c.points @ R.T + t - c.origins
+            perp = w - np.sum(w * c.directions, 1, keepdims=True) * c.directions
+            assert np.abs(perp).max() < 1e-5
+
+
+# --------------------------------------------------------------------------- cheirality
+def _coplanar_case(seed, n=30):
+    """Points of a plane (CT frame), a random true pose, lines from a source 3 units away:
+    the planar set admits an exact mirror pose with every point behind the source."""
+    rng = np.random.default_rng(seed)
+    q = np.c_[rng.uniform(0.0, 1.0, (n, 2)), np.zeros(n)]
+    true = RigidTransform.from_rotvec(rng.normal(size=3), rng.normal(size=3))
+    X = true.apply(q)
+    c = X.mean(0) + 3.0 * rng.normal(size=3)
+    d = X - c
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return q, np.repeat(c[None], n, 0), d, true
+
+
+def test_ransac_never_returns_the_mirror_pose_of_coplanar_points():
+    mirrors = 0
+    for seed in range(5):
+        q, o, d, true = _coplanar_case(seed)
+        r = solve_pose(q, o, d, "ransac", rng=seed)
+        assert r.converged, r.message
+        assert np.abs(r.transform.apply(q) - true.apply(q)).max() < 1e-9
+        # the check is what makes it: as full lines, the mirror pose fits exactly too
+        off = solve_pose(q, o, d, "ransac", rng=seed, cheirality=False)
+        moved = off.transform.apply(q)
+        if np.abs(moved - true.apply(q)).max() > 1.0:
+            mirrors += 1
+            assert off.rms < 1e-9 and np.all(np.sum((moved - o) * d, axis=1) < 0)
+    assert mirrors >= 1
+
+
+@pytest.mark.parametrize("method", ["lm", "linear", "robust"])
+def test_local_methods_never_call_a_mirror_pose_converged(method):
+    """From the identity start the local methods reach the mirror pose on some of these
+    seeds; it must then come back not converged, with the reason."""
+    mirrors = 0
+    for seed in range(5):
+        q, o, d, true = _coplanar_case(seed)
+        r = solve_pose(q, o, d, method)
+        err = np.abs(r.transform.apply(q) - true.apply(q)).max()
+        behind = np.sum((r.transform.apply(q) - o) * d, axis=1) <= 0
+        if np.all(behind):
+            mirrors += 1
+            assert err > 1.0 and r.rms < 1e-6   # the exact mirror pose
+            assert not r.converged and r.message.startswith("cheirality:"), r.message
+        elif r.converged:  # the truth, or the planar set's other (local) minimum in front
+            assert not np.any(behind[r.inliers])
+    assert mirrors >= 1
+
+
+# --------------------------------------------------------------------------- verdicts
+@pytest.mark.parametrize("n", [10, 30, 100])
+def test_random_lines_are_never_converged(n):
+    """Points that fit no pose (random lines): no method may call its answer converged;
+    RANSAC's three exact inliers of a minimal sample do not count."""
+    rng = np.random.default_rng(n)
+    for seed in range(5):
+        p = rng.uniform(0.0, 1.0, (n, 3))
+        o = rng.uniform(-3.0, 3.0, (n, 3))
+        d = rng.normal(size=(n, 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        for method in METHODS:
+            r = solve_pose(p, o, d, method, rng=seed)
+            assert not r.converged, (method, seed, r.message)
+            assert r.message
+        r = solve_pose(p, o, d, "ransac", rng=seed)
+        assert "inliers" in r.message or "no minimal sample" in r.message
+
+
+def test_ransac_with_few_true_inliers_still_converges():
+    """The meaningful-inlier rule must not refuse a real pose: 6 exact pairs among 20
+    (70 % outliers) is found and kept."""
+    ok = 0
+    for seed in range(10):
+        c = make_points_lines(SPEC, np.random.default_rng(seed), n_points=20, noise_std=0.33,
+                              outlier_fraction=0.7)
+        r = solve_pose(c.points, c.origins, c.directions, "ransac", rng=seed)
+        ok += r.converged and landmark_error(r.transform, c.points2lines, c.landmarks) < 0.1
+    assert ok >= 9  # seed 3: an outlier within the threshold pulls the fit 0.16 off
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("kind, match", [
+    ("parallel", "lines: all lines are parallel; the translation along them is undetermined"),
+    ("identical", "lines: all lines are the same line; the pose is undetermined"),
+])
+def test_parallel_and_identical_lines_are_refused(method, kind, match):
+    c = _case(3, n_points=30)
+    d = np.tile(c.directions[:1], (30, 1))
+    o = c.points + 5.0 * d if kind == "parallel" else np.repeat(c.origins[:1], 30, 0)
+    with pytest.raises(ValueError, match=match):
+        solve_pose(c.points, o, d, method)
+
+
+@pytest.mark.parametrize("method", ["robust", "ransac"])
+def test_degenerate_inlier_set_is_not_converged(method):
+    """20 pairs of which the 15 consistent ones have collinear points (a rotation about
+    their line is free) and 5 are outliers: the pose is undetermined by what the robust
+    methods keep, which they must say instead of converging."""
+    rng = np.random.default_rng(5)
+    true = RigidTransform.from_rotvec([0.3, -0.2, 0.1], [0.5, 0.2, -0.1])
+    line_pts = np.outer(np.linspace(0.0, 1.0, 15), [1.0, 0.4, 0.2])
+    others = rng.uniform(0.0, 1.0, (5, 3))
+    p = np.vstack([line_pts, others])
+    c = np.array([-2.0, -2.0, -2.0])
+    X = true.apply(p)
+    X[15:] += rng.normal(size=(5, 3)) * 0.5          # the outliers' lines miss them
+    d = X - c
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = np.repeat(c[None], 20, 0)
+    r = solve_pose(p, o, d, method, initial=true, rng=0)
+    assert not r.converged
+    assert "degenerate" in r.message or "singular" in r.message or "inliers" in r.message
+
+
+def test_linear_stops_when_its_cost_stops_decreasing(monkeypatch):
+    """Noisy data with outliers: "linear" stops once its cost is flat, many iterations before
+    the step tolerance would stop it, at the same pose (cost equal to 1e-9, landmarks to
+    1e-4 of the cloud)."""
+    fewer = 0
+    for seed in range(8):
+        c = make_points_lines(SPEC, np.random.default_rng(seed), n_points=20, noise_std=0.33,
+                              outlier_fraction=0.4)
+        args = (c.points, c.origins, c.directions, "linear")
+        for backend in ("numpy", "numba"):
+            r = solve_pose(*args, backend=backend, max_iterations=500)
+            with monkeypatch.context() as m:
+                m.setattr(pose_mod, "FLAT_COST", 0.0)     # the step tolerance alone
+                ref = solve_pose(*args, backend=backend, max_iterations=500)
+            assert r.converged and r.iterations <= ref.iterations
+            fewer += r.iterations < ref.iterations
+            cost, cost_ref = np.sum(r.residuals**2), np.sum(ref.residuals**2)
+            assert abs(cost - cost_ref) <= 1e-9 * cost_ref
+            err = landmark_error(r.transform, c.points2lines, c.landmarks)
+            err_ref = landmark_error(ref.transform, c.points2lines, c.landmarks)
+            assert abs(err - err_ref) < 1e-4
+    assert fewer >= 12
+
+
+@pytest.mark.parametrize("kw, message", [
+    ({"tukey_a": 0.0}, "tukey_a: expected a finite Tukey constant > 0, got 0.0"),
+    ({"tukey_a": -2.0}, "tukey_a: expected a finite Tukey constant > 0, got -2.0"),
+    ({"tol": float("nan")}, "tol: expected a finite number >= 0, got nan"),
+    ({"r": 0.0}, r"r: expected a finite trust radius > 0 \(or None\), got 0.0"),
+    ({"threshold": -1.0}, r"threshold: expected a finite inlier distance > 0 \(or None\)"),
+    ({"max_iterations": 0}, "max_iterations: expected an integer >= 1, got 0"),
+    ({"max_trials": 2.5}, "max_trials: expected an integer >= 1, got 2.5"),
+    ({"confidence": 1.0}, r"confidence: expected a probability in \(0, 1\), got 1.0"),
+    ({"backend": "cuda"}, "backend: expected 'auto', 'numpy' or 'numba', got 'cuda'"),
+    ({"method": "gauss"}, "method: expected one of"),
+])
+def test_option_errors_name_the_option(kw, message):
+    c = _case(0, n_points=20)
+    kw = {"method": "robust", **kw}
+    with pytest.raises(ValueError, match=message):
+        solve_pose(c.points, c.origins, c.directions, **kw)
+    with pytest.raises(ValueError, match=message):  # the constrained IRLS as well
+        solve_pose(c.points, c.origins, c.directions, fixed_point=np.zeros(3), **kw)
+
+
+@pytest.mark.parametrize("bad, message", [
+    ((2 * np.eye(3), np.zeros(3)), r"initial: R is not a rotation"),
+    ((np.diag([1.0, 1.0, -1.0]), np.zeros(3)), r"initial: R is not a rotation"),
+    ((np.eye(3), np.array([0.0, np.nan, 0.0])), r"initial: expected a finite R"),
+    ((np.eye(2), np.zeros(3)), r"initial: expected a finite R \(3, 3\) and t \(3,\)"),
+])
+@pytest.mark.parametrize("method", METHODS)
+def test_initial_must_be_a_rotation(bad, message, method):
+    c = _case(0, n_points=20)
+    with pytest.raises(ValueError, match=message):
+        solve_pose(c.points, c.origins, c.directions, method, initial=bad)

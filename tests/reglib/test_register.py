@@ -1,6 +1,6 @@
 """The registration loop, simulate -> estimate -> compare to truth.
 
-The test world (``studies.bench_registration.make_scene``, shared with the benchmark): a
+The test world (``studies.bench.registration.make_scene``, shared with the benchmark): a
 bone-like closed mesh (shaft capsule, head and neck,
 trochanter, two condyles, unioned with manifold3d) cut into a proximal and a distal open
 surface (holes at the cuts), a true pose ``ct2robot``, four views with centers of perspective
@@ -17,8 +17,9 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from reglib.geometry import RigidTransform
-from reglib.register import View, register, solve_increment
-from studies.bench_registration import PINS_CT, make_scene, perturbed, pin_errors
+from reglib.pose import solve_pose
+from reglib.register import View, register
+from studies.bench.registration import PINS_CT, make_scene, perturbed, pin_errors
 
 
 @pytest.fixture(scope="module")
@@ -50,18 +51,24 @@ def test_recovers_7deg_20mm_to_below_0_05mm_at_pins(world, seed):
     assert np.all(res.inlier_fraction_per_view > 0.5)
 
 
+def _noisy_views(views, rng, sigma_mm=0.3):
+    """The views with every path turned to pass ``sigma_mm`` (Gaussian) off its point at
+    600 mm, i.e. at the bone."""
+    out = []
+    for v in views.values():
+        p = v.origins + 600.0 * v.directions + rng.normal(size=v.origins.shape) * sigma_mm
+        d = p - v.origins
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        out.append(View(center=v.center, origins=v.origins, directions=d, name=v.name))
+    return out
+
+
 def test_noisy_paths_converge_near_the_truth(world):
     """Paths perturbed by 0.3 mm (Gaussian, at the bone): the matches keep switching, the
     loop must still stop as converged (stalled steps), near the truth and at the same pose
     from different starts."""
     tops, views, true = world
-    rng = np.random.default_rng(0)
-    noisy = []
-    for v in views.values():
-        p = v.origins + 600.0 * v.directions + rng.normal(size=v.origins.shape) * 0.3
-        d = p - v.origins
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        noisy.append(View(center=v.center, origins=v.origins, directions=d, name=v.name))
+    noisy = _noisy_views(views, np.random.default_rng(0))
     poses = []
     for seed in (0, 1):
         res = register(tops, noisy, perturbed(true, 7.0, 20.0, seed), max_iterations=60)
@@ -158,7 +165,7 @@ def test_degenerate_geometry_fails_with_reason(world):
     assert not res.converged and "degenerate" in res.reason
     two = View(center=v.center, origins=v.origins[:2], directions=v.directions[:2])
     res = register(tops, [two], true)
-    assert not res.converged and "at least 6 matches" in res.reason
+    assert not res.converged and "at least 6 point-line pairs" in res.reason
 
 
 def test_bad_input_raises():
@@ -179,9 +186,10 @@ def test_bad_input_raises():
         register([(m.vertices, m.faces)], [v], RigidTransform.identity(), residual="plane")
 
 
-def test_solve_increment_recovers_a_known_motion():
-    """The IRLS solver alone: points moved by a known rigid motion (and 20 % outliers) are
-    put back on their lines, with and without a fixed point and with the normal residual."""
+def test_solve_pose_with_normals_and_fixed_point_recovers_a_known_motion():
+    """The constrained IRLS of solve_pose (what the loop uses for the across-contour residual
+    and the fixed pin): points moved by a known rigid motion (and 20 % outliers) are put
+    back on their lines, with and without a fixed point and with the normal residual."""
     rng = np.random.default_rng(9)
     p = rng.uniform(-50, 50, size=(200, 3))
     c = np.array([0.0, 0.0, -600.0])
@@ -193,15 +201,150 @@ def test_solve_increment_recovers_a_known_motion():
     bad = rng.random(len(p)) < 0.2
     moved_out = moved.copy()
     moved_out[bad] += rng.normal(size=(bad.sum(), 3)) * 20
-    U, dist, w, ok, _ = solve_increment(moved_out, o, d)
-    assert ok
-    np.testing.assert_allclose(U.apply(moved[~bad]), p[~bad], atol=1e-6)
-    assert np.all(w[bad][dist[bad] > 1.0] == 0)
+    # normals across each line: the residual is the distance to a plane through the line
+    n = np.cross(d, rng.normal(size=d.shape))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    res = solve_pose(moved_out, o, d, "robust", normals=n, max_iterations=50)
+    assert res.converged
+    across = np.einsum("ij,ij->i", n[~bad], res.transform.apply(moved[~bad]) - o[~bad])
+    np.testing.assert_allclose(across, 0.0, atol=1e-6)
+    assert np.all(res.weights[bad][res.residuals[bad] > 1.0] == 0)
     # rotation about a fixed point: the point stays, the rest is recovered
     f = p[0]
     rot = RigidTransform.from_rotvec([0.0, 0.04, -0.02])
     about = RigidTransform(np.eye(3), f) @ rot @ RigidTransform(np.eye(3), -f)
-    U, _, _, ok, _ = solve_increment(about.inverse().apply(p), o, d, fixed_point=f)
-    assert ok
-    np.testing.assert_allclose(U.apply(f), f, atol=1e-9)
-    np.testing.assert_allclose(U.apply(about.inverse().apply(p)), p, atol=1e-6)
+    res = solve_pose(about.inverse().apply(p), o, d, "robust", fixed_point=f)
+    assert res.converged
+    np.testing.assert_allclose(res.transform.apply(f), f, atol=1e-9)
+    np.testing.assert_allclose(res.transform.apply(about.inverse().apply(p)), p, atol=1e-6)
+    # an initial pose is composed with the update; LM and RANSAC are refused here
+    start = RigidTransform.from_rotvec([0.0, 0.0, 0.01])
+    res = solve_pose(start.inverse().apply(about.inverse().apply(p)), o, d, "robust",
+                     fixed_point=f, initial=start)
+    np.testing.assert_allclose(res.transform.apply(start.inverse().apply(
+        about.inverse().apply(p))), p, atol=1e-6)
+    for m in ("lm", "ransac"):
+        with pytest.raises(ValueError, match="cannot solve with normals or a fixed point"):
+            solve_pose(p, o, d, m, fixed_point=f)
+
+
+def test_register_option_errors_are_clear():
+    m = trimesh.creation.icosphere(subdivisions=1)
+    v = View(center=[0, 0, -600.0], origins=np.zeros((3, 3)) + [0, 0, -600.0],
+             directions=np.tile([0, 0, 1.0], (3, 1)))
+    surf = [(m.vertices, m.faces)]
+    I = RigidTransform.identity()
+    for kw, msg in (({"tukey_a": 0.0}, "tukey_a"), ({"tol_step_mm": float("nan")}, "tol_step"),
+                    ({"method": "lm", "residual": "normal"}, "cannot be used"),
+                    ({"method": "gauss"}, "method"), ({"stall_window": -1}, "stall_window"),
+                    ({"min_inlier_fraction": 2.0}, "min_inlier_fraction")):
+        with pytest.raises(ValueError, match=msg):
+            register(surf, [v], I, **kw)
+    with pytest.raises(ValueError, match="not a proper rotation"):
+        RigidTransform(2 * np.eye(3), np.zeros(3))
+    register(surf, [v], I, stall_window=0)  # 0 disables the stall test: runs
+    for opts, msg in (({"tol": float("nan")}, "solver_options: tol: expected a finite number "
+                                               ">= 0, got nan"),
+                      ({"foo": 1}, r"solver_options: unknown option\(s\) \['foo'\] of "
+                                   "solve_pose"),
+                      ({"method": "lm"}, r"solver_options: \['method'\] are set by register "
+                                         "itself"),
+                      ({"threshold": 0.0}, "solver_options: threshold: expected a finite "
+                                           "inlier distance > 0")):
+        with pytest.raises(ValueError, match=msg):
+            register(surf, [v], I, residual="line", solver_options=opts)
+    p = np.random.default_rng(0).normal(size=(10, 3))
+    for bad in ((2 * np.eye(3), np.zeros(3)), (np.diag([1.0, 1.0, -1.0]), np.zeros(3)),
+                (np.eye(3), np.full(3, np.nan))):
+        with pytest.raises(ValueError, match="initial"):
+            solve_pose(p, np.zeros((10, 3)), np.tile([0, 0, 1.0], (10, 1)), "robust",
+                       initial=bad)
+
+
+def test_paths_pointing_away_are_never_converged(world):
+    """Cheirality: the same X-ray lines but described as rays leaving the far side (the bone
+    behind every source, as a mirrored calibration would give). The loop still fits the
+    lines, so only the verdict can tell: never converged, and the reason says why."""
+    tops, views, true = world
+    init = perturbed(true, 2.0, 5.0, np.random.default_rng(3))
+    ok = register(tops, list(views.values()), init, max_iterations=40)
+    assert ok.converged and np.all(pin_errors(ok.ct2robot, true) < 0.05)
+    rev = [View(center=v.center, origins=v.origins + 2000.0 * v.directions,
+                directions=-v.directions, external=v.external, name=v.name)
+           for v in views.values()]
+    res = register(tops, rev, init, max_iterations=40)
+    assert not res.converged
+    assert res.reason.startswith("cheirality:") and "behind the centre of perspective" in \
+        res.reason, res.reason
+    for name in views:
+        assert name in res.reason
+
+
+def test_ransac_in_the_loop_recovers_the_pose(world):
+    """method="ransac" with the paper's point-to-path residual: hypotheses judged from the
+    views' sources (the paths' origins lie on the near plane); 2 deg / 5 mm to the truth."""
+    tops, views, true = world
+    init = perturbed(true, 2.0, 5.0, np.random.default_rng(3))
+    res = register(tops, list(views.values()), init, method="ransac", residual="line",
+                   max_iterations=25)
+    assert res.converged, res.reason
+    assert np.all(pin_errors(res.ct2robot, true) < 0.05)
+
+
+def test_lm_in_the_loop_is_least_squares_not_irls(world):
+    """method="lm" does what it says: Levenberg-Marquardt on every match (no Tukey
+    rejection: all weights 1), not the robust IRLS; with residual="normal" it is refused."""
+    tops, views, true = world
+    init = perturbed(true, 2.0, 5.0, np.random.default_rng(3))
+    lm = register(tops, list(views.values()), init, method="lm", residual="line",
+                  max_iterations=10)
+    rob = register(tops, list(views.values()), init, method="robust", residual="line",
+                   max_iterations=10)
+    assert np.all(lm.weights == 1.0) and all(h.inlier_fraction == 1.0 for h in lm.history)
+    assert np.any(rob.weights == 0.0)
+    assert np.all(pin_errors(lm.ct2robot, true) < pin_errors(init, true))
+    with pytest.raises(ValueError, match="method 'lm' cannot be used with residual='normal'"):
+        register(tops, list(views.values()), init, method="lm")
+
+
+def test_linear_stops_when_it_stops_improving(world):
+    """Plain least squares cycles between match sets (0.5-2.2 mm steps for ever on this
+    bone): the loop stops once the median distance no longer improves, not converged,
+    instead of running every iteration; stale_window=0 runs them all."""
+    tops, views, true = world
+    init = perturbed(true, 7.0, 20.0, np.random.default_rng(0))
+    res = register(tops, list(views.values()), init, method="linear", max_iterations=50)
+    assert not res.converged and res.reason.startswith("stopped improving"), res.reason
+    assert res.iterations <= 25
+    meds = [h.median_mm for h in res.history]
+    assert min(meds) < 0.25 * meds[0]     # it did improve first
+    full = register(tops, list(views.values()), init, method="linear", max_iterations=30,
+                    stale_window=0)
+    assert full.iterations == 30 and "no convergence after 30" in full.reason
+
+
+def test_stall_window_zero_disables_the_stall_test(world):
+    """Noisy paths: with the default window the loop stops on stalled steps; with 0 it
+    never does (it runs to max_iterations or the step tolerance) and stays near the truth."""
+    tops, views, true = world
+    noisy = _noisy_views(views, np.random.default_rng(0))
+    init = perturbed(true, 7.0, 20.0, 0)
+    on = register(tops, noisy, init, max_iterations=30)
+    assert on.converged and "tol_stall_mm" in on.reason
+    off = register(tops, noisy, init, max_iterations=on.iterations + 3, stall_window=0)
+    assert "tol_stall_mm" not in off.reason and off.iterations > on.iterations
+    assert np.all(pin_errors(off.ct2robot, true) < 0.3)
+
+
+def test_register_refuses_a_non_rigid_initial_clearly(world):
+    tops, views, true = world
+    bad = object.__new__(RigidTransform)            # bypasses RigidTransform's own check
+    for R, t in ((2 * np.eye(3), np.zeros(3)), (np.diag([1.0, 1.0, -1.0]), np.zeros(3)),
+                 (np.eye(3), np.array([np.nan, 0.0, 0.0]))):
+        object.__setattr__(bad, "R", R)
+        object.__setattr__(bad, "t", t)
+        with pytest.raises(ValueError, match=r"initial: its 3x3 part is not a rotation "
+                                             r"\(orthonormal, det \+1\) or it holds NaN/inf"):
+            register(tops, list(views.values()), bad)
+    with pytest.raises(ValueError, match="stale_window: expected an integer >= 0, got -1"):
+        register(tops, list(views.values()), true, stale_window=-1)

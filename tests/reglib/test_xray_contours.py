@@ -43,7 +43,7 @@ def _true_edges(carm, axis):
 @pytest.fixture(scope="module")
 def frames():
     bodies, axis = _shaft_scene()
-    fluoro = FluoroscopeSpec()
+    fluoro = FluoroscopeSpec().ideal()  # the snake on the chain it was measured with
     carm = make_carm(fluoro, ViewSpec(orbital_deg=5.0))
     clean = render(carm, bodies, fluoro=fluoro, noise=False)
     noisy = render(carm, bodies, fluoro=fluoro, rng=np.random.default_rng(3))

@@ -30,10 +30,11 @@ def test_calibration_study_writes_validation_distances_per_view(tmp_path):
         assert col in df.columns
     val = df[df.metric == "validation_distance"]
     assert len(val) >= 6 and set(val.view) == {"ap"} and set(val.unit) == {"mm"}
-    # distortion, noise and robot error on: well inside the paper's 0.1-0.4 mm
-    assert val.value.max() < 0.3
+    # the clinic profile (every error source at its published magnitude): about the paper's
+    # 0.1-0.4 mm (measured 0.03-0.45 mm on this seed; 0.03-0.2 mm with the ideal profile)
+    assert val.value.max() < 0.6 and val.value.median() < 0.3
     ray = df[(df.metric == "ray_error_iso") & (df.stat == "mean")]
-    assert len(ray) == 1 and ray.value.item() < 0.5
+    assert len(ray) == 1 and ray.value.item() < 0.8  # clinic: ~0.5 mm (docs/error-model.md)
     assert df[df.metric == "sweep_time"].value.item() == pytest.approx(14.0)
     assert set(df.experiment.dropna()) == {"smoothing", "beads", "rows"}
     report = (out / "report.md").read_text()

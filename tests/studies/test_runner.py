@@ -45,6 +45,12 @@ def toy_trial(trial: Trial) -> list[dict]:
         raise RuntimeError(f"trial {trial.index} was asked to fail")
     if p.get("die"):
         os._exit(3)
+    if p.get("die_times"):  # the first die_times runs lose their worker, then it succeeds
+        mark = Path(p["mark_dir"]) / f"died-{trial.index}"
+        n = int(mark.read_text()) if mark.exists() else 0
+        if n < p["die_times"]:
+            mark.write_text(str(n + 1))
+            os._exit(3)
     if p.get("bad_rows"):
         return [{"metric": "mtre", "value": "2 mm", "unit": "mm"}]
     rows = [{"metric": "pin_error", "value": float(v), "unit": "mm", "pin": pin}
@@ -173,6 +179,93 @@ def test_worker_that_dies_is_recorded_and_the_others_finish(tmp_path):
     exp = expected_rows(9, params)
     exp = exp[exp.trial != 3].reset_index(drop=True)
     pd.testing.assert_frame_equal(ok[exp.columns.tolist()], exp, check_exact=True)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("retries, die_times, ok", [(2, 2, True), (1, 3, False), (0, 2, False)])
+def test_lost_workers_are_retried_a_bounded_number_of_times(tmp_path, retries, die_times, ok):
+    # the first death is in the shared pool (every trial in flight becomes a suspect and is
+    # rerun alone); then up to retries + 1 runs alone before the trial is recorded as failed
+    params = _params(4, sleep_s=0.01)
+    params[1] = {**params[1], "die_times": die_times, "mark_dir": str(tmp_path)}
+    trials = make_trials("points-lines", 5, params)
+    df = run_trials(toy_trial, trials, out_dir=tmp_path / "s", workers=2, progress=False,
+                    retries=retries)
+    failed = df[df.metric == "failed"].trial.tolist()
+    assert failed == ([] if ok else [1])
+    runs = int((tmp_path / "died-1").read_text()) + (1 if ok else 0)
+    assert runs == (die_times + 1 if ok else 1 + retries + 1)
+    if not ok:
+        assert f"{retries + 1} attempt(s) alone" in read_failures(tmp_path / "s").error[0]
+    exp = expected_rows(5, [{k: v for k, v in p.items() if k in ("sleep_s", "noise")}
+                            for p in params])
+    got = df[df.trial != 1] if not ok else df
+    exp = exp[exp.trial.isin(got.trial.unique())].reset_index(drop=True)
+    cols = [c for c in exp.columns if c in got.columns]
+    pd.testing.assert_frame_equal(got.reset_index(drop=True)[cols], exp[cols],
+                                  check_exact=True, check_dtype=False)
+
+
+class _KilledWorker(Exception):
+    pass
+
+
+_KilledWorker.__name__ = "KilledWorker"  # as distributed.scheduler.KilledWorker
+
+
+def test_dask_killed_worker_is_retried_then_recorded(tmp_path, monkeypatch):
+    """_run_dask on a fake client: a KilledWorker is retried ``retries`` times, then the
+    trial is recorded as failed; an error of the trial itself is not retried."""
+    import distributed
+
+    from studies.runner import execute_trial
+
+    submitted: list[int] = []
+
+    class Fut:
+        def __init__(self, trial, attempt):
+            self.trial, self.attempt = trial, attempt
+
+        def result(self):
+            kills = self.trial.params.get("kills", 0)
+            if self.attempt < kills:
+                raise _KilledWorker(f"attempt {self.attempt} lost its worker")
+            return execute_trial(toy_trial, self.trial)
+
+    class FakeClient:
+        def submit(self, fn, trial_fn, trial, pure=False, key=None):
+            assert fn is execute_trial and trial_fn is toy_trial
+            submitted.append(trial.index)
+            return Fut(trial, submitted.count(trial.index) - 1)
+
+        def cancel(self, futs):
+            pass
+
+    class AsCompleted:
+        def __init__(self, futs):
+            self.queue = list(futs)
+
+        def add(self, fut):
+            self.queue.append(fut)
+
+        def __iter__(self):
+            while self.queue:
+                yield self.queue.pop(0)
+
+    monkeypatch.setattr(distributed, "Client", FakeClient)
+    monkeypatch.setattr(distributed, "as_completed", AsCompleted)
+    params = [{"kills": 0}, {"kills": 2}, {"kills": 3}, {"fail": True}]
+    trials = make_trials("points-lines", 3, params)
+    df = run_trials(toy_trial, trials, out_dir=tmp_path, scheduler=FakeClient(),
+                    progress=False, retries=2)
+    assert sorted(df[df.metric == "failed"].trial.unique().tolist()) == [2, 3]
+    assert submitted.count(0) == 1 and submitted.count(1) == 3 and submitted.count(2) == 3
+    assert submitted.count(3) == 1  # the trial's own error: no retry
+    fails = read_failures(tmp_path).set_index("trial").error
+    assert "KilledWorker" in fails[2] and "after 3 attempts" in fails[2]
+    assert "asked to fail" in fails[3]
+    ok = df[df.trial.isin([0, 1])]
+    assert set(ok.metric) >= {"pin_error", "mtre"}
 
 
 def _count_done(db: Path) -> int:

@@ -134,7 +134,8 @@ def test_bad_files_and_versions_are_named(tmp_path):
 
     doc2 = {**doc, "format_version": FORMAT_VERSION + 1}
     (case_dir / "case.json").write_text(json.dumps(doc2))
-    with pytest.raises(ValueError, match=r"case\.json: format_version 2 is not supported"):
+    with pytest.raises(ValueError, match=rf"case\.json: format_version {FORMAT_VERSION + 1} "
+                                         "is not supported"):
         load_case(case_dir)
     (case_dir / "case.json").write_text(json.dumps(doc))
 
@@ -171,3 +172,114 @@ def test_bad_entries_are_refused_before_writing(tmp_path):
     with pytest.raises(ValueError, match="unknown keys"):
         write_case(tmp_path / "d", {"frames": {}})
     assert not any(tmp_path.iterdir())  # nothing half-written is left behind
+
+
+def _generated(tmp_path, seed=0):
+    """A case as testbed generate leaves it: generator meta, truth meta, a dataset index
+    holding the SHA-256 of its case.json."""
+    import hashlib
+
+    root = tmp_path / "ds"
+    case = small_case(seed)
+    case["meta"] = {"generator": "testbed generate", "views": ["view0"],
+                    "truth": {"scene": {"name": "s"}, "seed": {"entropy": 1}}}
+    truth = TRUTH + [f"{g}/{n}" for g in ("transforms", "meshes", "points")
+                     for n in case.get(g, {}) if f"{g}/{n}" not in TRUTH]
+    write_case(root / "case_0000", case, truth=truth)
+    digest = hashlib.sha256((root / "case_0000" / "case.json").read_bytes()).hexdigest()
+    (root / "dataset.json").write_text(json.dumps({"case_json_sha256": {"case_0000": digest}}))
+    return root / "case_0000"
+
+
+def test_generated_case_loads_and_keeps_truth_meta_out_of_the_observation(tmp_path):
+    case_dir = _generated(tmp_path)
+    obs, truth = load(case_dir)
+    assert "truth" not in obs.meta and obs.meta["views"] == ["view0"]
+    assert truth.meta["truth"]["scene"] == {"name": "s"}
+    assert "ct2robot" in truth.transforms and not obs.transforms
+
+
+def test_tampered_cases_are_refused_naming_the_file(tmp_path):
+    case_dir = _generated(tmp_path)
+    doc_path = case_dir / "case.json"
+    doc = json.loads(doc_path.read_text())
+
+    def put(d):
+        doc_path.write_text(json.dumps(d))
+
+    # an edit of case.json itself (here its meta) is seen through the dataset's index
+    put({**doc, "meta": {**doc["meta"], "views": ["other"]}})
+    with pytest.raises(ValueError, match=r"case\.json: SHA-256 differs from .*dataset\.json"):
+        load(case_dir)
+    # a truth entry flipped to observation: refused even without the index check
+    flipped = json.loads(json.dumps(doc))
+    flipped["entries"]["transforms/ct2robot"]["role"] = "observation"
+    put(flipped)
+    with pytest.raises(ValueError, match="ground truth but is marked 'observation'"):
+        load(case_dir, verify=False)
+    # a file's checksum deleted, and the file replaced by NaNs: refused, naming the file
+    npy = next(k for k, r in doc["entries"].items() if r["files"][0].endswith(".npy"))
+    rel = doc["entries"][npy]["files"][0]
+    np.save(case_dir / rel, np.full((2, 12, 10), np.nan, dtype=np.float32))
+    unhashed = json.loads(json.dumps(doc))
+    del unhashed["sha256"][rel]
+    put(unhashed)
+    with pytest.raises(ValueError, match=rf"{rel}: no SHA-256"):
+        load(case_dir, verify=False)
+    # the dataset index without this case
+    put(doc)
+    (case_dir.parent / "dataset.json").write_text(json.dumps({"case_json_sha256": {}}))
+    with pytest.raises(ValueError, match="holds no checksum of this case"):
+        load(case_dir)
+
+
+def _mutations(doc):
+    """(name, function editing a copy of case.json's dict) for structural tampering."""
+    k_img = next(k for k in doc["entries"] if k.startswith("images/"))
+    k_npy = next(k for k, r in doc["entries"].items() if r["files"][0].endswith(".npy"))
+    k_vol = next(k for k in doc["entries"] if k.startswith("volumes/"))
+    return [
+        ("entries not a table", lambda d: d.__setitem__("entries", [])),
+        ("meta not a table", lambda d: d.__setitem__("meta", [1])),
+        ("sha256 not a table", lambda d: d.__setitem__("sha256", "x")),
+        ("a digest not a digest", lambda d: d["sha256"].__setitem__(next(iter(d["sha256"])), 5)),
+        ("record not a table", lambda d: d["entries"].__setitem__(k_img, "x")),
+        ("files not a list", lambda d: d["entries"][k_img].__setitem__("files", "abc")),
+        ("a file name not a string", lambda d: d["entries"][k_img].__setitem__("files", [3])),
+        ("image dtype changed", lambda d: d["entries"][k_img].__setitem__("dtype", "float64")),
+        ("image shape dropped", lambda d: d["entries"][k_img].pop("shape")),
+        ("array dtype changed", lambda d: d["entries"][k_npy].__setitem__("dtype", "int8")),
+        ("array shape changed", lambda d: d["entries"][k_npy].__setitem__("shape", [1, 2])),
+        ("array dtype dropped", lambda d: d["entries"][k_npy].pop("dtype")),
+        ("volume affine dropped", lambda d: d["entries"][k_vol].pop("voxel2ct")),
+        ("volume affine not numbers", lambda d: d["entries"][k_vol].__setitem__("voxel2ct",
+                                                                                  "bogus")),
+        ("role missing", lambda d: d["entries"][k_img].pop("role")),
+    ]
+
+
+def test_malformed_case_json_is_refused_naming_the_file_even_unverified(tmp_path):
+    """Edits of case.json's structure (caught by the dataset's checksum when verified) are
+    also refused, naming the file, when loaded with verify=False outside any dataset: no
+    AttributeError/KeyError, and no entry read with another dtype or shape than recorded."""
+    import copy
+
+    case_dir = tmp_path / "c"
+    write_case(case_dir, small_case(3), truth=TRUTH)
+    doc_path = case_dir / "case.json"
+    doc = json.loads(doc_path.read_text())
+    load(case_dir, verify=False)  # the untouched case loads
+    for name, edit in _mutations(doc):
+        d = copy.deepcopy(doc)
+        edit(d)
+        doc_path.write_text(json.dumps(d))
+        with pytest.raises(ValueError) as exc:
+            load(case_dir, verify=False)
+        assert str(case_dir) in str(exc.value), (name, str(exc.value))
+    # a corrupt transforms.json (listed with its checksum, so verify finds it first)
+    doc_path.write_text(json.dumps(doc))
+    (case_dir / "transforms.json").write_text("{not json")
+    with pytest.raises(ValueError, match=r"transforms\.json: not valid JSON"):
+        load(case_dir, verify=False)
+    with pytest.raises(ValueError, match=r"transforms\.json: SHA-256 differs"):
+        load(case_dir)

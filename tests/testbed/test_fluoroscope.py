@@ -15,7 +15,8 @@ from testbed.fluoroscope import (
 from testbed.instruments import InstrumentSpec, make_instrument
 from testbed.scene import parse_scene
 
-CLEAN = FluoroscopeSpec(glare_fraction=0.0, vignetting=0.0, noise=False, oversample=3)
+CLEAN = FluoroscopeSpec(glare_fraction=0.0, vignetting=0.0, noise=False,
+                        oversample=3).ideal()
 VIEW = ViewSpec(name="oblique", isocenter_mm=(10.0, -20.0, 5.0), angular_deg=20.0,
                 orbital_deg=-10.0)
 
@@ -63,7 +64,7 @@ def test_bead_centroid_matches_true_projection(distortion):
 
 def test_true_rays_and_project_are_inverse():
     rng = np.random.default_rng(5)
-    carm = make_carm(FluoroscopeSpec(), VIEW)
+    carm = make_carm(FluoroscopeSpec().ideal(), VIEW)
     pts = _beads(carm, rng, n=200)
     xy = carm.project(pts)
     o, d = carm.true_rays(xy)
@@ -84,7 +85,7 @@ def test_true_rays_and_project_are_inverse():
 
 
 def test_distortion_magnitude_and_pose_dependence():
-    fluoro = FluoroscopeSpec()
+    fluoro = FluoroscopeSpec().ideal()
     a = make_carm(fluoro, ViewSpec(orbital_deg=0.0))
     b = make_carm(fluoro, ViewSpec(orbital_deg=60.0, angular_deg=30.0))
     fov = a.fov_mask()
@@ -97,14 +98,14 @@ def test_distortion_magnitude_and_pose_dependence():
     change = np.linalg.norm(a.displacement_field() - b.displacement_field(), axis=-1)[fov]
     assert change.max() > 1.0
     # no Earth's field: pincushion only, the same at both poses
-    calm = FluoroscopeSpec(earth_field_uT=(0.0, 0.0, 0.0))
+    calm = FluoroscopeSpec(earth_field_uT=(0.0, 0.0, 0.0)).ideal()
     ca = make_carm(calm, ViewSpec(orbital_deg=0.0)).displacement_field()
     cb = make_carm(calm, ViewSpec(orbital_deg=60.0, angular_deg=30.0)).displacement_field()
     assert np.abs(ca - cb).max() < 1e-9
 
 
 def test_circular_field_of_view_is_dark_outside():
-    fluoro = FluoroscopeSpec()
+    fluoro = FluoroscopeSpec().ideal()
     carm = make_carm(fluoro, ViewSpec())
     frame = render(carm, [Body("bead", "steel", sphere_centers=[[0.0, 0.0, 0.0]],
                                 sphere_radii=2.0)], fluoro=fluoro, rng=1)
@@ -123,7 +124,7 @@ def test_beer_lambert_and_noise_statistics():
     slab = trimesh.creation.box(extents=(300.0, 300.0, 20.0))  # 20 mm of steel-free tissue
     bodies = [Body("slab", "soft_tissue", mesh=slab)]
     fluoro = FluoroscopeSpec(glare_fraction=0.0, vignetting=0.0, distortion=False,
-                             photons_per_pixel=2000.0)
+                             photons_per_pixel=2000.0).ideal()
     carm = make_carm(fluoro, ViewSpec(source_to_isocenter_mm=600.0))
     frame = render(carm, bodies, fluoro=fluoro, rng=np.random.default_rng(7))
     centre = frame.fov & (carm.rho_map() < 0.2)
@@ -141,7 +142,7 @@ def test_beer_lambert_and_noise_statistics():
 
 
 def test_glare_and_vignetting_shape_the_flat_field():
-    fluoro = FluoroscopeSpec(noise=False, distortion=False)
+    fluoro = FluoroscopeSpec(noise=False, distortion=False).ideal()
     carm = make_carm(fluoro, ViewSpec())
     frame = render(carm, [], fluoro=fluoro)
     rho = carm.rho_map()
@@ -195,13 +196,13 @@ def test_bad_input_materials_and_geometry():
         make_carm(FluoroscopeSpec(sid_mm=500.0), ViewSpec(source_to_isocenter_mm=600.0),
                   view_index=2)
     with pytest.raises(ValueError, match="inside='nowhere'"):
-        render(make_carm(FluoroscopeSpec(), ViewSpec()),
+        render(make_carm(FluoroscopeSpec().ideal(), ViewSpec()),
                [Body("b", "marrow", sphere_centers=[[0.0, 0.0, 0.0]], sphere_radii=3.0,
-                     inside="nowhere")], fluoro=FluoroscopeSpec())
+                     inside="nowhere")], fluoro=FluoroscopeSpec().ideal())
 
 
 def test_instruments_occlude_the_bone():
-    fluoro = FluoroscopeSpec(noise=False, distortion=False)
+    fluoro = FluoroscopeSpec(noise=False, distortion=False).ideal()
     femur = _femur_stand_in()
     retractor = make_instrument(InstrumentSpec(name="retractor", kind="retractor",
                                                position_mm=(-20.0, 0.0, 40.0)))
@@ -216,22 +217,25 @@ def test_instruments_occlude_the_bone():
 
 
 @pytest.mark.slow
-def test_render_command_writes_the_frame_of_a_scene(tmp_path):
+def test_render_command_writes_the_frame_of_a_scene(tmp_path, capsys):
     import cv2
 
-    from testbed.fluoroscope import render_command
-    from testbed.scene import SceneError, find_scene, load_scene
+    from studies.cli import main
+    from testbed.scene import find_scene, load_scene
 
     scene = load_scene(find_scene("experiment2"))
     assert len(scene.views) == 4
     assert sorted(v.region for v in scene.views) == ["distal", "distal", "proximal", "proximal"]
     out = tmp_path / "distal.png"
-    render_command(scene, view=2, out=out, seed=1)
+    assert main(["render", "experiment2", "--view", "2", "--out", str(out), "--seed", "1"]) == 0
     img = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
     assert img.shape == (480, 640) and img.dtype == np.uint8
     assert img[0, 0] == 0 and img[240, 320] > 0
-    with pytest.raises(SceneError, match="views"):
-        render_command(scene, view=7, out=tmp_path / "x.png", seed=1)
-    with pytest.raises(SceneError, match="no \\[\\[views\\]\\]"):
-        render_command(load_scene(find_scene("points-lines")), view=0,
-                       out=tmp_path / "y.png", seed=1)
+    capsys.readouterr()
+    assert main(["render", "experiment2", "--view", "7", "--out", str(tmp_path / "x.png")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--view 7" in err[0]
+    assert main(["render", "points-lines", "--out", str(tmp_path / "y.png")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no [[views]]" in err[0]
+    assert not (tmp_path / "x.png").exists() and not (tmp_path / "y.png").exists()

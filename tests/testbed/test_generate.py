@@ -20,6 +20,8 @@ SMALL = {
     "views": [{"name": "distal_ap", "region": "distal", "isocenter_mm": [805.0, 170.0, 200.0],
                "source_to_isocenter_mm": 650.0}],
     "robot": {"sweep": {"rows_per_plane": 3}},
+    # a small detector and default sweep planes: the workspace is not what this tests
+    "workspace": {"check": False},
 }
 
 
@@ -37,7 +39,8 @@ def _rigid_matrix(t):
 @pytest.mark.slow
 def test_generated_case_round_trips_exactly_and_splits_truth(tmp_path):
     from testbed.dataset import list_cases, load
-    from testbed.generate import ENTRY_DOC, case_seed, generate_command, simulate_entries
+    from testbed.generate import ENTRY_DOC, case_entries, case_seed, generate_command
+    from testbed.simulate import simulate
 
     scene = parse_scene(SMALL)
     out = tmp_path / "ds"
@@ -49,15 +52,15 @@ def test_generated_case_round_trips_exactly_and_splits_truth(tmp_path):
 
     obs, truth = load(dirs[0])
     # the same seed simulates the same case again (deterministic), in memory
-    case, truth_keys, _ = simulate_entries(scene, case_seed(3, 0, 1))
+    case, truth_keys = case_entries(simulate(scene, case_seed(3, 0, 1)))
 
-    # meta: format, the resolved scene of the case (its own femur shape seed) and the seed
-    meta = obs.meta
-    assert meta == truth.meta
-    assert meta["scene"] == case["meta"]["scene"]
-    assert meta["seed"] == {"entropy": 3, "spawn_key": [0]}
-    assert meta["case_index"] == 0 and meta["dataset_seed"] == 3
-    assert meta["scene"]["phantom"]["shape_seed"] != scene.phantom.shape_seed
+    # meta: the resolved scene of the case (its own femur shape seed) and the seed are truth
+    tmeta = truth.meta["truth"]
+    assert tmeta["scene"] == case["meta"]["truth"]["scene"]
+    assert tmeta["seed"] == {"entropy": 3, "spawn_key": [0]}
+    assert truth.meta["case_index"] == 0 and truth.meta["dataset_seed"] == 3
+    assert tmeta["scene"]["phantom"]["shape_seed"] != scene.phantom.shape_seed
+    assert obs.meta["views"] == ["distal_ap"]
 
     # roles: nothing of the truth in the observation
     roles = {"observation": obs, "truth": truth}
@@ -72,7 +75,9 @@ def test_generated_case_round_trips_exactly_and_splits_truth(tmp_path):
                                      "points") for n in getattr(obs, g)}
     assert obs_keys == {"volumes/ct", "arrays/ct_slices", "images/xray_distal_ap",
                         "arrays/xray_fov_distal_ap", "images/sweep_distal_ap",
-                        "arrays/sweep_distal_ap"}
+                        "arrays/sweep_distal_ap", "arrays/xray_clicks_distal_ap",
+                        *(f"arrays/ct_clicks_{r}" for r in obs.meta["regions"])}
+    assert obs.meta["regions"]
     assert not obs.meshes and not obs.transforms and not obs.points
     # every entry is documented with the role it has
     def documented_role(key):
@@ -143,13 +148,148 @@ def test_generated_case_round_trips_exactly_and_splits_truth(tmp_path):
 
 
 def test_case_seeds_and_shapes_differ_per_case():
-    from testbed.generate import _case_scene, case_seed
+    from testbed.generate import case_seed
+    from testbed.simulate import SEED_STREAMS, _case_scene
 
     scene = parse_scene(SMALL)
     a, b = case_seed(7, 0, 2), case_seed(7, 1, 2)
     assert (a.entropy, a.spawn_key, b.spawn_key) == (7, (0,), (1,))
-    sa = _case_scene(scene, a.spawn(5)[0]).phantom.shape_seed
-    sb = _case_scene(scene, b.spawn(5)[0]).phantom.shape_seed
+    # the case seed does not depend on the number of cases
+    assert case_seed(7, 1, 5).spawn_key == b.spawn_key
+    sa = _case_scene(scene, a.spawn(len(SEED_STREAMS))[0]).phantom.shape_seed
+    sb = _case_scene(scene, b.spawn(len(SEED_STREAMS))[0]).phantom.shape_seed
     assert sa != sb
     with pytest.raises(ValueError, match="case index"):
         case_seed(7, 2, 2)
+
+
+@pytest.mark.slow
+def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path):
+    """The same scene and seed: a generated case, loaded from disk and given to
+    reglib.estimate, scores exactly as ``testbed run`` does in memory."""
+    import reglib
+    from studies.end_to_end import estimate_options, run_case
+    from studies.scoring import pin_errors, run_start
+    from testbed.dataset import load
+
+    # one view at the real detector size, 5 sweep rows, 1 mm CT pixels: enough to calibrate
+    # with the patient in the beam and to register (11 s)
+    # (the ideal imaging and robot: one view under clinic noise registers too loosely for
+    # the check that the estimate means something)
+    from testbed.fluoroscope import IDEAL_FLUOROSCOPE
+    from testbed.generate import generate_command
+    from testbed.robot import RobotSpec
+    from testbed.simulate import case_seed
+
+    robot = RobotSpec().ideal().model_dump(mode="json")
+    robot["sweep"]["rows_per_plane"] = 5
+    scene = parse_scene({**SMALL, "phantom": {"segments": 32}, "ct": {"pixel_mm": 1.0},
+                         "fluoroscope": {"width_px": 640, "height_px": 480, "pixel_mm": 0.5,
+                                         **IDEAL_FLUOROSCOPE},
+                         "robot": robot})
+    (case_dir,) = generate_command(scene, scene_path="small.toml", cases=1,
+                                   out=tmp_path / "ds", seed=5, progress=False)
+    obs, truth = load(case_dir)
+    start = run_start(truth, scene, case_seed(5))
+    est = reglib.estimate(obs, start, options=estimate_options(scene))
+    from_disk = pin_errors(est.ct2robot, truth.transforms["ct2robot"], truth.points["pins_ct"])
+
+    result, case, run_start_pose, run_est = run_case(scene, seed=5)
+    assert np.array_equal(run_start_pose.as_matrix(), start.as_matrix())
+    assert result["pins"] == from_disk
+    assert result["accepted"] == est.accepted and result["converged"] == est.converged
+    # and the estimate means something: the start was off, the result is near the truth
+    assert result["start_mtre_mm"] > 5.0
+    assert result["mtre_mm"] < result["start_mtre_mm"] / 3
+
+    # testbed score: reglib by default, and a user's function by name
+    import pandas as pd
+
+    from studies.score import score_dataset
+
+    score_dataset(tmp_path / "ds", tmp_path / "s", progress=False)
+    df = pd.read_csv(tmp_path / "s" / "results.csv")
+    got = df[df.metric == "pin_error"].set_index("pin")["value"].to_dict()
+    assert got == pytest.approx(from_disk, abs=1e-12)
+    assert (tmp_path / "s" / "report.md").is_file()
+    (tmp_path / "mymethods.py").write_text(
+        "import numpy as np\n"
+        "def stay(observation, initial):\n"
+        "    assert 'ct2robot' not in observation.transforms\n"
+        "    return np.asarray(initial)\n"
+        "def broken(observation, initial):\n"
+        "    return np.eye(3)\n")
+    import sys
+
+    sys.path.insert(0, str(tmp_path))
+    try:
+        score_dataset(tmp_path / "ds", tmp_path / "s2", method="mymethods:stay", progress=False)
+        score_dataset(tmp_path / "ds", tmp_path / "s3", method="mymethods:broken",
+                      progress=False)
+    finally:
+        sys.path.remove(str(tmp_path))
+    df2 = pd.read_csv(tmp_path / "s2" / "results.csv")
+    # a method that keeps the start scores the start's error
+    assert df2[df2.metric == "mtre"]["value"].item() == pytest.approx(result["start_mtre_mm"])
+    df3 = pd.read_csv(tmp_path / "s3" / "results.csv")
+    assert list(df3.metric) == ["failed"]
+    assert "(4, 4)" in (tmp_path / "s3" / "report.md").read_text()
+    with pytest.raises(ValueError, match="cannot import module"):
+        score_dataset(tmp_path / "ds", tmp_path / "s4", method="no_such_mod:fn")
+
+
+def test_generate_refuses_to_mix_datasets_and_wrong_scenes(tmp_path):
+    """Refusals come before any simulation and leave nothing behind."""
+    from testbed.generate import GENERATOR_VERSION, generate_command, scene_digest
+    from testbed.scene import find_scene, load_scene
+
+    scene = parse_scene(SMALL)
+    out = tmp_path / "ds"
+    out.mkdir()
+    index = {"generator_version": GENERATOR_VERSION, "scene_sha256": scene_digest(scene),
+             "seed": 3, "cases": []}
+    from testbed.dataset import FORMAT_VERSION
+
+    index["format_version"] = FORMAT_VERSION
+    (out / "dataset.json").write_text(json.dumps(index))
+    with pytest.raises(ValueError, match="another seed"):
+        generate_command(scene, scene_path="x", cases=1, out=out, seed=4, progress=False)
+    other = parse_scene({**SMALL, "phantom": {"shape_variation": 0.5, "segments": 32}})
+    with pytest.raises(ValueError, match="another scene"):
+        generate_command(other, scene_path="x", cases=1, out=out, seed=3, progress=False)
+    (out / "dataset.json").write_text(json.dumps({**index, "format_version": -1}))
+    with pytest.raises(ValueError, match="another format version"):
+        generate_command(scene, scene_path="x", cases=1, out=out, seed=3, progress=False)
+    assert sorted(p.name for p in out.iterdir()) == ["dataset.json"]
+    # a folder with other things in it and no dataset.json
+    junk = tmp_path / "junk"
+    junk.mkdir()
+    (junk / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match="not empty"):
+        generate_command(scene, scene_path="x", cases=1, out=junk, seed=3, progress=False)
+    # a synthetic scene: refused before the folder is made
+    pl = load_scene(find_scene("points-lines"))
+    with pytest.raises(ValueError, match="operating_room"):
+        generate_command(pl, scene_path="x", cases=1, out=tmp_path / "new", seed=3,
+                         progress=False)
+    assert not (tmp_path / "new").exists()
+    for bad in (0, -1, True, 1.5):
+        with pytest.raises(ValueError, match="--cases"):
+            generate_command(scene, scene_path="x", cases=bad, out=tmp_path / "n2", seed=3,
+                             progress=False)
+    f = tmp_path / "file"
+    f.write_text("x")
+    with pytest.raises(ValueError, match="not a folder"):
+        generate_command(scene, scene_path="x", cases=1, out=f, seed=3, progress=False)
+
+
+def test_entry_roles_agree_with_the_loaders_truth_names():
+    from fnmatch import fnmatchcase
+
+    from testbed.dataset import TRUTH_ENTRIES
+    from testbed.generate import ENTRY_DOC
+
+    for key, (role, _) in ENTRY_DOC.items():
+        concrete = key.replace("{view}", "v").replace("{region}", "r").replace("{body}", "b")
+        if any(fnmatchcase(concrete, p) for p in TRUTH_ENTRIES):
+            assert role == "truth", key

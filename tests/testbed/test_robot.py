@@ -88,3 +88,100 @@ def test_rod_spec_rejects_too_few_or_too_close_beads():
         RodSpec(bead_spacings_mm=(20.0, 30.0))
     with pytest.raises(ValueError, match="3 bead diameters"):
         RodSpec(bead_spacings_mm=(20.0, 5.0, 30.0))
+
+
+# --------------------------------------------------------------------------- clinic errors
+def _rod_only(spec, **rod):
+    return spec.model_copy(update=dict(rod=spec.rod.model_copy(update=rod)))
+
+
+def _random_joints(rng, n):
+    for _ in range(n):
+        yield np.r_[rng.uniform(-1.5, 1.5), rng.uniform(0.4, 2.2) * rng.choice([-1, 1]),
+                    rng.uniform(-300, 300), rng.uniform(-2.5, 2.5), rng.uniform(-1.0, 1.0)]
+
+
+def test_absolute_accuracy_at_the_rod_is_in_the_published_range():
+    """Default kinematic-parameter errors: the reported beads miss the true ones by
+    0.1-0.6 mm (median over robots and poses; uncalibrated arms, docs/error-model.md)."""
+    spec = _rod_only(RobotSpec(rod_mount_error_mm=0.0, rod_mount_error_deg=0.0),
+                     bead_along_error_mm=0.0, bead_across_error_mm=0.0, sag=False)
+    errs = []
+    for seed in range(4):
+        rng = np.random.default_rng(50 + seed)
+        with Robot(spec, rng=seed) as robot:
+            for q in _random_joints(rng, 8):
+                robot.move_joints(q)
+                e = np.linalg.norm(robot.bead_positions(true=True) - robot.bead_positions(),
+                                   axis=1)
+                errs.append(e.mean())
+    med = float(np.median(errs))
+    assert 0.1 < med < 0.6, med
+    # the ideal profile's robot (0.02 mm / 0.002 deg) stays at repeatability level
+    ideal = spec.ideal()
+    small = []
+    with Robot(ideal, rng=0) as robot:
+        for q in _random_joints(np.random.default_rng(50), 8):
+            robot.move_joints(q)
+            small.append(np.linalg.norm(robot.bead_positions(true=True)
+                                        - robot.bead_positions(), axis=1).mean())
+    assert np.median(small) < med / 3
+
+
+def test_bead_placement_shows_in_the_true_beads_only():
+    spec = _rod_only(RobotSpec().without_errors(), bead_along_error_mm=0.1,
+                     bead_across_error_mm=0.05)
+    along, across = [], []
+    for seed in range(6):
+        with Robot(spec, rng=seed) as robot:
+            robot.place_rod((700.0, 100.0, 150.0), (0.0, 1.0, 0.0))
+            rep, tru = robot.bead_positions(), robot.bead_positions(true=True)
+            local = robot.true_rod2robot.inverse().apply(tru)
+            nominal = np.column_stack([spec.rod.bead_positions_mm(), np.zeros((8, 2))])
+            along.extend(local[:, 0] - nominal[:, 0])
+            across.extend((local[:, 1:] - nominal[:, 1:]).ravel())
+            # the reported beads are the nominal rod's; the rendered beads are the true ones
+            np.testing.assert_allclose(robot.true_rod2robot.inverse().apply(rep), nominal,
+                                       atol=0.01)
+            beads = [b for b in robot.rod_bodies() if b.name == "rod_beads"][0]
+            np.testing.assert_allclose(beads.sphere_centers, tru, atol=1e-9)
+    assert np.std(along) == pytest.approx(0.1, rel=0.3)
+    assert np.std(across) == pytest.approx(0.05, rel=0.3)
+
+
+def test_rod_sag_follows_the_cantilever_formula_and_gravity():
+    rod = RodSpec()
+    L = rod.mount_mm + rod.bead_positions_mm()[-1] + rod.tip_gap_mm + rod.tip_length_mm
+    E = rod.youngs_modulus_gpa * 1e3                         # N/mm^2
+    inertia = np.pi * (rod.diameter_mm / 2) ** 4 / 4         # mm^4
+    q = rod.density_g_cm3 * 1e-6 * np.pi * (rod.diameter_mm / 2) ** 2 * 9.81  # N/mm
+    P = 7.9e-6 * np.pi * (rod.tip_diameter_mm / 2) ** 2 * rod.tip_length_mm * 9.81  # N
+    tip = q * L**4 / (8 * E * inertia) + P * L**3 / (3 * E * inertia)  # textbook end values
+    assert rod.sag_mm([L - rod.mount_mm])[0] == pytest.approx(tip, rel=1e-9)
+    assert rod.sag_mm([-rod.mount_mm])[0] == 0.0
+    assert 0.2 < tip < 2.0   # a 10 mm ULTEM rod of ~0.3 m sags by a fraction of a mm
+    spec = _rod_only(RobotSpec().without_errors(), sag=True)
+    with Robot(spec, rng=0) as robot:
+        robot.place_rod((700.0, 100.0, 150.0), (0.0, 1.0, 0.0))          # horizontal
+        drop = robot.bead_positions()[:, 2] - robot.bead_positions(true=True)[:, 2]
+        np.testing.assert_allclose(drop, rod.sag_mm(rod.bead_positions_mm()), atol=0.01)
+        assert np.all(np.diff(drop) > 0)         # grows towards the free end
+        d = np.array([0.0, 1.0, -1.0]) / np.sqrt(2)                   # 45 deg down
+        robot.place_rod((700.0, 0.0, 250.0), d)
+        dev = robot.bead_positions(true=True) - robot.bead_positions()
+        np.testing.assert_allclose(np.linalg.norm(dev, axis=1),
+                                   rod.sag_mm(rod.bead_positions_mm()) / np.sqrt(2), atol=0.01)
+
+
+def test_rod_mounting_error_moves_the_true_rod():
+    spec = RobotSpec(rod_mount_error_mm=0.1, rod_mount_error_deg=0.05).without_errors()
+    spec = spec.model_copy(update=dict(rod_mount_error_mm=0.1, rod_mount_error_deg=0.05))
+    shifts = []
+    for seed in range(5):
+        with Robot(spec, rng=seed) as robot:
+            robot.place_rod((700.0, 100.0, 150.0), (0.0, 1.0, 0.0))
+            shifts.append(np.linalg.norm(robot.rod_mount_error.t))
+            diff = robot.bead_positions(true=True) - robot.bead_positions()
+            assert 1e-3 < np.linalg.norm(diff, axis=1).max() < 1.5
+    # |t| of a 3-D Gaussian of sigma 0.1 mm: mean 0.16 mm
+    assert 0.05 < np.mean(shifts) < 0.3

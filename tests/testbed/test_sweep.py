@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from reglib.calibration import Markers, SweepData, calibrate, find_markers
+from reglib.calibration import calibrate
+from reglib.markers import Markers, SweepData, find_markers
 from testbed.fluoroscope import FluoroscopeSpec, ViewSpec, make_carm
 from testbed.robot import Robot, RobotSpec, SweepSpec
 from testbed.sweep import plan_sweep, run_sweep
@@ -19,7 +20,7 @@ def _spec(**kw):
 @pytest.fixture(scope="module")
 def clean_sweep():
     """A noise-free, distortion-free sweep with a perfect robot (10 frames)."""
-    fl = FluoroscopeSpec(distortion=False, noise=False)
+    fl = FluoroscopeSpec(distortion=False, noise=False).ideal()
     carm = make_carm(fl, VIEW)
     with Robot(_spec(), rng=0) as robot:
         sw = run_sweep(robot, carm, fl, rng=1)
@@ -27,7 +28,7 @@ def clean_sweep():
 
 
 def test_plan_lays_rows_in_planes_perpendicular_to_the_beam():
-    fl = FluoroscopeSpec(distortion=False)
+    fl = FluoroscopeSpec(distortion=False).ideal()
     carm = make_carm(fl, VIEW)
     spec = _spec(tilt_deg=0.0)
     poses = plan_sweep(carm, spec)
@@ -90,7 +91,7 @@ def test_calibration_from_rendered_sweep_validates_below_0_1_mm(clean_sweep):
 
 def test_paths_match_true_rays_to_1e_3_mm_without_distortion_and_noise():
     """Planes parallel to the intensifier, exact marker pixels: the two-plane TPS is exact."""
-    fl = FluoroscopeSpec(distortion=False, noise=False)
+    fl = FluoroscopeSpec(distortion=False, noise=False).ideal()
     carm = make_carm(fl, VIEW)
     spec = _spec()
     frame, plane, bead, xy, robot_pts = [], [], [], [], []
@@ -137,7 +138,7 @@ def test_a_hidden_bead_is_named_and_the_view_still_calibrates(clean_sweep):
 
 
 def test_an_unreachable_sweep_names_the_view_and_pose():
-    fl = FluoroscopeSpec(distortion=False, noise=False)
+    fl = FluoroscopeSpec(distortion=False, noise=False).ideal()
     far = ViewSpec(name="far-away", isocenter_mm=(3000.0, 0.0, 200.0))
     carm = make_carm(fl, far)
     with Robot(_spec(), rng=0) as robot:
@@ -150,7 +151,7 @@ def test_workspace_names_the_colliding_bodies_of_a_sweep():
     from reglib.geometry import RigidTransform
     from testbed.workspace import Workspace, check_sweep
 
-    fl = FluoroscopeSpec(distortion=False, noise=False)
+    fl = FluoroscopeSpec(distortion=False, noise=False).ideal()
     # low enough for the intensifier to pass under the robot's links
     carm = make_carm(fl, ViewSpec(name="low", isocenter_mm=(800.0, 0.0, -100.0)))
     spec = _spec()

@@ -16,7 +16,7 @@ parallel efficiency of ``w`` workers is ``rate(w) / (w * rate(1))``; on a machin
 cores are shared with other jobs it falls below 1 for that reason too, which
 ``median_trial_s`` (the in-worker time of one trial) shows.
 
-Run: ``python -m studies.bench_trials [--trials 2] [--workers 1 2]``.
+Run: ``python -m studies.bench.trials [--trials 2] [--workers 1 2]``.
 """
 
 from __future__ import annotations

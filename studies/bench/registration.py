@@ -22,7 +22,7 @@ slow in CPython):
 
 Validator: the largest pin error (mm) after registration, against the truth.
 
-Run: ``python -m studies.bench_registration [--starts 3] [--out CSV]``. The scene helpers
+Run: ``python -m studies.bench.registration [--starts 3] [--out CSV]``. The scene helpers
 (:func:`make_scene`, :func:`perturbed`, :func:`pin_errors`) are also the test world of
 ``tests/reglib/test_register.py``.
 """
@@ -40,11 +40,13 @@ from scipy.spatial.transform import Rotation
 
 from reglib.apparent import SurfaceTopology, apparent_contours, prepare_surface
 from reglib.closest import ContourSet, closest_points, select_contours
-from reglib.geometry import RigidTransform
+from reglib.geometry import RigidTransform, arc_length
 from reglib.register import View, register
+from studies.scoring import perturbed_start
+from studies.scoring import pin_errors as _pin_errors
+from testbed.phantom import PIN_NAMES
 
 PINS_CT = np.array([[28.0, 0.0, 128.0], [14.0, 6.0, -122.0], [-13.0, 5.0, -120.0]])
-PIN_NAMES = ("proximal", "distal_1", "distal_2")
 PAPER_FACES = (1664, 3913)
 
 
@@ -88,8 +90,7 @@ def cut(mesh: trimesh.Trimesh, keep, faces: int | None = None):
 
 def sample_polyline(points, closed: bool, step: float):
     """Points every ``step`` mm along a polyline and the segment each lies on."""
-    P = np.vstack([points, points[:1]]) if closed else points
-    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))]
+    P, s = arc_length(points, closed=closed)
     if s[-1] < step:
         return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
     t = np.arange(step / 2, s[-1], step)
@@ -152,22 +153,20 @@ def make_scene(*, paper_sizes: bool = False, seed: int = 1) -> SyntheticScene:
 
 
 def perturbed(true: RigidTransform, deg: float, mm: float, rng) -> RigidTransform:
-    """``true`` rotated by ``deg`` about the pin centroid and shifted by ``mm`` (random
-    directions from ``rng``, a seed or Generator)."""
+    """``true`` rotated by ``deg`` about the pin centroid (:func:`studies.scoring.
+    perturbed_start`) and shifted by ``mm`` (random directions from ``rng``, a seed or
+    Generator: the axis first, then the shift)."""
     rng = np.random.default_rng(rng)
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
+    rot = perturbed_start(true, dict(zip(PIN_NAMES, PINS_CT, strict=True)), deg, rng)
     tdir = rng.normal(size=3)
     tdir /= np.linalg.norm(tdir)
-    m = true.apply(PINS_CT.mean(axis=0))
-    rv = np.radians(deg) * axis
-    rot = RigidTransform.from_rotvec(rv, m - Rotation.from_rotvec(rv).apply(m))
-    return RigidTransform(np.eye(3), mm * tdir) @ rot @ true
+    return RigidTransform(np.eye(3), mm * tdir) @ rot
 
 
 def pin_errors(ct2robot: RigidTransform, true: RigidTransform) -> np.ndarray:
     """Distances (mm) between the pins mapped by the estimate and by the truth, (3,)."""
-    return np.linalg.norm(ct2robot.apply(PINS_CT) - true.apply(PINS_CT), axis=1)
+    e = _pin_errors(ct2robot, true, dict(zip(PIN_NAMES, PINS_CT, strict=True)))
+    return np.array([e[k] for k in PIN_NAMES])
 
 
 def _time_parts(scene: SyntheticScene, T: RigidTransform, closest: str) -> dict:

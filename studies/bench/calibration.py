@@ -17,7 +17,7 @@ far plane at the default sweep's fractions of the source-to-image distance
 The validator: the largest difference between the two path maps (mm at the isocenter
 depth) and the largest distance between calibrated and true paths there.
 
-Run: ``python -m studies.bench_calibration [--rows 9] [--beads 8] [--repeat 3] [--out CSV]``.
+Run: ``python -m studies.bench.calibration [--rows 9] [--beads 8] [--repeat 3] [--out CSV]``.
 """
 
 from __future__ import annotations
@@ -28,7 +28,8 @@ import time
 import numpy as np
 import pandas as pd
 
-from reglib.calibration import Markers, calibrate, tps_evaluate, tps_fit_svd
+from reglib.calibration import calibrate, tps_evaluate, tps_fit_svd
+from reglib.markers import Markers
 
 
 def make_instance(rows: int = 9, beads: int = 8):

@@ -10,7 +10,7 @@ reports the final rotation and translation errors and its time per stage
 top-level trial function (``module:function``) to time real trials; the stage shares come
 from its ``time`` rows that have a ``stage`` key.
 
-Run: ``python -m studies.bench_runner [--trials 40] [--solves 120] [--workers 1 2]``.
+Run: ``python -m studies.bench.runner [--trials 40] [--solves 120] [--workers 1 2]``.
 The parallel efficiency of ``w`` workers is ``rate(w) / (w * rate(1))``. A warm-up run
 first starts the worker machinery (timed separately as ``warmup_s``); the table also gives
 the median in-worker time of one trial, which grows when the cores are shared.

@@ -20,7 +20,7 @@ the frame, and between the fast path and the brute-force numpy reference on
 is less sensitive to a shared machine) is also given as a ratio to the 33 ms period of 30 Hz
 video (< 1: faster than video rate).
 
-Run: ``python -m studies.bench_render [--view 0] [--repeat 3] [--check-rays 300] [--out CSV]``.
+Run: ``python -m studies.bench.render [--view 0] [--repeat 3] [--check-rays 300] [--out CSV]``.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Benchmark of the CT surface chain: ``python -m studies.bench_surfaces [--repeat N]``.
+"""Benchmark of the CT surface chain: ``python -m studies.bench.surfaces [--repeat N]``.
 
 Prints the CPU time (``time.process_time``: one core, unaffected by other jobs sharing the
 machine) of each stage for the default phantom and protocol (phantom, CT, contours,
@@ -21,8 +21,8 @@ import numpy as np  # noqa: E402
 
 from reglib.contours import contours_from_ct  # noqa: E402
 from reglib.surface import surface_from_contours  # noqa: E402
-from studies.surfaces import _region_plan, simulated_clicks  # noqa: E402
 from testbed.ct import CTSpec, scan  # noqa: E402
+from testbed.operator import OperatorSpec, ct_clicks  # noqa: E402
 from testbed.phantom import PhantomSpec, make_phantom  # noqa: E402
 
 
@@ -37,13 +37,11 @@ def bench(seed: int = 0, simplify_tol_mm: float = 0.3, click_every_mm: float = 6
     t = clock()
     ct = scan(ph, CTSpec(), rng=rng)
     out["ct"] = clock() - t
+    # The simulated user is not timed: it stands for a person clicking.
+    user = ct_clicks(ct.volume_hu, ct.slice_z_mm, ct.regions, pixel_mm=ct.pixel_mm,
+                     spec=OperatorSpec(ct_reclick_every_mm=click_every_mm), rng=rng)
     for region in ("proximal", "distal"):
-        # The simulated user (truth + noise) is not timed: it stands for a person clicking.
-        slices, polys, clicked = _region_plan(ph, ct, region, click_every_mm)
-        clicks = {k: [simulated_clicks(ct.ct_to_pixel(np.column_stack([p, np.zeros(len(p))])),
-                                       10, 1.0, rng)
-                      for p in sorted(polys[k], key=lambda p: float(np.mean(p[:, 0])))]
-                  for k in clicked}
+        slices, clicks = [int(k) for k in user[region].slices], user[region].clicks
         t = clock()
         cs = contours_from_ct(ct.volume_hu, ct.slice2ct, slices, clicks)
         out[f"contours_{region}"] = clock() - t

@@ -1,0 +1,420 @@
+"""Calibration markers: the beads of the robot's rod, found and identified in sweep frames.
+
+The robot moves a radiolucent rod with steel beads along a *near* and a *far* plane between
+source and intensifier, and on a validation row; a frame is taken after every move
+(Guéziec et al. 1998, Section II; NOTES.md s1). Between two frames only the rod moved:
+
+1. :func:`detect_markers` finds the beads that appeared between two consecutive frames (the
+   rod's new position) as blobs of the difference of the log images, with sub-pixel,
+   background-subtracted intensity-weighted centroids.
+2. :func:`identify_row` says which bead of the rod each blob is: the beads' unequal spacing
+   along the rod is matched to the blobs' positions along the imaged row by a 1-D affine map
+   (consensus over all 2-point hypotheses), so beads outside the field or hidden are simply
+   missing and stray blobs are rejected.
+3. :func:`find_markers` runs both over a whole sweep (:class:`SweepData`) and returns the
+   identified :class:`Markers` with the robot-reported 3-D position of each, for
+   :func:`reglib.calibration.calibrate`.
+
+Conventions: pixel coordinates ``(x, y) = (col, row)``, the centre of the top-left pixel at
+(0, 0); images ``(H, W)`` indexed ``[row, col]``; robot frame in mm.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from reglib.tps import ThinPlateSpline, _as_xy
+
+__all__ = [
+    "PLANE_CODES",
+    "PLANE_NAMES",
+    "REFERENCE",
+    "NEAR",
+    "FAR",
+    "VALIDATION",
+    "SweepData",
+    "Markers",
+    "detect_markers",
+    "identify_row",
+    "find_markers",
+]
+
+#: plane codes of a sweep's frames
+REFERENCE, NEAR, FAR, VALIDATION = -1, 0, 1, 2
+PLANE_NAMES = {REFERENCE: "reference", NEAR: "near", FAR: "far", VALIDATION: "validation"}
+PLANE_CODES = {v: k for k, v in PLANE_NAMES.items()}
+#: detection works on a difference of Gaussians of these widths (px): about a bead's radius
+#: in the image, and a background wider than a bead and narrower than the rod's band
+BLOB_SIGMA_PX = 1.0
+BACKGROUND_SIGMA_PX = 4.0
+
+
+# --------------------------------------------------------------------------- detection
+def _log_image(img, response: str) -> np.ndarray:
+    """The frame in log-intensity units (up to scale): as it is for a logarithmic video
+    amplifier, else its logarithm."""
+    a = np.asarray(img, dtype=np.float64)
+    if response == "log":
+        return a
+    lo = 0.5 if np.issubdtype(np.asarray(img).dtype, np.integer) else 1e-6 * max(a.max(), 1e-12)
+    return np.log(np.maximum(a, lo))
+
+
+def detect_markers(previous, current, *, polarity: str = "dark", response: str = "log",
+                   rel_threshold: float = 0.35,
+                   n_sigma: float = 6.0, min_area_px: int = 4, max_area_px: int = 2000,
+                   max_elongation: float = 2.0, centroid_floor: float = 0.25,
+                   mask=None) -> tuple[np.ndarray, np.ndarray]:
+    """Blobs that appeared in ``current`` and not in ``previous`` (the rod's new beads).
+
+    Works on ``d = log(previous) - log(current)`` less its median over the field (for dark
+    markers: the added attenuation, independent of what lies behind and of a change of the
+    tube output between the frames; with ``response="log"`` the frames already are log
+    intensities, as from a logarithmic video amplifier, and are differenced as they are,
+    with ``"linear"`` their logarithm is taken); blobs are the connected regions of the
+    smoothed ``d`` above ``rel_threshold`` times the peak of the region (above the noise,
+    ``n_sigma`` robust standard deviations) they lie in, and above half ``rel_threshold``
+    times the frame's peak. Each centroid is the
+    mean over a disc about the blob weighted by ``d`` above a floor (the median of a ring
+    around the disc, the background, plus ``centroid_floor`` times the blob's height above
+    it: this drops the rod's faint band under the bead), iterated with the disc re-centred.
+
+    Parameters
+    ----------
+    previous, current : (H, W) images (any dtype; intensities, larger = more X-rays).
+    polarity : "dark" (markers absorb: darker in ``current``) or "bright".
+    mask : (H, W) bool, optional; where to look (e.g. the intensifier's circular field).
+        A blob whose centroid window reaches outside it is dropped (cut by the field's edge,
+        its centroid would be biased).
+
+    Returns
+    -------
+    xy_px : (K, 2) sub-pixel centroids (x, y).
+    strength : (K,) peak of ``d`` of each blob (log units).
+    """
+    a, b = np.asarray(previous), np.asarray(current)
+    if a.shape != b.shape or a.ndim != 2:
+        raise ValueError(f"detect_markers: frames must be two (H, W) images of the same shape, "
+                         f"got {a.shape} and {b.shape}")
+    if polarity not in ("dark", "bright"):
+        raise ValueError(f"polarity: expected 'dark' or 'bright', got {polarity!r}")
+    if response not in ("log", "linear"):
+        raise ValueError(f"response: expected 'log' or 'linear', got {response!r}")
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != a.shape:
+            raise ValueError(f"mask: expected shape {a.shape}, got {mask.shape}")
+    d = _log_image(a, response) - _log_image(b, response)
+    if polarity == "bright":
+        d = -d
+    # the automatic brightness control changes the tube output from frame to frame: a
+    # uniform gain, i.e. a constant in log intensity, that would lift the whole field above
+    # the threshold; it is the median difference (the beads cover a few hundred pixels)
+    inside = mask if mask is not None else np.ones(d.shape, dtype=bool)
+    if inside.any():
+        d = d - np.median(d[inside])
+    if mask is not None:
+        d = np.where(mask, d, 0.0)
+    # a band-pass at the beads' scale (difference of Gaussians): the rod's band and the
+    # broad steel tip fade, bead-sized blobs stay, so that a strong tip or a blurred frame
+    # does not lift the threshold above the beads
+    g1 = ndimage.gaussian_filter(d, BLOB_SIGMA_PX)
+    ds = g1 - ndimage.gaussian_filter(d, BACKGROUND_SIGMA_PX)
+    dsi = ds[inside] if inside.any() else ds.ravel()  # the noise of the field, not the black
+    noise = 1.4826 * np.median(np.abs(dsi - np.median(dsi)))
+    # ...of attenuation that was added: the positive rim the band-pass leaves around a bead
+    # that went away (or any dip) is no blob
+    ds = np.where(g1 > 0.5 * ds, ds, 0.0)
+    peak = ds.max()
+    if peak <= 0:
+        return np.zeros((0, 2)), np.zeros(0)
+    # relative threshold per region: each connected region above the noise gets
+    # rel_threshold times its own peak (a bright newcomer elsewhere, e.g. an instrument
+    # moved into the field, does not raise the threshold for the beads)
+    low = max(n_sigma * noise, 0.02 * peak)
+    regions, n_regions = ndimage.label(ds > low)
+    region_peak = np.zeros(n_regions + 1)
+    region_peak[1:] = ndimage.maximum(ds, regions, np.arange(1, n_regions + 1))
+    # never below half the global relative threshold: noise specks are regions of their own
+    thr = np.maximum(max(low, 0.5 * rel_threshold * peak), rel_threshold * region_peak[regions])
+    labels, n = ndimage.label((ds > thr) & (regions > 0))
+    if n == 0:
+        return np.zeros((0, 2)), np.zeros(0)
+    idx = np.arange(1, n + 1)
+    areas = ndimage.sum_labels(np.ones_like(ds), labels, idx)
+    H, W = d.shape
+    yy, xx = np.mgrid[0:H, 0:W]
+    out, strength = [], []
+    slices = ndimage.find_objects(labels)
+    for k, sl in enumerate(slices):
+        if sl is None or not (min_area_px <= areas[k] <= max_area_px):
+            continue
+        sub = labels[sl] == k + 1
+        ys, xs = np.nonzero(sub)
+        ys = ys + sl[0].start
+        xs = xs + sl[1].start
+        cov = np.cov(np.vstack([xs, ys])) if len(xs) > 2 else np.eye(2)
+        ev = np.linalg.eigvalsh(cov)
+        if ev[0] <= 0 or np.sqrt(ev[1] / ev[0]) > max_elongation:
+            continue  # not a round blob (the rod's tip, an instrument edge)
+        cx, cy = xs.mean(), ys.mean()
+        r_in = np.sqrt(areas[k] / np.pi) * 1.6 + 1.5
+        for _ in range(3):
+            x0, x1 = int(max(cx - r_in - 4, 0)), int(min(cx + r_in + 5, W))
+            y0, y1 = int(max(cy - r_in - 4, 0)), int(min(cy + r_in + 5, H))
+            px, py, pd = xx[y0:y1, x0:x1], yy[y0:y1, x0:x1], d[y0:y1, x0:x1]
+            rr = np.hypot(px - cx, py - cy)
+            ring = pd[(rr > r_in) & (rr <= r_in + 3)]
+            bg = np.median(ring) if ring.size else 0.0
+            inner = rr <= r_in
+            floor = bg + centroid_floor * (pd[inner].max() - bg) if inner.any() else bg
+            w = np.where(inner, np.maximum(pd - floor, 0.0), 0.0)
+            sw = w.sum()
+            if sw <= 0:
+                break
+            cx, cy = (w * px).sum() / sw, (w * py).sum() / sw
+        if mask is not None and not mask[y0:y1, x0:x1].all():
+            continue  # cut by the edge of the field
+        out.append((cx, cy))
+        strength.append(float(ds[sl][sub].max()))
+    if not out:
+        return np.zeros((0, 2)), np.zeros(0)
+    return np.asarray(out, dtype=np.float64), np.asarray(strength)
+
+
+# --------------------------------------------------------------------------- identification
+def identify_row(xy_px, bead_positions_mm, *, tolerance: float = 0.15,
+                 min_matched: int = 4) -> tuple[np.ndarray, float]:
+    """Which bead of the rod each blob of one row is.
+
+    The rod lies parallel to the image plane in a sweep, so along the imaged row the bead
+    positions ``s`` (mm along the rod) map to the blobs' coordinate ``t`` (px, on the row's
+    principal line) by an affine map ``t = a s + b`` (up to the intensifier's distortion).
+    Every hypothesis "blobs i < j are beads p and q" (both orientations of the rod) fixes the
+    map; the one that places most blobs within ``tolerance`` times the smallest predicted gap
+    of a bead wins, ties broken by the RMS of a least-squares refit on its blobs. The beads'
+    unequal gaps make the answer unique; beads outside the field or hidden are simply
+    missing, stray blobs are left unmatched.
+
+    Parameters
+    ----------
+    xy_px : (K, 2) blob centroids of one row.
+    bead_positions_mm : (n,) bead positions along the rod, increasing, unequal gaps.
+
+    Returns
+    -------
+    bead : (K,) int, the bead index of each blob, -1 for a blob that matches no bead.
+    rms_px : float, RMS residual of the matched blobs along the row.
+
+    Raises
+    ------
+    ValueError
+        Fewer than ``min_matched`` blobs, too many blobs, or no hypothesis matching
+        ``min_matched`` blobs unambiguously.
+    """
+    xy = _as_xy(xy_px)
+    s = np.asarray(bead_positions_mm, dtype=np.float64)
+    K, n = len(xy), len(s)
+    if K < min_matched:
+        raise ValueError(f"identify_row: {K} blobs; at least {min_matched} are needed")
+    if K > 3 * n:
+        raise ValueError(f"identify_row: {K} blobs for a rod of {n} beads; too many to match")
+    c = xy.mean(axis=0)
+    u = np.linalg.svd(xy - c)[2][0]
+    t = (xy - c) @ u
+    # hypotheses: blob pair (i, j), bead pair (p, q) with p != q (order gives the orientation)
+    bi, bj = np.array(list(itertools.combinations(range(K), 2))).T
+    bp, bq = np.array([(p, q) for p in range(n) for q in range(n) if p != q]).T
+    I, P = np.repeat(bi, len(bp)), np.tile(bp, len(bi))
+    J, Q = np.repeat(bj, len(bq)), np.tile(bq, len(bj))
+    a = (t[J] - t[I]) / (s[Q] - s[P])
+    b = t[I] - a * s[P]
+    pred = a[:, None] * s[None, :] + b[:, None]                       # (B, n) px
+    gap = np.abs(a) * np.min(np.diff(s))                               # (B,)
+    err = np.abs(t[None, :, None] - pred[:, None, :])                  # (B, K, n)
+    j = np.argmin(err, axis=2)
+    e = np.take_along_axis(err, j[..., None], axis=2)[..., 0]          # (B, K)
+    inl = e < tolerance * gap[:, None]
+    count = inl.sum(axis=1)
+    if count.max() < min_matched:
+        raise ValueError(f"identify_row: the spacing pattern matches at most {count.max()} "
+                         f"of {K} blobs (need {min_matched})")
+    # distinct assignments of the two best counts, refitted; a candidate's score is its count
+    # minus its refit RMS in units of (tolerance * gap / 5): a stray blob that happens to fall
+    # near a bead cannot outvote a tight fit of fewer blobs
+    top = np.flatnonzero(count >= max(min_matched, count.max() - 1))
+    assign = np.where(inl[top], j[top], -1)
+    _, first = np.unique(assign, axis=0, return_index=True)
+    scored, seen = [], set()
+    for k in top[first]:
+        m = inl[k].copy()
+        for bead_idx in np.unique(j[k][m]):  # two blobs on one bead: keep the closer
+            claim = np.flatnonzero(m & (j[k] == bead_idx))
+            m[claim[np.argsort(e[k][claim])[1:]]] = False
+        inl[k] = m
+        final = tuple(np.where(m, j[k], -1).tolist())
+        if final in seen:  # the same assignment once the doubles are resolved
+            continue
+        seen.add(final)
+        sk, tk = s[j[k][m]], t[m]
+        A = np.column_stack([sk, np.ones_like(sk)])
+        coef = np.linalg.lstsq(A, tk, rcond=None)[0]
+        rms = float(np.sqrt(np.mean((tk - A @ coef) ** 2)))
+        unit = 0.2 * tolerance * abs(coef[0]) * np.min(np.diff(s))
+        scored.append((m.sum() - rms / unit, rms, k))
+    scored.sort(reverse=True)
+    score, rms, k = scored[0]
+    if len(scored) > 1 and scored[1][0] > score - 0.5:
+        raise ValueError(f"identify_row: ambiguous (two bead assignments fit {K} blobs about "
+                         f"as well: RMS {rms:.2f} and {scored[1][1]:.2f} px)")
+    return np.where(inl[k], j[k], -1), rms
+
+
+# --------------------------------------------------------------------------- sweep data
+@dataclass(frozen=True)
+class SweepData:
+    """What a clinic records while the robot sweeps the rod through one view.
+
+    Attributes
+    ----------
+    view : name of the view (for messages).
+    frames : (F, H, W) images, one after each rod move (X-rays on continuously).
+    plane : (F,) int; -1 a reference frame (rod parked outside the beam), 0 near plane,
+        1 far plane, 2 validation row.
+    beads_robot : (F, n, 3) robot-reported bead centres, mm, robot frame (NaN where plane
+        is -1).
+    bead_positions_mm : (n,) bead positions along the rod.
+    mask : (H, W) bool or None; the image's field (where markers may be found).
+    """
+
+    view: str
+    frames: np.ndarray
+    plane: np.ndarray
+    beads_robot: np.ndarray
+    bead_positions_mm: np.ndarray
+    mask: np.ndarray | None = None
+
+
+@dataclass
+class Markers:
+    """Identified markers of one view: one row per marker.
+
+    ``frame (M,)``, ``plane (M,)`` (0 near, 1 far, 2 validation), ``bead (M,)`` index along
+    the rod, ``xy_px (M, 2)``, ``robot (M, 3)`` mm (reported). ``problems``: messages naming
+    the view, frame and beads that were missing, stray or unidentifiable.
+    """
+
+    view: str
+    frame: np.ndarray
+    plane: np.ndarray
+    bead: np.ndarray
+    xy_px: np.ndarray
+    robot: np.ndarray
+    problems: list[str] = field(default_factory=list)
+    expected: int = 0
+
+    def select(self, plane: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(xy_px (k, 2), robot (k, 3))`` of the markers of one plane."""
+        m = self.plane == plane
+        return self.xy_px[m], self.robot[m]
+
+
+def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int = 4,
+                 **detect_kw) -> Markers:
+    """Detect and identify every marker of a sweep (see :func:`detect_markers`,
+    :func:`identify_row`). A frame is compared with the frame before it. A row with too few
+    blobs to identify alone (at the edge of the field) is matched to where its beads are
+    predicted from the other rows of its plane; a row that still cannot be identified is
+    dropped and named in ``problems``, as are missing beads (outside the field, hidden) and
+    stray blobs.
+    """
+    frames = np.asarray(sweep.frames)
+    plane = np.asarray(sweep.plane)
+    beads = np.asarray(sweep.beads_robot, dtype=np.float64)
+    s = np.asarray(sweep.bead_positions_mm, dtype=np.float64)
+    F = len(frames)
+    if frames.ndim != 3 or plane.shape != (F,) or beads.shape[:2] != (F, len(s)):
+        raise ValueError(
+            f"view {sweep.view}: frames {frames.shape}, plane {plane.shape} and beads_robot "
+            f"{beads.shape} disagree (expected (F, H, W), (F,), (F, {len(s)}, 3))")
+    rows = {k: [] for k in ("frame", "plane", "bead", "xy", "robot")}
+    problems: list[str] = []
+    weak = []  # rows too short to identify on their own: (frame, name, blobs, message index)
+    expected = 0
+
+    def add(f, bead, xy):
+        rows["frame"].append(np.full(len(bead), f))
+        rows["plane"].append(np.full(len(bead), int(plane[f])))
+        rows["bead"].append(bead)
+        rows["xy"].append(xy)
+        rows["robot"].append(beads[f][bead])
+
+    for f in range(1, F):
+        if plane[f] == REFERENCE:
+            continue
+        expected += len(s)
+        name = f"view {sweep.view}, {PLANE_NAMES.get(int(plane[f]), plane[f])} plane, frame {f}"
+        if not np.all(np.isfinite(beads[f])):
+            problems.append(f"{name}: robot positions missing; row dropped")
+            continue
+        xy, _ = detect_markers(frames[f - 1], frames[f], polarity=polarity, mask=sweep.mask,
+                               **detect_kw)
+        try:
+            if not len(xy):
+                raise ValueError("no blobs")
+            bead, _rms = identify_row(xy, s, min_matched=min_matched)
+        except ValueError as exc:
+            problems.append(f"{name}: row dropped ({exc}; {len(xy)} blobs found)")
+            if len(xy):
+                weak.append((f, name, xy, len(problems) - 1))
+            continue
+        ok = bead >= 0
+        missing = sorted(set(range(len(s))) - set(bead[ok].tolist()))
+        if missing:
+            problems.append(f"{name}: beads {missing} not found (outside the field or hidden)")
+        if (~ok).any():
+            problems.append(f"{name}: {int((~ok).sum())} stray blob(s) at "
+                            f"{np.round(xy[~ok], 1).tolist()} px ignored")
+        add(f, bead[ok], xy[ok])
+
+    # rows with too few blobs (at the edge of the field): predict where their beads appear
+    # from the identified rows of the same plane (a TPS from in-plane mm to pixels) and take
+    # the blobs that fall on a prediction
+    for f, name, xy, k in weak:
+        p = int(plane[f])
+        have = [i for i, fr in enumerate(rows["frame"]) if plane[fr[0]] == p]
+        if len(have) < 2:
+            continue
+        P = np.concatenate([rows["robot"][i] for i in have])
+        X = np.concatenate([rows["xy"][i] for i in have])
+        c = P.mean(axis=0)
+        basis = np.linalg.svd(P - c)[2][:2].T
+        try:
+            to_px = ThinPlateSpline.fit((P - c) @ basis, X, smoothing=0.0)
+        except ValueError:
+            continue
+        pred = to_px((beads[f] - c) @ basis)
+        gap = np.min(np.linalg.norm(np.diff(pred, axis=0), axis=1))
+        dist = np.linalg.norm(xy[:, None, :] - pred[None], axis=2)
+        j = np.argmin(dist, axis=1)
+        good = dist[np.arange(len(xy)), j] < 0.2 * gap
+        good &= np.array([np.sum(j[good] == jj) == 1 for jj in j])
+        if good.any():
+            add(f, j[good], xy[good])
+            missing = sorted(set(range(len(s))) - set(j[good].tolist()))
+            problems[k] = (f"{name}: {int(good.sum())} blob(s) identified from the plane's other "
+                           f"rows; beads {missing} not found (outside the field or hidden)")
+
+    def cat(key, shape):
+        return np.concatenate(rows[key]) if rows[key] else np.zeros(shape)
+
+    order = np.argsort(cat("frame", (0,)), kind="stable")
+    return Markers(sweep.view, cat("frame", (0,)).astype(int)[order],
+                   cat("plane", (0,)).astype(int)[order], cat("bead", (0,)).astype(int)[order],
+                   cat("xy", (0, 2))[order], cat("robot", (0, 3))[order], problems, expected)
+
+

@@ -1,0 +1,364 @@
+"""``testbed bench [--quick] [--json]``: every performance target of the project, measured.
+
+Each workload gives ``{"value", "unit", "goal", "reference"}`` (DESIGN.md), plus ``"met"``
+(the value meets the goal), ``"reference_is"`` (what the reference is) and ``"note"``. The
+reference is measured in the same run, so a figure can be read against this machine:
+
+- ``frame_ms``: one 640x480 patient frame (all bodies), CPU ms, one core; reference: the
+  exact reference renderer on the same frame;
+- ``sweep_frame_ms``: one calibration sweep frame, CPU ms; reference: a full patient frame;
+- ``markers_ms``: marker detection per sweep frame, CPU ms; reference: the reference
+  detector;
+- ``registration_ms``: a 4-view registration from a 5 deg start, CPU ms; reference: the
+  reference (brute-force) closest-point search;
+- ``ransac_ms``: RANSAC pose on 100 noisy points, ms; reference: PoseLib RANSAC + LM on the
+  same data (goal: 3x the reference);
+- ``run_cpu_s``: ``testbed run`` (warm), CPU s; reference: the import floor;
+- ``capture_trials_per_min``: capture-range trials on one worker; reference: the same
+  trials' simulation and estimation stages alone;
+- ``registrations_per_min``: Table II-style starts over one observation on 2 workers;
+  reference: the same on 1 worker;
+- ``generate_case_s``: ``testbed generate`` of one case, CPU s; reference: ``run_cpu_s``;
+- ``scaling_2_workers``: registrations/min on 2 workers over 1; reference: a pure-numpy
+  CPU-bound task, 2 workers over 1;
+- ``help_s``: ``testbed --help``, wall s; reference: ``python -c pass``.
+
+CPU times are ``time.process_time`` (or the children's ``getrusage`` for commands): other jobs
+on the machine do not count against them. Rates and scaling are wall-clock and need an idle
+machine. ``--quick`` uses fewer repetitions and a smaller scene for the slow rows.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["GOALS", "run_bench", "format_table", "main"]
+
+#: key -> (unit, goal, "<=" or ">=")
+GOALS = {
+    "frame_ms": ("ms", 33.0, "<="),
+    "sweep_frame_ms": ("ms", 5.0, "<="),
+    "markers_ms": ("ms", 3.0, "<="),
+    "registration_ms": ("ms", 100.0, "<="),
+    "ransac_ms": ("ms", None, "<="),          # goal: 3x the reference (PoseLib)
+    "run_cpu_s": ("s", 5.0, "<="),
+    "capture_trials_per_min": ("1/min", 20.0, ">="),
+    "registrations_per_min": ("1/min", 1000.0, ">="),
+    "generate_case_s": ("s", 5.0, "<="),
+    "scaling_2_workers": ("x", 1.8, ">="),
+    "help_s": ("s", 0.5, "<="),
+}
+RANSAC_FACTOR = 3.0
+SCENE = "experiment2"
+
+
+def _row(key, value, reference, reference_is, note=""):
+    unit, goal, op = GOALS[key]
+    if key == "ransac_ms" and reference is not None and np.isfinite(reference):
+        goal = RANSAC_FACTOR * reference
+    met = None
+    if value is not None and goal is not None and np.isfinite(value):
+        met = bool(value <= goal) if op == "<=" else bool(value >= goal)
+    return {"value": None if value is None else float(value), "unit": unit, "goal": goal,
+            "reference": None if reference is None else float(reference),
+            "reference_is": reference_is, "met": met, "goal_op": op, "note": note}
+
+
+def _cpu(fn, repeat: int) -> float:
+    """Median CPU seconds of ``fn()`` over ``repeat`` calls (after one warm-up call)."""
+    fn()
+    out = []
+    for _ in range(repeat):
+        t0 = time.process_time()
+        fn()
+        out.append(time.process_time() - t0)
+    return float(np.median(out))
+
+
+def _child(cmd: list[str], env=None) -> tuple[float, float, subprocess.CompletedProcess]:
+    """(children's CPU s, wall s, result) of a command."""
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=3600)
+    wall = time.perf_counter() - t0
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
+    return cpu, wall, res
+
+
+def _env():
+    env = dict(os.environ)
+    env.setdefault("OMP_NUM_THREADS", "1")
+    env.setdefault("OPENBLAS_NUM_THREADS", "1")
+    return env
+
+
+def _testbed() -> list[str]:
+    return [sys.executable, "-m", "studies.cli"]
+
+
+# --------------------------------------------------------------------------- workloads
+def _scene(quick: bool):
+    from testbed.scene import find_scene, load_scene
+
+    return load_scene(find_scene(SCENE))
+
+
+def bench_frames(quick: bool) -> dict:
+    """frame_ms and sweep_frame_ms on view 0 of the scene."""
+    from testbed.fluoroscope import make_carm, render
+    from testbed.robot import Robot
+    from testbed.sweep import plan_sweep
+    from testbed.world import build_world
+
+    scene = _scene(quick)
+    world = build_world(scene, np.random.default_rng(0))
+    carm = make_carm(scene.fluoroscope, scene.views[0], view_index=0)
+    bodies = world.bodies
+    repeat = 2 if quick else 5
+    frame_s = _cpu(lambda: render(carm, bodies, fluoro=scene.fluoroscope, rng=0), repeat)
+    try:  # the exact reference renderer, kept beside the fast one
+        ref_s = _cpu(lambda: render(carm, bodies, fluoro=scene.fluoroscope, rng=0,
+                                    engine="trimesh"), 1)
+        ref_is = "the exact reference renderer (engine='trimesh')"
+    except (TypeError, ValueError) as exc:
+        ref_s, ref_is = float("nan"), f"reference renderer unavailable ({exc})"
+    out = {"frame_ms": _row("frame_ms", 1e3 * frame_s, 1e3 * ref_s, ref_is)}
+    with Robot(scene.robot, rng=0) as robot:
+        plan = plan_sweep(carm, robot.spec)
+        pose = next(p for p in plan if p.plane >= 0)
+        robot.place_rod(pose.point_robot, pose.direction_robot)
+        rod = robot.rod_bodies()
+        try:
+            from testbed.sweep import SweepRenderer  # the fast path, when present
+
+            sr = SweepRenderer(carm, scene.fluoroscope, bodies)
+            sweep_s = _cpu(lambda: sr.render(rod, rng=0), repeat)
+            note = "testbed.sweep.SweepRenderer"
+        except ImportError:
+            sweep_s = _cpu(lambda: render(carm, bodies + rod, fluoro=scene.fluoroscope, rng=0),
+                           repeat)
+            note = "a full render with the rod (no per-view fast path yet)"
+    out["sweep_frame_ms"] = _row("sweep_frame_ms", 1e3 * sweep_s, 1e3 * frame_s,
+                                 "a full patient frame", note)
+    return out
+
+
+def _case(quick: bool):
+    from studies.end_to_end import prepare_case
+
+    return prepare_case(_scene(quick), 0, sweeps=True)
+
+
+def bench_markers(case, quick: bool) -> dict:
+    from reglib.markers import SweepData, find_markers
+
+    v = case.view_names[0]
+    obs = case.sim.observation
+    frames = obs.images[f"sweep_{v}"]
+    arr = obs.arrays[f"sweep_{v}"]
+    sd = SweepData(view=v, frames=frames, plane=arr["plane"], beads_robot=arr["beads_reported"],
+                   bead_positions_mm=arr["bead_positions_mm"],
+                   mask=obs.arrays[f"xray_fov_{v}"])
+    n = len(frames)
+    t = _cpu(lambda: find_markers(sd), 1 if quick else 3) / n
+    try:
+        t_ref = _cpu(lambda: find_markers(sd, method="reference"), 1) / n
+        ref_is = "the reference detector"
+    except TypeError:
+        t_ref, ref_is = float("nan"), "reference detector unavailable"
+    return {"markers_ms": _row("markers_ms", 1e3 * t, 1e3 * t_ref, ref_is)}
+
+
+def bench_registration(case, quick: bool) -> dict:
+    from reglib.register import register
+    from studies.scoring import perturbed_start
+
+    starts = [perturbed_start(case.ct2robot, case.pins_ct, 5.0, np.random.default_rng(k))
+              for k in range(2 if quick else 5)]
+    surfaces = [case.stages.surfaces[k] for k in sorted(case.stages.surfaces)]
+    opts = dict(case.options.registration)
+
+    def run(closest):
+        for s in starts:
+            register(surfaces, case.stages.views, s, closest=closest, **opts)
+
+    t = _cpu(lambda: run("blocks"), 1) / len(starts)
+    t_ref = _cpu(lambda: run("reference"), 0 if quick else 1) / len(starts) if not quick \
+        else float("nan")
+    return {"registration_ms": _row("registration_ms", 1e3 * t, 1e3 * t_ref,
+                                    "the reference (brute-force) closest-point search",
+                                    f"{len(case.stages.views)} views, scene options "
+                                    f"{opts.get('residual')}/{opts.get('method')}")}
+
+
+def bench_ransac(quick: bool) -> dict:
+    from studies.table1 import time_solves
+    from testbed.scene import find_scene, load_scene
+
+    spec = load_scene(find_scene("points-lines")).synthetic
+    rows = time_solves(spec, 100, 0.01, 10 if quick else 50, 100, methods=("ransac",))
+    ours = float(np.median([r["time_s"] for r in rows if r["method"] == "ransac"]))
+    pl = [r["time_s"] for r in rows if r["method"] == "poselib_ransac"]
+    ref = float(np.median(pl)) if pl else float("nan")
+    return {"ransac_ms": _row("ransac_ms", 1e3 * ours, 1e3 * ref,
+                              "PoseLib RANSAC + LM (pip install -e '.[bench]')" if pl
+                              else "PoseLib not installed")}
+
+
+def bench_commands(quick: bool) -> dict:
+    env = _env()
+    out = {}
+    floor, _, _ = _child([sys.executable, "-c", "import numpy, scipy, trimesh, pybullet, numba,"
+                          " skimage, cv2"], env)
+    _child(_testbed() + ["run", SCENE, "--json"], env)  # warm: compilation caches
+    cpu, wall, res = _child(_testbed() + ["run", SCENE, "--json"], env)
+    note = f"wall {wall:.1f} s" if res.returncode == 0 else f"exit {res.returncode}"
+    out["run_cpu_s"] = _row("run_cpu_s", cpu, floor, "import floor (python + libraries)", note)
+    with tempfile.TemporaryDirectory() as d:
+        g_cpu, g_wall, gres = _child(_testbed() + ["generate", SCENE, "--cases", "1", "--out",
+                                                   str(Path(d) / "ds")], env)
+    out["generate_case_s"] = _row("generate_case_s", g_cpu, cpu, "run_cpu_s of this run",
+                                  f"wall {g_wall:.1f} s" if gres.returncode == 0
+                                  else f"exit {gres.returncode}")
+    walls = [_child(_testbed() + ["--help"], env)[1] for _ in range(3)]
+    py = [_child([sys.executable, "-c", "pass"], env)[1] for _ in range(3)]
+    out["help_s"] = _row("help_s", float(np.median(walls)), float(np.median(py)),
+                         "python -c pass")
+    return out
+
+
+def _register_start(args):
+    from reglib import estimate
+
+    obs, stages, options, start = args
+    return estimate(obs, start, options=options, stages=stages).accepted
+
+
+def _burn(n):
+    a = np.random.default_rng(n).normal(size=(120, 120))
+    for _ in range(150):
+        a = np.tanh(a @ a.T / 120.0)
+    return float(a.sum())
+
+
+def _rate(fn, items, workers: int) -> float:
+    """Items per minute of ``fn`` over ``items`` on ``workers`` processes (wall)."""
+    import concurrent.futures as cf
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("forkserver" if "forkserver" in
+                                      multiprocessing.get_all_start_methods() else "spawn")
+    with cf.ProcessPoolExecutor(workers, mp_context=ctx) as ex:
+        list(ex.map(fn, items[:workers]))  # warm the workers
+        t0 = time.perf_counter()
+        list(ex.map(fn, items))
+        return 60.0 * len(items) / (time.perf_counter() - t0)
+
+
+def bench_throughput(case, quick: bool) -> dict:
+    from studies.scoring import perturbed_start
+
+    n = 8 if quick else 24
+    starts = [perturbed_start(case.ct2robot, case.pins_ct, 5.0 + 2.0 * (k % 2),
+                              np.random.default_rng(100 + k)) for k in range(n)]
+    items = [(case.sim.observation, case.stages, case.options, s) for s in starts]
+    r1 = _rate(_register_start, items, 1)
+    r2 = _rate(_register_start, items, 2)
+    b1 = _rate(_burn, list(range(8)), 1)
+    b2 = _rate(_burn, list(range(8)), 2)
+    return {"registrations_per_min": _row("registrations_per_min", r2, r1, "1 worker"),
+            "scaling_2_workers": _row("scaling_2_workers", r2 / r1, b2 / b1,
+                                      "a pure-numpy CPU-bound task, 2 workers over 1")}
+
+
+def bench_capture(quick: bool) -> dict:
+    from studies.capture_range import trial, trial_params
+    from studies.runner import make_trials
+    from testbed.scene import find_scene
+
+    params = trial_params(cases=1 if quick else 2, starts_per_bin=1, others_per_bin=0,
+                          bins=(0.0, 10.0, 20.0), methods=["robust"])
+    trials = make_trials(str(find_scene(SCENE)), 7, params)
+    t0 = time.perf_counter()
+    sim = 0.0
+    for tr in trials:
+        rows = trial(tr)
+        sim += sum(r["value"] for r in rows if r["metric"] == "sim_time")
+    wall = time.perf_counter() - t0
+    return {"capture_trials_per_min": _row(
+        "capture_trials_per_min", 60.0 * len(trials) / wall, 60.0 * len(trials) / max(sim, 1e-9),
+        "the same trials' simulation and estimation stages alone",
+        "quick size: 2 bins, robust only" if quick else "2 bins, robust only")}
+
+
+def run_bench(*, quick: bool = False, only=None, progress: bool = True) -> dict:
+    """Run the workloads (``only``: a subset of :data:`GOALS` keys); returns key -> row."""
+    from tqdm import tqdm
+
+    wanted = set(GOALS if only is None else only)
+    unknown = wanted - set(GOALS)
+    if unknown:
+        raise ValueError(f"bench: unknown workloads {sorted(unknown)}; known: {list(GOALS)}")
+    out: dict[str, dict] = {}
+    groups = [({"frame_ms", "sweep_frame_ms"}, lambda c: bench_frames(quick), False),
+              ({"ransac_ms"}, lambda c: bench_ransac(quick), False),
+              ({"markers_ms"}, lambda c: bench_markers(c, quick), True),
+              ({"registration_ms"}, lambda c: bench_registration(c, quick), True),
+              ({"registrations_per_min", "scaling_2_workers"},
+               lambda c: bench_throughput(c, quick), True),
+              ({"capture_trials_per_min"}, lambda c: bench_capture(quick), False),
+              ({"run_cpu_s", "generate_case_s", "help_s"}, lambda c: bench_commands(quick),
+               False)]
+    case = None
+    for keys, fn, needs_case in tqdm(groups, desc="bench", disable=not progress, leave=False):
+        if not keys & wanted:
+            continue
+        if needs_case and case is None:
+            case = _case(quick)
+        try:
+            res = fn(case)
+        except Exception as exc:  # a broken workload is reported, the others still run
+            res = {k: {**_row(k, None, None, ""), "note": f"failed: {exc}"} for k in keys}
+        out.update({k: v for k, v in res.items() if k in wanted})
+    return {k: out[k] for k in GOALS if k in out}
+
+
+def format_table(rows: dict) -> str:
+    lines = [f"{'workload':24s} {'value':>10s} {'unit':6s} {'goal':>10s} {'reference':>10s}  "
+             "met   reference is / note"]
+    for k, r in rows.items():
+        def f(x):
+            return "-" if x is None or (isinstance(x, float) and not np.isfinite(x)) \
+                else f"{x:10.3g}"
+        goal = "-" if r["goal"] is None else f"{r['goal_op']}{r['goal']:.3g}"
+        met = {True: "yes", False: "NO", None: "-"}[r["met"]]
+        lines.append(f"{k:24s} {f(r['value'])} {r['unit']:6s} {goal:>10s} {f(r['reference'])}"
+                     f"  {met:5s} {r['reference_is']}" + (f"; {r['note']}" if r['note'] else ""))
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="testbed bench", description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--json", action="store_true")
+    ap.add_argument("--only", nargs="*", default=None, choices=list(GOALS))
+    args = ap.parse_args(argv)
+    rows = run_bench(quick=args.quick, only=args.only, progress=not args.json)
+    print(json.dumps(rows, indent=2) if args.json else format_table(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

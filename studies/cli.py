@@ -1,0 +1,389 @@
+"""The ``testbed`` command: ``run``, ``study``, ``generate``, ``score``, ``render``, ``bench``,
+``scenes``.
+
+One rule for every sub-command: a usage or input error (a bad option, a scene file or field,
+an ``--out`` that cannot be written, a scene of the wrong kind, an infeasible acquisition)
+exits with status 2 and ONE line on standard error that names the file, field or option and
+what was expected; never a traceback (set ``TESTBED_DEBUG=1`` to see one). ``--out`` is checked
+before any work. A failure after the computation never loses the result: it is printed
+first, then the error is reported (status 1). An unexpected error exits 1 with one line.
+
+Imports are lazy, so that ``testbed --help`` is fast and prints no library banner.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+__all__ = ["UsageError", "build_parser", "main"]
+
+PROG = "testbed"
+
+
+class UsageError(Exception):
+    """A usage or input error: exit 2 with this one-line message."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, exit 2 (argparse prints usage + message)
+        raise UsageError(f"{self.prog}: {message} (see {self.prog} --help)")
+
+
+def _one_line(msg: str) -> str:
+    lines = [ln.strip() for ln in str(msg).strip().splitlines() if ln.strip()]
+    return "; ".join(lines)
+
+
+# --------------------------------------------------------------------------- argument types
+def _int_at_least(lo: int, what: str):
+    def parse(text):
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {lo} for {what}, got "
+                                             f"{text!r}") from None
+        if v < lo:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {lo} for {what}, got {v}")
+        return v
+    return parse
+
+
+def _out_folder(path: Path, option: str = "--out") -> Path:
+    """An output folder: created if missing; refused when it is a file or cannot be written."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise UsageError(f"{option} {path}: exists and is not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UsageError(f"{option} {path}: cannot create the folder ({exc.strerror or exc})"
+                         ) from None
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise UsageError(f"{option} {path}: the folder is not writable")
+    return path
+
+
+def _creatable_folder(path: Path, option: str = "--out") -> Path:
+    """An output folder that the command makes itself: an existing writable folder, or a
+    path whose nearest existing ancestor is a writable folder. Nothing is created here."""
+    path = Path(path)
+    if path.exists():
+        if not path.is_dir():
+            raise UsageError(f"{option} {path}: exists and is not a folder")
+        if not os.access(path, os.W_OK | os.X_OK):
+            raise UsageError(f"{option} {path}: the folder is not writable")
+        return path
+    anc = path.absolute().parent
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    if not anc.is_dir():
+        raise UsageError(f"{option} {path}: cannot create the folder ({anc} is a file)")
+    if not os.access(anc, os.W_OK | os.X_OK):
+        raise UsageError(f"{option} {path}: cannot create the folder ({anc} is not writable)")
+    return path
+
+
+def _out_file(path: Path, suffix: str, option: str = "--out") -> Path:
+    """An output file with ``suffix``: its folder must exist or be creatable, and writable."""
+    path = Path(path)
+    if path.is_dir():
+        raise UsageError(f"{option} {path}: is a folder, expected a {suffix} file name")
+    if path.suffix.lower() != suffix:
+        raise UsageError(f"{option} {path}: expected a {suffix} file name")
+    _out_folder(path.parent if str(path.parent) else Path("."), option)
+    return path
+
+
+def _quiet_pybullet() -> None:
+    """Import pybullet with standard error silenced at the file-descriptor level: its C
+    module prints a build-time banner there on import, which would make an error report two
+    lines. A no-op when pybullet is already imported or not installed."""
+    if "pybullet" in sys.modules:
+        return
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no real descriptor 2 (embedded interpreters)
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        try:
+            import pybullet  # noqa: F401
+        except ImportError:
+            pass
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+
+
+#: the scene file of the running command (set by _scene): named in an infeasible-scene error
+_scene_path: Path | None = None
+
+
+def _check_scheduler(args, command: str) -> None:
+    """--workers and --scheduler exclude each other; an unreachable scheduler fails here,
+    within studies.runner.SCHEDULER_TIMEOUT_S (10 s), before any work."""
+    if args.scheduler is None:
+        return
+    if args.workers != 1:
+        raise UsageError(f"{PROG} {command}: give --workers or --scheduler, not both")
+    from studies.runner import _client
+
+    _client(args.scheduler).close()
+
+
+def _scene(arg):
+    global _scene_path
+    _quiet_pybullet()
+    from testbed.scene import find_scene, load_scene
+
+    path = find_scene(arg)
+    scene = load_scene(path)
+    _scene_path = path
+    return path, scene
+
+
+def _names_scene_file(exc: Exception, msg: str) -> str:
+    """An error about the scene found after loading (e.g. ``testbed.workspace``'s
+    WorkspaceError: a view the robot cannot reach) gets the scene file in front."""
+    if _scene_path is None or str(_scene_path) in msg:
+        return msg
+    if type(exc).__name__ in ("WorkspaceError", "SceneError"):
+        return f"{_scene_path}: {msg}"
+    return msg
+
+
+# --------------------------------------------------------------------------- commands
+def cmd_run(args) -> int:
+    path, scene = _scene(args.scene)
+    out = _out_folder(args.out) if args.out is not None else None
+    from studies.main_job import format_result, run_main_job
+
+    result = run_main_job(scene, scene_path=path, seed=args.seed, out=out,
+                          progress=sys.stderr.isatty() and not args.json)
+    error = result.pop("write_error", None)
+    if args.json:
+        print(json.dumps(result, indent=2, default=float))
+    else:
+        print(format_result(result))
+    if error:
+        print(f"{PROG}: {error}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def cmd_study(args) -> int:
+    _quiet_pybullet()
+    from studies import available_studies, run_study
+
+    if args.list or not args.name:
+        for name, doc in available_studies().items():
+            print(f"{name:16s} {doc}")
+        return 0
+    known = available_studies()
+    if args.name not in known:
+        raise UsageError(f"{PROG} study: unknown study {args.name!r}; known: "
+                         f"{', '.join(known)}")
+    if args.out is None:
+        raise UsageError(f"{PROG} study: --out DIR is required")
+    out = _out_folder(args.out)
+    _check_scheduler(args, "study")
+    run_study(args.name, out, scene=args.scene, seed=args.seed, quick=args.quick,
+              workers=args.workers, scheduler=args.scheduler, retries=args.retries)
+    print(f"wrote {out / 'results.csv'} and {out / 'report.md'}")
+    return 0
+
+
+def cmd_generate(args) -> int:
+    path, scene = _scene(args.scene)
+    if scene.scene.kind != "operating_room":
+        raise UsageError(f"{path}: scene kind {scene.scene.kind!r}: testbed generate needs an "
+                         "operating_room scene with [[views]] (e.g. experiment2)")
+    out = _creatable_folder(args.out)
+    from testbed.generate import generate_command
+
+    dirs = generate_command(scene, scene_path=path, cases=args.cases, out=out, seed=args.seed,
+                            progress=sys.stderr.isatty())
+    print(f"wrote {len(dirs)} case(s) in {out}")
+    return 0
+
+
+def cmd_score(args) -> int:
+    _quiet_pybullet()
+    from studies.score import load_method, score_dataset
+
+    dataset = Path(args.dataset)
+    if not dataset.is_dir():
+        raise UsageError(f"{dataset}: no such dataset folder")
+    try:
+        load_method(args.method)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    out = _out_folder(args.out)
+    _check_scheduler(args, "score")
+    score_dataset(dataset, out, method=args.method, workers=args.workers,
+                  scheduler=args.scheduler, progress=sys.stderr.isatty())
+    print(f"wrote {out / 'results.csv'} and {out / 'report.md'}")
+    return 0
+
+
+def cmd_render(args) -> int:
+    path, scene = _scene(args.scene)
+    out = _out_file(args.out, ".png")
+    import cv2
+
+    from testbed.fluoroscope import render_view
+
+    frame = render_view(scene, args.view, seed=args.seed)
+    if not cv2.imwrite(str(out), frame.image_u8):
+        raise UsageError(f"--out {out}: could not write the image")
+    print(f"wrote {out}")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    _quiet_pybullet()
+    from studies.bench.suite import format_table, run_bench
+
+    rows = run_bench(quick=args.quick, only=args.only, progress=not args.json)
+    print(json.dumps(rows, indent=2) if args.json else format_table(rows))
+    return 0
+
+
+def cmd_scenes(args) -> int:
+    import tomllib
+
+    _quiet_pybullet()
+    from testbed.scene import scenes_dir
+
+    for p in sorted(scenes_dir().glob("*.toml")):
+        try:
+            meta = tomllib.loads(p.read_text()).get("scene", {})
+            desc = str(meta.get("description", ""))
+        except (OSError, tomllib.TOMLDecodeError) as exc:
+            desc = f"(unreadable: {exc})"
+        print(f"{p.stem:22s} {desc}")
+    return 0
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("xray-reg-testbed")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog=PROG, description="Simulation testbed for CT to X-ray registration for a "
+                "surgical robot (after Gueziec et al., IEEE TMI 1998).")
+    p.add_argument("--version", action="store_true", help="print the version and exit")
+    sub = p.add_subparsers(dest="command", parser_class=_Parser)
+    seed = _int_at_least(0, "--seed")
+
+    r = sub.add_parser("run", help="the main job on a scene (default scene: experiment2)")
+    r.add_argument("scene", nargs="?", default=None, help="scene file or name")
+    r.add_argument("--json", action="store_true", help="print one JSON object")
+    r.add_argument("--seed", type=seed, default=None, help="override the scene's seed")
+    r.add_argument("--out", type=Path, default=None,
+                   help="folder for the overlay figures (none without it)")
+    r.set_defaults(func=cmd_run)
+
+    s = sub.add_parser("study", help="run a study and write results.csv, report.md, figures")
+    s.add_argument("name", nargs="?", help="study name (see --list)")
+    s.add_argument("--out", type=Path, help="output folder")
+    s.add_argument("--scene", default=None, help="scene file or name (study default if none)")
+    s.add_argument("--seed", type=seed, default=None, help="override the study's seed")
+    s.add_argument("--quick", action="store_true", help="a small version (for smoke tests)")
+    s.add_argument("--workers", type=_int_at_least(1, "--workers"), default=1,
+                   help="worker processes")
+    s.add_argument("--scheduler", default=None,
+                   help="run trials on a Dask cluster: scheduler address tcp://HOST:PORT")
+    s.add_argument("--retries", type=_int_at_least(0, "--retries"), default=2,
+                   help="runs more of a trial whose worker was lost (default 2)")
+    s.add_argument("--list", action="store_true", help="list the studies")
+    s.set_defaults(func=cmd_study)
+
+    g = sub.add_parser("generate", help="write a synthetic dataset")
+    g.add_argument("scene", nargs="?", default=None)
+    g.add_argument("--cases", type=_int_at_least(1, "--cases"), default=1)
+    g.add_argument("--out", required=True, type=Path)
+    g.add_argument("--seed", type=seed, default=None)
+    g.set_defaults(func=cmd_generate)
+
+    c = sub.add_parser("score", help="score a registration method on a generated dataset")
+    c.add_argument("dataset", type=Path, help="a folder written by testbed generate")
+    c.add_argument("--method", default="reglib",
+                   help="pkg.module:function (Observation, initial 4x4) -> 4x4 ct2robot; "
+                   "default: reglib.estimate")
+    c.add_argument("--out", required=True, type=Path)
+    c.add_argument("--workers", type=_int_at_least(1, "--workers"), default=1)
+    c.add_argument("--scheduler", default=None)
+    c.set_defaults(func=cmd_score)
+
+    d = sub.add_parser("render", help="render one X-ray frame of a view to PNG")
+    d.add_argument("scene", nargs="?", default=None)
+    d.add_argument("--view", type=_int_at_least(0, "--view"), default=0,
+                   help="view index (0-based)")
+    d.add_argument("--out", required=True, type=Path, help="a .png file")
+    d.add_argument("--seed", type=seed, default=None)
+    d.set_defaults(func=cmd_render)
+
+    b = sub.add_parser("bench", help="measure every performance target")
+    b.add_argument("--quick", action="store_true")
+    b.add_argument("--json", action="store_true")
+    b.add_argument("--only", nargs="*", default=None, metavar="WORKLOAD")
+    b.set_defaults(func=cmd_bench)
+
+    n = sub.add_parser("scenes", help="list the named scenes")
+    n.set_defaults(func=cmd_scenes)
+    return p
+
+
+def main(argv=None) -> int:
+    global _scene_path
+    _scene_path = None
+    debug = bool(os.environ.get("TESTBED_DEBUG"))
+    try:
+        args = build_parser().parse_args(argv)
+        if args.version:
+            print(f"{PROG} {_version()}")
+            return 0
+        if not getattr(args, "command", None):
+            raise UsageError(f"{PROG}: a command is needed: run, study, generate, score, "
+                             f"render, bench, scenes (see {PROG} --help)")
+        return int(args.func(args) or 0)
+    except UsageError as exc:
+        print(_one_line(str(exc)), file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
+    except OSError as exc:  # the disk or the file system, during the work
+        if debug:
+            raise
+        where = f"{exc.filename}: " if exc.filename and str(exc.filename) not in str(exc) else ""
+        print(f"{PROG}: {where}{_one_line(str(exc))}", file=sys.stderr)
+        return 2 if isinstance(exc, FileNotFoundError) else 1  # a missing input file: 2
+    except Exception as exc:
+        from testbed.spec import SceneError
+
+        if debug:
+            raise
+        if isinstance(exc, SceneError | ValueError | FileNotFoundError):
+            print(f"{PROG}: {_names_scene_file(exc, _one_line(str(exc)))}", file=sys.stderr)
+            return 2
+        print(f"{PROG}: internal error: {type(exc).__name__}: {_one_line(str(exc))} "
+              "(TESTBED_DEBUG=1 shows the traceback)", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

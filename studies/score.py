@@ -1,0 +1,163 @@
+"""``testbed score``: score any registration method on a generated dataset.
+
+A *method* is a function ``method(observation, initial) -> ct2robot`` that takes a case's
+:class:`testbed.dataset.Observation` (what a clinic has; see ``docs/dataset-format.md``) and
+the start pose as a (4, 4) ``ct2robot`` array (mm), and returns its estimate as a (4, 4)
+array (or a :class:`reglib.geometry.RigidTransform`). It is named on the command line as
+``pkg.module:function`` (importable from the current folder or the Python path); the default
+is reglib's one call, :func:`reglib.estimate`, with the options of the dataset's scene.
+
+Every case of the dataset is one trial on the study runner (resumable, failed cases as rows,
+``--workers``): the case is loaded (checksums verified), the start drawn exactly as
+``testbed run`` draws it for that scene and seed (:func:`studies.scoring.run_start`), the
+method called, and its result scored at the pins. A method that raises, or returns something
+that is not a finite rigid (4, 4) transform, gives a failed trial with the reason.
+
+Output as for the studies: ``OUT/results.csv`` (``trial, metric, value, unit`` + ``case``,
+``pin``: ``pin_error`` mm per pin, ``mtre`` mm, ``start_mtre`` mm, ``time`` s, and for
+reglib's method ``accepted`` and ``converged``) and ``OUT/report.md``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+__all__ = ["DEFAULT_METHOD", "load_method", "score_case", "score_dataset"]
+
+DEFAULT_METHOD = "reglib"
+
+
+def load_method(spec: str):
+    """The function named ``pkg.module:function`` (``ValueError`` with a clear message when it
+    cannot be imported or is not callable)."""
+    if spec == DEFAULT_METHOD:
+        return None
+    if not isinstance(spec, str) or spec.count(":") != 1 or not all(spec.split(":")):
+        raise ValueError(f"--method {spec!r}: expected pkg.module:function")
+    mod_name, fn_name = spec.split(":")
+    import sys
+
+    if "" not in sys.path and str(Path.cwd()) not in sys.path:
+        sys.path.insert(0, str(Path.cwd()))
+    try:
+        mod = importlib.import_module(mod_name)
+    except ImportError as exc:
+        raise ValueError(f"--method {spec!r}: cannot import module {mod_name!r} ({exc})") from None
+    fn = getattr(mod, fn_name, None)
+    if not callable(fn):
+        raise ValueError(f"--method {spec!r}: module {mod_name!r} has no function {fn_name!r}")
+    return fn
+
+
+def _as_pose(value, spec: str):
+    from reglib.geometry import RigidTransform
+
+    m = value.as_matrix() if isinstance(value, RigidTransform) else value
+    try:
+        m = np.asarray(m, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"method {spec}: returned {type(value).__name__}, expected a (4, 4) "
+                         "ct2robot array") from None
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise ValueError(f"method {spec}: returned shape {m.shape} (or non-finite values), "
+                         "expected a finite (4, 4) ct2robot array")
+    R = m[:3, :3]
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0 \
+            or not np.allclose(m[3], [0, 0, 0, 1]):
+        raise ValueError(f"method {spec}: returned a (4, 4) matrix that is not a rigid "
+                         "transform (rotation and translation)")
+    return RigidTransform(R, m[:3, 3])
+
+
+def score_case(case_dir, method: str = DEFAULT_METHOD) -> list[dict]:
+    """Rows of one case (see the module docstring)."""
+    import reglib
+    from studies.end_to_end import estimate_options
+    from studies.scoring import pin_errors, run_start
+    from testbed.dataset import load
+    from testbed.scene import parse_scene
+
+    obs, truth = load(case_dir)
+    tmeta = truth.meta.get("truth", truth.meta)
+    try:
+        scene = parse_scene(tmeta["scene"], source=f"{case_dir}/case.json meta.truth.scene")
+        seed = tmeta["seed"]
+        case_ss = np.random.SeedSequence(int(seed["entropy"]),
+                                         spawn_key=tuple(int(k) for k in seed["spawn_key"]))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{case_dir}/case.json: meta lacks the case's scene or seed ({exc}); "
+                         "was it written by testbed generate?") from None
+    start = run_start(truth, scene, case_ss)
+    fn = load_method(method)
+    rows = []
+    t0 = time.perf_counter()
+    if fn is None:
+        est = reglib.estimate(obs, start, options=estimate_options(scene))
+        pose = est.ct2robot
+        rows += [{"metric": "accepted", "value": float(est.accepted), "unit": ""},
+                 {"metric": "converged", "value": float(est.converged), "unit": ""}]
+    else:
+        pose = _as_pose(fn(obs, start.as_matrix()), method)
+    dt = time.perf_counter() - t0
+    truth_pose, pins = truth.transforms["ct2robot"], truth.points["pins_ct"]
+    errs = pin_errors(pose, truth_pose, pins)
+    start_errs = pin_errors(start, truth_pose, pins)
+    rows += [{"metric": "pin_error", "value": e, "unit": "mm", "pin": p} for p, e in errs.items()]
+    rows += [{"metric": "mtre", "value": float(np.mean(list(errs.values()))), "unit": "mm"},
+             {"metric": "start_mtre", "value": float(np.mean(list(start_errs.values()))),
+              "unit": "mm"},
+             {"metric": "time", "value": dt, "unit": "s"}]
+    return rows
+
+
+def trial(tr) -> list[dict]:
+    """A runner trial: case ``tr.params['case']`` of the dataset ``tr.scene``."""
+    return score_case(Path(tr.scene) / tr.params["case"], tr.params["method"])
+
+
+def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 1,
+                  scheduler=None, progress: bool = True) -> Path:
+    """Score ``method`` on every case of ``dataset``; writes ``out/results.csv`` and
+    ``out/report.md``; returns ``out``. Rerunning into the same ``out`` resumes."""
+    from studies.common import StudyContext, finish_study, markdown_table
+    from studies.runner import make_trials, run_trials
+    from testbed.dataset import list_cases
+    from testbed.scene import parse_scene
+
+    dataset = Path(dataset)
+    if not dataset.is_dir():
+        raise ValueError(f"{dataset}: no such dataset folder")
+    cases = list_cases(dataset)
+    if not cases:
+        raise ValueError(f"{dataset}: holds no case (case_*/case.json); make one with "
+                         "testbed generate")
+    load_method(method)  # refuse a bad --method before any work
+    out = Path(out)
+    params = [{"case": c.name, "method": method} for c in cases]
+    trials = make_trials(str(dataset.resolve()), 0, params)
+    df = run_trials(trial, trials, out_dir=out, workers=workers, scheduler=scheduler,
+                    progress=progress)
+    from testbed.dataset import load
+
+    _, truth0 = load(cases[0])
+    scene = parse_scene(truth0.meta.get("truth", truth0.meta)["scene"], source=str(cases[0]))
+    ctx = StudyContext(name=f"score {method}", out=out, scene_path=dataset, scene=scene,
+                       seed=0, workers=workers, scheduler=scheduler)
+    pe = df[df.metric == "pin_error"]
+    if not pe.empty:
+        t = pe.groupby("pin")["value"].agg(["mean", "median", "max"]).reset_index()
+        per_case = pe.pivot_table(index="case", columns="pin", values="value").reset_index()
+        ctx.report("Pin errors (mm)", f"Method `{method}` on {len(cases)} case(s) of "
+                   f"`{dataset}`; starts as `testbed run` draws them.\n\n"
+                   + markdown_table(t, ".3f") + "\n\n" + markdown_table(per_case, ".3f"))
+    failures = df.attrs.get("failures", {})
+    if failures:
+        ctx.report("Failed cases", "\n".join(f"- trial {k}: {v}" for k, v in failures.items()))
+    finish_study(ctx, df if len(df) else pd.DataFrame(columns=["trial", "metric", "value",
+                                                               "unit"]))
+    return out

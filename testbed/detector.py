@@ -1,0 +1,231 @@
+"""The fluoroscope's imaging chain after the line integrals: from primary transmission to video.
+
+Every stage and its magnitude is documented in ``docs/error-model.md``. The order follows the
+physics of an image-intensifier (II) fluoroscope:
+
+1. primary transmission ``T = exp(-integral mu)`` per pixel (computed by the ray casting);
+2. focal-spot blur: the finite focal spot throws a penumbra whose width at the input plane is
+   ``focal_spot_mm * (M - 1)``, ``M`` the magnification of the imaged body
+   (:func:`focal_spot_sigma_px`); one Gaussian per image at the magnification of the bone;
+3. scatter: a broad, low-frequency component ``S = spr * lowpass(P)`` added to the primary
+   ``P`` (:func:`add_scatter`), emitted where the rays crossed matter (primary transmission
+   below ``SCATTERER_TRANSMISSION``); behind a uniform body ``S / P`` equals ``spr`` exactly;
+4. quantum noise: Poisson counts at fluoroscopic photon numbers (:func:`quantum_noise`), the
+   tube output set by automatic brightness control (:func:`abc_photons`) or given directly;
+5. intensifier and video blur: a Gaussian MTF with 50 % modulation at ``mtf50_lp_per_mm``
+   (input-plane frequency; :func:`mtf_sigma_px`), applied after the quanta are counted so the
+   noise is correlated as in a real II;
+6. veiling glare and vignetting (the fluoroscope's existing fields);
+7. video: a logarithmic amplifier between a black and a white level (gain and offset), camera
+   noise in grey levels, 8-bit quantisation (:func:`video_u8`).
+
+Images are ``(H, W)`` float arrays indexed ``[row, col]``, relative to the unattenuated beam;
+``fov`` is the ``(H, W)`` bool mask of the circular field of view (outside it the image is 0).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.ndimage import gaussian_filter, map_coordinates
+
+__all__ = [
+    "FWHM_TO_SIGMA",
+    "SCATTERER_TRANSMISSION",
+    "focal_spot_sigma_px",
+    "mtf_sigma_px",
+    "gaussian_mtf",
+    "blur",
+    "wide_blur",
+    "add_scatter",
+    "abc_photons",
+    "quantum_noise",
+    "video_u8",
+    "form_image",
+]
+
+SCATTERER_TRANSMISSION = 0.95
+"""A pixel's ray crossed a scattering medium when its primary transmission is below this."""
+FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))  # sigma of a Gaussian per FWHM
+
+
+def focal_spot_sigma_px(focal_spot_mm: float, magnification: float, pixel_mm: float) -> float:
+    """Gaussian sigma (px, input plane) of the focal-spot penumbra of a body at ``magnification``.
+
+    The nominal focal spot is taken as the FWHM of a Gaussian source; a body at magnification
+    ``M = SID / source-to-body`` is blurred at the input plane by ``focal_spot_mm * (M - 1)``
+    (FWHM, mm), i.e. sigma ``= focal_spot_mm * (M - 1) / 2.355 / pixel_mm`` px.
+    """
+    if focal_spot_mm < 0 or not np.isfinite(focal_spot_mm):
+        raise ValueError(f"focal_spot_mm must be finite and >= 0, got {focal_spot_mm}")
+    if not magnification >= 1.0:
+        raise ValueError(f"magnification must be >= 1 (the body lies between source and "
+                         f"detector), got {magnification}")
+    if not pixel_mm > 0:
+        raise ValueError(f"pixel_mm must be > 0, got {pixel_mm}")
+    return focal_spot_mm * (magnification - 1.0) * FWHM_TO_SIGMA / pixel_mm
+
+
+def mtf_sigma_px(mtf50_lp_per_mm: float, pixel_mm: float) -> float:
+    """Gaussian sigma (px) of a blur whose MTF is 0.5 at ``mtf50_lp_per_mm`` (input plane).
+
+    A Gaussian line spread of sigma ``s`` mm has ``MTF(f) = exp(-2 pi^2 s^2 f^2)``; solving
+    ``MTF(f50) = 0.5`` gives ``s = sqrt(ln 2 / 2) / (pi f50)``. ``mtf50_lp_per_mm = 0`` means
+    no blur (sigma 0).
+    """
+    if mtf50_lp_per_mm < 0 or not np.isfinite(mtf50_lp_per_mm):
+        raise ValueError(f"mtf50_lp_per_mm must be finite and >= 0, got {mtf50_lp_per_mm}")
+    if mtf50_lp_per_mm == 0:
+        return 0.0
+    return math.sqrt(math.log(2.0) / 2.0) / (math.pi * mtf50_lp_per_mm) / pixel_mm
+
+
+def gaussian_mtf(freq_lp_per_mm, sigma_mm: float) -> np.ndarray:
+    """MTF of a Gaussian line spread of ``sigma_mm`` at frequencies ``freq_lp_per_mm``."""
+    f = np.asarray(freq_lp_per_mm, dtype=np.float64)
+    return np.exp(-2.0 * math.pi**2 * sigma_mm**2 * f**2)
+
+
+def blur(img: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Gaussian blur of ``img`` (H, W) with ``sigma_px``; 0 returns a copy.
+
+    The image continues at its edge value (``mode="nearest"``); the caller zeroes what lies
+    outside the field of view afterwards.
+    """
+    img = np.asarray(img, dtype=np.float64)
+    if sigma_px <= 0:
+        return img.copy()
+    return gaussian_filter(img, sigma_px, mode="nearest")
+
+
+def wide_blur(img: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Gaussian blur (zero outside the image) of a wide kernel, computed on a grid coarser by
+    ``sigma / 8`` (at most 4x) and interpolated back (the result is smooth at that scale).
+
+    ``scipy.ndimage.gaussian_filter(img, sigma_px, mode="constant")`` is the reference.
+    """
+    img = np.asarray(img, dtype=np.float64)
+    f = int(np.clip(sigma_px // 8, 1, 4))
+    if f == 1:
+        return gaussian_filter(img, sigma_px, mode="constant")
+    H, W = img.shape
+    h, w = -(-H // f), -(-W // f)
+    pad = np.zeros((h * f, w * f))
+    pad[:H, :W] = img
+    small = pad.reshape(h, f, w, f).mean(axis=(1, 3))
+    small = gaussian_filter(small, sigma_px / f, mode="constant")
+    # back to full resolution: small pixel (i, j) is centred at full (f i + (f-1)/2, ...)
+    rows = (np.arange(H) - (f - 1) / 2) / f
+    cols = (np.arange(W) - (f - 1) / 2) / f
+    return map_coordinates(small, np.meshgrid(rows, cols, indexing="ij"), order=1,
+                           mode="nearest")
+
+
+def add_scatter(primary: np.ndarray, fov: np.ndarray, *, spr: float, sigma_px: float,
+                scatterer: np.ndarray | None = None) -> np.ndarray:
+    """Primary plus scatter: ``P + spr * lowpass(P * scatterer)`` inside ``fov`` (H, W) bool.
+
+    ``lowpass`` is a Gaussian of ``sigma_px`` normalised over the field of view
+    (``G * (P m) / G * fov``, ``m`` the ``scatterer`` mask, default the whole field), so a
+    uniform primary behind a scattering medium gets exactly ``spr * P`` of scatter, also near
+    the field's edge (a convolution model of scatter, after Love and Kruger, Med. Phys. 14(2),
+    1987). Behind a dense body ``S / P`` exceeds ``spr``, as measured; where nothing scatters
+    (an empty beam) there is none. ``spr = 0`` returns the primary.
+    """
+    if spr < 0 or not np.isfinite(spr):
+        raise ValueError(f"scatter_to_primary must be finite and >= 0, got {spr}")
+    p = np.where(fov, np.asarray(primary, dtype=np.float64), 0.0)
+    if spr == 0:
+        return p
+    src = p if scatterer is None else np.where(scatterer, p, 0.0)
+    num = wide_blur(src, sigma_px)
+    den = wide_blur(fov.astype(np.float64), sigma_px)
+    low = np.divide(num, den, out=np.zeros_like(num), where=den > 1e-6)
+    return np.where(fov, p + spr * low, 0.0)
+
+
+def abc_photons(fluence: np.ndarray, fov: np.ndarray, target_photons: float) -> float:
+    """Photons per pixel of the unattenuated beam that automatic brightness control sets so
+    that the median detected count in ``fov`` equals ``target_photons``.
+
+    ``fluence`` (H, W): detected fluence relative to the unattenuated beam.
+    """
+    med = float(np.median(fluence[fov])) if np.any(fov) else 0.0
+    if not med > 0:
+        raise ValueError("automatic brightness control: no X-rays reach the field of view")
+    return target_photons / med
+
+
+def quantum_noise(fluence: np.ndarray, photons: float, rng) -> np.ndarray:
+    """Poisson counts of ``photons * fluence`` per pixel, back in units of the beam."""
+    if not photons > 0:
+        raise ValueError(f"photons per pixel must be > 0, got {photons}")
+    rng = np.random.default_rng(rng)
+    return rng.poisson(photons * np.maximum(fluence, 0.0)) / photons
+
+
+def video_u8(intensity: np.ndarray, fov: np.ndarray, *, black_u8: int, white_u8: int,
+             display_range: float, noise_u8: float = 0.0, rng=None) -> np.ndarray:
+    """8-bit video of ``intensity`` (relative to the unattenuated beam; (H, W)).
+
+    Logarithmic amplifier: ``level = 1 + ln(I) / display_range`` clipped to [0, 1], mapped to
+    ``black_u8 + (white_u8 - black_u8) * level`` (offset and gain), plus Gaussian camera noise
+    of ``noise_u8`` grey levels, rounded and clipped to 0..255; 0 outside ``fov``.
+    """
+    level = 1.0 + np.log(np.maximum(intensity, 1e-12)) / display_range
+    video = black_u8 + (white_u8 - black_u8) * np.clip(level, 0.0, 1.0)
+    if noise_u8 > 0:
+        video = video + np.random.default_rng(rng).normal(0.0, noise_u8, video.shape)
+    return np.where(fov, np.clip(np.rint(video), 0, 255), 0).astype(np.uint8)
+
+
+def form_image(transmission: np.ndarray, fov: np.ndarray, rho: np.ndarray, fluoro, *,
+               magnification: float, noise: bool, rng=None) -> tuple[np.ndarray, np.ndarray]:
+    """The whole chain from primary transmission to the 8-bit frame.
+
+    Parameters
+    ----------
+    transmission : (H, W) float
+        Primary transmission ``exp(-integral mu)`` per pixel (0 outside ``fov``).
+    fov : (H, W) bool
+        The circular field of view.
+    rho : (H, W) float
+        Radius on the input plane over the field's radius (for vignetting).
+    fluoro : testbed.fluoroscope.FluoroscopeSpec
+        The fields ``focal_spot_mm``, ``scatter_to_primary``, ``scatter_sigma_mm``,
+        ``photons_per_pixel``, ``abc_photons_per_pixel``, ``mtf50_lp_per_mm``,
+        ``glare_fraction``, ``glare_sigma_px``, ``vignetting``, ``display_range``,
+        ``black_u8``, ``white_u8``, ``video_noise_u8``, ``pixel_mm``.
+    magnification : float
+        SID over the source-to-bone distance (for the focal-spot blur).
+    noise : bool
+        Quantum and camera noise on or off.
+    rng : numpy Generator, int or None
+
+    Returns ``(intensity (H, W) float64, video (H, W) uint8)``.
+    """
+    rng = np.random.default_rng(rng)
+    px = float(fluoro.pixel_mm)
+    img = np.where(fov, np.asarray(transmission, dtype=np.float64), 0.0)
+    scatterer = fov & (img < SCATTERER_TRANSMISSION)
+    img = blur(img, focal_spot_sigma_px(fluoro.focal_spot_mm, magnification, px))
+    img = add_scatter(img, fov, spr=fluoro.scatter_to_primary,
+                      sigma_px=fluoro.scatter_sigma_mm / px, scatterer=scatterer)
+    if noise:
+        if fluoro.abc_photons_per_pixel > 0:
+            n0 = abc_photons(img, fov, fluoro.abc_photons_per_pixel)
+        else:
+            n0 = fluoro.photons_per_pixel
+        img[fov] = quantum_noise(img[fov], n0, rng)
+    img = blur(img, mtf_sigma_px(fluoro.mtf50_lp_per_mm, px))
+    img[~fov] = 0.0
+    if fluoro.glare_fraction > 0:
+        g = fluoro.glare_fraction
+        img = (1.0 - g) * img + g * wide_blur(img, fluoro.glare_sigma_px)
+    img[fov] *= 1.0 - fluoro.vignetting * rho[fov] ** 2
+    img[~fov] = 0.0
+    video = video_u8(img, fov, black_u8=fluoro.black_u8, white_u8=fluoro.white_u8,
+                     display_range=fluoro.display_range,
+                     noise_u8=fluoro.video_noise_u8 if noise else 0.0, rng=rng)
+    return img, video

@@ -1,0 +1,280 @@
+"""The simulated operator: the clicks a user places on the CT slices and on the X-ray frames.
+
+In the paper the user clicks a few points near the bone on a CT slice or an X-ray image; a
+snake does the rest (NOTES.md s2), and the same clicks are reused from slice to slice. This
+module is that user. It works from what the user sees:
+
+- **CT**: the bone is what is bright on each slice. The operator thresholds the slice
+  (``ct_bone_threshold_hu``), fills the marrow, keeps the outlines of the bone's cross-sections
+  (one for the shaft and the proximal femur, two at the condyles) and places ``ct_clicks``
+  points along each, evenly spaced with a random phase, each moved by a seeded Gaussian error
+  of ``ct_click_noise_px``. Clicks are placed again only when the number of cross-sections
+  changes or after ``ct_reclick_every_mm`` along the slices; the slices between reuse them.
+  In the proximal region the operator stops where the femoral head separates from the neck
+  (two cross-sections): the head is left out, as in the paper.
+- **X-ray**: the femur's outline as it shows in the frame, *only where it is visible*: parts
+  of the outline under an instrument's shadow (dilated by ``instrument_margin_px``) or within
+  ``xray_edge_margin_px`` of the field's rim are never clicked. Each visible run of the
+  outline longer than ``xray_min_trace_px`` becomes one trace of ``xray_clicks`` clicks with
+  a Gaussian error of ``xray_click_noise_px``.
+
+The X-ray outline is read from the rendered frame's per-body path lengths (what a trained
+user perceives as the femur's edge), never from the method's models. Everything random is
+drawn from the ``rng`` passed in.
+
+Outputs are plain arrays, stored in the case's observation (``arrays/ct_clicks_{region}``
+and ``arrays/xray_clicks_{view}``, see ``docs/dataset-format.md``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated
+
+import numpy as np
+from pydantic import Field
+
+from reglib.geometry import arc_length
+from testbed.spec import NonNegative, Positive, Spec
+
+__all__ = [
+    "OperatorSpec",
+    "CtClicks",
+    "XrayClicks",
+    "clicks_along",
+    "ct_clicks",
+    "xray_clicks",
+]
+
+
+class OperatorSpec(Spec):
+    """``[operator]``: the simulated user's clicks (see the module docstring).
+
+    ``ct_clicks``: clicks per cross-section on a CT slice; ``ct_click_noise_px``: standard
+    deviation of each click's error (px, CT pixels); ``ct_reclick_every_mm``: the user clicks
+    again after this distance along the slices (0: on every slice);
+    ``ct_bone_threshold_hu``: what the user sees as bone on a slice (HU);
+    ``ct_min_section_mm2``: smaller bright islands are ignored.
+    ``xray_clicks``: clicks per visible run of the femur's outline on an X-ray frame;
+    ``xray_click_noise_px``: error of each click (px); ``xray_edge_margin_px``: no click this
+    close to the field's rim; ``instrument_margin_px``: no click this close to an
+    instrument's shadow; ``xray_min_trace_px``: shorter visible runs are not traced.
+
+    Clinic defaults (``docs/error-model.md``, section 5): clicks 1.5 px (CT) and 2 px (X-ray)
+    off the outline, CT clicks reused for 10 mm of slices (the paper reuses them from slice to
+    slice); the ideal profile clicks within 1 px on every slice.
+    """
+
+    ct_clicks: Annotated[int, Field(ge=3, le=200)] = 10
+    ct_click_noise_px: NonNegative = 1.5
+    ct_reclick_every_mm: NonNegative = 10.0
+    ct_bone_threshold_hu: Annotated[float, Field(ge=-500.0, le=3000.0)] = 400.0
+    ct_min_section_mm2: Positive = 20.0
+    xray_clicks: Annotated[int, Field(ge=2, le=200)] = 8
+    xray_click_noise_px: NonNegative = 2.0
+    xray_edge_margin_px: NonNegative = 6.0
+    instrument_margin_px: NonNegative = 4.0
+    xray_min_trace_px: Annotated[int, Field(ge=5, le=100_000)] = 40
+
+
+# --------------------------------------------------------------------------- shared
+def clicks_along(chain_xy, n_clicks: int, noise_px: float, rng, *, closed: bool) -> np.ndarray:
+    """A user's clicks along a polyline: ``n_clicks`` points evenly spaced by arc length,
+    plus a Gaussian error of ``noise_px`` each.
+
+    Parameters
+    ----------
+    chain_xy : (K, 2) (x, y) px, the outline in order.
+    closed : a closed outline (clicks start at a random phase) or an open one (clicks from
+        end to end).
+
+    Returns
+    -------
+    (n_clicks, 2) float64 (x, y) px.
+    """
+    p, s = arc_length(chain_xy, closed=closed)
+    if closed:
+        at = (rng.uniform() + np.arange(n_clicks)) / n_clicks * s[-1]
+    else:
+        at = np.linspace(0.0, s[-1], n_clicks)
+    pts = np.column_stack([np.interp(at, s, p[:, 0]), np.interp(at, s, p[:, 1])])
+    return pts + rng.normal(0.0, noise_px, size=pts.shape)
+
+
+# --------------------------------------------------------------------------- CT
+#: a bright island smaller than this share of the slice's largest one is not taken for bone
+MIN_SECTION_SHARE = 0.1
+
+
+@dataclass(frozen=True)
+class CtClicks:
+    """The operator's work on one CT region.
+
+    ``slices`` (S,) int: the slices to contour, increasing z; ``clicks`` slice index -> list
+    of (n, 2) (x, y) px click polygons, one per cross-section, ordered by mean x (only the
+    slices where the user clicked; the others reuse the nearest).
+    """
+
+    region: str
+    slices: np.ndarray
+    clicks: dict
+
+    def to_arrays(self) -> dict:
+        """Flat arrays for the dataset: ``slices`` (S,), ``clicks_xy`` (P, 2) px,
+        ``slice`` (P,) the slice of each click, ``contour`` (P,) its polygon on that slice."""
+        xy, sl, co = [np.zeros((0, 2))], [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+        for k in sorted(self.clicks):
+            for j, poly in enumerate(self.clicks[k]):
+                xy.append(np.asarray(poly, dtype=np.float64))
+                sl.append(np.full(len(poly), k, dtype=np.int64))
+                co.append(np.full(len(poly), j, dtype=np.int64))
+        return {"slices": np.asarray(self.slices, dtype=np.int64), "clicks_xy": np.vstack(xy),
+                "slice": np.concatenate(sl), "contour": np.concatenate(co)}
+
+
+def bone_sections(slice_hu, *, threshold_hu: float, min_area_px: float) -> list[np.ndarray]:
+    """Outlines of the bright cross-sections of a CT slice, as a user sees them.
+
+    The slice is thresholded, holes (marrow) filled, and each connected part of at least
+    ``min_area_px`` pixels and :data:`MIN_SECTION_SHARE` of the largest part outlined.
+    Returns a list of (K, 2) (x, y) px closed polygons (last point not repeated), ordered
+    by mean x.
+    """
+    from scipy import ndimage
+    from skimage.measure import find_contours
+
+    bright = ndimage.binary_fill_holes(np.asarray(slice_hu) > threshold_hu)
+    labels, n = ndimage.label(bright)
+    areas = np.bincount(labels.ravel())[1:] if n else np.zeros(0)
+    # islands much smaller than the bone's section (a streak, a pin's head) are not bone
+    keep_px = max(min_area_px, MIN_SECTION_SHARE * (areas.max() if n else 0.0))
+    out = []
+    for lab in range(1, n + 1):
+        if areas[lab - 1] < keep_px:
+            continue
+        part = labels == lab
+        cs = find_contours(np.pad(part, 1).astype(np.float64), 0.5)
+        if not cs:
+            continue
+        c = max(cs, key=len)[:-1] - 1.0  # undo the padding; (row, col)
+        out.append(c[:, ::-1].copy())
+    return sorted(out, key=lambda p: float(np.mean(p[:, 0])))
+
+
+def ct_clicks(volume_hu, slice_z_mm, region_slices: dict, *, pixel_mm: float,
+              spec: OperatorSpec, rng) -> dict[str, CtClicks]:
+    """The operator's clicks on every CT region.
+
+    Parameters
+    ----------
+    volume_hu : (n_slices, rows, cols) HU, indexed [slice, row, col].
+    slice_z_mm : (n_slices,) slice positions (ct mm, increasing).
+    region_slices : region name -> slice indices of that scanned region (``CTScan.regions``).
+    pixel_mm : in-plane pixel size (mm).
+    spec : OperatorSpec.
+    rng : numpy Generator.
+
+    Raises ``ValueError`` naming the region when fewer than 2 of its slices show bone.
+    """
+    vol = np.asarray(volume_hu)
+    z = np.asarray(slice_z_mm, dtype=np.float64)
+    min_area_px = spec.ct_min_section_mm2 / pixel_mm**2
+    out = {}
+    for region in sorted(region_slices):
+        slices, sections = [], {}
+        for k in np.sort(np.asarray(region_slices[region], dtype=np.int64)):
+            sec = bone_sections(vol[k], threshold_hu=spec.ct_bone_threshold_hu,
+                                min_area_px=min_area_px)
+            if not sec:
+                continue
+            if region == "proximal" and len(sec) > 1:
+                if not slices:
+                    continue  # below the region's bone proper (e.g. a trochanter's tip alone)
+                break  # the femoral head separates from the neck: left out, as in the paper
+            slices.append(int(k))
+            sections[int(k)] = sec
+        if len(slices) < 2:
+            raise ValueError(f"CT region {region!r}: fewer than 2 slices show bone above "
+                             f"{spec.ct_bone_threshold_hu:g} HU")
+        clicks, last_z, last_n = {}, -np.inf, -1
+        for k in slices:
+            sec = sections[k]
+            if len(sec) != last_n or z[k] - last_z >= spec.ct_reclick_every_mm:
+                clicks[k] = [clicks_along(p, spec.ct_clicks, spec.ct_click_noise_px, rng,
+                                          closed=True) for p in sec]
+                last_z, last_n = z[k], len(sec)
+        out[region] = CtClicks(region, np.asarray(slices, dtype=np.int64), clicks)
+    return out
+
+
+# --------------------------------------------------------------------------- X-ray
+@dataclass(frozen=True)
+class XrayClicks:
+    """The operator's traces on one X-ray frame: ``traces`` a list of (n, 2) (x, y) px
+    click arrays, each along a visible run of the femur's external outline."""
+
+    view: str
+    traces: list
+
+    def to_arrays(self) -> dict:
+        """Flat arrays for the dataset: ``clicks_xy`` (P, 2) px, ``trace`` (P,) the trace of
+        each click, ``external`` (T,) bool (True: the bone's external outline), ``closed``
+        (T,) bool."""
+        xy = [np.zeros((0, 2))] + [np.asarray(t, dtype=np.float64) for t in self.traces]
+        tr = [np.zeros(0, np.int64)] + [np.full(len(t), i, dtype=np.int64)
+                                        for i, t in enumerate(self.traces)]
+        n = len(self.traces)
+        return {"clicks_xy": np.vstack(xy), "trace": np.concatenate(tr),
+                "external": np.ones(n, dtype=bool), "closed": np.zeros(n, dtype=bool)}
+
+
+def visible_outline(femur_mask, fov, *, occluder_mask=None, edge_margin_px: float,
+                    occluder_margin_px: float, min_len_px: int) -> list[np.ndarray]:
+    """Runs of the femur's outline that a user can see: (K, 2) (x, y) px chains.
+
+    The outline of ``femur_mask`` (H, W) bool is cut where it comes within
+    ``edge_margin_px`` of the field's rim (``fov`` (H, W) bool) or within
+    ``occluder_margin_px`` of ``occluder_mask`` (instruments' shadows); runs shorter than
+    ``min_len_px`` points are dropped.
+    """
+    from scipy.ndimage import distance_transform_edt
+    from skimage.measure import find_contours
+
+    ok = distance_transform_edt(fov) > edge_margin_px
+    if occluder_mask is not None and np.any(occluder_mask):
+        ok &= distance_transform_edt(~np.asarray(occluder_mask, bool)) > occluder_margin_px
+    H, W = ok.shape
+    chains = []
+    for c in find_contours(np.asarray(femur_mask, dtype=np.float64), 0.5):
+        rc = np.rint(c).astype(int)
+        good = ok[np.clip(rc[:, 0], 0, H - 1), np.clip(rc[:, 1], 0, W - 1)]
+        idx = np.flatnonzero(good)
+        if idx.size == 0:
+            continue
+        for run in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1):
+            if len(run) >= min_len_px:
+                chains.append(c[run][:, ::-1].copy())  # (row, col) -> (x, y)
+    return chains
+
+
+def xray_clicks(frame, *, femur_bodies, instrument_bodies, spec: OperatorSpec, rng,
+                view: str = "") -> XrayClicks:
+    """The operator's traces on a rendered frame (``testbed.fluoroscope.Frame``).
+
+    ``femur_bodies``: names of the bodies that make up the femur (its outline is traced);
+    ``instrument_bodies``: names of the instruments (their shadows hide the outline).
+    """
+    femur = np.zeros(frame.fov.shape, dtype=bool)
+    for name in femur_bodies:
+        femur |= frame.path_mm[name] > 0
+    femur &= frame.fov
+    occluder = np.zeros(frame.fov.shape, dtype=bool)
+    for name in instrument_bodies:
+        occluder |= frame.path_mm[name] > 0
+    chains = visible_outline(femur, frame.fov, occluder_mask=occluder,
+                             edge_margin_px=spec.xray_edge_margin_px,
+                             occluder_margin_px=spec.instrument_margin_px,
+                             min_len_px=spec.xray_min_trace_px)
+    traces = [clicks_along(c, spec.xray_clicks, spec.xray_click_noise_px, rng, closed=False)
+              for c in chains]
+    return XrayClicks(view, traces)

@@ -1,0 +1,337 @@
+"""The one simulation driver: a scene and a seed in, a case's ``(Observation, Truth)`` out.
+
+:func:`simulate_case` is what ``testbed run``, every study and ``testbed generate`` call, so
+that a dataset case and a study case of the same scene and seed are the same case. Stages:
+
+1. the world (:mod:`testbed.world`): the phantom (its femur shape drawn from the case's seed
+   when ``[phantom] shape_variation > 0``), placed in the robot frame, the table and the
+   instruments;
+2. the CT scan (:mod:`testbed.ct`) and the operator's clicks on its slices
+   (:mod:`testbed.operator`);
+3. per view: the calibration sweep (:mod:`testbed.sweep`; the robot moves the rod through
+   the beam with the patient, table and instruments in it, as in a clinic), the patient's
+   X-ray frame (:mod:`testbed.fluoroscope`) and the operator's clicks on it.
+
+The observation holds what a clinic has (see ``docs/dataset-format.md`` for every entry):
+the CT volume and its slice geometry, the operator's CT clicks per region, per view the
+8-bit X-ray frame, its field of view, the operator's clicks, the calibration sweep's frames
+and the robot-reported rod and bead positions. The truth holds the rest. ``reglib`` reads
+the observation only (``reglib.estimate``).
+
+Seeds: the case seed of ``(seed, index)`` is ``SeedSequence(seed, spawn_key=(index,))``,
+i.e. child ``index`` of ``SeedSequence(seed).spawn(n)`` for any ``n > index``; ``testbed
+run --seed S`` simulates case 0 of ``S``, the same case as ``case_0000`` of ``testbed
+generate --seed S``. The case seed's children, in order (:data:`SEED_STREAMS`): the femur's
+shape, the world, the CT scanner, the operator, the robot (one child per view: arm errors,
+then sweep image noise), the X-ray frames (one child per view).
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from testbed.dataset import Observation, Truth, Volume
+
+__all__ = [
+    "CtCase",
+    "SEED_STREAMS",
+    "FEMUR_BODIES",
+    "Simulation",
+    "case_seed",
+    "case_world",
+    "simulate",
+    "simulate_case",
+    "simulate_ct",
+]
+
+#: the children of a case's SeedSequence, in spawn order
+SEED_STREAMS = ("shape", "world", "ct", "operator", "robot", "xray")
+#: the phantom bodies whose outline is the femur's outline on an X-ray frame
+FEMUR_BODIES = ("femur",)
+
+
+def case_seed(seed, index: int = 0) -> np.random.SeedSequence:
+    """The SeedSequence of case ``index`` of ``seed`` (an int >= 0, or a SeedSequence,
+    returned as it is when ``index`` is 0 and it is already a case seed)."""
+    if isinstance(seed, np.random.SeedSequence):
+        return seed
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
+        raise ValueError(f"seed: expected an integer >= 0, got {seed!r}")
+    if isinstance(index, bool) or not isinstance(index, int | np.integer) or index < 0:
+        raise ValueError(f"index: expected an integer >= 0, got {index!r}")
+    return np.random.SeedSequence(int(seed), spawn_key=(int(index),))
+
+
+@dataclass
+class Simulation:
+    """A simulated case: what the clinic has, the truth, and the world objects behind them.
+
+    ``observation`` and ``truth`` are what :func:`simulate_case` returns (and what a dataset
+    holds); ``world`` (:class:`testbed.world.World`), ``carms`` (view name -> the C-arm of
+    the patient's frame) and ``frames`` (view name -> :class:`testbed.fluoroscope.Frame`)
+    are kept for the judge's oracles and figures; ``sweeps`` view name -> the recorded
+    :class:`testbed.sweep.Sweep` (empty with ``sweeps=False``); ``scene`` the case's scene
+    (its femur shape seed set); ``timings`` stage -> wall time (s).
+    """
+
+    observation: Observation
+    truth: Truth
+    scene: object
+    world: object
+    carms: dict
+    frames: dict
+    sweeps: dict
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def pair(self) -> tuple[Observation, Truth]:
+        return self.observation, self.truth
+
+
+def _case_scene(scene, shape_ss: np.random.SeedSequence):
+    """The case's scene: the femur shape seed drawn from the case (used when
+    ``shape_variation > 0``)."""
+    shape_seed = int(shape_ss.generate_state(1, dtype=np.uint32)[0])
+    phantom = scene.phantom.model_copy(update={"shape_seed": shape_seed})
+    return scene.model_copy(update={"phantom": phantom})
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.\-]", "_", name)
+
+
+@dataclass
+class CtCase:
+    """The CT side of a case: the case's ``scene`` (its femur shape seed set), the ``world``,
+    the ``ct`` scan (:class:`testbed.ct.CTScan`), the operator's ``clicks`` (region ->
+    :class:`testbed.operator.CtClicks`) and the operator's generator for the X-ray frames."""
+
+    scene: object
+    world: object
+    ct: object
+    clicks: dict
+    xray_operator_rng: np.random.Generator
+
+
+def case_world(scene, seed=0, *, index: int = 0):
+    """The case's scene (its femur shape seed set) and world, exactly as :func:`simulate`
+    makes them: ``(scene, world)``."""
+    from testbed.world import build_world
+
+    shape_ss, world_ss = case_seed(seed, index).spawn(len(SEED_STREAMS))[:2]
+    scene = _case_scene(scene, shape_ss)
+    return scene, build_world(scene, np.random.default_rng(world_ss))
+
+
+def simulate_ct(scene, seed=0, *, index: int = 0, world=None) -> CtCase:
+    """The world, the CT scan and the operator's CT clicks of a case, exactly as
+    :func:`simulate` makes them (same seed streams), without fluoroscopy. ``world``: the
+    case's world when already built (:func:`case_world`; ``scene`` is then the case's)."""
+    from testbed.ct import scan
+    from testbed.operator import ct_clicks
+
+    css = case_seed(seed, index)
+    _, _, ct_ss, op_ss, _, _ = css.spawn(len(SEED_STREAMS))
+    if world is None:
+        scene, world = case_world(scene, css)
+    ct = scan(world.phantom, scene.ct, np.random.default_rng(ct_ss))
+    ct_rng, xray_op_rng = np.random.default_rng(op_ss).spawn(2)
+    clicks = ct_clicks(ct.volume_hu, ct.slice_z_mm, ct.regions, pixel_mm=ct.pixel_mm,
+                       spec=scene.operator, rng=ct_rng)
+    return CtCase(scene, world, ct, clicks, xray_op_rng)
+
+
+def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: bool = False,
+             progress: bool = False) -> Simulation:
+    """Simulate one case of an operating-room scene.
+
+    Parameters
+    ----------
+    scene : testbed.scene.Scene
+        An ``operating_room`` scene with ``[[views]]``.
+    seed : int or numpy.random.SeedSequence
+        The seed (with ``index``, see :func:`case_seed`) or the case's own SeedSequence.
+    index : int
+        The case's index under ``seed``.
+    sweeps : bool
+        Simulate the calibration sweeps (False leaves them out of the observation: the
+        judge then calibrates with the truth, see ``studies.oracles``).
+    truth_rays : bool
+        Put every pixel's true X-ray path into the truth (``arrays/rays_{view}``, 2 x 7 MB
+        per 640 x 480 view; the datasets have them).
+    progress : bool
+        A progress bar over the stages.
+
+    Raises ``ValueError`` naming the scene, view or stage when the case cannot be simulated.
+    """
+    from tqdm import tqdm
+
+    from testbed.fluoroscope import make_carm, render
+    from testbed.operator import xray_clicks
+    from testbed.robot import Robot
+    from testbed.sweep import run_sweep
+    from testbed.workspace import require_feasible
+
+    if scene.scene.kind != "operating_room" or not scene.views:
+        raise ValueError(f"scene {scene.scene.name!r} (kind {scene.scene.kind!r}): simulating a "
+                         "case needs an operating_room scene with [[views]]")
+    names = [v.name for v in scene.views]
+    if len(set(names)) != len(names):
+        raise ValueError(f"scene {scene.scene.name!r}: view names must be unique, got {names}")
+    css = case_seed(seed, index)
+    _, _, _, _, robot_ss, xray_ss = css.spawn(len(SEED_STREAMS))
+    timings: dict[str, float] = {}
+    obs = {g: {} for g in ("volumes", "images", "arrays", "meshes", "transforms", "points")}
+    tru = {g: {} for g in obs}
+    n_steps = 2 + len(scene.views) * (2 if sweeps else 1)
+    bar = tqdm(total=n_steps, desc="simulate", unit="stage", disable=not progress,
+               leave=False)
+
+    def tick(stage, t0):
+        timings[stage] = timings.get(stage, 0.0) + time.perf_counter() - t0
+        bar.set_postfix_str(stage)
+        bar.update(1)
+
+    # 1. the world, and the check that every view and sweep pose can be taken
+    t0 = time.perf_counter()
+    scene, world = case_world(scene, css)
+    workspace = require_feasible(scene, world)
+    tick("world+workspace", t0)
+    # 2. CT and the operator's clicks on it
+    t0 = time.perf_counter()
+    ctc = simulate_ct(scene, css, world=world)
+    scene, world, ct, regions = ctc.scene, ctc.world, ctc.ct, ctc.clicks
+    op_spec = scene.operator
+    ph = world.phantom
+    tru["transforms"]["ct2robot"] = world.ct2robot
+    meshes = {"femur": ph.femur, "canal": ph.canal, "cancellous": ph.cancellous,
+              "soft_tissue": ph.soft_tissue}
+    meshes.update({f"pin_{k}": m for k, m in ph.pin_meshes.items()})
+    tru["meshes"].update({k: m for k, m in meshes.items() if m is not None})
+    for body in [*world.table, *world.instruments]:  # already in the robot frame
+        if body.mesh is not None:
+            tru["meshes"]["robot_" + _safe(body.name)] = body.mesh
+    tru["points"]["pins_ct"] = {k: np.asarray(v, float) for k, v in ph.pins.items()}
+    tru["points"]["pins_robot"] = {k: np.asarray(v, float) for k, v in world.pins_robot.items()}
+    if ph.landmarks:
+        tru["points"]["landmarks_ct"] = {k: np.asarray(v, float) for k, v in ph.landmarks.items()}
+    z = np.asarray(ct.slice_z_mm, dtype=np.float64)
+    dz = np.diff(z)
+    uniform = bool(len(z) < 2 or np.ptp(dz) <= 1e-6)
+    if uniform:
+        voxel2ct = ct.voxel2ct
+    else:  # one affine for the volume's header: the first slice and the mean spacing
+        voxel2ct = np.eye(4)
+        voxel2ct[0, 0] = voxel2ct[1, 1] = ct.pixel_mm
+        voxel2ct[2, 2] = float(np.mean(dz))
+        voxel2ct[:3, 3] = (*ct.origin_xy_mm, z[0])
+    # stored (col, row, slice) = NIfTI (i, j, k); reglib.pipeline reads it back as
+    # [slice, row, col]
+    data = np.ascontiguousarray(np.asarray(ct.volume_hu).transpose(2, 1, 0))
+    obs["volumes"]["ct"] = Volume(data, voxel2ct)
+    obs["arrays"]["ct_slices"] = {
+        "z_mm": z, "thickness_mm": np.asarray(ct.slice_thickness_mm, dtype=np.float64),
+        "slice2ct": np.asarray(ct.slice2ct, dtype=np.float64), "uniform": np.array(uniform)}
+    for region, cc in regions.items():
+        obs["arrays"][f"ct_clicks_{_safe(region)}"] = cc.to_arrays()
+    tick("ct", t0)
+    xray_op_rng = ctc.xray_operator_rng
+
+    # 3. per view: sweep, X-ray frame, clicks
+    carms, frames, recorded = {}, {}, {}
+    robot_rngs = np.random.default_rng(robot_ss).spawn(len(scene.views))
+    xray_rngs = np.random.default_rng(xray_ss).spawn(len(scene.views))
+    op_rngs = xray_op_rng.spawn(len(scene.views))
+    instruments = [b.name for b in world.instruments]
+    for i, vspec in enumerate(scene.views):
+        v = _safe(vspec.name)
+        carm = make_carm(scene.fluoroscope, vspec, view_index=i)
+        carms[vspec.name] = carm
+        tru["transforms"][f"carm2robot_{v}"] = carm.carm2robot
+        if sweeps:
+            # the sweep sees the intensifier as it was during calibration: the patient's
+            # frame (and the truth) as it is at the acquisition (their difference is the
+            # distortion's drift, [fluoroscope] distortion_drift_mm)
+            sweep_carm = make_carm(scene.fluoroscope, vspec, view_index=i, stage="calibration")
+            t0 = time.perf_counter()
+            sweep_rng, noise_rng = robot_rngs[i].spawn(2)
+            rep_poses, true_poses = [], []
+            frame_bar = tqdm(desc=f"sweep {vspec.name}", unit="frame", disable=not progress,
+                             leave=False)
+            with Robot(scene.robot, rng=sweep_rng) as robot:
+                def record(k, n, robot=robot, rep=rep_poses, tr=true_poses, fb=frame_bar):
+                    # after frame k is rendered: the robot is still at that frame's pose
+                    rep.append(robot.reported_rod2robot.as_matrix())
+                    tr.append(robot.true_rod2robot.as_matrix())
+                    fb.total = n
+                    fb.update(1)
+
+                sweep = run_sweep(robot, sweep_carm, scene.fluoroscope, bodies=world.bodies,
+                                  rng=noise_rng, progress=record)
+            frame_bar.close()
+            recorded[vspec.name] = sweep
+            obs["images"][f"sweep_{v}"] = sweep.frames
+            obs["arrays"][f"sweep_{v}"] = {
+                "plane": np.asarray(sweep.plane, dtype=np.int64),
+                "beads_reported": sweep.beads_reported,
+                "rod2robot_reported": np.array(rep_poses), "joints": sweep.joints,
+                "time_s": np.asarray(sweep.time_s, dtype=np.float64),
+                "bead_positions_mm": np.asarray(sweep.bead_positions_mm, dtype=np.float64)}
+            tru["arrays"][f"sweep_truth_{v}"] = {"beads_true": sweep.beads_true,
+                                                 "rod2robot_true": np.array(true_poses)}
+            tick(f"sweep {vspec.name}", t0)
+        t0 = time.perf_counter()
+        try:
+            frame = render(carm, world.bodies, fluoro=scene.fluoroscope, rng=xray_rngs[i])
+        except ValueError as exc:
+            raise ValueError(f"views[{i}] ({vspec.name!r}): {exc}") from None
+        frames[vspec.name] = frame
+        obs["images"][f"xray_{v}"] = frame.image_u8
+        obs["arrays"][f"xray_fov_{v}"] = np.asarray(frame.fov, dtype=bool)
+        tru["arrays"][f"xray_float_{v}"] = np.asarray(frame.image, dtype=np.float32)
+        if truth_rays:
+            o, d = carm.pixel_ray_map()
+            tru["arrays"][f"rays_{v}"] = {"origins": o, "directions": d}
+        clicks = xray_clicks(frame, femur_bodies=FEMUR_BODIES, instrument_bodies=instruments,
+                             spec=op_spec, rng=op_rngs[i], view=vspec.name)
+        if not clicks.traces:
+            raise ValueError(f"views[{i}] ({vspec.name!r}): the femur's outline is nowhere "
+                             "visible in the frame (outside the field or under instruments); "
+                             f"check views[{i}].isocenter_mm and its angles")
+        obs["arrays"][f"xray_clicks_{v}"] = clicks.to_arrays()
+        tick(f"xray {vspec.name}", t0)
+    bar.close()
+
+    obs_meta = {
+        "views": [_safe(v.name) for v in scene.views],
+        "view_regions": [getattr(v, "region", "") for v in scene.views],
+        "regions": sorted(_safe(r) for r in regions),
+        "image_size_px": [int(scene.fluoroscope.width_px), int(scene.fluoroscope.height_px)],
+        "ct_uniform_slices": uniform,
+        "units": {"length": "mm", "angle": "rad", "pixel": "px (x, y) = (col, row)"},
+        "sweeps": bool(sweeps),
+    }
+    truth_meta = {
+        "workspace": ("not checked ([workspace] check = false)" if not scene.workspace.check
+                      else f"checked: {len(workspace)} view(s), every sweep pose feasible"),
+        "scene": scene.model_dump(mode="json"),
+        "seed": {"entropy": int(css.entropy), "spawn_key": [int(k) for k in css.spawn_key]},
+        "sweep_time_s": {k: float(s.duration_s) for k, s in recorded.items()},
+        "dose_mrem": {k: float(s.dose_mrem) for k, s in recorded.items()},
+    }
+    return Simulation(
+        observation=Observation(**obs, meta=obs_meta),
+        truth=Truth(**tru, meta=truth_meta),
+        scene=scene, world=world, carms=carms, frames=frames, sweeps=recorded,
+        timings=timings)
+
+
+def simulate_case(scene, seed=0, *, index: int = 0, sweeps: bool = True,
+                  truth_rays: bool = False, progress: bool = False):
+    """``(Observation, Truth)`` of one case: :func:`simulate` without the world objects."""
+    return simulate(scene, seed, index=index, sweeps=sweeps, truth_rays=truth_rays,
+                    progress=progress).pair

@@ -1,0 +1,108 @@
+"""reglib.pipeline: the one call's stages, its options and its refusals (no simulator)."""
+
+import numpy as np
+import pytest
+
+from reglib.geometry import RigidTransform
+from reglib.pipeline import (
+    EstimateOptions,
+    calibrate_view,
+    estimate,
+    restart_poses,
+    verdict,
+    xray_contours,
+)
+
+
+def test_calibration_that_cannot_be_made_is_a_named_failure_not_an_exception():
+    frames = np.zeros((5, 48, 64), dtype=np.uint8)
+    arrays = {"plane": np.array([-1, 0, 0, 1, 1]),
+              "beads_reported": np.full((5, 6, 3), np.nan),
+              "bead_positions_mm": np.arange(6) * 10.0}
+    cal = calibrate_view("v", frames, arrays)
+    assert not cal.ok and cal.calibration is None
+    assert "calibration failed" in cal.message and "view v" in cal.message
+    with pytest.raises(ValueError, match="lack 'plane'"):
+        calibrate_view("v", frames, {"beads_reported": 0, "bead_positions_mm": 0})
+
+
+def test_initial_must_be_rigid():
+    obs = {"meta": {"views": ["v"]}, "images": {}, "arrays": {}, "volumes": {}}
+    for bad in (2 * np.eye(4), np.diag([1.0, 1.0, -1.0, 1.0]), np.full((4, 4), np.nan),
+                np.eye(3)):
+        with pytest.raises(ValueError, match="initial"):
+            estimate(obs, bad)
+
+
+def test_options_are_checked():
+    with pytest.raises(ValueError, match="strategy"):
+        EstimateOptions(strategy="fast")
+    with pytest.raises(ValueError, match="restarts"):
+        EstimateOptions(restarts=-1)
+    with pytest.raises(ValueError, match="accept_min_inlier_fraction"):
+        EstimateOptions(accept_min_inlier_fraction=1.5)
+    with pytest.raises(ValueError, match="tps_smoothing"):
+        EstimateOptions(tps_smoothing=float("nan"))
+
+
+def _stages_with_no_view():
+    from reglib.pipeline import Stages
+
+    return Stages({}, {}, {}, [], {"v": "calibration failed"}, {})
+
+
+def test_no_usable_view_is_refused_with_the_reason():
+    obs = {"meta": {"views": ["v"]}, "images": {}, "arrays": {}, "volumes": {}}
+    est = estimate(obs, np.eye(4), stages=_stages_with_no_view())
+    assert not est.accepted and not est.converged
+    assert "0 usable view" in est.message and "calibration failed" in est.message
+    assert np.array_equal(est.as_matrix(), np.eye(4))
+
+
+def test_missing_entries_are_named():
+    obs = {"meta": {"views": ["v"], "regions": ["distal"]}, "images": {}, "arrays": {},
+           "volumes": {}}
+    with pytest.raises(ValueError, match="volumes/ct"):
+        estimate(obs, np.eye(4))
+
+
+def test_verdict_objections():
+    opts = EstimateOptions()
+    good = {"median_residual_mm": 0.2, "inlier_fraction": 0.8, "reason": "ok"}
+    assert verdict(True, good, "", opts, 4) == []
+    assert any("converge" in r for r in verdict(False, good, "", opts, 4))
+    assert any("usable view" in r for r in verdict(True, good, "view a: bad", opts, 1))
+    assert any("median" in r for r in verdict(True, {**good, "median_residual_mm": 3.0}, "",
+                                              opts, 4))
+    assert any("inlier" in r for r in verdict(True, {**good, "inlier_fraction": 0.1}, "",
+                                              opts, 4))
+
+
+def test_restart_poses_turn_about_the_pivot():
+    start = RigidTransform.from_rotvec([0.1, 0.2, -0.3]) @ RigidTransform(np.eye(3), [5, 6, 7])
+    pivot = np.array([800.0, 10.0, 200.0])
+    poses = restart_poses(start, pivot, 8.0, 9)
+    assert len(poses) == 9
+    p_ct = (~start).apply(pivot)
+    for k, pose in enumerate(poses):
+        assert np.allclose(pose.apply(p_ct), pivot)  # the pivot stays
+        d = pose @ ~start
+        ang = np.degrees(np.arccos(np.clip((np.trace(d.R) - 1) / 2, -1, 1)))
+        assert ang == pytest.approx(8.0 if k < 6 else 16.0)
+
+
+def test_xray_contours_trace_a_bright_disk_edge_and_name_bad_traces():
+    H, W = 120, 160
+    yy, xx = np.mgrid[0:H, 0:W]
+    img = np.where(np.hypot(xx - 80, yy - 60) < 55, 180.0, 0.0)  # the field
+    img[np.hypot(xx - 80, yy - 60) < 25] = 90.0                  # a darker bone
+    t = np.linspace(np.pi * 0.1, np.pi * 0.9, 6)
+    clicks = np.column_stack([80 + 26 * np.cos(t), 60 + 26 * np.sin(t)])
+    arrays = {"clicks_xy": np.vstack([clicks, [[1.0, 1.0], [2.0, 2.0]]]),
+              "trace": np.array([0] * 6 + [1, 1]), "external": np.array([True, True]),
+              "closed": np.array([False, False])}
+    con = xray_contours("v", img.astype(np.uint8), arrays)
+    assert len(con.xy) > 20 and con.external.all()
+    r = np.hypot(con.xy[:, 0] - 80, con.xy[:, 1] - 60)
+    assert np.median(np.abs(r - 25)) < 1.5  # an unblurred step edge between two pixels
+    assert len(con.problems) == 1 and "trace 1" in con.problems[0]

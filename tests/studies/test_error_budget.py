@@ -1,0 +1,54 @@
+"""The error budget's bookkeeping: sources found by comparing two profiles, variants, table."""
+
+import pandas as pd
+import pytest
+
+from studies.error_budget import error_sources, source_of, source_table, variant
+from testbed.scene import find_scene, load_scene, parse_scene
+
+
+@pytest.fixture(scope="module")
+def clinic():
+    return load_scene(find_scene("experiment2"))
+
+
+def _ideal(clinic):
+    d = clinic.model_dump(mode="json")
+    d["fluoroscope"]["pincushion_k1"] = 0.0
+    d["fluoroscope"]["pincushion_k2"] = 0.0
+    d["ct"]["metal_streaks"] = False
+    d["operator"]["xray_click_noise_px"] = 0.25
+    return parse_scene(d)
+
+
+def test_sources_are_the_fields_that_differ_grouped(clinic):
+    ideal = _ideal(clinic)
+    src = error_sources(clinic, ideal)
+    assert set(src) == {"intensifier distortion", "CT metal streaks", "operator on X-ray"}
+    assert set(src["intensifier distortion"]) == {"fluoroscope.pincushion_k1",
+                                                 "fluoroscope.pincushion_k2"}
+    assert src["CT metal streaks"] == {"ct.metal_streaks": (True, False)}
+    assert error_sources(clinic, clinic) == {}
+    assert source_of("fluoroscope.some_new_field") == "fluoroscope.some_new_field"
+
+
+def test_off_and_alone_variants_change_only_that_source(clinic):
+    ideal = _ideal(clinic)
+    fields = error_sources(clinic, ideal)["intensifier distortion"]
+    off = variant(clinic, {k: v[1] for k, v in fields.items()})
+    assert off.fluoroscope.pincushion_k1 == 0.0 and off.ct.metal_streaks
+    assert set(error_sources(off, ideal)) == {"CT metal streaks", "operator on X-ray"}
+    alone = variant(ideal, {k: v[0] for k, v in fields.items()})
+    assert set(error_sources(alone, ideal)) == {"intensifier distortion"}
+
+
+def test_source_table_attributes_removed_and_added():
+    rows = []
+    for cfg, src, val in (("clinic", "", 3.0), ("ideal", "", 0.5), ("off", "a", 1.0),
+                          ("alone", "a", 2.0), ("off", "b", 2.9), ("alone", "b", 0.6)):
+        rows += [{"config": cfg, "source": src, "oracle": "none", "value": val}] * 2
+    t = source_table(pd.DataFrame(rows)).set_index("source")
+    assert t.loc["a", "removed"] == pytest.approx(2.0)
+    assert t.loc["a", "added"] == pytest.approx(1.5)
+    assert t.loc["b", "removed"] == pytest.approx(0.1)
+    assert list(t.index[2:]) == ["a", "b"]  # largest share first

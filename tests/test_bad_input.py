@@ -1,0 +1,164 @@
+"""Bad input in scene files: each case of the bad-input issue that concerns a scene's values,
+through the command line (exit 2, one line naming the file and the field, no traceback,
+nothing written) and through the library (a SceneError / ValueError naming them).
+
+The command-line cases of options and ``--out`` and the property-based test of mutated
+fields are in ``tests/test_cli.py``.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from studies.cli import main
+from testbed.dataset import list_cases
+from testbed.scene import SceneError, find_scene, load_scene
+
+EXP2 = find_scene("experiment2").read_text()
+
+
+def _with(text: str, section: str, assignment: str) -> str:
+    """``text`` with ``assignment`` (``key = value``) as the first line of table
+    ``[section]``, replacing the key's own line there (the table is added at the end if the
+    file has none)."""
+    head = f"[{section}]\n"
+    key = assignment.split("=")[0].strip()
+    if head not in text:
+        return text + "\n" + head + assignment + "\n"
+    before, after = text.split(head, 1)
+    lines = after.splitlines(keepends=True)
+    end = next((i for i, ln in enumerate(lines) if ln.lstrip().startswith("[")), len(lines))
+    body = [ln for ln in lines[:end] if ln.split("=")[0].strip() != key]
+    return before + head + assignment + "\n" + "".join(body + lines[end:])
+
+
+def _write(tmp_path, section, assignment, name="bad.toml"):
+    f = tmp_path / name
+    f.write_text(_with(EXP2, section, assignment))
+    return f
+
+
+def _error_line(capsys) -> str:
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    return lines[0]
+
+
+def test_the_replacement_helper_puts_the_field_in_its_table(tmp_path):
+    f = _write(tmp_path, "fluoroscope", "photons_per_pixel = 123.0")
+    assert load_scene(f).fluoroscope.photons_per_pixel == 123.0
+
+
+@pytest.mark.parametrize("section, assignment, field, expect", [
+    # an absurd dose: refused with its range instead of a black image
+    ("fluoroscope", "photons_per_pixel = 1e-300", "fluoroscope.photons_per_pixel",
+     "greater than or equal to 1"),
+    ("fluoroscope", "photons_per_pixel = 1e300", "fluoroscope.photons_per_pixel",
+     "less than or equal to"),
+    # inf for a positive field, NaN and inf inside 3-vectors
+    ("robot", "link1_mm = inf", "robot.link1_mm", "finite"),
+    ("patient", "position_mm = [0.0, nan, 0.0]", "patient.position_mm", "finite"),
+    ("patient", "rotation_deg = [inf, 0.0, 0.0]", "patient.rotation_deg", "finite"),
+    ("phantom", "pins = 3", "phantom.pins", ""),
+    ("scene", "seed = -1", "scene.seed", "greater than or equal to 0"),
+    ("registration", "start_rotation_deg = 1e9", "registration.start_rotation_deg",
+     "less than or equal to 90"),
+])
+def test_bad_scene_values_exit_2_naming_file_and_field(tmp_path, capsys, section, assignment,
+                                                        field, expect):
+    f = _write(tmp_path, section, assignment)
+    png = tmp_path / "r.png"
+    assert main(["render", str(f), "--out", str(png)]) == 2
+    line = _error_line(capsys)
+    assert str(f) in line and f"'{field}" in line and expect in line, line
+    assert not png.exists()
+    with pytest.raises(SceneError, match=field.replace(".", r"\.")):
+        load_scene(f)
+
+
+def _float_fields(model, prefix=()):
+    """(path, value) of every float field of a loaded scene, first item of tuples of tables."""
+    from pydantic import BaseModel
+
+    for name in type(model).model_fields:
+        v = getattr(model, name)
+        if isinstance(v, BaseModel):
+            yield from _float_fields(v, prefix + (name,))
+        elif isinstance(v, tuple) and v and isinstance(v[0], BaseModel):
+            yield from _float_fields(v[0], prefix + (name, 0))
+        elif isinstance(v, float):
+            yield prefix + (name,), v
+
+
+def test_no_float_field_takes_an_absurd_magnitude():
+    """Every float field of every section (whoever owns it) refuses 1e-300 and 1e300 at load,
+    naming the field, while 0 and the shipped values load."""
+    import copy
+    import tomllib
+
+    from testbed.scene import parse_scene
+
+    data = tomllib.loads(EXP2)
+    fields = list(_float_fields(parse_scene(data)))
+    assert len(fields) >= 90  # the whole schema, not a few sections
+    for path, _ in fields:
+        for bad in (1e-300, 1e300, -1e300):
+            d = copy.deepcopy(data)
+            node = d
+            for k in path[:-1]:
+                node = node[k] if isinstance(k, int) else node.setdefault(k, {})
+            node[path[-1]] = bad
+            name = ".".join(str(k) for k in path).replace(".0.", "[0].")
+            with pytest.raises(SceneError, match=re.escape(f"'{name}'")):
+                parse_scene(d, source="mut.toml")
+
+
+def test_a_missing_scene_path_is_an_error_not_the_named_scene(tmp_path, capsys):
+    png = tmp_path / "r.png"
+    for arg in ("/no/such/dir/experiment2.toml", "./experiment2.toml",
+                str(tmp_path / "experiment2.toml")):
+        assert main(["render", arg, "--out", str(png)]) == 2
+        line = _error_line(capsys)
+        assert arg in line and "no such scene file" in line
+        with pytest.raises(SceneError, match="no such scene file"):
+            find_scene(arg)
+    assert not png.exists()
+    # a bare name still finds the named scene
+    assert find_scene("experiment2") == find_scene("experiment2.toml")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("command", ["run", "generate"])
+def test_a_scene_the_robot_cannot_reach_fails_before_the_work(tmp_path, capsys, command):
+    f = tmp_path / "unreachable.toml"
+    f.write_text(_with(_with(EXP2, "robot", "link1_mm = 1.0"), "robot", "link2_mm = 1.0"))
+    out = tmp_path / "out"
+    argv = [command, str(f), "--out", str(out)]
+    if command == "generate":
+        argv += ["--cases", "2"]
+    assert main(argv) == 2
+    line = _error_line(capsys)
+    assert str(f) in line and "unreachable" in line, line
+    if out.exists():  # no case written, no figure drawn
+        assert not list_cases(out)
+        assert not list(out.glob("*.png"))
+
+
+def test_an_error_of_the_console_script_is_exactly_one_line(tmp_path):
+    """In a real process: the scene is loaded (pybullet imported: no banner), then --out is
+    refused; standard error holds one line and standard output nothing."""
+    exe = shutil.which("testbed")
+    cmd = [exe] if exe else [sys.executable, "-m", "studies.cli"]
+    res = subprocess.run(cmd + ["render", "experiment2", "--out", str(tmp_path / "x.txt")],
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 2
+    assert res.stdout == ""
+    lines = res.stderr.splitlines()
+    assert len(lines) == 1 and "--out" in lines[0] and ".png" in lines[0], res.stderr

@@ -1,0 +1,216 @@
+"""The imaging chain (testbed.detector) and the intensifier's local distortion and drift:
+each error source changes the image by what its magnitude says."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.ndimage import gaussian_filter
+
+from testbed import detector
+from testbed.fluoroscope import IDEAL_FLUOROSCOPE as IDEAL
+from testbed.fluoroscope import FluoroscopeSpec, ViewSpec, make_carm
+
+H, W = 120, 160
+OFF = dict(IDEAL, glare_fraction=0.0, vignetting=0.0)
+
+
+def _spec(**kw):
+    return FluoroscopeSpec(**{**OFF, **kw})
+
+
+def _fov():
+    return np.ones((H, W), dtype=bool)
+
+
+def _edge_width_10_90(profile):
+    """10-90 % rise distance (px) of a monotone edge profile, by linear interpolation."""
+    p = (profile - profile.min()) / np.ptp(profile)
+    x = np.arange(len(p), dtype=float)
+    return np.interp(0.9, p, x) - np.interp(0.1, p, x)
+
+
+def test_blur_widens_an_edge_by_the_focal_spot_and_mtf_width():
+    step = np.where(np.arange(W)[None, :] < W // 2, 0.2, 0.8) * np.ones((H, 1))
+    rho = np.zeros((H, W))
+    ideal, _ = detector.form_image(step, _fov(), rho, _spec(), magnification=1.54, noise=False)
+    assert _edge_width_10_90(ideal[H // 2]) <= 1.0
+    for kw in (dict(focal_spot_mm=1.2), dict(mtf50_lp_per_mm=0.3),
+               dict(focal_spot_mm=0.6, mtf50_lp_per_mm=0.65)):
+        spec = _spec(**kw)
+        img, _ = detector.form_image(step, _fov(), rho, spec, magnification=1.54, noise=False)
+        s_fs = detector.focal_spot_sigma_px(spec.focal_spot_mm, 1.54, spec.pixel_mm)
+        s_mtf = detector.mtf_sigma_px(spec.mtf50_lp_per_mm, spec.pixel_mm)
+        sigma = math.hypot(s_fs, s_mtf)
+        expected = 2.5631 * sigma  # 10-90 % width of a Gaussian-blurred step
+        got = _edge_width_10_90(img[H // 2])
+        assert got == pytest.approx(expected, rel=0.12), (kw, got, expected)
+
+
+def test_focal_spot_blur_grows_with_magnification_and_vanishes_at_the_detector():
+    assert detector.focal_spot_sigma_px(0.6, 1.0, 0.5) == 0.0
+    # 0.6 mm spot, M = 1000/650: penumbra 0.323 mm FWHM at the input plane
+    assert detector.focal_spot_sigma_px(0.6, 1000 / 650, 0.5) == pytest.approx(
+        0.6 * (1000 / 650 - 1) / 2.3548 / 0.5, rel=1e-4)
+    with pytest.raises(ValueError, match="magnification"):
+        detector.focal_spot_sigma_px(0.6, 0.9, 0.5)
+
+
+def test_mtf_sigma_gives_half_modulation_at_mtf50():
+    s_mm = detector.mtf_sigma_px(0.65, 1.0)
+    assert detector.gaussian_mtf(0.65, s_mm) == pytest.approx(0.5, abs=1e-12)
+    # measured on a blurred sinusoid at the MTF50 frequency (pixel 0.25 mm, well sampled)
+    px = 0.25
+    x = np.arange(4000) * px
+    wave = 1.0 + 0.5 * np.sin(2 * np.pi * 0.65 * x)
+    out = gaussian_filter(wave, detector.mtf_sigma_px(0.65, px), mode="wrap")
+    mid = out[500:-500]
+    assert (mid.max() - mid.min()) / 2 / 0.5 == pytest.approx(0.5, abs=0.01)
+
+
+def test_scatter_adds_the_stated_low_frequency_fraction():
+    fov = _fov()
+    rho = np.zeros((H, W))
+    flat = np.full((H, W), 0.1)
+    out, _ = detector.form_image(flat, fov, rho, _spec(scatter_to_primary=0.8),
+                                 magnification=1.5, noise=False)
+    np.testing.assert_allclose(out, 0.18, rtol=1e-6)  # S/P = 0.8 everywhere, edges too
+    # a dense body: the scatter field is smooth (no edge of its own), and the primary edge stays
+    yy, xx = np.mgrid[:H, :W]
+    body = np.where(np.hypot(xx - W / 2, yy - H / 2) < 25, 0.01, 0.1)
+    spec = _spec(scatter_to_primary=0.8, scatter_sigma_mm=20.0)
+    out, _ = detector.form_image(body, fov, rho, spec, magnification=1.5, noise=False)
+    scatter = out - body
+    assert np.abs(np.diff(scatter, axis=1)).max() < 0.02 * np.abs(np.diff(body, axis=1)).max()
+    assert scatter.mean() / body.mean() == pytest.approx(0.8, rel=0.05)
+    # behind the body the scatter exceeds the stated ratio, as measured clinically
+    assert scatter[H // 2, W // 2] / body[H // 2, W // 2] > 3.0
+    # an empty beam scatters nothing; a patient half the field wide scatters into the air side
+    empty = np.ones((H, W))
+    out, _ = detector.form_image(empty, fov, rho, spec, magnification=1.5, noise=False)
+    np.testing.assert_array_equal(out, empty)
+    half = np.where(np.arange(W)[None, :] < W // 2, 0.1, 1.0) * np.ones((H, 1))
+    out, _ = detector.form_image(half, fov, rho, spec, magnification=1.5, noise=False)
+    s_half = out - half
+    assert s_half[H // 2, 10] / 0.1 == pytest.approx(0.8, rel=0.1)   # deep behind the body
+    assert 0 < s_half[H // 2, W - 10] < s_half[H // 2, 10]         # less, beside it
+
+
+@pytest.mark.parametrize("abc", [0.0, 150.0])
+def test_quantum_noise_variance_matches_the_photon_count(abc):
+    T = 0.3
+    flat = np.full((H, W), T)
+    spec = _spec(photons_per_pixel=400.0, abc_photons_per_pixel=abc)
+    out, _ = detector.form_image(flat, _fov(), np.zeros((H, W)), spec, magnification=1.5,
+                                 noise=True, rng=3)
+    n0 = 400.0 if abc == 0 else abc / T
+    counts = out * n0
+    assert counts.mean() == pytest.approx(T * n0, rel=0.01)
+    assert counts.var() == pytest.approx(T * n0, rel=0.05)  # Poisson: variance = mean
+
+
+def test_video_gain_offset_and_camera_noise():
+    fov = _fov()
+    ones = np.ones((H, W))
+    v = detector.video_u8(ones, fov, black_u8=8, white_u8=240, display_range=6.0)
+    assert np.all(v == 240)
+    v = detector.video_u8(np.full((H, W), math.exp(-3.0)), fov, black_u8=8, white_u8=240,
+                          display_range=6.0)
+    assert np.all(v == round(8 + 232 * 0.5))
+    v = detector.video_u8(np.full((H, W), math.exp(-3.0)), fov, black_u8=8, white_u8=240,
+                          display_range=6.0, noise_u8=2.0, rng=1)
+    assert v.astype(float).std() == pytest.approx(math.sqrt(4.0 + 1 / 12), rel=0.05)
+    assert v.dtype == np.uint8
+
+
+def test_ideal_values_reproduce_the_chain_without_the_clinic_sources():
+    """With the ideal values the chain is noise, glare, vignetting and video only (as before
+    the clinic sources existed): the same numbers from the same seed."""
+    rng = np.random.default_rng(0)
+    trans = rng.uniform(0.01, 1.0, (H, W))
+    yy, xx = np.mgrid[:H, :W]
+    rho = np.hypot(xx - W / 2, yy - H / 2) / 70.0
+    fov = rho <= 1.0
+    trans[~fov] = 0
+    spec = FluoroscopeSpec(photons_per_pixel=5000.0).ideal()
+    assert spec == FluoroscopeSpec(**IDEAL, photons_per_pixel=5000.0)
+    out, video = detector.form_image(trans, fov, rho, spec, magnification=1.5, noise=True,
+                                     rng=np.random.default_rng(7))
+    # the old chain, written out
+    r = np.random.default_rng(7)
+    full = np.zeros((H, W))
+    full[fov] = r.poisson(5000.0 * trans[fov]) / 5000.0
+    g = spec.glare_fraction
+    full = (1 - g) * full + g * detector.wide_blur(full, spec.glare_sigma_px)
+    full[fov] *= 1 - spec.vignetting * rho[fov] ** 2
+    full[~fov] = 0
+    np.testing.assert_array_equal(out, full)
+    level = 1 + np.log(np.maximum(full, 1e-12)) / spec.display_range
+    ref = np.where(fov, np.clip(np.rint(8 + 232 * np.clip(level, 0, 1)), 0, 255), 0)
+    np.testing.assert_array_equal(video, ref.astype(np.uint8))
+
+
+def test_wide_blur_matches_scipy_reference():
+    rng = np.random.default_rng(5)
+    img = gaussian_filter(rng.uniform(0, 1, (96, 128)), 6)
+    for sigma in (5.0, 30.0):
+        ref = gaussian_filter(img, sigma, mode="constant")
+        got = detector.wide_blur(img, sigma)
+        assert np.abs(got - ref).max() < 0.02 * ref.max()
+
+
+# --------------------------------------------------------------------------- distortion
+VIEW = ViewSpec(name="ap", isocenter_mm=(800.0, 0.0, 200.0))
+
+
+def _rms_px(field, fov):
+    return float(np.sqrt(np.mean(np.sum(field[fov] ** 2, axis=-1))))
+
+
+def test_drift_changes_the_field_between_sweep_and_acquisition_by_its_magnitude():
+    fluoro = FluoroscopeSpec(distortion_drift_mm=0.2)
+    cal = make_carm(fluoro, VIEW, stage="calibration")
+    acq = make_carm(fluoro, VIEW, stage="acquisition")
+    fov = cal.fov_mask()
+    diff = acq.displacement_field() - cal.displacement_field()
+    rms_mm = _rms_px(diff, fov) * fluoro.pixel_mm
+    assert rms_mm == pytest.approx(0.2, rel=0.35)
+    # no drift: the sweep and the patient frame share the field
+    still = FluoroscopeSpec(distortion_drift_mm=0.0)
+    d0 = (make_carm(still, VIEW, stage="acquisition").displacement_field()
+          - make_carm(still, VIEW, stage="calibration").displacement_field())
+    assert np.abs(d0).max() < 1e-8
+    with pytest.raises(ValueError, match="stage"):
+        make_carm(fluoro, VIEW, stage="later")
+
+
+def test_local_distortion_has_the_stated_rms_and_higher_order_content():
+    base = make_carm(FluoroscopeSpec(distortion_local_mm=0.0, distortion_drift_mm=0.0), VIEW)
+    loc = make_carm(FluoroscopeSpec(distortion_local_mm=0.3, distortion_drift_mm=0.0), VIEW)
+    fov = base.fov_mask()
+    diff = loc.displacement_field() - base.displacement_field()
+    assert _rms_px(diff, fov) * 0.5 == pytest.approx(0.3, rel=0.35)
+    # higher order: a global quadratic polynomial in (x, y) leaves most of it
+    g = base.pixel_grid()[fov]
+    x, y = (g[:, 0] - 320) / 230, (g[:, 1] - 240) / 230
+    A = np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])
+    resid = diff[fov] - A @ np.linalg.lstsq(A, diff[fov], rcond=None)[0]
+    assert np.sqrt(np.mean(np.sum(resid**2, 1))) > 0.5 * _rms_px(diff, fov)
+    # the intensifier's own field: the same for another view's pose (pincushion/S aside)
+    other = ViewSpec(name="lat", isocenter_mm=(800.0, 0.0, 200.0))
+    fl = FluoroscopeSpec(distortion_local_mm=0.3, distortion_drift_mm=0.0)
+    a = make_carm(fl, VIEW).distortion
+    b = make_carm(fl, other).distortion
+    assert a.local == b.local
+
+
+def test_distortion_with_local_terms_inverts_and_has_the_right_jacobian():
+    d = make_carm(FluoroscopeSpec(distortion_local_mm=0.5, distortion_drift_mm=0.3),
+                  VIEW).distortion
+    rng = np.random.default_rng(2)
+    u = np.column_stack([rng.uniform(100, 540, 50), rng.uniform(40, 440, 50)])
+    np.testing.assert_allclose(d.undistort(d.distort(u)), u, atol=1e-8)
+    h = 1e-5
+    num = np.stack([(d.distort(u + [h, 0]) - d.distort(u - [h, 0])) / (2 * h),
+                    (d.distort(u + [0, h]) - d.distort(u - [0, h])) / (2 * h)], -1)
+    np.testing.assert_allclose(d.jacobian(u), num, atol=1e-6)

@@ -1,0 +1,103 @@
+"""The simulated operator: clicks from what the images show, never under instruments."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from testbed.operator import (
+    OperatorSpec,
+    bone_sections,
+    clicks_along,
+    ct_clicks,
+    visible_outline,
+    xray_clicks,
+)
+
+
+def _disk(shape, c, r):
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]]
+    return np.hypot(xx - c[0], yy - c[1]) <= r
+
+
+def test_bone_sections_outline_the_bright_parts_and_ignore_islands():
+    img = np.full((120, 160), 40.0)
+    for cx in (50, 110):  # two condyles: cortex ring with marrow inside
+        img[_disk(img.shape, (cx, 60), 22)] = 1500.0
+        img[_disk(img.shape, (cx, 60), 15)] = -50.0
+    img[_disk(img.shape, (80, 110), 2)] = 3000.0  # a small bright island (a pin's head)
+    secs = bone_sections(img, threshold_hu=400.0, min_area_px=10.0)
+    assert len(secs) == 2
+    assert secs[0][:, 0].mean() < secs[1][:, 0].mean()
+    for s, cx in zip(secs, (50, 110), strict=True):
+        r = np.hypot(s[:, 0] - cx, s[:, 1] - 60)
+        assert np.all(np.abs(r - 22) < 1.5)
+
+
+def test_clicks_along_spacing_and_noise():
+    rng = np.random.default_rng(0)
+    t = np.linspace(0, 2 * np.pi, 200, endpoint=False)
+    circle = np.column_stack([100 + 30 * np.cos(t), 80 + 30 * np.sin(t)])
+    c = clicks_along(circle, 10, 0.0, rng, closed=True)
+    assert c.shape == (10, 2)
+    assert np.allclose(np.hypot(c[:, 0] - 100, c[:, 1] - 80), 30, atol=0.2)
+    gaps = np.linalg.norm(np.diff(np.vstack([c, c[:1]]), axis=0), axis=1)
+    assert np.ptp(gaps) < 0.5
+    line = np.column_stack([np.linspace(0, 100, 50), np.zeros(50)])
+    c = clicks_along(line, 5, 1.0, np.random.default_rng(1), closed=False)
+    assert np.allclose(np.sort(c[:, 0]), [0, 25, 50, 75, 100], atol=4)
+    assert 0.2 < np.std(c[:, 1]) < 3
+
+
+def test_xray_clicks_only_on_the_visible_outline():
+    H, W = 200, 240
+    fov = _disk((H, W), (120, 100), 95)
+    femur = _disk((H, W), (120, 100), 40)
+    tool = np.zeros((H, W), bool)
+    tool[:, 130:150] = True  # an instrument's shadow across the femur
+    frame = SimpleNamespace(fov=fov, path_mm={"femur": femur * 10.0, "clamp": tool * 5.0})
+    spec = OperatorSpec(xray_clicks=6, xray_click_noise_px=0.5, instrument_margin_px=4.0,
+                        xray_min_trace_px=10)
+    clicks = xray_clicks(frame, femur_bodies=("femur",), instrument_bodies=("clamp",),
+                         spec=spec, rng=np.random.default_rng(2))
+    assert len(clicks.traces) >= 1
+    pts = np.vstack(clicks.traces)
+    # near the femur's outline...
+    assert np.all(np.abs(np.hypot(pts[:, 0] - 120, pts[:, 1] - 100) - 40) < 3.0)
+    # ...and never under the instrument (nor within its margin, less the click error)
+    assert not np.any((pts[:, 0] > 130 - 2) & (pts[:, 0] < 150 + 2))
+    arrays = clicks.to_arrays()
+    assert arrays["clicks_xy"].shape == (len(pts), 2) and arrays["external"].all()
+    # without the instrument the whole outline is one visible run
+    chains = visible_outline(femur, fov, occluder_mask=None, edge_margin_px=6.0,
+                             occluder_margin_px=4.0, min_len_px=10)
+    assert len(chains) == 1
+
+
+@pytest.mark.slow
+def test_ct_clicks_follow_the_bone_and_leave_out_the_head():
+    from testbed.ct import CTSpec, scan
+    from testbed.phantom import PhantomSpec, make_phantom
+
+    ph = make_phantom(PhantomSpec(segments=32))
+    ct = scan(ph, CTSpec(pixel_mm=1.0), rng=0)
+    spec = OperatorSpec(ct_click_noise_px=0.0, ct_reclick_every_mm=10.0)
+    got = ct_clicks(ct.volume_hu, ct.slice_z_mm, ct.regions, pixel_mm=ct.pixel_mm, spec=spec,
+                    rng=np.random.default_rng(0))
+    assert set(got) == {"proximal", "distal"}
+    for region, cc in got.items():
+        assert len(cc.slices) >= 5, region
+        assert set(cc.clicks) <= set(cc.slices.tolist())
+        assert len(cc.clicks) < len(cc.slices)  # reused from slice to slice
+        for k, polys in cc.clicks.items():
+            sec = ph.femur.section(plane_origin=[0, 0, ct.slice_z_mm[k]],
+                                   plane_normal=[0, 0, 1])
+            true_px = np.vstack([ct.ct_to_pixel(np.column_stack([np.asarray(d)[:, :2],
+                                                                 np.zeros(len(d))]))
+                                 for d in sec.discrete])
+            for p in polys:
+                d = np.min(np.linalg.norm(p[:, None] - true_px[None], axis=2), axis=1)
+                # 1 mm pixels; a thick slice's outline is its slab's, not the mid-plane's
+                assert np.median(d) < 1.5 and d.max() < 5.0, (region, k)
+    z_top = ct.slice_z_mm[got["proximal"].slices].max()
+    assert z_top < ph.landmarks["head_center"][2]
