@@ -161,6 +161,51 @@ def bone_sections(slice_hu, *, threshold_hu: float, min_area_px: float) -> list[
     return sorted(out, key=lambda p: float(np.mean(p[:, 0])))
 
 
+def _polygon_area(p) -> float:
+    """Area of a closed (K, 2) polygon (shoelace), px^2."""
+    x, y = p[:, 0], p[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+
+def _one_section_run(sections: dict, slice_z_mm) -> dict:
+    """The longest run of consecutive slices that show one section each.
+
+    On the proximal femur the user outlines the shaft, trochanters and neck as one bone and
+    leaves out the femoral head where it separates from the neck, as in the paper. A slice
+    of two or more sections ends a run: the head above the neck, and, on some femurs, a
+    lesser trochanter whose tip shows as an island beside the shaft near the region's lower
+    end. In the lower half of the slices that show bone (the trochanters' side; the head
+    separates in the upper half), a slice of several sections between two slices of one
+    (an island of one slice) keeps its largest section, as a user outlines the bone and
+    passes over the island. Elsewhere, and wherever sections persist over two or more
+    slices, they end the run (with 6 mm slices the head's separation may show on one
+    slice only). The longest run is the bone proper wherever the islands fall.
+    """
+    ks = sorted(sections)
+    if not ks:
+        return {}
+    z = np.asarray(slice_z_mm, dtype=np.float64)
+    z_mid = 0.5 * (z[ks[0]] + z[ks[-1]])
+    sections = dict(sections)
+    for a, k, b in zip(ks[:-2], ks[1:-1], ks[2:]):
+        if (len(sections[k]) > 1 and a == k - 1 and b == k + 1 and z[k] < z_mid
+                and len(sections[a]) == 1 and len(sections[b]) == 1):
+            sections[k] = [max(sections[k], key=_polygon_area)]
+    runs, run, last = [], [], None
+    for k in sorted(sections):
+        if len(sections[k]) == 1 and (last is None or k == last + 1):
+            run.append(k)
+        else:
+            if run:
+                runs.append(run)
+            run = [k] if len(sections[k]) == 1 else []
+        last = k
+    if run:
+        runs.append(run)
+    best = max(runs, key=len) if runs else []
+    return {k: sections[k] for k in best}
+
+
 def ct_clicks(volume_hu, slice_z_mm, region_slices: dict, *, pixel_mm: float,
               spec: OperatorSpec, rng) -> dict[str, CtClicks]:
     """The operator's clicks on every CT region.
@@ -181,18 +226,15 @@ def ct_clicks(volume_hu, slice_z_mm, region_slices: dict, *, pixel_mm: float,
     min_area_px = spec.ct_min_section_mm2 / pixel_mm**2
     out = {}
     for region in sorted(region_slices):
-        slices, sections = [], {}
+        sections = {}
         for k in np.sort(np.asarray(region_slices[region], dtype=np.int64)):
             sec = bone_sections(vol[k], threshold_hu=spec.ct_bone_threshold_hu,
                                 min_area_px=min_area_px)
-            if not sec:
-                continue
-            if region == "proximal" and len(sec) > 1:
-                if not slices:
-                    continue  # below the region's bone proper (e.g. a trochanter's tip alone)
-                break  # the femoral head separates from the neck: left out, as in the paper
-            slices.append(int(k))
-            sections[int(k)] = sec
+            if sec:
+                sections[int(k)] = sec
+        if region == "proximal":
+            sections = _one_section_run(sections, z)
+        slices = sorted(sections)
         if len(slices) < 2:
             raise ValueError(f"CT region {region!r}: fewer than 2 slices show bone above "
                              f"{spec.ct_bone_threshold_hu:g} HU")

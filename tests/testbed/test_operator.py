@@ -101,3 +101,27 @@ def test_ct_clicks_follow_the_bone_and_leave_out_the_head():
                 assert np.median(d) < 1.5 and d.max() < 5.0, (region, k)
     z_top = ct.slice_z_mm[got["proximal"].slices].max()
     assert z_top < ph.landmarks["head_center"][2]
+
+
+def test_proximal_clicks_pass_over_a_one_slice_island_and_stop_at_the_head():
+    """A lesser trochanter's tip that shows as an island on one slice just above the
+    region's first slice (seen on random femurs, where the region then had 1 slice and the
+    case failed) is passed over; the head, separate from the neck on 3 slices, is left out."""
+    n, shape = 20, (80, 120)
+    vol = np.full((n, *shape), 30.0)
+    for k in range(n):
+        vol[k][_disk(shape, (50, 40), 14)] = 1200.0      # the shaft and neck, slices 0-19
+    vol[1][_disk(shape, (80, 40), 5)] = 1200.0           # island on slice 1 only
+    for k in (14, 15, 16):
+        vol[k][_disk(shape, (95, 40), 12)] = 1200.0      # the head beside the neck
+    for k in (17, 18, 19):
+        vol[k][:] = 30.0
+        vol[k][_disk(shape, (95, 40), 10)] = 1200.0      # the head's top alone
+    z = np.arange(n, dtype=float) * 2.0
+    spec = OperatorSpec(ct_click_noise_px=0.0)
+    got = ct_clicks(vol, z, {"proximal": np.arange(n)}, pixel_mm=1.0, spec=spec,
+                    rng=np.random.default_rng(0))["proximal"]
+    assert got.slices.tolist() == list(range(14))
+    for polys in got.clicks.values():
+        assert len(polys) == 1
+        assert np.all(np.abs(np.hypot(polys[0][:, 0] - 50, polys[0][:, 1] - 40) - 14) < 1.5)
