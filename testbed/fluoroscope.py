@@ -62,6 +62,7 @@ __all__ = [
     "Distortion",
     "FluoroscopeSpec",
     "Frame",
+    "SweepRenderer",
     "ViewSpec",
     "make_carm",
     "make_distortion",
@@ -718,6 +719,123 @@ def render(carm: CArm, bodies: list[Body], *, fluoro: FluoroscopeSpec, rng=None,
         fov=fov,
         carm=carm,
     )
+
+
+class SweepRenderer:
+    """The frames of one view's calibration sweep, fast: the static bodies are cast once.
+
+    A sweep frame differs from the view's empty-rod frame only where the rod is. The line
+    integrals of the static bodies (patient, table, instruments; they do not move during a
+    sweep) are computed once per view; per frame only the rays that can meet the rod are
+    cast against the rod's bodies, and line integrals add. Which rays can meet the rod: the
+    rod's bodies seen from the source, on the undistorted (pinhole) image plane, lie inside
+    the convex hull of the central projections of their vertices (of the bounding cubes'
+    corners for the beads), central projection mapping lines to lines; a ray is kept when
+    its undistorted pixel lies within ``HULL_MARGIN_PX`` of that hull, so the culling is
+    conservative and the frame is that of :func:`render` with all bodies (the reference,
+    compared in ``tests/testbed/test_sweep.py``) up to the order of floating-point sums.
+    The image chain (:func:`testbed.detector.form_image`) runs on the whole frame, with the
+    same generator draws as :func:`render`.
+
+    Parameters
+    ----------
+    carm : CArm (the calibration-stage C-arm of the view).
+    fluoro : FluoroscopeSpec.
+    bodies : the static bodies (robot frame).
+    """
+
+    HULL_MARGIN_PX = 0.5
+
+    def __init__(self, carm: CArm, fluoro: FluoroscopeSpec, bodies: list[Body]):
+        self.carm, self.fluoro, self.bodies = carm, fluoro, list(bodies)
+        for b in self.bodies:
+            material(b.material)
+        _check_source_outside(carm, self.bodies)
+        self.fov = carm.fov_mask()
+        grid = carm.pixel_grid()[self.fov]
+        subs = _sub_offsets(fluoro.oversample)
+        self._rays, self._uv, static = [], [], []
+        weights = attenuation_weights(self.bodies)
+        scene = RayScene(self.bodies) if self.bodies else None
+        for off in subs:
+            if len(subs) == 1:
+                o, d = carm.pixel_ray_map()
+                o, d = o[self.fov], d[self.fov]
+                uv = carm._undistorted_grid()[self.fov]
+            else:
+                o, d = carm.true_rays(grid + off)
+                uv = carm.undistort_px(grid + off)
+            tm = carm.sid_mm / (d @ carm.axis_robot)
+            a = (body_path_lengths(self.bodies, o, d, tm, scene=scene) @ weights
+                 if self.bodies else np.zeros(len(o)))
+            self._rays.append((np.ascontiguousarray(o), np.ascontiguousarray(d), tm))
+            self._uv.append(uv)
+            static.append(a)
+        self._static = static
+        self._magnification = _magnification(carm, self.bodies)
+
+    def _hull_px(self, rod: list[Body]) -> np.ndarray:
+        """Undistorted pixels (K, 2) of the rod's vertices (bead cubes' corners)."""
+        pts = []
+        for b in rod:
+            if b.mesh is not None:
+                pts.append(np.asarray(b.mesh.vertices))
+            else:
+                corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1)
+                                    for z in (-1, 1)], dtype=np.float64)
+                pts.append((b.sphere_centers[:, None, :] + b.sphere_radii[:, None, None]
+                            * corners[None]).reshape(-1, 3))
+        q = self.carm.carm2robot.inverse().apply(np.vstack(pts))
+        if np.any(q[:, 2] <= 1e-9):
+            raise ValueError(f"view {self.carm.name!r}: the rod reaches behind the X-ray "
+                             "source")
+        c = self.carm
+        return np.column_stack([c.principal_px[0] + c.sid_mm * q[:, 0] / (q[:, 2] * c.pixel_mm),
+                                c.principal_px[1] + c.sid_mm * q[:, 1] / (q[:, 2] * c.pixel_mm)])
+
+    @classmethod
+    def _inside_hull(cls, uv: np.ndarray, pts: np.ndarray) -> np.ndarray:
+        """Indices of the points ``uv`` (M, 2) within the margin of the convex hull of
+        ``pts`` (K, 2)."""
+        from scipy.spatial import ConvexHull, QhullError
+
+        m = cls.HULL_MARGIN_PX
+        lo, hi = pts.min(axis=0) - m, pts.max(axis=0) + m
+        cand = np.flatnonzero(np.all((uv >= lo) & (uv <= hi), axis=1))
+        try:
+            hull = ConvexHull(pts)
+        except QhullError:   # flat (a rod seen end-on): its bounding box is conservative
+            return cand
+        # hull.equations: rows (nx, ny, offset), outward unit normals; inside: n.x + off <= 0
+        eq = hull.equations
+        x = uv[cand]
+        inside = np.all(x @ eq[:, :2].T + eq[:, 2] <= m, axis=1)
+        return cand[inside]
+
+    def transmission(self, rod: list[Body]) -> np.ndarray:
+        """Primary transmission (H, W) with ``rod`` (robot frame) in the beam."""
+        weights = attenuation_weights(self.bodies + list(rod))[len(self.bodies):]
+        _check_source_outside(self.carm, list(rod))
+        pts = self._hull_px(rod)
+        trans = np.zeros(len(self._static[0]))
+        for (o, d, tm), uv, a_static in zip(self._rays, self._uv, self._static):
+            a = a_static.copy()
+            idx = self._inside_hull(uv, pts)
+            if len(idx):
+                a[idx] += body_path_lengths(list(rod), o[idx], d[idx], tm[idx]) @ weights
+            trans += np.exp(-a) / len(self._static)
+        full = np.zeros(self.fov.shape)
+        full[self.fov] = trans
+        return full
+
+    def render(self, rod: list[Body], *, rng=None, noise: bool | None = None) -> np.ndarray:
+        """The 8-bit video frame (H, W) uint8 with ``rod`` in the beam; ``rng`` as in
+        :func:`render` (the same draws)."""
+        use_noise = self.fluoro.noise if noise is None else bool(noise)
+        _, video = form_image(self.transmission(rod), self.fov, self.carm.rho_map(),
+                              self.fluoro, magnification=self._magnification,
+                              noise=use_noise, rng=np.random.default_rng(rng))
+        return video
 
 
 # --------------------------------------------------------------------------- scene wiring

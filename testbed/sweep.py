@@ -157,9 +157,13 @@ def run_sweep(robot: Robot, carm, fluoro, *, bodies=(), rng=None, noise: bool | 
     noise : None follows ``fluoro.noise``.
     poses : the plan (default :func:`plan_sweep`).
 
+    The frames are rendered by :class:`testbed.fluoroscope.SweepRenderer` (the static
+    bodies cast once per view, per frame only the rays that can meet the rod), whose
+    frames are those of :func:`testbed.fluoroscope.render` with every body.
+
     Raises ``ValueError`` naming the view and pose when a pose is unreachable.
     """
-    from testbed.fluoroscope import render
+    from testbed.fluoroscope import SweepRenderer
 
     rng = np.random.default_rng(rng)
     spec = robot.spec
@@ -170,7 +174,7 @@ def run_sweep(robot: Robot, carm, fluoro, *, bodies=(), rng=None, noise: bool | 
     rep = np.full((F, n, 3), np.nan)
     tru = np.full((F, n, 3), np.nan)
     joints = np.zeros((F, 5))
-    fov = None
+    renderer = SweepRenderer(carm, fluoro, list(bodies))
     for i, pose in enumerate(plan):
         try:
             joints[i] = robot.place_rod(pose.point_robot, pose.direction_robot)
@@ -180,10 +184,7 @@ def run_sweep(robot: Robot, carm, fluoro, *, bodies=(), rng=None, noise: bool | 
         if pose.plane >= 0:
             rep[i] = robot.bead_positions()
             tru[i] = robot.bead_positions(true=True)
-        fr = render(carm, list(bodies) + robot.rod_bodies(), fluoro=fluoro, rng=rng,
-                    noise=noise)
-        frames[i] = fr.image_u8
-        fov = fr.fov
+        frames[i] = renderer.render(robot.rod_bodies(), rng=rng, noise=noise)
         if progress is not None:
             progress(i, F)
     sw = spec.sweep
@@ -192,4 +193,4 @@ def run_sweep(robot: Robot, carm, fluoro, *, bodies=(), rng=None, noise: bool | 
     return Sweep(view=carm.name, frames=frames, plane=np.array([p.plane for p in plan]),
                  beads_reported=rep, beads_true=tru, joints=joints, time_s=time_s,
                  duration_s=duration, dose_mrem=duration / 60.0 * sw.dose_rate_mrem_per_min,
-                 bead_positions_mm=spec.rod.bead_positions_mm(), fov=fov, poses=plan)
+                 bead_positions_mm=spec.rod.bead_positions_mm(), fov=renderer.fov, poses=plan)

@@ -139,11 +139,11 @@ def bench_frames(quick: bool) -> dict:
         robot.place_rod(pose.point_robot, pose.direction_robot)
         rod = robot.rod_bodies()
         try:
-            from testbed.sweep import SweepRenderer  # the fast path, when present
+            from testbed.fluoroscope import SweepRenderer  # the fast path
 
             sr = SweepRenderer(carm, scene.fluoroscope, bodies)
             sweep_s = _cpu(lambda: sr.render(rod, rng=0), repeat)
-            note = "testbed.sweep.SweepRenderer"
+            note = "testbed.fluoroscope.SweepRenderer"
         except ImportError:
             sweep_s = _cpu(lambda: render(carm, bodies + rod, fluoro=scene.fluoroscope, rng=0),
                            repeat)

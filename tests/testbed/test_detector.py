@@ -214,3 +214,18 @@ def test_distortion_with_local_terms_inverts_and_has_the_right_jacobian():
     num = np.stack([(d.distort(u + [h, 0]) - d.distort(u - [h, 0])) / (2 * h),
                     (d.distort(u + [0, h]) - d.distort(u - [0, h])) / (2 * h)], -1)
     np.testing.assert_allclose(d.jacobian(u), num, atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_opencv_blurs_equal_their_scipy_references(seed):
+    """The accelerated blurs (OpenCV) against scipy.ndimage on random images and sigmas,
+    odd sizes included (a coarse grid that does not divide the image)."""
+    rng = np.random.default_rng(seed)
+    shape = tuple(int(x) for x in rng.integers(37, 200, 2))
+    img = rng.uniform(0, 1, shape) * (rng.uniform(0, 1, shape) > 0.3)
+    for sigma in (rng.uniform(0.2, 3.0), rng.uniform(3.0, 7.9)):
+        ref = gaussian_filter(img, sigma, mode="nearest")
+        assert np.abs(detector.blur(img, sigma) - ref).max() < 1e-12
+    for sigma in (rng.uniform(1.0, 7.9), rng.uniform(8.0, 50.0)):
+        ref = detector.wide_blur_reference(img, sigma)
+        assert np.abs(detector.wide_blur(img, sigma) - ref).max() < 1e-12, sigma

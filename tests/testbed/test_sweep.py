@@ -189,3 +189,41 @@ def test_an_instrument_moved_into_the_field_is_a_stray_blob(clean_sweep):
     clean = find_markers(SweepData(**sw.for_calibration()))
     assert sorted(m.bead[m.frame == f]) == sorted(clean.bead[clean.frame == f])
     assert any(f"frame {f}:" in p and "stray blob" in p for p in m.problems)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("oversample", [1, 2])
+def test_sweep_renderer_gives_the_frames_of_a_full_render(oversample):
+    """The fast sweep path (static bodies cast once, per frame only the rays in the rod's
+    projected hull) against render() with every body, the patient and table in the beam
+    and the clinic's distortion: transmission equal to float32 rounding, the noise-free
+    video equal, and with noise the same draws (video equal but for rounding ties)."""
+    from testbed.fluoroscope import SweepRenderer, render
+    from testbed.scene import find_scene, load_scene
+    from testbed.world import build_world
+
+    scene = load_scene(find_scene("experiment2"))
+    fl = scene.fluoroscope.model_copy(update={"oversample": oversample})
+    bodies = build_world(scene, np.random.default_rng(0)).bodies
+    carm = make_carm(fl, scene.views[0], view_index=0, stage="calibration")
+    fast = SweepRenderer(carm, fl, bodies)
+    rng = np.random.default_rng(5)
+    with Robot(scene.robot, rng=0) as robot:
+        plan = plan_sweep(carm, robot.spec)
+        picks = [0, *rng.choice(np.arange(1, len(plan)), 3, replace=False)]
+        for i in picks:   # the parked reference pose and three rows
+            robot.place_rod(plan[i].point_robot, plan[i].direction_robot)
+            rod = robot.rod_bodies()
+            ref = render(carm, bodies + rod, fluoro=fl, rng=0, noise=False)
+            t_fast = fast.transmission(rod)
+            if oversample == 1:
+                t_ref = np.where(ref.fov, np.exp(-ref.attenuation.astype(np.float64)), 0.0)
+                assert np.abs(t_fast - t_ref).max() < 1e-6, i
+            assert np.array_equal(fast.render(rod, rng=0, noise=False), ref.image_u8), i
+            noisy = render(carm, bodies + rod, fluoro=fl, rng=7, noise=True).image_u8
+            got = fast.render(rod, rng=7, noise=True)
+            diff = np.abs(got.astype(int) - noisy.astype(int))
+            assert diff.max() <= 1 and np.mean(diff > 0) < 1e-3, i
+            if plan[i].plane >= 0:   # the rod is in the field: its rays were cast
+                rod_px = ref.mask({"ultem", "steel"})
+                assert rod_px.sum() > 500
