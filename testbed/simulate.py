@@ -93,9 +93,12 @@ class Simulation:
 
 
 def _case_scene(scene, shape_ss: np.random.SeedSequence):
-    """The case's scene: the femur shape seed drawn from the case (used when
-    ``shape_variation > 0``)."""
-    shape_seed = int(shape_ss.generate_state(1, dtype=np.uint32)[0])
+    """The case's scene: the femur's shape seed drawn from the scene's ``[phantom]
+    shape_seed`` and the case (used when ``shape_variation > 0``), so that every case of a
+    run has its own femur and another ``shape_seed`` gives other femurs."""
+    mixed = np.random.SeedSequence([int(scene.phantom.shape_seed),
+                                    *shape_ss.generate_state(2, dtype=np.uint32).tolist()])
+    shape_seed = int(mixed.generate_state(1, dtype=np.uint32)[0])
     phantom = scene.phantom.model_copy(update={"shape_seed": shape_seed})
     return scene.model_copy(update={"phantom": phantom})
 

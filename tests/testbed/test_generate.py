@@ -156,9 +156,16 @@ def test_case_seeds_and_shapes_differ_per_case():
     assert (a.entropy, a.spawn_key, b.spawn_key) == (7, (0,), (1,))
     # the case seed does not depend on the number of cases
     assert case_seed(7, 1, 5).spawn_key == b.spawn_key
-    sa = _case_scene(scene, a.spawn(len(SEED_STREAMS))[0]).phantom.shape_seed
+    shape_a = a.spawn(len(SEED_STREAMS))[0]
+    sa = _case_scene(scene, shape_a).phantom.shape_seed
     sb = _case_scene(scene, b.spawn(len(SEED_STREAMS))[0]).phantom.shape_seed
     assert sa != sb
+    # the scene's shape_seed is not overridden: another one gives another femur per case
+    other = scene.model_copy(update={"phantom": scene.phantom.model_copy(
+        update={"shape_seed": scene.phantom.shape_seed + 1})})
+    so = _case_scene(other, shape_a).phantom.shape_seed
+    assert so not in (sa, sb)
+    assert _case_scene(scene, shape_a).phantom.shape_seed == sa
     with pytest.raises(ValueError, match="case index"):
         case_seed(7, 2, 2)
 
