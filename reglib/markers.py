@@ -64,11 +64,24 @@ def _log_image(img, response: str) -> np.ndarray:
     return np.log(np.maximum(a, lo))
 
 
+def _gaussian(img, sigma_px: float, reference: bool) -> np.ndarray:
+    """``scipy.ndimage.gaussian_filter(img, sigma_px)`` (mode "reflect"); the fast path is
+    OpenCV's separable filter with scipy's kernel (radius ``int(4 sigma + 0.5)``) and border
+    (BORDER_REFLECT is scipy's "reflect"): equal to rounding, 3-4x faster."""
+    if reference:
+        return ndimage.gaussian_filter(img, sigma_px)
+    import cv2
+
+    r = int(4.0 * sigma_px + 0.5)
+    return cv2.GaussianBlur(np.ascontiguousarray(img, dtype=np.float64), (2 * r + 1, 2 * r + 1),
+                            sigmaX=sigma_px, sigmaY=sigma_px, borderType=cv2.BORDER_REFLECT)
+
+
 def detect_markers(previous, current, *, polarity: str = "dark", response: str = "log",
                    rel_threshold: float = 0.35,
                    n_sigma: float = 6.0, min_area_px: int = 4, max_area_px: int = 2000,
                    max_elongation: float = 2.0, centroid_floor: float = 0.25,
-                   mask=None) -> tuple[np.ndarray, np.ndarray]:
+                   mask=None, reference: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Blobs that appeared in ``current`` and not in ``previous`` (the rod's new beads).
 
     Works on ``d = log(previous) - log(current)`` less its median over the field (for dark
@@ -90,6 +103,10 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
     mask : (H, W) bool, optional; where to look (e.g. the intensifier's circular field).
         A blob whose centroid window reaches outside it is dropped (cut by the field's edge,
         its centroid would be biased).
+    reference : the same steps in scipy.ndimage alone (Gaussian filters, per-label maxima
+        and areas), kept as the reference of the fast path (OpenCV Gaussians, ``bincount``
+        and ``maximum.at`` over the labelled pixels), which
+        ``tests/reglib/test_markers.py`` compares with it on random frames.
 
     Returns
     -------
@@ -122,8 +139,8 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
     # a band-pass at the beads' scale (difference of Gaussians): the rod's band and the
     # broad steel tip fade, bead-sized blobs stay, so that a strong tip or a blurred frame
     # does not lift the threshold above the beads
-    g1 = ndimage.gaussian_filter(d, BLOB_SIGMA_PX)
-    ds = g1 - ndimage.gaussian_filter(d, BACKGROUND_SIGMA_PX)
+    g1 = _gaussian(d, BLOB_SIGMA_PX, reference)
+    ds = g1 - _gaussian(d, BACKGROUND_SIGMA_PX, reference)
     dsi = ds[inside] if inside.any() else ds.ravel()  # the noise of the field, not the black
     noise = 1.4826 * np.median(np.abs(dsi - np.median(dsi)))
     # ...of attenuation that was added: the positive rim the band-pass leaves around a bead
@@ -138,16 +155,22 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
     low = max(n_sigma * noise, 0.02 * peak)
     regions, n_regions = ndimage.label(ds > low)
     region_peak = np.zeros(n_regions + 1)
-    region_peak[1:] = ndimage.maximum(ds, regions, np.arange(1, n_regions + 1))
+    if reference:
+        region_peak[1:] = ndimage.maximum(ds, regions, np.arange(1, n_regions + 1))
+    else:  # ndimage.maximum sorts all labels (45 ms on a noisy frame); only labelled pixels
+        on = regions > 0
+        np.maximum.at(region_peak, regions[on], ds[on])
     # never below half the global relative threshold: noise specks are regions of their own
     thr = np.maximum(max(low, 0.5 * rel_threshold * peak), rel_threshold * region_peak[regions])
     labels, n = ndimage.label((ds > thr) & (regions > 0))
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0)
     idx = np.arange(1, n + 1)
-    areas = ndimage.sum_labels(np.ones_like(ds), labels, idx)
+    if reference:
+        areas = ndimage.sum_labels(np.ones_like(ds), labels, idx)
+    else:
+        areas = np.bincount(labels[labels > 0], minlength=n + 1)[1:].astype(np.float64)
     H, W = d.shape
-    yy, xx = np.mgrid[0:H, 0:W]
     out, strength = [], []
     slices = ndimage.find_objects(labels)
     for k, sl in enumerate(slices):
@@ -166,7 +189,8 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
         for _ in range(3):
             x0, x1 = int(max(cx - r_in - 4, 0)), int(min(cx + r_in + 5, W))
             y0, y1 = int(max(cy - r_in - 4, 0)), int(min(cy + r_in + 5, H))
-            px, py, pd = xx[y0:y1, x0:x1], yy[y0:y1, x0:x1], d[y0:y1, x0:x1]
+            px, py = np.meshgrid(np.arange(x0, x1), np.arange(y0, y1))
+            pd = d[y0:y1, x0:x1]
             rr = np.hypot(px - cx, py - cy)
             ring = pd[(rr > r_in) & (rr <= r_in + 3)]
             bg = np.median(ring) if ring.size else 0.0

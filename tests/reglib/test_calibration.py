@@ -103,6 +103,31 @@ def test_detect_markers_finds_new_beads_with_subpixel_accuracy():
     assert len(xy2) == 0
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_detect_markers_fast_path_equals_the_scipy_reference(seed):
+    """The fast detection (OpenCV Gaussians, bincount and maximum.at over the labels)
+    against the reference in scipy.ndimage, on random rows of beads with video noise,
+    a stray blob and a field-of-view mask: the same blobs, centroids equal to 1e-9 px."""
+    rng = np.random.default_rng(seed)
+    shape = (240, 320)
+    ang = rng.uniform(0, np.pi)
+    u = np.r_[np.cos(ang), np.sin(ang)]
+    start = np.r_[160.0, 120.0] - 40 * u + rng.uniform(-20, 20, 2)
+    centres = start + (BEADS * rng.uniform(1.0, 1.6))[:, None] * u
+    prev = _bead_image([(rng.uniform(20, 300), rng.uniform(20, 220))])
+    cur = _bead_image(centres, rod=(start, u, 6.0))
+    noise = rng.normal(0, rng.uniform(0.5, 3.0), (2, *shape))
+    prev = np.clip(prev + noise[0], 0, 255).astype(np.uint8)
+    cur = np.clip(cur + noise[1], 0, 255).astype(np.uint8)
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]]
+    for mask in (None, np.hypot(xx - 160, yy - 120) < 115):
+        fast = detect_markers(prev, cur, mask=mask)
+        ref = detect_markers(prev, cur, mask=mask, reference=True)
+        assert fast[0].shape == ref[0].shape and len(ref[0]) >= 4
+        assert np.abs(fast[0] - ref[0]).max() < 1e-9
+        assert np.abs(fast[1] - ref[1]).max() < 1e-9
+
+
 def test_detect_markers_bad_input():
     with pytest.raises(ValueError, match="same shape"):
         detect_markers(np.zeros((10, 10)), np.zeros((10, 11)))
