@@ -27,11 +27,15 @@ from reglib.register import match_view
 from studies.scoring import start_at_mtre
 
 SEED = 2
+#: the femur's shape seed when the mechanism was found (then drawn from case seed 2's shape
+#: stream alone; testbed.simulate now mixes the scene's shape_seed in, so it is pinned here)
+FEMUR_SHAPE_SEED = 2143825141
 SMALL_LOOP_EDGES = 8
 
 
 @pytest.fixture(scope="module")
 def case():
+    import testbed.simulate
     from studies.end_to_end import prepare_case
     from testbed.scene import find_scene, load_scene
 
@@ -39,7 +43,14 @@ def case():
     phantom = scene.phantom.model_copy(update={"shape_variation": 1.0, "side": "right"})
     workspace = scene.workspace.model_copy(update={"check": False})
     scene = scene.model_copy(update={"phantom": phantom, "workspace": workspace})
-    return prepare_case(scene, SEED, sweeps=False)
+
+    def the_femur_that_showed_it(scene, _shape_stream):
+        return scene.model_copy(update={"phantom": scene.phantom.model_copy(
+            update={"shape_seed": FEMUR_SHAPE_SEED})})
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(testbed.simulate, "_case_scene", the_femur_that_showed_it)
+        return prepare_case(scene, SEED, sweeps=False)
 
 
 def _distal_views(case):

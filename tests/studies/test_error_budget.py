@@ -52,3 +52,25 @@ def test_source_table_attributes_removed_and_added():
     assert t.loc["a", "added"] == pytest.approx(1.5)
     assert t.loc["b", "removed"] == pytest.approx(0.1)
     assert list(t.index[2:]) == ["a", "b"]  # largest share first
+
+
+def test_gap_table_gives_each_source_the_factor_that_would_reach_the_target():
+    """Clinic 1.0 mm, ideal 0.3 mm; source a alone 0.5 mm (own 0.4 mm in quadrature),
+    b alone 0.3 mm (adds nothing): to reach 1.8 mm, sqrt(1.8^2 - 1) = 1.497 mm is missing,
+    so a would need sqrt(0.4^2 + 1.497^2) / 0.4 = 3.87 times its magnitude; b no factor."""
+    import numpy as np
+
+    from studies.error_budget import gap_markdown, gap_table
+
+    rows = []
+    for cfg, src, val in (("clinic", "", 1.0), ("ideal", "", 0.3), ("off", "a", 0.8),
+                          ("alone", "a", 0.5), ("off", "b", 1.0), ("alone", "b", 0.3)):
+        rows.append({"config": cfg, "source": src, "oracle": "none", "value": val})
+    t = source_table(pd.DataFrame(rows))
+    g = gap_table(t, 1.8).set_index("source")
+    assert g.loc["a", "contribution_mm"] == pytest.approx(0.4)
+    assert g.loc["a", "factor"] == pytest.approx(np.sqrt(0.16 + 1.8**2 - 1.0) / 0.4)
+    assert np.isnan(g.loc["b", "factor"])
+    assert "1.50 mm (in quadrature) is missing" in gap_markdown(t)
+    rows[0]["value"] = 2.0
+    assert "no source has to change" in gap_markdown(source_table(pd.DataFrame(rows)))
