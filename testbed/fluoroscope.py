@@ -285,7 +285,9 @@ class Distortion:
         if self.local:
             a, f, ph = self._local_arrays()
             arg = 2.0 * np.pi * (p @ f.T) + ph  # (..., K)
-            J = J + np.einsum("...k,ki,kj->...ij", np.cos(arg), a, 2.0 * np.pi * f)
+            # sum_k cos(arg_k) a_k (2 pi f_k)^T as one matrix product over the K terms
+            m = (a[:, :, None] * (2.0 * np.pi * f)[:, None, :]).reshape(len(a), 4)
+            J = J + (np.cos(arg) @ m).reshape(J.shape)
         return J
 
     def undistort(self, xy_px, *, tol_px: float = 1e-10, max_iter: int = 50) -> np.ndarray:
@@ -295,16 +297,23 @@ class Distortion:
         converge to ``tol_px`` (the distortion must stay one-to-one there).
         """
         d = np.asarray(xy_px, dtype=np.float64)
-        u = d - np.asarray(self.shift_px)
+        shape = d.shape
+        d = d.reshape(-1, 2)
+        # start from the displacement evaluated at the distorted point (first order), and
+        # iterate only the points not yet within tol_px (most converge in 2 steps)
+        u = 2.0 * d - self.distort(d)
+        active = np.arange(len(d))
         for _ in range(max_iter):
-            r = self.distort(u) - d
-            if np.max(np.abs(r), initial=0.0) < tol_px:
-                return u
-            J = self.jacobian(u)
+            r = self.distort(u[active]) - d[active]
+            done = np.max(np.abs(r), axis=1) < tol_px
+            active, r = active[~done], r[~done]
+            if not len(active):
+                return u.reshape(shape)
+            J = self.jacobian(u[active])
             det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
             du0 = (J[..., 1, 1] * r[..., 0] - J[..., 0, 1] * r[..., 1]) / det
             du1 = (-J[..., 1, 0] * r[..., 0] + J[..., 0, 0] * r[..., 1]) / det
-            u = u - np.stack([du0, du1], -1)
+            u[active] -= np.stack([du0, du1], -1)
         raise ValueError(
             f"Distortion.undistort: no convergence to {tol_px} px in {max_iter} iterations "
             "(distortion too strong for this pixel range)"
