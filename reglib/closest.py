@@ -5,9 +5,15 @@ and every contour, the point ``p`` of the contour closest to the line and the po
 the line closest to ``p``. Step B: the *stabbing* test and the selection of one contour per
 line.
 
-Four exact ways to compute Step A, one interface (:func:`closest_points`):
+Five exact ways to compute Step A, one interface (:func:`closest_points`):
 
-``"blocks"`` (default)
+``"compiled"`` (the registration's default)
+    The same capsule bounds as ``"blocks"`` with one level of blocks of
+    :data:`COMPILED_BLOCK` segments, in a compiled loop per line
+    (:mod:`reglib._closest_numba`): a block is skipped when its lower bound exceeds the
+    contour's best distance so far (or, with ``within_mm``, the line's threshold), the
+    others' segments are measured exactly; then the exact points of the chosen segments.
+``"blocks"`` (the default of :func:`closest_points`)
     The paper's bounding capsules as a fixed three-level hierarchy (blocks of 64 and of 8
     consecutive segments, then the segments), searched level by level for all lines at
     once so that numpy does the work: each block's capsule has its axis from the block's
@@ -66,7 +72,7 @@ __all__ = [
     "stabbing",
 ]
 
-Method = Literal["blocks", "dense", "hierarchy", "reference"]
+Method = Literal["compiled", "blocks", "dense", "hierarchy", "reference"]
 
 
 # --------------------------------------------------------------------------- contours
@@ -335,6 +341,54 @@ def _expand(counts: np.ndarray) -> np.ndarray:
     return np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
 
 
+def _block_capsules(contours: ContourSet, size: int):
+    """The contours cut into blocks of ``size`` consecutive segments, in contour order:
+    per block its contour ``bc``, local segment range ``[j0, j1)``, capsule axis ``a -> b``
+    (its first and last vertex) and radius ``eps`` (the largest distance of its vertices
+    from the axis); ``first`` is each contour's first block."""
+    nc = contours.n_contours
+    path = contours.path
+    pbase = contours.offsets[:-1] + np.arange(nc)
+    bc, j0, j1, nblk = _ranges(contours.offsets, size)
+    lo, hi = pbase[bc] + j0, pbase[bc] + j1
+    cnt = hi - lo + 1
+    rows = np.repeat(lo, cnt) + _expand(cnt)
+    owner = np.repeat(np.arange(len(lo)), cnt)
+    dev = _point_segment_distances(path[rows], path[lo][owner], path[hi][owner])
+    eps = np.maximum.reduceat(dev, np.r_[0, np.cumsum(cnt)[:-1]])
+    first = np.r_[0, np.cumsum(nblk)[:-1]]        # first block of each contour
+    return bc, j0, j1, path[lo], path[hi], eps, first
+
+
+#: segments per block of the compiled method (measured: 8 fastest of 4-32 on the
+#: registration's apparent contours)
+COMPILED_BLOCK = 8
+
+
+def _closest_compiled(contours: ContourSet, o, d, within=None) -> ClosestPoints:
+    """The capsule pruning compiled (:mod:`reglib._closest_numba`), one loop per line."""
+    from reglib._closest_numba import closest_segments
+
+    n, nc = len(o), contours.n_contours
+    bc, j0, _, a, b, eps, first = _block_capsules(contours, COMPILED_BLOCK)
+    seg0 = np.r_[contours.offsets[bc] + j0, contours.n_segments].astype(np.int64)
+    cb0 = np.r_[first, len(bc)].astype(np.int64)
+    dist, seg = closest_segments(np.ascontiguousarray(o), np.ascontiguousarray(d),
+                                 np.ascontiguousarray(contours.starts),
+                                 np.ascontiguousarray(contours.ends), np.ascontiguousarray(a),
+                                 np.ascontiguousarray(b), np.ascontiguousarray(eps), seg0, cb0,
+                                 -1.0 if within is None else float(within))
+    if within is not None:   # beyond the line's threshold: not computed, as "blocks" says
+        thr = np.maximum(within, dist.min(axis=1, initial=np.inf))
+        seg[dist > (thr + 1e-7 * (1.0 + thr))[:, None]] = -1
+    out = _empty(n, nc)
+    li, ci = np.nonzero(seg >= 0)
+    s = seg[li, ci]
+    dist, p, q = _exact(o[li], d[li], contours.starts[s], contours.ends[s])
+    out.distance[li, ci], out.p[li, ci], out.q[li, ci], out.segment[li, ci] = dist, p, q, s
+    return out
+
+
 def _closest_blocks(contours: ContourSet, o, d, within=None, sizes=(64, 8)) -> ClosestPoints:
     """Exact pruning over a fixed hierarchy of capsules, level by level for all lines.
 
@@ -349,19 +403,7 @@ def _closest_blocks(contours: ContourSet, o, d, within=None, sizes=(64, 8)) -> C
     over all contours, raised to ``within`` (contours beyond it come back at infinity).
     """
     n, nc = len(o), contours.n_contours
-    path = contours.path
-    pbase = contours.offsets[:-1] + np.arange(nc)
-    levels = []
-    for size in sizes:
-        bc, j0, j1, nblk = _ranges(contours.offsets, size)
-        lo, hi = pbase[bc] + j0, pbase[bc] + j1
-        cnt = hi - lo + 1
-        rows = np.repeat(lo, cnt) + _expand(cnt)
-        owner = np.repeat(np.arange(len(lo)), cnt)
-        dev = _point_segment_distances(path[rows], path[lo][owner], path[hi][owner])
-        eps = np.maximum.reduceat(dev, np.r_[0, np.cumsum(cnt)[:-1]])
-        first = np.r_[0, np.cumsum(nblk)[:-1]]        # first block of each contour
-        levels.append((size, bc, j0, j1, path[lo], path[hi], eps, first))
+    levels = [(size, *_block_capsules(contours, size)) for size in sizes]
 
     def threshold(li, key, upper):
         """Per pair: the best upper bound of its group (line, or line and contour)."""
@@ -572,6 +614,7 @@ def _closest_hierarchy(contours: ContourSet, o, d) -> ClosestPoints:
 
 
 _METHODS = {
+    "compiled": _closest_compiled,
     "blocks": _closest_blocks,
     "dense": _closest_dense,
     "hierarchy": _closest_hierarchy,
@@ -589,10 +632,11 @@ def closest_points(contours: ContourSet, origins, directions, *,
     origins, directions : (N, 3) mm and unit; lines sorted so that neighbours follow each
         other help ``"hierarchy"`` (warm start), and do not matter to the others.
     method : "blocks" (default: capsule hierarchy pruned level by level for all lines,
-        vectorised; with ``within_mm`` the fastest measured), "dense" (all pairs by matrix
-        products), "hierarchy" (the paper's capsule tree and priority queue, pure Python)
-        or "reference" (plain brute force). See the module docstring.
-    within_mm : only with "blocks": per line, contours farther than
+        vectorised), "compiled" (the same bounds in numba, a loop per line: 3-5x faster
+        than "blocks" on the registration's contours; the registration's default),
+        "dense" (all pairs by matrix products), "hierarchy" (the paper's capsule tree and
+        priority queue, pure Python) or "reference" (plain brute force). See the module docstring.
+    within_mm : only with "blocks" and "compiled": per line, contours farther than
         ``max(within_mm, distance to the nearest contour)`` are not computed and come back
         at ``inf`` distance (NaN points, segment -1). The nearest contour and every contour
         within ``within_mm`` are exact. This is all that :func:`select_contours` needs
@@ -608,11 +652,12 @@ def closest_points(contours: ContourSet, origins, directions, *,
     if contours.n_contours == 0 or len(o) == 0:
         return _empty(len(o), contours.n_contours)
     if within_mm is not None:
-        if method != "blocks":
-            raise ValueError(f"within_mm is only supported by method 'blocks', not {method!r}")
+        if method not in ("blocks", "compiled"):
+            raise ValueError(f"within_mm is only supported by methods 'compiled' and 'blocks', "
+                             f"not {method!r}")
         if not within_mm >= 0:
             raise ValueError(f"within_mm: expected a distance >= 0 mm, got {within_mm}")
-        return _closest_blocks(contours, o, d, within=float(within_mm))
+        return _METHODS[method](contours, o, d, within=float(within_mm))
     return _METHODS[method](contours, o, d)
 
 

@@ -154,7 +154,7 @@ class RegistrationResult:
 
 
 # --------------------------------------------------------------------------- one view
-def match_view(surfaces, view: View, ct2robot: RigidTransform, *, closest: str = "blocks",
+def match_view(surfaces, view: View, ct2robot: RigidTransform, *, closest: str = "compiled",
                selection: Literal["paper", "closest"] = "paper",
                max_stab_distance_mm: float = np.inf):
     """Matched CT points for the paths of one view at the pose ``ct2robot``.
@@ -180,7 +180,7 @@ def match_view(surfaces, view: View, ct2robot: RigidTransform, *, closest: str =
         return None, None, ContourSet.from_polylines([], []), np.zeros(0, dtype=np.int64)
     cset = ContourSet.from_contours(conts)
     within = None
-    if closest == "blocks":
+    if closest in ("blocks", "compiled"):
         # Step B only looks at the nearest contour and the stabbed ones within the limit
         within = 0.0 if selection == "closest" else float(max_stab_distance_mm)
         within = None if not np.isfinite(within) else within
@@ -247,7 +247,7 @@ def _check_solver_options(method, opts):
 
 def register(surfaces, views, initial: RigidTransform, *,
              method: Literal["robust", "lm", "linear", "ransac"] = "robust",
-             closest: Literal["blocks", "dense", "hierarchy", "reference"] = "blocks",
+             closest: Literal["compiled", "blocks", "dense", "hierarchy", "reference"] = "compiled",
              selection: Literal["paper", "closest"] = "paper",
              max_stab_distance_mm: float = 10.0,
              residual: Literal["line", "normal"] = "normal",
@@ -269,8 +269,9 @@ def register(surfaces, views, initial: RigidTransform, *,
         used with ``residual="line"``. With ``residual="normal"`` or ``fixed_point_ct`` the
         solve is ``solve_pose``'s constrained IRLS (``normals``, ``fixed_point``): robust
         (Tukey) or ``"linear"``; "lm" and "ransac" are refused there (ValueError).
-    closest : Step A method of :func:`reglib.closest.closest_points` (default "blocks",
-        restricted to the contours Step B can select; all methods give the same matches).
+    closest : Step A method of :func:`reglib.closest.closest_points` (default "compiled",
+        the capsule pruning in numba, restricted like "blocks" to the contours Step B can
+        select; all methods give the same matches).
     selection : "paper" (Step B: external paths take the farthest stabbed contour, else the
         closest) or "closest" (every path takes its closest contour).
     max_stab_distance_mm : with "paper", stabbed contours farther than this do not count

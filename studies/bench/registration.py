@@ -181,7 +181,7 @@ def _time_parts(scene: SyntheticScene, T: RigidTransform, closest: str) -> dict:
     for v, cs in zip(views, conts):
         cset = ContourSet.from_contours(cs)
         o, d = T.inverse().apply_lines(v.origins, v.directions)
-        within = 10.0 if closest == "blocks" else None
+        within = 10.0 if closest in ("blocks", "compiled") else None
         cp = closest_points(cset, o, d, method=closest, within_mm=within)
         select_contours(cp, cset, d, v.external, max_stab_distance_mm=10.0)
     t2 = time.perf_counter()
@@ -189,7 +189,7 @@ def _time_parts(scene: SyntheticScene, T: RigidTransform, closest: str) -> dict:
             "segments": sum(ContourSet.from_contours(c).n_segments for c in conts)}
 
 
-def run_benchmark(starts: int = 3, methods=("blocks", "dense", "reference"),
+def run_benchmark(starts: int = 3, methods=("compiled", "blocks", "dense", "reference"),
                   seed: int = 0) -> pd.DataFrame:
     """Long-format rows: ``trial, method, metric, value, unit``."""
     scene = make_scene(paper_sizes=True)

@@ -30,7 +30,7 @@ def random_case(rng, n_lines=120, n_contours=5):
     return cs, o, d
 
 
-@pytest.mark.parametrize("method", ["dense", "blocks", "hierarchy"])
+@pytest.mark.parametrize("method", ["dense", "blocks", "hierarchy", "compiled"])
 def test_fast_methods_agree_with_brute_force(method):
     rng = np.random.default_rng(10)
     for _ in range(6):
@@ -46,15 +46,16 @@ def test_fast_methods_agree_with_brute_force(method):
         assert np.array_equal(sc, np.broadcast_to(np.arange(cs.n_contours), sc.shape))
 
 
+@pytest.mark.parametrize("method", ["blocks", "compiled"])
 @pytest.mark.parametrize("within", [0.0, 5.0, 20.0])
-def test_blocks_within_is_exact_where_step_b_looks(within):
+def test_within_is_exact_where_step_b_looks(within, method):
     """With ``within_mm`` the nearest contour and all contours within the limit are exact;
     the others are either exact too or reported at infinity (never a wrong finite value)."""
     rng = np.random.default_rng(13)
     for _ in range(4):
         cs, o, d = random_case(rng)
         ref = closest_points(cs, o, d, method="reference")
-        got = closest_points(cs, o, d, method="blocks", within_mm=within)
+        got = closest_points(cs, o, d, method=method, within_mm=within)
         need = ref.distance <= np.maximum(ref.distance.min(axis=1, keepdims=True), within)
         np.testing.assert_allclose(got.distance[need], ref.distance[need], atol=1e-9, rtol=0)
         np.testing.assert_allclose(got.p[need], ref.p[need], atol=1e-9, rtol=0)
