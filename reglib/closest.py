@@ -543,21 +543,12 @@ def _build_hierarchy(contours: ContourSet) -> _Hierarchy:
 
 
 def _seg_line(node, ox, oy, oz, dx, dy, dz):
-    """Distance (mm) from the line to the axis segment of ``node`` (scalar Python)."""
-    ax, ay, az, bx, by, bz = node[0], node[1], node[2], node[3], node[4], node[5]
-    wx, wy, wz = ax - ox, ay - oy, az - oz
-    ex, ey, ez = bx - ax, by - ay, bz - az
-    wd = wx * dx + wy * dy + wz * dz
-    ed = ex * dx + ey * dy + ez * dz
-    px, py, pz = wx - wd * dx, wy - wd * dy, wz - wd * dz
-    qx, qy, qz = ex - ed * dx, ey - ed * dy, ez - ed * dz
-    qq = qx * qx + qy * qy + qz * qz
-    s = 0.0
-    if qq > 0.0:
-        s = -(px * qx + py * qy + pz * qz) / qq
-        s = 0.0 if s < 0.0 else (1.0 if s > 1.0 else s)
-    rx, ry, rz = px + s * qx, py + s * qy, pz + s * qz
-    return math.sqrt(rx * rx + ry * ry + rz * rz)
+    """Distance (mm) from the line to the axis segment of ``node`` (the compiled kernel's
+    scalar formula, called from Python)."""
+    from reglib._closest_numba import _line_segment_distance
+
+    return _line_segment_distance(ox, oy, oz, dx, dy, dz, node[0], node[1], node[2],
+                                  node[3], node[4], node[5])
 
 
 def _search(h: _Hierarchy, root: int, line, upper: float, warm_leaf: int):
