@@ -290,15 +290,33 @@ class Distortion:
             J = J + (np.cos(arg) @ m).reshape(J.shape)
         return J
 
-    def undistort(self, xy_px, *, tol_px: float = 1e-10, max_iter: int = 50) -> np.ndarray:
+    def undistort(self, xy_px, *, tol_px: float = 1e-10, max_iter: int = 50,
+                  reference: bool = False) -> np.ndarray:
         """Undistorted pixels ``(N, 2)`` of distorted pixels ``(N, 2)``: ``distort``'s inverse.
 
         Newton iterations with the analytic Jacobian; raises ``ValueError`` if they do not
-        converge to ``tol_px`` (the distortion must stay one-to-one there).
+        converge to ``tol_px`` (the distortion must stay one-to-one there). Compiled per
+        point (:mod:`testbed._distortion_numba`); ``reference=True`` runs the same
+        iterations in numpy (compared in tests).
         """
         d = np.asarray(xy_px, dtype=np.float64)
         shape = d.shape
         d = d.reshape(-1, 2)
+        if not reference:
+            from testbed._distortion_numba import undistort
+
+            a, f, ph = self._local_arrays()
+            u, ok = undistort(np.ascontiguousarray(d), float(self.center_px[0]),
+                              float(self.center_px[1]), float(self.radius_px), float(self.k1),
+                              float(self.k2), float(self.rotation_edge_rad),
+                              float(self.shift_px[0]), float(self.shift_px[1]),
+                              np.ascontiguousarray(a), np.ascontiguousarray(f),
+                              np.ascontiguousarray(ph), float(tol_px), int(max_iter))
+            if ok.all():
+                return u.reshape(shape)
+            raise ValueError(
+                f"Distortion.undistort: no convergence to {tol_px} px in {max_iter} "
+                "iterations (distortion too strong for this pixel range)")
         # start from the displacement evaluated at the distorted point (first order), and
         # iterate only the points not yet within tol_px (most converge in 2 steps)
         u = 2.0 * d - self.distort(d)
