@@ -119,7 +119,22 @@ def _cost_tables(a: np.ndarray, b: np.ndarray, quality: Quality):
 
 
 def _dp(cost_i: np.ndarray, cost_j: np.ndarray) -> tuple[float, np.ndarray]:
-    """Least-cost monotone path; returns (cost, steps) with steps[k] = 0 (i) or 1 (j)."""
+    """Least-cost monotone path; returns (cost, steps) with steps[k] = 0 (i) or 1 (j).
+
+    Compiled (:func:`reglib._surface_numba.dp_kernel`); :func:`_dp_numpy` is the same
+    recursion by anti-diagonals in numpy and :func:`_brute_force` enumerates every path on
+    small cases (both compared in ``tests/reglib/test_surface.py``). Ties go to the step in
+    i, as in both.
+    """
+    from reglib._surface_numba import dp_kernel
+
+    total, steps = dp_kernel(np.ascontiguousarray(cost_i, dtype=np.float64),
+                             np.ascontiguousarray(cost_j, dtype=np.float64))
+    return float(total), steps
+
+
+def _dp_numpy(cost_i: np.ndarray, cost_j: np.ndarray) -> tuple[float, np.ndarray]:
+    """:func:`_dp` in numpy, one anti-diagonal at a time (the reference)."""
     m, n = cost_i.shape[0], cost_j.shape[1]
     total = np.full((m + 1, n + 1), np.inf)
     came_j = np.zeros((m + 1, n + 1), dtype=bool)

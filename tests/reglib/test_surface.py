@@ -65,6 +65,22 @@ def test_dynamic_programming_finds_the_brute_force_optimum(quality):
             tile_pair(a, b, quality=quality, start=s, method="brute_force")[1], abs=1e-9)
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_compiled_dp_equals_the_numpy_recursion(seed):
+    """The compiled tiling DP against the numpy one on random cost tables of contour
+    sizes the CT gives (up to 300 x 300 vertices): the same path, the same total."""
+    from reglib.surface import _dp, _dp_numpy
+
+    rng = np.random.default_rng(seed)
+    for _ in range(5):
+        m, n = (int(x) for x in rng.integers(1, 300, 2))
+        ci, cj = rng.uniform(0, 1, (m, n + 1)), rng.uniform(0, 1, (m + 1, n))
+        c1, s1 = _dp(ci, cj)
+        c2, s2 = _dp_numpy(ci, cj)
+        assert c1 == pytest.approx(c2, rel=1e-12) and np.array_equal(s1, s2)
+        assert s1.sum() == n and len(s1) == m + n
+
+
 def test_ellipse_into_two_circles_branching_is_manifold_and_oriented():
     slices = [
         [_ellipse(-12, 0, 6, 6, 0.0, 30), _ellipse(12, 0, 6, 6, 0.0, 30)],

@@ -1,0 +1,41 @@
+"""Compiled (numba) least-cost tiling path between two contours (the paper's tiling by
+dynamic programming; :func:`reglib.surface._dp`). The numpy recursion
+(:func:`reglib.surface._dp_numpy`) and the brute force (:func:`reglib.surface._brute_force`)
+are its references in ``tests/reglib/test_surface.py``."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def dp_kernel(cost_i, cost_j):
+    """Least total cost from (0, 0) to (m, n) by unit steps in i (``cost_i[i, j]``, (m, n+1))
+    or in j (``cost_j[i, j]``, (m+1, n)); returns ``(total, steps)``, ``steps[k]`` 0 for a
+    step in i and 1 for a step in j; ties go to i."""
+    m, n = cost_i.shape[0], cost_j.shape[1]
+    total = np.full((m + 1, n + 1), np.inf)
+    came_j = np.zeros((m + 1, n + 1), dtype=np.bool_)
+    total[0, 0] = 0.0
+    for i in range(m + 1):
+        for j in range(n + 1):
+            if i == 0 and j == 0:
+                continue
+            from_i = total[i - 1, j] + cost_i[i - 1, j] if i > 0 else np.inf
+            from_j = total[i, j - 1] + cost_j[i, j - 1] if j > 0 else np.inf
+            if from_j < from_i:
+                total[i, j] = from_j
+                came_j[i, j] = True
+            else:
+                total[i, j] = from_i
+    steps = np.empty(m + n, dtype=np.int8)
+    i, j = m, n
+    for k in range(m + n - 1, -1, -1):
+        if came_j[i, j]:
+            steps[k] = 1
+            j -= 1
+        else:
+            steps[k] = 0
+            i -= 1
+    return total[m, n], steps
