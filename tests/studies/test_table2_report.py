@@ -1,0 +1,24 @@
+"""The Table II report's targets: met or missed, and what is missing when missed."""
+
+import pandas as pd
+
+from studies.scoring import PIN_NAMES
+from studies.table2 import targets_markdown
+
+
+def _rows(pin_mm: float, validation_mm: float) -> pd.DataFrame:
+    rows = [{"metric": "pin_error", "pin": p, "start": s, "value": pin_mm, "statistic": ""}
+            for p in PIN_NAMES for s in ("identity", "rot5_1", "rot7_1")]
+    rows.append({"metric": "validation_distance", "pin": "", "start": "", "statistic": "max",
+                 "value": validation_mm})
+    return pd.DataFrame(rows)
+
+
+def test_targets_say_met_or_missed_and_what_is_missing():
+    low = targets_markdown(_rows(1.0, 0.3))
+    assert "**missed**: mean pin error 1.00 mm" in low
+    assert "1.50 mm at the pins is missing" in low          # sqrt(1.8^2 - 1^2)
+    assert "met: calibration validation 0.30-0.30 mm" in low
+    ok = targets_markdown(_rows(2.8, 0.5))
+    assert "met: mean pin error 2.80 mm" in ok and "is missing" not in ok
+    assert "**missed**: calibration validation" in ok
