@@ -796,7 +796,8 @@ class SweepRenderer:
             a = (body_path_lengths(self.bodies, o, d, tm, scene=scene) @ weights
                  if self.bodies else np.zeros(len(o)))
             self._rays.append((np.ascontiguousarray(o), np.ascontiguousarray(d), tm))
-            self._uv.append(uv)
+            order = np.argsort(uv[:, 0], kind="stable")   # rays by undistorted x, for culling
+            self._uv.append((uv, order, uv[order, 0]))
             static.append(a)
         self._static = static
         self._magnification = _magnification(carm, self.bodies)
@@ -821,23 +822,29 @@ class SweepRenderer:
                                 c.principal_px[1] + c.sid_mm * q[:, 1] / (q[:, 2] * c.pixel_mm)])
 
     @classmethod
-    def _inside_hull(cls, uv: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    def _inside_hull(cls, uv, pts: np.ndarray) -> np.ndarray:
         """Indices of the points ``uv`` (M, 2) within the margin of the convex hull of
-        ``pts`` (K, 2)."""
+        ``pts`` (K, 2). ``uv`` is ``(points, order, sorted x)``: the points' indices sorted
+        by x and their sorted x, so the hull's x range is two binary searches."""
         from scipy.spatial import ConvexHull, QhullError
 
+        uv, order, xs = uv
         m = cls.HULL_MARGIN_PX
         lo, hi = pts.min(axis=0) - m, pts.max(axis=0) + m
-        cand = np.flatnonzero(np.all((uv >= lo) & (uv <= hi), axis=1))
+        cand = order[np.searchsorted(xs, lo[0], "left"):np.searchsorted(xs, hi[0], "right")]
+        y = uv[cand, 1]
+        cand = np.sort(cand[(y >= lo[1]) & (y <= hi[1])])
         try:
             hull = ConvexHull(pts)
         except QhullError:   # flat (a rod seen end-on): its bounding box is conservative
             return cand
         # hull.equations: rows (nx, ny, offset), outward unit normals; inside: n.x + off <= 0
-        eq = hull.equations
-        x = uv[cand]
-        inside = np.all(x @ eq[:, :2].T + eq[:, 2] <= m, axis=1)
-        return cand[inside]
+        # one edge at a time on the survivors: most candidates fall at the first few edges
+        x, y = uv[cand, 0], uv[cand, 1]
+        for nx, ny, off in hull.equations:
+            keep = nx * x + ny * y + off <= m
+            cand, x, y = cand[keep], x[keep], y[keep]
+        return cand
 
     def transmission(self, rod: list[Body]) -> np.ndarray:
         """Primary transmission (H, W) with ``rod`` (robot frame) in the beam."""
