@@ -21,9 +21,12 @@ the observation only (``reglib.estimate``).
 Seeds: the case seed of ``(seed, index)`` is ``SeedSequence(seed, spawn_key=(index,))``,
 i.e. child ``index`` of ``SeedSequence(seed).spawn(n)`` for any ``n > index``; ``testbed
 run --seed S`` simulates case 0 of ``S``, the same case as ``case_0000`` of ``testbed
-generate --seed S``. The case seed's children, in order (:data:`SEED_STREAMS`): the femur's
-shape, the world, the CT scanner, the operator, the robot (one child per view: arm errors,
-then sweep image noise), the X-ray frames (one child per view).
+generate --seed S``. Each stream of a case (:data:`SEED_STREAMS`: the femur's shape, the
+world, the CT scanner, the operator, the robot (one child per view: arm errors, then sweep
+image noise), the X-ray frames (one child per view)) is the case seed's child of spawn key
+:data:`STREAM_KEYS` ``[name]``, built directly (:func:`case_streams`): a case seed is never
+spawned from, so the same seed gives the same streams however often and in whatever order
+the stages ask for them.
 """
 
 from __future__ import annotations
@@ -39,6 +42,8 @@ from testbed.dataset import Observation, Truth, Volume
 __all__ = [
     "CtCase",
     "SEED_STREAMS",
+    "STREAM_KEYS",
+    "case_streams",
     "FEMUR_BODIES",
     "Simulation",
     "case_seed",
@@ -48,10 +53,24 @@ __all__ = [
     "simulate_ct",
 ]
 
-#: the children of a case's SeedSequence, in spawn order
+#: the streams of a case
 SEED_STREAMS = ("shape", "world", "ct", "operator", "robot", "xray")
+#: the child (spawn key) of the case seed behind each stream. The numbers are those the
+#: streams had when the stages drew them by successive ``spawn()`` calls on the case seed
+#: (robot and X-ray from the first 6 children, shape and world from the second 6, CT and
+#: operator from the third), kept so that every case and dataset stays what it was.
+STREAM_KEYS = {"shape": 6, "world": 7, "ct": 14, "operator": 15, "robot": 4, "xray": 5}
 #: the phantom bodies whose outline is the femur's outline on an X-ray frame
 FEMUR_BODIES = ("femur",)
+
+
+def case_streams(seed, index: int = 0) -> dict[str, np.random.SeedSequence]:
+    """Stream name -> SeedSequence of case ``index`` of ``seed`` (see :data:`STREAM_KEYS`);
+    the case seed itself is not modified."""
+    css = case_seed(seed, index)
+    return {name: np.random.SeedSequence(css.entropy, spawn_key=(*css.spawn_key, k),
+                                         pool_size=css.pool_size)
+            for name, k in STREAM_KEYS.items()}
 
 
 def case_seed(seed, index: int = 0) -> np.random.SeedSequence:
@@ -125,9 +144,9 @@ def case_world(scene, seed=0, *, index: int = 0):
     makes them: ``(scene, world)``."""
     from testbed.world import build_world
 
-    shape_ss, world_ss = case_seed(seed, index).spawn(len(SEED_STREAMS))[:2]
-    scene = _case_scene(scene, shape_ss)
-    return scene, build_world(scene, np.random.default_rng(world_ss))
+    streams = case_streams(seed, index)
+    scene = _case_scene(scene, streams["shape"])
+    return scene, build_world(scene, np.random.default_rng(streams["world"]))
 
 
 def simulate_ct(scene, seed=0, *, index: int = 0, world=None) -> CtCase:
@@ -138,11 +157,11 @@ def simulate_ct(scene, seed=0, *, index: int = 0, world=None) -> CtCase:
     from testbed.operator import ct_clicks
 
     css = case_seed(seed, index)
-    _, _, ct_ss, op_ss, _, _ = css.spawn(len(SEED_STREAMS))
+    streams = case_streams(css)
     if world is None:
         scene, world = case_world(scene, css)
-    ct = scan(world.phantom, scene.ct, np.random.default_rng(ct_ss))
-    ct_rng, xray_op_rng = np.random.default_rng(op_ss).spawn(2)
+    ct = scan(world.phantom, scene.ct, np.random.default_rng(streams["ct"]))
+    ct_rng, xray_op_rng = np.random.default_rng(streams["operator"]).spawn(2)
     clicks = ct_clicks(ct.volume_hu, ct.slice_z_mm, ct.regions, pixel_mm=ct.pixel_mm,
                        spec=scene.operator, rng=ct_rng)
     return CtCase(scene, world, ct, clicks, xray_op_rng)
@@ -186,7 +205,8 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
     if len(set(names)) != len(names):
         raise ValueError(f"scene {scene.scene.name!r}: view names must be unique, got {names}")
     css = case_seed(seed, index)
-    _, _, _, _, robot_ss, xray_ss = css.spawn(len(SEED_STREAMS))
+    streams = case_streams(css)
+    robot_ss, xray_ss = streams["robot"], streams["xray"]
     timings: dict[str, float] = {}
     obs = {g: {} for g in ("volumes", "images", "arrays", "meshes", "transforms", "points")}
     tru = {g: {} for g in obs}

@@ -149,16 +149,16 @@ def test_generated_case_round_trips_exactly_and_splits_truth(tmp_path):
 
 def test_case_seeds_and_shapes_differ_per_case():
     from testbed.generate import case_seed
-    from testbed.simulate import SEED_STREAMS, _case_scene
+    from testbed.simulate import _case_scene, case_streams
 
     scene = parse_scene(SMALL)
     a, b = case_seed(7, 0, 2), case_seed(7, 1, 2)
     assert (a.entropy, a.spawn_key, b.spawn_key) == (7, (0,), (1,))
     # the case seed does not depend on the number of cases
     assert case_seed(7, 1, 5).spawn_key == b.spawn_key
-    shape_a = a.spawn(len(SEED_STREAMS))[0]
+    shape_a = case_streams(a)["shape"]
     sa = _case_scene(scene, shape_a).phantom.shape_seed
-    sb = _case_scene(scene, b.spawn(len(SEED_STREAMS))[0]).phantom.shape_seed
+    sb = _case_scene(scene, case_streams(b)["shape"]).phantom.shape_seed
     assert sa != sb
     # the scene's shape_seed is not overridden: another one gives another femur per case
     other = scene.model_copy(update={"phantom": scene.phantom.model_copy(
@@ -168,6 +168,26 @@ def test_case_seeds_and_shapes_differ_per_case():
     assert _case_scene(scene, shape_a).phantom.shape_seed == sa
     with pytest.raises(ValueError, match="case index"):
         case_seed(7, 2, 2)
+
+
+def test_case_streams_never_spawn_from_the_case_seed():
+    """Each stream is the case seed's child of a fixed spawn key, built without spawning:
+    asking twice, or handing simulate a SeedSequence object, gives the same streams (it
+    used to spawn from the object, so a second call drew other children)."""
+    import numpy as np
+
+    from testbed.simulate import STREAM_KEYS, case_seed, case_streams
+
+    css = case_seed(7, 3)
+    a, b = case_streams(css), case_streams(css)
+    assert css.n_children_spawned == 0
+    kids = np.random.SeedSequence(7, spawn_key=(3,)).spawn(16)
+    for name, k in STREAM_KEYS.items():
+        want = kids[k].generate_state(4)
+        assert np.array_equal(a[name].generate_state(4), want)
+        assert np.array_equal(b[name].generate_state(4), want)
+    assert np.array_equal(case_streams(7, 3)["ct"].generate_state(4),
+                          kids[STREAM_KEYS["ct"]].generate_state(4))
 
 
 @pytest.mark.slow
