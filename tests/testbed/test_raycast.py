@@ -164,3 +164,34 @@ def test_ray_scene_matches_reference_with_shared_surfaces():
     assert (ref[:, 2] > 0).sum() > 50 and (ref[:, 3] > 0).sum() > 0
     assert np.abs(fast - ref).max() < 1e-3
     assert np.allclose(body_path_lengths(bodies, o, d, 500.0), fast)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_convex_clipping_in_a_ray_scene_matches_the_numpy_reference(seed):
+    """Small convex meshes (a box like the table, a random hull of few faces, a turned
+    box) are clipped by their half-spaces instead of cast: against trimesh's brute-force
+    ray-triangle reference on random rays, some ending inside, some missing, and rays
+    parallel to a box's faces."""
+    from testbed.raycast import CONVEX_CLIP_MAX_FACES, _ConvexMesh
+
+    rng = np.random.default_rng(seed)
+    box = trimesh.creation.box(extents=rng.uniform(20.0, 90.0, 3))
+    turned = trimesh.creation.box(extents=rng.uniform(20.0, 60.0, 3))
+    turned.apply_transform(trimesh.transformations.random_rotation_matrix(rng.random(3)))
+    turned.apply_translation(rng.normal(0.0, 10.0, 3))
+    hull = trimesh.convex.convex_hull(rng.normal(scale=25.0, size=(12, 3)))
+    assert len(hull.faces) <= CONVEX_CLIP_MAX_FACES
+    bodies = [Body("box", "soft_tissue", mesh=box), Body("turned", "steel", mesh=turned),
+              Body("hull", "cortical_bone", mesh=hull)]
+    scene = RayScene(bodies)
+    assert all(isinstance(scene._prepared[j], _ConvexMesh) for j in range(3))
+    o, d = _rays_towards(rng, 800, 60.0)
+    axis = np.zeros((50, 3))
+    axis[:, 0] = 1.0                                   # parallel to two faces of the box
+    o = np.vstack([o, np.column_stack([np.full(50, -300.0), rng.uniform(-50, 50, (50, 2))])])
+    d = np.vstack([d, axis])
+    t_max = rng.uniform(300.0, 700.0, len(o))
+    fast = scene.path_lengths(o, d, t_max)
+    ref = body_path_lengths(bodies, o, d, t_max, engine="numpy")
+    assert np.all((ref > 0).sum(axis=0) > 100)
+    assert np.abs(fast - ref).max() < 1e-6
