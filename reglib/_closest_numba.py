@@ -16,27 +16,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from reglib.geometry import line_segment_distance
 
-@njit(cache=True, inline="always")
-def _line_segment_distance(ox, oy, oz, dx, dy, dz, ax, ay, az, bx, by, bz):
-    """Distance between the line ``o + t d`` (unit d) and the segment ``[a, b]`` (the
-    formula of reglib.closest._distance_only)."""
-    wx, wy, wz = ax - ox, ay - oy, az - oz
-    ex, ey, ez = bx - ax, by - ay, bz - az
-    wd = wx * dx + wy * dy + wz * dz
-    ed = ex * dx + ey * dy + ez * dz
-    px, py, pz = wx - wd * dx, wy - wd * dy, wz - wd * dz
-    qx, qy, qz = ex - ed * dx, ey - ed * dy, ez - ed * dz
-    qq = qx * qx + qy * qy + qz * qz
-    s = 0.0
-    if qq > 0.0:
-        s = -(px * qx + py * qy + pz * qz) / qq
-        if s < 0.0:
-            s = 0.0
-        elif s > 1.0:
-            s = 1.0
-    rx, ry, rz = px + s * qx, py + s * qy, pz + s * qz
-    return np.sqrt(rx * rx + ry * ry + rz * rz)
+#: reglib.geometry's scalar line-segment distance, compiled
+_line_segment_distance = njit(cache=True, inline="always")(line_segment_distance)
 
 
 @njit(cache=True)

@@ -9,6 +9,27 @@ import numpy as np
 from numba import njit
 
 
+def backtrack(came_j: np.ndarray) -> np.ndarray:
+    """The steps (0: in i, 1: in j) of the path ending at the last cell of ``came_j``
+    ((m+1, n+1) bool, True where the cell was reached by a step in j). Plain Python for
+    the numpy recursion (:func:`reglib.surface._dp_numpy`), compiled below for
+    :func:`dp_kernel`."""
+    m, n = came_j.shape[0] - 1, came_j.shape[1] - 1
+    steps = np.empty(m + n, dtype=np.int8)
+    i, j = m, n
+    for k in range(m + n - 1, -1, -1):
+        if came_j[i, j]:
+            steps[k] = 1
+            j -= 1
+        else:
+            steps[k] = 0
+            i -= 1
+    return steps
+
+
+_backtrack_compiled = njit(cache=True)(backtrack)
+
+
 @njit(cache=True)
 def dp_kernel(cost_i, cost_j):
     """Least total cost from (0, 0) to (m, n) by unit steps in i (``cost_i[i, j]``, (m, n+1))
@@ -29,13 +50,4 @@ def dp_kernel(cost_i, cost_j):
                 came_j[i, j] = True
             else:
                 total[i, j] = from_i
-    steps = np.empty(m + n, dtype=np.int8)
-    i, j = m, n
-    for k in range(m + n - 1, -1, -1):
-        if came_j[i, j]:
-            steps[k] = 1
-            j -= 1
-        else:
-            steps[k] = 0
-            i -= 1
-    return total[m, n], steps
+    return total[m, n], _backtrack_compiled(came_j)

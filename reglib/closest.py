@@ -62,7 +62,7 @@ from typing import Literal
 
 import numpy as np
 
-from reglib.geometry import as_lines, as_points
+from reglib.geometry import as_lines, as_points, line_segment_distance
 
 __all__ = [
     "ClosestPoints",
@@ -543,12 +543,9 @@ def _build_hierarchy(contours: ContourSet) -> _Hierarchy:
 
 
 def _seg_line(node, ox, oy, oz, dx, dy, dz):
-    """Distance (mm) from the line to the axis segment of ``node`` (the compiled kernel's
-    scalar formula, called from Python)."""
-    from reglib._closest_numba import _line_segment_distance
-
-    return _line_segment_distance(ox, oy, oz, dx, dy, dz, node[0], node[1], node[2],
-                                  node[3], node[4], node[5])
+    """Distance (mm) from the line to the axis segment of ``node``."""
+    return line_segment_distance(ox, oy, oz, dx, dy, dz, node[0], node[1], node[2],
+                                 node[3], node[4], node[5])
 
 
 def _search(h: _Hierarchy, root: int, line, upper: float, warm_leaf: int):

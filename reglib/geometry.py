@@ -19,12 +19,14 @@ estimate, which stay far from 180 degrees.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 __all__ = [
+    "line_segment_distance",
     "MAD_TO_SIGMA",
     "arc_length",
     "robust_scale",
@@ -348,3 +350,23 @@ def arc_length(points, *, closed: bool = False) -> tuple[np.ndarray, np.ndarray]
         P = np.vstack([P, P[:1]])
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
     return P, s
+
+
+def line_segment_distance(ox, oy, oz, dx, dy, dz, ax, ay, az, bx, by, bz) -> float:
+    """Distance (mm) between the line ``o + t d`` (unit d) and the segment ``[a, b]``, in
+    scalars: the segment's point ``a + s (b - a)`` (``s`` clipped to [0, 1]) nearest to
+    the line across it. Plain Python for the paper's capsule hierarchy
+    (:mod:`reglib.closest`), compiled as it is by :mod:`reglib._closest_numba`."""
+    wx, wy, wz = ax - ox, ay - oy, az - oz
+    ex, ey, ez = bx - ax, by - ay, bz - az
+    wd = wx * dx + wy * dy + wz * dz
+    ed = ex * dx + ey * dy + ez * dz
+    px, py, pz = wx - wd * dx, wy - wd * dy, wz - wd * dz
+    qx, qy, qz = ex - ed * dx, ey - ed * dy, ez - ed * dz
+    qq = qx * qx + qy * qy + qz * qz
+    s = 0.0
+    if qq > 0.0:
+        s = -(px * qx + py * qy + pz * qz) / qq
+        s = 0.0 if s < 0.0 else (1.0 if s > 1.0 else s)
+    rx, ry, rz = px + s * qx, py + s * qy, pz + s * qz
+    return math.sqrt(rx * rx + ry * ry + rz * rz)

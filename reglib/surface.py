@@ -151,16 +151,9 @@ def _dp_numpy(cost_i: np.ndarray, cost_j: np.ndarray) -> tuple[float, np.ndarray
         use_j = from_j < from_i
         total[i, j] = np.where(use_j, from_j, from_i)
         came_j[i, j] = use_j
-    steps = np.empty(m + n, dtype=np.int8)
-    i, j = m, n
-    for k in range(m + n - 1, -1, -1):
-        if came_j[i, j]:
-            steps[k] = 1
-            j -= 1
-        else:
-            steps[k] = 0
-            i -= 1
-    return float(total[m, n]), steps
+    from reglib._surface_numba import backtrack
+
+    return float(total[m, n]), backtrack(came_j)
 
 
 def _brute_force(cost_i: np.ndarray, cost_j: np.ndarray) -> tuple[float, np.ndarray]:

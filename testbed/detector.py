@@ -112,6 +112,20 @@ def blur(img: np.ndarray, sigma_px: float) -> np.ndarray:
     return _gaussian(img, sigma_px, cv2.BORDER_REPLICATE)
 
 
+def _coarsening(sigma_px: float) -> int:
+    """The factor of the coarse grid of a wide blur: ``sigma / 8``, between 1 and 4."""
+    return int(np.clip(sigma_px // 8, 1, 4))
+
+
+def _block_mean(img: np.ndarray, f: int) -> np.ndarray:
+    """Means of ``f`` x ``f`` blocks of ``img`` (H, W), zero-padded to whole blocks."""
+    H, W = img.shape
+    h, w = -(-H // f), -(-W // f)
+    pad = np.zeros((h * f, w * f))
+    pad[:H, :W] = img
+    return pad.reshape(h, f, w, f).mean(axis=(1, 3))
+
+
 def wide_blur(img: np.ndarray, sigma_px: float) -> np.ndarray:
     """Gaussian blur (zero outside the image) of a wide kernel, computed on a grid coarser by
     ``sigma / 8`` (at most 4x) and interpolated back (the result is smooth at that scale).
@@ -120,15 +134,12 @@ def wide_blur(img: np.ndarray, sigma_px: float) -> np.ndarray:
     :func:`wide_blur_reference` is this function's arithmetic in scipy (compared in tests).
     """
     img = np.asarray(img, dtype=np.float64)
-    f = int(np.clip(sigma_px // 8, 1, 4))
+    f = _coarsening(sigma_px)
     if f == 1:
         return _gaussian(img, sigma_px, cv2.BORDER_CONSTANT)
     H, W = img.shape
-    h, w = -(-H // f), -(-W // f)
-    pad = np.zeros((h * f, w * f))
-    pad[:H, :W] = img
-    small = pad.reshape(h, f, w, f).mean(axis=(1, 3))
-    small = _gaussian(small, sigma_px / f, cv2.BORDER_CONSTANT)
+    small = _gaussian(_block_mean(img, f), sigma_px / f, cv2.BORDER_CONSTANT)
+    h, w = small.shape
     # back to full resolution: small pixel (i, j) is centred at full (f i + (f-1)/2, ...),
     # OpenCV's pixel-centre convention for a resize by f; bilinear, edges held
     return cv2.resize(small, (w * f, h * f), interpolation=cv2.INTER_LINEAR)[:H, :W]
@@ -137,15 +148,11 @@ def wide_blur(img: np.ndarray, sigma_px: float) -> np.ndarray:
 def wide_blur_reference(img: np.ndarray, sigma_px: float) -> np.ndarray:
     """:func:`wide_blur` in scipy.ndimage (Gaussian filters and ``map_coordinates``)."""
     img = np.asarray(img, dtype=np.float64)
-    f = int(np.clip(sigma_px // 8, 1, 4))
+    f = _coarsening(sigma_px)
     if f == 1:
         return gaussian_filter(img, sigma_px, mode="constant")
     H, W = img.shape
-    h, w = -(-H // f), -(-W // f)
-    pad = np.zeros((h * f, w * f))
-    pad[:H, :W] = img
-    small = pad.reshape(h, f, w, f).mean(axis=(1, 3))
-    small = gaussian_filter(small, sigma_px / f, mode="constant")
+    small = gaussian_filter(_block_mean(img, f), sigma_px / f, mode="constant")
     rows = (np.arange(H) - (f - 1) / 2) / f
     cols = (np.arange(W) - (f - 1) / 2) / f
     return map_coordinates(small, np.meshgrid(rows, cols, indexing="ij"), order=1,

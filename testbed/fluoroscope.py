@@ -464,7 +464,12 @@ class CArm:
         xy = np.asarray(xy_px, dtype=np.float64)
         if xy.ndim != 2 or xy.shape[1] != 2:
             raise ValueError(f"xy_px: expected an (N, 2) array of pixels, got {xy.shape}")
-        p = self._plane_points(self.undistort_px(xy))
+        return self.rays_of_undistorted(self.undistort_px(xy))
+
+    def rays_of_undistorted(self, xy_u) -> tuple[np.ndarray, np.ndarray]:
+        """The X-ray paths through undistorted (pinhole) pixels ``xy_u`` (N, 2): origins
+        (the source) and unit directions (N, 3), robot frame."""
+        p = self._plane_points(xy_u)
         d = p / np.linalg.norm(p, axis=1, keepdims=True)
         d = self.carm2robot.apply_vectors(d)
         return np.broadcast_to(self.source_robot, d.shape).copy(), d
@@ -475,15 +480,20 @@ class CArm:
         The exact inverse of :meth:`true_rays`. Points at or behind the source raise
         ``ValueError``.
         """
+        return self.distort_px(self.project_undistorted(points_robot))
+
+    def project_undistorted(self, points_robot) -> np.ndarray:
+        """Undistorted (pinhole) pixels ``(N, 2)`` of robot-frame points ``(N, 3)`` mm: the
+        central projection from the source onto the input plane. Points at or behind the
+        source raise ``ValueError``."""
         p = np.asarray(points_robot, dtype=np.float64).reshape(-1, 3)
         q = self.carm2robot.inverse().apply(p)
         if np.any(q[:, 2] <= 1e-9):
             raise ValueError(f"view {self.name!r}: points at or behind the X-ray source")
-        xy_u = np.stack([
+        return np.stack([
             self.principal_px[0] + self.sid_mm * q[:, 0] / (q[:, 2] * self.pixel_mm),
             self.principal_px[1] + self.sid_mm * q[:, 1] / (q[:, 2] * self.pixel_mm),
         ], 1)
-        return self.distort_px(xy_u)
 
     def pixel_grid(self) -> np.ndarray:
         """Pixel centres ``(H, W, 2)`` (x, y)."""
@@ -660,6 +670,23 @@ def _sub_offsets(n: int) -> np.ndarray:
     return np.stack([x.ravel(), y.ravel()], 1)
 
 
+def _field_rays(carm: CArm, fov: np.ndarray, n_sub: int):
+    """Per sub-pixel offset of an ``n_sub`` x ``n_sub`` oversampling, the X-ray paths of
+    the field's pixels: ``(origins, directions, t_max, undistorted pixels)``, t_max (mm)
+    reaching the input plane. One sample per pixel takes the C-arm's cached ray map."""
+    subs = _sub_offsets(n_sub)
+    grid = carm.pixel_grid()[fov] if n_sub > 1 else None
+    for off in subs:
+        if n_sub == 1:
+            o, d = carm.pixel_ray_map()
+            o, d = o[fov], d[fov]
+            uv = carm._undistorted_grid()[fov]
+        else:
+            uv = carm.undistort_px(grid + off)
+            o, d = carm.rays_of_undistorted(uv)
+        yield o, d, carm.sid_mm / (d @ carm.axis_robot), uv
+
+
 def render(carm: CArm, bodies: list[Body], *, fluoro: FluoroscopeSpec, rng=None,
            noise: bool | None = None, distortion: bool | None = None,
            engine: str = "embree", ray_scene: RayScene | None = None) -> Frame:
@@ -704,25 +731,17 @@ def render(carm: CArm, bodies: list[Body], *, fluoro: FluoroscopeSpec, rng=None,
 
     H, W = carm.height_px, carm.width_px
     fov = carm.fov_mask()
-    grid = carm.pixel_grid()[fov]  # (M, 2) pixels in the field of view
     n_sub = fluoro.oversample
-    subs = _sub_offsets(n_sub)
-    M = len(grid)
+    M = int(np.count_nonzero(fov))
     att = np.zeros(M)
     trans = np.zeros(M)
     lengths = np.zeros((M, len(bodies)))
-    for off in subs:
-        if n_sub == 1:
-            o, d = carm.pixel_ray_map()
-            o, d = o[fov], d[fov]
-        else:
-            o, d = carm.true_rays(grid + off)
-        t_max = carm.sid_mm / (d @ carm.axis_robot)
+    for o, d, t_max, _ in _field_rays(carm, fov, n_sub):
         L = body_path_lengths(bodies, o, d, t_max, engine=engine, scene=ray_scene)
         a = L @ weights
-        att += a / len(subs)
-        trans += np.exp(-a) / len(subs)
-        lengths += L / len(subs)
+        att += a / n_sub**2
+        trans += np.exp(-a) / n_sub**2
+        lengths += L / n_sub**2
 
     full = np.zeros((H, W))
     full[fov] = trans
@@ -779,20 +798,10 @@ class SweepRenderer:
             material(b.material)
         _check_source_outside(carm, self.bodies)
         self.fov = carm.fov_mask()
-        grid = carm.pixel_grid()[self.fov]
-        subs = _sub_offsets(fluoro.oversample)
         self._rays, self._uv, static = [], [], []
         weights = attenuation_weights(self.bodies)
         scene = RayScene(self.bodies) if self.bodies else None
-        for off in subs:
-            if len(subs) == 1:
-                o, d = carm.pixel_ray_map()
-                o, d = o[self.fov], d[self.fov]
-                uv = carm._undistorted_grid()[self.fov]
-            else:
-                o, d = carm.true_rays(grid + off)
-                uv = carm.undistort_px(grid + off)
-            tm = carm.sid_mm / (d @ carm.axis_robot)
+        for o, d, tm, uv in _field_rays(carm, self.fov, fluoro.oversample):
             a = (body_path_lengths(self.bodies, o, d, tm, scene=scene) @ weights
                  if self.bodies else np.zeros(len(o)))
             self._rays.append((np.ascontiguousarray(o), np.ascontiguousarray(d), tm))
@@ -813,13 +822,7 @@ class SweepRenderer:
                                     for z in (-1, 1)], dtype=np.float64)
                 pts.append((b.sphere_centers[:, None, :] + b.sphere_radii[:, None, None]
                             * corners[None]).reshape(-1, 3))
-        q = self.carm.carm2robot.inverse().apply(np.vstack(pts))
-        if np.any(q[:, 2] <= 1e-9):
-            raise ValueError(f"view {self.carm.name!r}: the rod reaches behind the X-ray "
-                             "source")
-        c = self.carm
-        return np.column_stack([c.principal_px[0] + c.sid_mm * q[:, 0] / (q[:, 2] * c.pixel_mm),
-                                c.principal_px[1] + c.sid_mm * q[:, 1] / (q[:, 2] * c.pixel_mm)])
+        return self.carm.project_undistorted(np.vstack(pts))
 
     @classmethod
     def _inside_hull(cls, uv, pts: np.ndarray) -> np.ndarray:
