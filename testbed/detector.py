@@ -117,12 +117,19 @@ def _coarsening(sigma_px: float) -> int:
     return int(np.clip(sigma_px // 8, 1, 4))
 
 
-def _block_mean(img: np.ndarray, f: int) -> np.ndarray:
-    """Means of ``f`` x ``f`` blocks of ``img`` (H, W), zero-padded to whole blocks."""
+def _block_mean(img: np.ndarray, f: int, *, fast: bool = False) -> np.ndarray:
+    """Means of ``f`` x ``f`` blocks of ``img`` (H, W), zero-padded to whole blocks.
+    ``fast``: OpenCV's area resize, which for a whole factor is the block mean (to rounding;
+    the numpy reshape is the reference)."""
     H, W = img.shape
     h, w = -(-H // f), -(-W // f)
-    pad = np.zeros((h * f, w * f))
-    pad[:H, :W] = img
+    if (h * f, w * f) == (H, W):
+        pad = np.ascontiguousarray(img, dtype=np.float64)
+    else:
+        pad = np.zeros((h * f, w * f))
+        pad[:H, :W] = img
+    if fast:
+        return cv2.resize(pad, (w, h), interpolation=cv2.INTER_AREA)
     return pad.reshape(h, f, w, f).mean(axis=(1, 3))
 
 
@@ -138,7 +145,7 @@ def wide_blur(img: np.ndarray, sigma_px: float) -> np.ndarray:
     if f == 1:
         return _gaussian(img, sigma_px, cv2.BORDER_CONSTANT)
     H, W = img.shape
-    small = _gaussian(_block_mean(img, f), sigma_px / f, cv2.BORDER_CONSTANT)
+    small = _gaussian(_block_mean(img, f, fast=True), sigma_px / f, cv2.BORDER_CONSTANT)
     h, w = small.shape
     # back to full resolution: small pixel (i, j) is centred at full (f i + (f-1)/2, ...),
     # OpenCV's pixel-centre convention for a resize by f; bilinear, edges held
@@ -159,6 +166,23 @@ def wide_blur_reference(img: np.ndarray, sigma_px: float) -> np.ndarray:
                            mode="nearest")
 
 
+_FIELD_WEIGHTS: dict = {}
+
+
+def _field_weight(fov: np.ndarray, sigma_px: float) -> np.ndarray:
+    """``wide_blur(fov, sigma_px)``, remembered for the last few fields (every frame of a
+    C-arm has the same field of view); a read-only array."""
+    fov = np.ascontiguousarray(fov, dtype=bool)
+    key = (fov.shape, float(sigma_px), hash(fov.tobytes()))
+    if key not in _FIELD_WEIGHTS:
+        if len(_FIELD_WEIGHTS) >= 16:
+            _FIELD_WEIGHTS.pop(next(iter(_FIELD_WEIGHTS)))
+        w = wide_blur(fov.astype(np.float64), sigma_px)
+        w.flags.writeable = False
+        _FIELD_WEIGHTS[key] = w
+    return _FIELD_WEIGHTS[key]
+
+
 def add_scatter(primary: np.ndarray, fov: np.ndarray, *, spr: float, sigma_px: float,
                 scatterer: np.ndarray | None = None) -> np.ndarray:
     """Primary plus scatter: ``P + spr * lowpass(P * scatterer)`` inside ``fov`` (H, W) bool.
@@ -177,7 +201,7 @@ def add_scatter(primary: np.ndarray, fov: np.ndarray, *, spr: float, sigma_px: f
         return p
     src = p if scatterer is None else np.where(scatterer, p, 0.0)
     num = wide_blur(src, sigma_px)
-    den = wide_blur(fov.astype(np.float64), sigma_px)
+    den = _field_weight(fov, sigma_px)
     low = np.divide(num, den, out=np.zeros_like(num), where=den > 1e-6)
     return np.where(fov, p + spr * low, 0.0)
 
@@ -210,11 +234,15 @@ def video_u8(intensity: np.ndarray, fov: np.ndarray, *, black_u8: int, white_u8:
     ``black_u8 + (white_u8 - black_u8) * level`` (offset and gain), plus Gaussian camera noise
     of ``noise_u8`` grey levels, rounded and clipped to 0..255; 0 outside ``fov``.
     """
-    level = 1.0 + np.log(np.maximum(intensity, 1e-12)) / display_range
+    fov = np.asarray(fov, dtype=bool)
+    inside = np.asarray(intensity, dtype=np.float64)[fov]
+    level = 1.0 + np.log(np.maximum(inside, 1e-12)) / display_range
     video = black_u8 + (white_u8 - black_u8) * np.clip(level, 0.0, 1.0)
-    if noise_u8 > 0:
-        video = video + np.random.default_rng(rng).normal(0.0, noise_u8, video.shape)
-    return np.where(fov, np.clip(np.rint(video), 0, 255), 0).astype(np.uint8)
+    if noise_u8 > 0:   # drawn for the whole frame, as always (the same noise per seed)
+        video += np.random.default_rng(rng).normal(0.0, noise_u8, fov.shape)[fov]
+    out = np.zeros(fov.shape, dtype=np.uint8)
+    out[fov] = np.clip(np.rint(video), 0, 255)
+    return out
 
 
 def form_image(transmission: np.ndarray, fov: np.ndarray, rho: np.ndarray, fluoro, *,

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import math
 import zlib
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Annotated, Literal
 
@@ -53,7 +54,7 @@ from reglib.geometry import RigidTransform
 from testbed.bodies import Body
 from testbed.detector import form_image
 from testbed.materials import material
-from testbed.raycast import RayScene, attenuation_weights, body_path_lengths
+from testbed.raycast import FanRays, RayScene, attenuation_weights, body_path_lengths
 from testbed.spec import Positive, Spec, Vec2, Vec3
 
 __all__ = [
@@ -594,6 +595,28 @@ def make_carm(fluoro: FluoroscopeSpec, view: ViewSpec, *, distortion: bool | Non
 
 
 # --------------------------------------------------------------------------- image formation
+class PathImages(Mapping):
+    """Body name -> (H, W) float32 path length (mm) through that body, made on first access
+    from the field's ``(M, B)`` lengths (most frames are looked at for one or two bodies)."""
+
+    def __init__(self, names: list[str], lengths: np.ndarray, fov: np.ndarray):
+        self._index = {n: j for j, n in enumerate(names)}
+        self._lengths, self._fov, self._images = lengths, fov, {}
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name not in self._images:
+            img = np.zeros(self._fov.shape, dtype=np.float32)
+            img[self._fov] = self._lengths[:, self._index[name]]
+            self._images[name] = img
+        return self._images[name]
+
+    def __iter__(self):
+        return iter(self._index)
+
+    def __len__(self) -> int:
+        return len(self._index)
+
+
 @dataclass(frozen=True)
 class Frame:
     """One rendered fluoroscopic frame and its truth.
@@ -687,6 +710,23 @@ def _field_rays(carm: CArm, fov: np.ndarray, n_sub: int):
         yield o, d, carm.sid_mm / (d @ carm.axis_robot), uv
 
 
+def _field_fans(carm: CArm, n_sub: int) -> list[FanRays]:
+    """The rays of :func:`_field_rays` over the C-arm's field of view, as one binned
+    :class:`testbed.raycast.FanRays` per sub-pixel offset, kept in the C-arm's cache (the
+    rays of a pose never change; every frame of the pose reuses the binning)."""
+    key = ("fans", n_sub)
+    if key not in carm._cache:
+        fans = []
+        for _o, d, tm, _ in _field_rays(carm, carm.fov_mask(), n_sub):
+            fan = FanRays.of(carm.source_robot, np.ascontiguousarray(d), tm)
+            if fan is None:  # a field wider than 160 degrees: not a fluoroscope
+                raise ValueError(f"view {carm.name!r}: the field of view is too wide to "
+                                 "rasterise")
+            fans.append(fan)
+        carm._cache[key] = fans
+    return carm._cache[key]
+
+
 def render(carm: CArm, bodies: list[Body], *, fluoro: FluoroscopeSpec, rng=None,
            noise: bool | None = None, distortion: bool | None = None,
            engine: str = "embree", ray_scene: RayScene | None = None) -> Frame:
@@ -735,10 +775,17 @@ def render(carm: CArm, bodies: list[Body], *, fluoro: FluoroscopeSpec, rng=None,
     M = int(np.count_nonzero(fov))
     att = np.zeros(M)
     trans = np.zeros(M)
-    lengths = np.zeros((M, len(bodies)))
-    for o, d, t_max, _ in _field_rays(carm, fov, n_sub):
-        L = body_path_lengths(bodies, o, d, t_max, engine=engine, scene=ray_scene)
+    lengths = np.zeros((M, len(bodies))) if n_sub > 1 else None
+    if engine == "embree":
+        per_offset = (ray_scene.fan_path_lengths(fan) for fan in _field_fans(carm, n_sub))
+    else:
+        per_offset = (body_path_lengths(bodies, o, d, t_max, engine=engine)
+                      for o, d, t_max, _ in _field_rays(carm, fov, n_sub))
+    for L in per_offset:
         a = L @ weights
+        if n_sub == 1:
+            att, trans, lengths = a, np.exp(-a), L
+            break
         att += a / n_sub**2
         trans += np.exp(-a) / n_sub**2
         lengths += L / n_sub**2
@@ -751,16 +798,11 @@ def render(carm: CArm, bodies: list[Body], *, fluoro: FluoroscopeSpec, rng=None,
 
     att_img = np.zeros((H, W), dtype=np.float32)
     att_img[fov] = att
-    paths = {}
-    for j, b in enumerate(bodies):
-        img = np.zeros((H, W), dtype=np.float32)
-        img[fov] = lengths[:, j]
-        paths[b.name] = img
     return Frame(
         image_u8=video,
         image=full.astype(np.float32),
         attenuation=att_img,
-        path_mm=paths,
+        path_mm=PathImages([b.name for b in bodies], lengths, fov),
         materials={b.name: b.material for b in bodies},
         fov=fov,
         carm=carm,
@@ -801,9 +843,9 @@ class SweepRenderer:
         self._rays, self._uv, static = [], [], []
         weights = attenuation_weights(self.bodies)
         scene = RayScene(self.bodies) if self.bodies else None
-        for o, d, tm, uv in _field_rays(carm, self.fov, fluoro.oversample):
-            a = (body_path_lengths(self.bodies, o, d, tm, scene=scene) @ weights
-                 if self.bodies else np.zeros(len(o)))
+        fans = _field_fans(carm, fluoro.oversample)
+        for fan, (o, d, tm, uv) in zip(fans, _field_rays(carm, self.fov, fluoro.oversample)):
+            a = (scene.fan_path_lengths(fan) @ weights if self.bodies else np.zeros(len(o)))
             self._rays.append((np.ascontiguousarray(o), np.ascontiguousarray(d), tm))
             order = np.argsort(uv[:, 0], kind="stable")   # rays by undistorted x, for culling
             self._uv.append((uv, order, uv[order, 0]))

@@ -55,9 +55,11 @@ def test_numba_kernel_matches_numpy_reference():
             assert a.iterations == b.iterations and a.converged == b.converged
             np.testing.assert_allclose(a.R, b.R, atol=1e-9)
             np.testing.assert_allclose(a.t, b.t, atol=1e-9)
-            # exact inliers make the robust scale ~1e-15: weights agree to rounding only
+            # exact inliers (noise_std 0, every third case) make the robust scale ~1e-15:
+            # the weights are then ratios of rounding errors, all near 1, and agree only to
+            # ~1e-5 (1.4e-5 apart with numpy 2.4.6 / numba 0.68.1): 1e-4 there
             np.testing.assert_array_equal(a.inliers, b.inliers)
-            np.testing.assert_allclose(a.weights, b.weights, atol=1e-5)
+            np.testing.assert_allclose(a.weights, b.weights, atol=1e-5 if k % 3 else 1e-4)
 
 
 def test_lm_jacobian_matches_finite_differences():
