@@ -245,6 +245,10 @@ def test_compiled_undistort_equals_the_numpy_reference(seed):
                     orbital_deg=float(rng.uniform(-30, 30)))
     d = make_carm(spec, view, view_index=seed).distortion
     xy = np.column_stack([rng.uniform(-20, 660, 4000), rng.uniform(-20, 500, 4000)])
+    # and rows of whole pixels, each point a pixel from the last (the warm-started path),
+    # with a jump back at each row's start (the cold path)
+    gx, gy = np.meshgrid(np.arange(-20.0, 660.0, 1.0), rng.uniform(-20, 500, 6))
+    xy = np.vstack([xy, np.column_stack([gx.ravel(), gy.ravel()])])
     fast = d.undistort(xy)
     ref = d.undistort(xy, reference=True)
     assert np.abs(fast - ref).max() < 1e-9
