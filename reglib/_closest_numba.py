@@ -75,3 +75,94 @@ def closest_segments(o, d, starts, ends, block_a, block_b, block_eps, block_seg0
             if best < nearest:
                 nearest = best
     return dist, seg
+
+
+@njit(cache=True)
+def tangents(unit, starts, ends, seg_contour, offsets, closed, seg, p):
+    """:meth:`reglib.closest.ContourSet.tangents` per entry, compiled (the numpy method is
+    the reference, compared in tests): ``unit`` (S, 3) segment directions, ``seg`` (K,)
+    segment indices (< 0: NaN), ``p`` (K, 3) points on them. Returns (K, 3)."""
+    k_n = seg.shape[0]
+    out = np.empty((k_n, 3))
+    for k in range(k_n):
+        g = seg[k]
+        if g < 0:
+            out[k, 0] = out[k, 1] = out[k, 2] = np.nan
+            continue
+        c = seg_contour[g]
+        lo, hi = offsets[c], offsets[c + 1] - 1
+        prv = g - 1 if g > lo else (hi if closed[c] else -1)
+        nxt = g + 1 if g < hi else (lo if closed[c] else -1)
+        ds = 0.0
+        de = 0.0
+        for j in range(3):
+            ds += (p[k, j] - starts[g, j]) ** 2
+            de += (p[k, j] - ends[g, j]) ** 2
+        at_start = np.sqrt(ds) <= 1e-9
+        at_end = np.sqrt(de) <= 1e-9
+        tx, ty, tz = unit[g, 0], unit[g, 1], unit[g, 2]
+        if at_start and prv >= 0:
+            tx += unit[prv, 0]
+            ty += unit[prv, 1]
+            tz += unit[prv, 2]
+        elif at_end and not at_start and nxt >= 0:
+            tx += unit[nxt, 0]
+            ty += unit[nxt, 1]
+            tz += unit[nxt, 2]
+        tn = np.sqrt(tx * tx + ty * ty + tz * tz)
+        if tn > 1e-12:
+            out[k, 0], out[k, 1], out[k, 2] = tx / tn, ty / tn, tz / tn
+        else:
+            out[k, 0], out[k, 1], out[k, 2] = unit[g, 0], unit[g, 1], unit[g, 2]
+    return out
+
+
+@njit(cache=True)
+def block_capsules(path, offsets, size):
+    """The capsules of ``closest_segments``: each contour's segments cut into blocks of
+    ``size``, per block the axis ``a -> b`` (its first and last vertex), the radius ``eps``
+    (the largest distance of its vertices from the axis), its first global segment
+    ``seg0`` (plus the segment count at the end) and each contour's first block ``cb0``
+    (plus the block count). The numpy ``reglib.closest._block_capsules`` is the reference,
+    compared in tests."""
+    nc = offsets.shape[0] - 1
+    nb = 0
+    for c in range(nc):
+        nb += (offsets[c + 1] - offsets[c] + size - 1) // size
+    a = np.empty((nb, 3))
+    b = np.empty((nb, 3))
+    eps = np.empty(nb)
+    seg0 = np.empty(nb + 1, dtype=np.int64)
+    cb0 = np.empty(nc + 1, dtype=np.int64)
+    k = 0
+    for c in range(nc):
+        cb0[c] = k
+        base = offsets[c] + c                     # the contour's first path row
+        nseg = offsets[c + 1] - offsets[c]
+        for j0 in range(0, nseg, size):
+            j1 = min(j0 + size, nseg)
+            lo, hi = base + j0, base + j1
+            ex = path[hi, 0] - path[lo, 0]
+            ey = path[hi, 1] - path[lo, 1]
+            ez = path[hi, 2] - path[lo, 2]
+            ee = ex * ex + ey * ey + ez * ez
+            m = 0.0
+            for r in range(lo, hi + 1):
+                wx = path[r, 0] - path[lo, 0]
+                wy = path[r, 1] - path[lo, 1]
+                wz = path[r, 2] - path[lo, 2]
+                s = (wx * ex + wy * ey + wz * ez) / ee if ee > 0.0 else 0.0
+                s = min(max(s, 0.0), 1.0)
+                dx, dy, dz = wx - s * ex, wy - s * ey, wz - s * ez
+                dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+                if dist > m:
+                    m = dist
+            for j in range(3):
+                a[k, j] = path[lo, j]
+                b[k, j] = path[hi, j]
+            eps[k] = m
+            seg0[k] = offsets[c] + j0
+            k += 1
+    seg0[nb] = offsets[nc]
+    cb0[nc] = nb
+    return a, b, eps, seg0, cb0

@@ -43,6 +43,7 @@ __all__ = [
     "ApparentContour",
     "SurfaceTopology",
     "apparent_contours",
+    "contour_arrays",
     "contour_half_edges",
     "prepare_surface",
     "visible_faces",
@@ -323,6 +324,24 @@ def apparent_contours(topology: SurfaceTopology, center) -> list[ApparentContour
                 raise RuntimeError("apparent_contours: a chain without a start did not close")
             out.append(_make_contour(topology, he[chain], closed=True))
     return out
+
+
+def contour_arrays(topology: SurfaceTopology, center):
+    """:func:`apparent_contours` as flat arrays, compiled (:mod:`reglib._apparent_numba`):
+    ``(half_edges (E,), offsets (C + 1,), closed (C,), path_ids (E + C,))``, the contours
+    in the same order; contour ``c`` owns ``half_edges[offsets[c]:offsets[c + 1]]`` and its
+    path is ``path_ids[offsets[c] + c : offsets[c + 1] + c + 1]`` (vertex ids, a closed
+    contour's first vertex repeated at its end)."""
+    from reglib._apparent_numba import OK, TWICE, contour_chains
+
+    c = _as_center(center)
+    chain, offsets, closed, path_ids, status = contour_chains(
+        topology.normals, topology.normal_dot_centroid, topology.twin, topology.he_origin,
+        topology.he_dest, topology.max_valence, c)
+    if status != OK:
+        raise RuntimeError("apparent_contours: linking visited an edge twice" if status == TWICE
+                           else "apparent_contours: a chain without a start did not close")
+    return chain, offsets, closed, path_ids
 
 
 def _make_contour(topology: SurfaceTopology, hes: np.ndarray, *, closed: bool) -> ApparentContour:

@@ -58,6 +58,7 @@ from __future__ import annotations
 import heapq
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Literal
 
 import numpy as np
@@ -106,26 +107,40 @@ class ContourSet:
     def n_segments(self) -> int:
         return int(len(self.starts))
 
-    @property
+    @cached_property
     def segment_contour(self) -> np.ndarray:
-        """(S,) int64, contour index of each segment."""
+        """(S,) int64, contour index of each segment (computed once per set)."""
         return np.repeat(np.arange(self.n_contours), np.diff(self.offsets))
 
-    def tangents(self, segment, p) -> np.ndarray:
+    @cached_property
+    def _unit(self) -> np.ndarray:
+        """(S, 3) unit direction of each segment (zero-length segments: their vector)."""
+        e = self.ends - self.starts
+        n = np.linalg.norm(e, axis=1, keepdims=True)
+        return e / np.where(n > 0, n, 1.0)
+
+    def tangents(self, segment, p, *, reference: bool = False) -> np.ndarray:
         """Oriented contour direction at points ``p (..., 3)`` lying on ``segment (...)``.
 
         Inside a segment: its unit direction. At a vertex (``p`` within 1e-9 mm of a segment
         end) the two segments meeting there are ambiguous, so the sum of their unit
         directions is used (normalised), whichever of them holds ``p``; at the free end of an
         open contour, the end segment's direction. Entries with ``segment < 0`` are NaN.
+        Compiled (:func:`reglib._closest_numba.tangents`); ``reference=True`` is the numpy
+        version, compared with it in tests.
         """
         seg = np.asarray(segment, dtype=np.int64)
         p = np.asarray(p, dtype=np.float64)
+        if not reference:
+            from reglib._closest_numba import tangents
+
+            flat = tangents(self._unit, self.starts, self.ends, self.segment_contour,
+                            self.offsets, self.closed, np.ascontiguousarray(seg.reshape(-1)),
+                            np.ascontiguousarray(p.reshape(-1, 3)))
+            return flat.reshape(seg.shape + (3,))
         valid = seg >= 0
         g = np.where(valid, seg, 0)
-        e = self.ends - self.starts
-        n = np.linalg.norm(e, axis=1, keepdims=True)
-        u = e / np.where(n > 0, n, 1.0)
+        u = self._unit
         c = self.segment_contour[g]
         lo, hi = self.offsets[c], self.offsets[c + 1] - 1
         closed = self.closed[c]
@@ -177,6 +192,35 @@ class ContourSet:
         offsets = np.r_[0, np.cumsum(nseg)].astype(np.int64)
         return cls(starts=np.ascontiguousarray(starts), ends=np.ascontiguousarray(ends),
                    offsets=offsets, closed=np.array(closed, dtype=bool), path=path)
+
+    @classmethod
+    def from_surfaces(cls, surfaces, center) -> tuple[ContourSet, np.ndarray]:
+        """The apparent contours of every surface (:class:`reglib.apparent.SurfaceTopology`,
+        one frame) from ``center`` (3,) mm, in one set, and the surface index of each
+        contour ``(C,)``: equal to ``from_contours`` of :func:`reglib.apparent.
+        apparent_contours` surface after surface (the reference; compared in tests), built
+        from the compiled :func:`reglib.apparent.contour_arrays` without a Python object
+        per contour."""
+        from reglib.apparent import contour_arrays
+
+        starts, ends, paths, offsets, closed, owner = [], [], [], [np.zeros(1, np.int64)], [], []
+        n_seg = 0
+        for k, top in enumerate(surfaces):
+            chain, off, cl, path_ids = contour_arrays(top, center)
+            v = top.vertices
+            starts.append(v[top.he_origin[chain]])
+            ends.append(v[top.he_dest[chain]])
+            paths.append(v[path_ids])
+            offsets.append(off[1:] + n_seg)
+            closed.append(cl)
+            owner.append(np.full(len(cl), k, dtype=np.int64))
+            n_seg += len(chain)
+        if not owner:
+            return cls.from_polylines([], []), np.zeros(0, dtype=np.int64)
+        return cls(starts=np.ascontiguousarray(np.vstack(starts)),
+                   ends=np.ascontiguousarray(np.vstack(ends)),
+                   offsets=np.concatenate(offsets), closed=np.concatenate(closed),
+                   path=np.vstack(paths)), np.concatenate(owner)
 
     @classmethod
     def from_contours(cls, contours) -> ContourSet:
@@ -367,12 +411,12 @@ COMPILED_BLOCK = 8
 
 def _closest_compiled(contours: ContourSet, o, d, within=None) -> ClosestPoints:
     """The capsule pruning compiled (:mod:`reglib._closest_numba`), one loop per line."""
-    from reglib._closest_numba import closest_segments
+    from reglib._closest_numba import block_capsules, closest_segments
 
     n, nc = len(o), contours.n_contours
-    bc, j0, _, a, b, eps, first = _block_capsules(contours, COMPILED_BLOCK)
-    seg0 = np.r_[contours.offsets[bc] + j0, contours.n_segments].astype(np.int64)
-    cb0 = np.r_[first, len(bc)].astype(np.int64)
+    a, b, eps, seg0, cb0 = block_capsules(np.ascontiguousarray(contours.path),
+                                          np.ascontiguousarray(contours.offsets),
+                                          COMPILED_BLOCK)
     dist, seg = closest_segments(np.ascontiguousarray(o), np.ascontiguousarray(d),
                                  np.ascontiguousarray(contours.starts),
                                  np.ascontiguousarray(contours.ends), np.ascontiguousarray(a),

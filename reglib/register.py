@@ -31,7 +31,7 @@ from typing import Literal
 
 import numpy as np
 
-from reglib.apparent import SurfaceTopology, apparent_contours, prepare_surface
+from reglib.apparent import SurfaceTopology, prepare_surface
 from reglib.closest import ContourSet, closest_points, select_contours
 from reglib.geometry import RigidTransform, as_lines
 from reglib.pose import _check_options as _check_pose_options
@@ -171,14 +171,9 @@ def match_view(surfaces, view: View, ct2robot: RigidTransform, *, closest: str =
     robot2ct = ct2robot.inverse()
     c_ct = robot2ct.apply(view.center)
     o_ct, d_ct = robot2ct.apply_lines(view.origins, view.directions)
-    conts, owner = [], []
-    for k, top in enumerate(surfaces):
-        cs = apparent_contours(top, c_ct)
-        conts += cs
-        owner += [k] * len(cs)
-    if not conts:
+    cset, owner = ContourSet.from_surfaces(surfaces, c_ct)
+    if cset.n_contours == 0:
         return None, None, ContourSet.from_polylines([], []), np.zeros(0, dtype=np.int64)
-    cset = ContourSet.from_contours(conts)
     within = None
     if closest in ("blocks", "compiled"):
         # Step B only looks at the nearest contour and the stabbed ones within the limit
@@ -190,7 +185,7 @@ def match_view(surfaces, view: View, ct2robot: RigidTransform, *, closest: str =
     rows = np.arange(len(sel))
     pts = cp.p[rows, sel]
     tangents = cset.tangents(cp.segment[rows, sel], pts)
-    return pts, tangents, cset, np.asarray(owner, dtype=np.int64)
+    return pts, tangents, cset, owner
 
 
 # --------------------------------------------------------------------------- the loop

@@ -169,17 +169,22 @@ def wide_blur_reference(img: np.ndarray, sigma_px: float) -> np.ndarray:
 _FIELD_WEIGHTS: dict = {}
 
 
-def _field_weight(fov: np.ndarray, sigma_px: float) -> np.ndarray:
-    """``wide_blur(fov, sigma_px)``, remembered for the last few fields (every frame of a
-    C-arm has the same field of view); a read-only array."""
+def _field_weight(fov: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """For :func:`add_scatter`: ``wide_blur(fov, sigma_px)`` with ``inf`` where it is at most
+    1e-6 (so that a division by it gives exactly 0 there), and the flat indices of the
+    pixels outside ``fov``; remembered for the last few fields (every frame of a C-arm has
+    the same field of view), read-only."""
     fov = np.ascontiguousarray(fov, dtype=bool)
     key = (fov.shape, float(sigma_px), hash(fov.tobytes()))
     if key not in _FIELD_WEIGHTS:
         if len(_FIELD_WEIGHTS) >= 16:
             _FIELD_WEIGHTS.pop(next(iter(_FIELD_WEIGHTS)))
-        w = wide_blur(fov.astype(np.float64), sigma_px)
-        w.flags.writeable = False
-        _FIELD_WEIGHTS[key] = w
+        den = wide_blur(fov.astype(np.float64), sigma_px)
+        den[den <= 1e-6] = np.inf
+        outside = np.flatnonzero(~fov.ravel())
+        den.flags.writeable = False
+        outside.flags.writeable = False
+        _FIELD_WEIGHTS[key] = (den, outside)
     return _FIELD_WEIGHTS[key]
 
 
@@ -200,10 +205,14 @@ def add_scatter(primary: np.ndarray, fov: np.ndarray, *, spr: float, sigma_px: f
     if spr == 0:
         return p
     src = p if scatterer is None else np.where(scatterer, p, 0.0)
-    num = wide_blur(src, sigma_px)
-    den = _field_weight(fov, sigma_px)
-    low = np.divide(num, den, out=np.zeros_like(num), where=den > 1e-6)
-    return np.where(fov, p + spr * low, 0.0)
+    low = wide_blur(src, sigma_px)
+    den, outside = _field_weight(fov, sigma_px)
+    # in place, with the same roundings as p + spr * (num / den) (0 where den <= 1e-6)
+    np.divide(low, den, out=low)
+    low *= spr
+    low += p
+    low.ravel()[outside] = 0.0
+    return low
 
 
 def abc_photons(fluence: np.ndarray, fov: np.ndarray, target_photons: float) -> float:

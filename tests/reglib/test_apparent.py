@@ -192,3 +192,39 @@ def test_bad_surfaces_are_refused():
     top = prepare_surface(m.vertices, m.faces)
     with pytest.raises(ValueError, match="center"):
         apparent_contours(top, [0.0, np.nan, 1.0])
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_compiled_contour_set_equals_the_reference(seed):
+    """ContourSet.from_surfaces (compiled chaining) against ContourSet.from_contours of
+    apparent_contours, surface after surface: the same contours in the same order, bitwise,
+    on a bumpy closed surface (several contours, closed), an open cylinder and a sphere
+    with random holes (open chains), from random centres near and far."""
+    from reglib.closest import ContourSet
+
+    rng = np.random.default_rng(seed)
+    bumpy = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    r = 30.0 * (1.0 + 0.3 * rng.uniform(-1, 1, len(bumpy.vertices)))
+    holes = trimesh.creation.icosphere(subdivisions=3, radius=25.0)
+    keep = np.flatnonzero(rng.random(len(holes.faces)) > 0.05)
+    holey = holes.submesh([keep], append=True)
+    tops = [prepare_surface(bumpy.vertices * r[:, None], bumpy.faces),
+            prepare_surface(*open_cylinder()),
+            prepare_surface(holey.vertices + [10.0, 0.0, 0.0], holey.faces)]
+    n_open = n_closed = 0
+    for c in np.vstack([random_centers(rng, 6, 120.0), random_centers(rng, 6, 900.0)]):
+        conts, owner = [], []
+        for k, top in enumerate(tops):
+            cs = apparent_contours(top, c)
+            conts += cs
+            owner += [k] * len(cs)
+        ref = ContourSet.from_contours(conts)
+        got, got_owner = ContourSet.from_surfaces(tops, c)
+        for name in ("starts", "ends", "offsets", "closed", "path"):
+            assert np.array_equal(getattr(got, name), getattr(ref, name)), name
+        assert np.array_equal(got_owner, owner)
+        n_open += int((~ref.closed).sum())
+        n_closed += int(ref.closed.sum())
+    assert n_open > 10 and n_closed > 10
+    empty, no_owner = ContourSet.from_surfaces([], np.zeros(3))
+    assert empty.n_contours == 0 and no_owner.size == 0

@@ -184,3 +184,57 @@ def test_bad_input():
         closest_points([np.eye(3)], o, np.tile([1.0, 0, 0], (2, 1)))
     empty = closest_points(ContourSet.from_polylines([], []), o, np.tile([1.0, 0, 0], (2, 1)))
     assert empty.distance.shape == (2, 0)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_compiled_tangents_equal_the_numpy_reference(seed):
+    """ContourSet.tangents compiled vs numpy: points inside segments, exactly at vertices
+    (the two segments' mean), at the free ends of open contours (two-vertex open contours
+    included: their one segment both starts and ends there), invalid entries (NaN), and an
+    (N, C)-shaped input as stabbing passes it."""
+    rng = np.random.default_rng(seed)
+    cs, o, d = random_case(rng)
+    extra = ContourSet.from_polylines([rng.normal(size=(2, 3)) * 30.0], [False])
+    cs = ContourSet.from_polylines(
+        [cs.path[cs.offsets[c] + c: cs.offsets[c + 1] + c + 1][:-1] if cs.closed[c]
+         else cs.path[cs.offsets[c] + c: cs.offsets[c + 1] + c + 1]
+         for c in range(cs.n_contours)] + [extra.path],
+        list(cs.closed) + [False])
+    s = cs.n_segments
+    seg = rng.integers(0, s, 600)
+    w = rng.uniform(0.0, 1.0, (600, 1))
+    w[:150] = 0.0                                           # at a segment's start
+    w[150:300] = 1.0                                        # at its end
+    p = cs.starts[seg] + w * (cs.ends[seg] - cs.starts[seg])
+    seg[::37] = -1
+    got = cs.tangents(seg, p)
+    ref = cs.tangents(seg, p, reference=True)
+    assert np.array_equal(np.isnan(got), np.isnan(ref))
+    np.testing.assert_allclose(got[seg >= 0], ref[seg >= 0], atol=1e-12)
+    cp = closest_points(cs, o, d, method="compiled")
+    got = cs.tangents(cp.segment, cp.p)
+    assert got.shape == cp.p.shape
+    np.testing.assert_allclose(got, cs.tangents(cp.segment, cp.p, reference=True), atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_compiled_block_capsules_equal_the_numpy_ones(seed):
+    """The compiled capsules of the "compiled" method against reglib.closest's numpy
+    _block_capsules (the "blocks" method's), for several block sizes; contours shorter
+    than a block and degenerate (repeated-vertex) axes included."""
+    from reglib._closest_numba import block_capsules
+    from reglib.closest import _block_capsules
+
+    rng = np.random.default_rng(seed)
+    cs, _, _ = random_case(rng)
+    loop = np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [5.0, 5.0, 0.0], [0.0, 0.0, 0.0]])
+    cs = ContourSet.from_polylines(
+        [cs.path[cs.offsets[c] + c: cs.offsets[c + 1] + c + 1] for c in range(cs.n_contours)]
+        + [loop], [False] * cs.n_contours + [False])
+    for size in (1, 3, 8, 64):
+        bc, j0, _, a, b, eps, first = _block_capsules(cs, size)
+        ga, gb, geps, seg0, cb0 = block_capsules(cs.path, cs.offsets, size)
+        assert np.array_equal(ga, a) and np.array_equal(gb, b)
+        np.testing.assert_allclose(geps, eps, rtol=1e-12, atol=1e-12)
+        assert np.array_equal(seg0, np.r_[cs.offsets[bc] + j0, cs.n_segments])
+        assert np.array_equal(cb0, np.r_[first, len(bc)])
