@@ -234,10 +234,20 @@ def bench_commands(quick: bool) -> dict:
     return out
 
 
-def _register_start(args):
+_SHARED: dict = {}
+
+
+def _share(payload) -> None:
+    """Worker initializer: the data every item of a rate measurement uses, sent once per
+    worker (an observation's images are tens of MB; pickling them with every start made
+    the workers wait on the pipe, not on the registration)."""
+    _SHARED["payload"] = payload
+
+
+def _register_start(start):
     from reglib import estimate
 
-    obs, stages, options, start = args
+    obs, stages, options = _SHARED["payload"]
     return estimate(obs, start, options=options, stages=stages).accepted
 
 
@@ -248,14 +258,16 @@ def _burn(n):
     return float(a.sum())
 
 
-def _rate(fn, items, workers: int) -> float:
-    """Items per minute of ``fn`` over ``items`` on ``workers`` processes (wall)."""
+def _rate(fn, items, workers: int, shared=None) -> float:
+    """Items per minute of ``fn`` over ``items`` on ``workers`` processes (wall);
+    ``shared`` is given to each worker once (:func:`_share`)."""
     import concurrent.futures as cf
     import multiprocessing
 
     ctx = multiprocessing.get_context("forkserver" if "forkserver" in
                                       multiprocessing.get_all_start_methods() else "spawn")
-    with cf.ProcessPoolExecutor(workers, mp_context=ctx) as ex:
+    with cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_share,
+                                initargs=(shared,)) as ex:
         list(ex.map(fn, items[:workers]))  # warm the workers
         t0 = time.perf_counter()
         list(ex.map(fn, items))
@@ -268,9 +280,9 @@ def bench_throughput(case, quick: bool) -> dict:
     n = 8 if quick else 24
     starts = [perturbed_start(case.ct2robot, case.pins_ct, 5.0 + 2.0 * (k % 2),
                               np.random.default_rng(100 + k)) for k in range(n)]
-    items = [(case.sim.observation, case.stages, case.options, s) for s in starts]
-    r1 = _rate(_register_start, items, 1)
-    r2 = _rate(_register_start, items, 2)
+    shared = (case.sim.observation, case.stages, case.options)
+    r1 = _rate(_register_start, starts, 1, shared)
+    r2 = _rate(_register_start, starts, 2, shared)
     b1 = _rate(_burn, list(range(8)), 1)
     b2 = _rate(_burn, list(range(8)), 2)
     return {"registrations_per_min": _row("registrations_per_min", r2, r1, "1 worker"),
