@@ -23,7 +23,7 @@ centre is the ground-truth target point.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -391,6 +391,31 @@ def make_phantom(spec: PhantomSpec | None = None, rng=None) -> Phantom:
     spec = PhantomSpec() if spec is None else spec
     if spec.mesh_path is not None:
         return _user_phantom(spec)
+    if spec not in _BUILT:
+        if len(_BUILT) >= 4:
+            _BUILT.pop(next(iter(_BUILT)))
+        _BUILT[spec] = _procedural_phantom(spec)
+    return _copied(_BUILT[spec])
+
+
+#: the last few procedural phantoms by spec (building one takes ~0.25 s of CSG; a study
+#: trial asks for its femur up to three times), handed out as copies
+_BUILT: dict = {}
+
+
+def _copied(ph: Phantom) -> Phantom:
+    """``ph`` with its own copies of every mesh and array (callers may change them)."""
+    return replace(
+        ph, femur=ph.femur.copy(), soft_tissue=ph.soft_tissue.copy(),
+        canal=None if ph.canal is None else ph.canal.copy(),
+        cancellous=None if ph.cancellous is None else ph.cancellous.copy(),
+        pins={k: v.copy() for k, v in ph.pins.items()},
+        pin_meshes={k: m.copy() for k, m in ph.pin_meshes.items()},
+        pin_inside=dict(ph.pin_inside),
+        landmarks={k: v.copy() for k, v in ph.landmarks.items()})
+
+
+def _procedural_phantom(spec: PhantomSpec) -> Phantom:
     d = _resolve(spec)
     g = _geometry(d)
     femur_m = _femur_manifold(d, g, 0.0)

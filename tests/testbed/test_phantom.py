@@ -129,3 +129,19 @@ def test_user_mesh(tmp_path):
     with pytest.raises(ValueError, match="not inside"):
         make_phantom(PhantomSpec(mesh_path=str(path),
                                  mesh_pins_mm={**pins, "proximal": (0.0, 0.0, 600.0)}))
+
+
+def test_phantoms_are_remembered_but_handed_out_as_copies():
+    """make_phantom builds a procedural femur once per spec and hands out copies: equal
+    meshes and pins, and changing one copy leaves the next untouched."""
+    from testbed.phantom import PhantomSpec, _procedural_phantom, make_phantom
+
+    spec = PhantomSpec(shape_variation=1.0, shape_seed=11)
+    a = make_phantom(spec)
+    a.femur.apply_translation([5.0, 0.0, 0.0])
+    a.pins["proximal"][:] = 0.0
+    b = make_phantom(spec)
+    fresh = _procedural_phantom(spec)
+    assert np.array_equal(b.femur.vertices, fresh.femur.vertices)
+    assert np.array_equal(b.pins["proximal"], fresh.pins["proximal"])
+    assert b.femur is not make_phantom(spec).femur
