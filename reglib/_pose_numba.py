@@ -258,3 +258,163 @@ def distances(p, o, d, R, t):
         e2 = w[2] - s * d[i, 2]
         out[i] = np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
     return out
+
+
+IRLS_OK = 0
+IRLS_FEW_WEIGHTS = 1
+IRLS_UNDETERMINED = 2
+
+
+@njit(cache=True)
+def _rotvec_matrix(v):
+    """The rotation matrix of a rotation vector, through the unit quaternion (the small-angle
+    series below 1e-3 rad), as scipy's ``Rotation.from_rotvec(v).as_matrix()``."""
+    th = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    if th <= 1e-3:
+        th2 = th * th
+        s = 0.5 - th2 / 48.0 + th2 * th2 / 3840.0
+    else:
+        s = np.sin(th / 2.0) / th
+    x, y, z, w = v[0] * s, v[1] * s, v[2] * s, np.cos(th / 2.0)
+    Q = np.empty((3, 3))
+    Q[0, 0] = w * w + x * x - y * y - z * z
+    Q[0, 1] = 2.0 * (x * y - z * w)
+    Q[0, 2] = 2.0 * (x * z + y * w)
+    Q[1, 0] = 2.0 * (x * y + z * w)
+    Q[1, 1] = w * w - x * x + y * y - z * z
+    Q[1, 2] = 2.0 * (y * z - x * w)
+    Q[2, 0] = 2.0 * (x * z - y * w)
+    Q[2, 1] = 2.0 * (y * z + x * w)
+    Q[2, 2] = w * w - x * x - y * y + z * z
+    return Q
+
+
+@njit(cache=True)
+def _irls_residuals(x, o, d, nrm, use_normals, r, dist):
+    """Residuals into ``r`` (N, 3) (the scalar in column 0 with normals) and ``dist``."""
+    for i in range(x.shape[0]):
+        vx, vy, vz = x[i, 0] - o[i, 0], x[i, 1] - o[i, 1], x[i, 2] - o[i, 2]
+        if use_normals:
+            s = nrm[i, 0] * vx + nrm[i, 1] * vy + nrm[i, 2] * vz
+            r[i, 0] = s
+            dist[i] = abs(s)
+        else:
+            t = d[i, 0] * vx + d[i, 1] * vy + d[i, 2] * vz
+            r[i, 0], r[i, 1], r[i, 2] = vx - t * d[i, 0], vy - t * d[i, 1], vz - t * d[i, 2]
+            dist[i] = np.sqrt(r[i, 0] ** 2 + r[i, 1] ** 2 + r[i, 2] ** 2)
+
+
+@njit(cache=True)
+def _irls_weights(dist, robust, tukey_a, floor, w):
+    if not robust:
+        w[:] = 1.0
+        return
+    s = max(np.median(dist) / MAD_TO_SIGMA, floor)
+    for i in range(dist.shape[0]):
+        z = dist[i] / s
+        if abs(z) < tukey_a:
+            u = 1.0 - (z / tukey_a) ** 2
+            w[i] = u * u
+        else:
+            w[i] = 0.0
+
+
+@njit(cache=True)
+def irls(x0, o, d, nrm, use_normals, fixed, use_fixed, robust, tukey_a, max_iterations, tol,
+         need):
+    """:func:`reglib.pose._solve_irls` compiled (that numpy function is the reference,
+    compared in ``tests/reglib/test_pose.py``). ``nrm`` is ignored unless ``use_normals``,
+    ``fixed`` unless ``use_fixed``. Returns ``(R, t, dist, w, status)`` with status
+    :data:`IRLS_OK`, :data:`IRLS_FEW_WEIGHTS` or :data:`IRLS_UNDETERMINED`."""
+    n = x0.shape[0]
+    x = x0.copy()
+    dof = 3 if use_fixed else 6
+    mean = np.zeros(3)
+    for i in range(n):
+        for k in range(3):
+            mean[k] += x[i, k]
+    mean /= n
+    ss = 0.0
+    for i in range(n):
+        for k in range(3):
+            ss += (x[i, k] - mean[k]) ** 2
+    scale = np.sqrt(ss / n)
+    if scale == 0.0:
+        scale = 1.0
+    R_tot = np.eye(3)
+    t_tot = np.zeros(3)
+    r = np.zeros((n, 3))
+    dist = np.empty(n)
+    w = np.ones(n)
+    m = np.empty(3)
+    J = np.zeros((3, 6))
+    for _ in range(max_iterations):
+        _irls_residuals(x, o, d, nrm, use_normals, r, dist)
+        _irls_weights(dist, robust, tukey_a, 1e-12 * scale, w)
+        if robust:
+            kept = 0
+            for i in range(n):
+                if w[i] != 0.0:
+                    kept += 1
+            if kept < need:
+                return R_tot, t_tot, dist, w, IRLS_FEW_WEIGHTS
+        if use_fixed:
+            m[:] = fixed
+        else:
+            sw = 0.0
+            m[:] = 0.0
+            for i in range(n):
+                sw += w[i]
+                for k in range(3):
+                    m[k] += w[i] * x[i, k]
+            m /= sw
+        A = np.zeros((dof, dof))
+        b = np.zeros(dof)
+        rows = 1 if use_normals else 3
+        for i in range(n):
+            y0, y1, y2 = x[i, 0] - m[0], x[i, 1] - m[1], x[i, 2] - m[2]
+            if use_normals:
+                n0, n1, n2 = nrm[i, 0], nrm[i, 1], nrm[i, 2]
+                J[0, 0] = y1 * n2 - y2 * n1       # cross(y, n)
+                J[0, 1] = y2 * n0 - y0 * n2
+                J[0, 2] = y0 * n1 - y1 * n0
+                J[0, 3], J[0, 4], J[0, 5] = n0, n1, n2
+            else:
+                # M = I - d d^T; columns: -M skew(y), then M
+                d0, d1, d2 = d[i, 0], d[i, 1], d[i, 2]
+                for a in range(3):
+                    Ma0 = (1.0 if a == 0 else 0.0) - d[i, a] * d0
+                    Ma1 = (1.0 if a == 1 else 0.0) - d[i, a] * d1
+                    Ma2 = (1.0 if a == 2 else 0.0) - d[i, a] * d2
+                    # (M skew(y))[a, :] = (M[a,1] y2 - M[a,2] y1, M[a,2] y0 - M[a,0] y2,
+                    #                      M[a,0] y1 - M[a,1] y0)
+                    J[a, 0] = -(Ma1 * y2 - Ma2 * y1)
+                    J[a, 1] = -(Ma2 * y0 - Ma0 * y2)
+                    J[a, 2] = -(Ma0 * y1 - Ma1 * y0)
+                    J[a, 3], J[a, 4], J[a, 5] = Ma0, Ma1, Ma2
+            wi = w[i]
+            for a in range(rows):
+                for p in range(dof):
+                    b[p] -= J[a, p] * wi * r[i, a]
+                    for q in range(dof):
+                        A[p, q] += J[a, p] * wi * J[a, q]
+        sv = np.linalg.svd(A)[1]
+        if sv[dof - 1] <= 1e-12 * max(sv[0], 1e-300):
+            return R_tot, t_tot, dist, w, IRLS_UNDETERMINED
+        delta = np.linalg.solve(A, b)
+        Q = _rotvec_matrix(delta[:3])
+        tau = np.zeros(3)
+        if dof == 6:
+            tau[:] = delta[3:]
+        for i in range(n):
+            y0, y1, y2 = x[i, 0] - m[0], x[i, 1] - m[1], x[i, 2] - m[2]
+            for k in range(3):
+                x[i, k] = Q[k, 0] * y0 + Q[k, 1] * y1 + Q[k, 2] * y2 + m[k] + tau[k]
+        R_tot = Q @ R_tot
+        t_tot = Q @ (t_tot - m) + m + tau
+        if (delta[0] ** 2 + delta[1] ** 2 + delta[2] ** 2 < tol * tol
+                and tau[0] ** 2 + tau[1] ** 2 + tau[2] ** 2 < (tol * scale) ** 2):
+            break
+    _irls_residuals(x, o, d, nrm, use_normals, r, dist)
+    _irls_weights(dist, robust, tukey_a, 1e-12 * scale, w)
+    return R_tot, t_tot, dist, w, IRLS_OK

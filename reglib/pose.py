@@ -688,7 +688,7 @@ def _solve_ransac(p, o, d, R0, t0, *, threshold, max_trials, confidence, rng,
 # --------------------------------------------------------------------------- constrained IRLS
 def _solve_irls(points, origins, directions, *, normals=None, fixed_point=None,
                 robust: bool = True, tukey_a: float = 2.0, max_iterations: int = 20,
-                tol: float = 1e-10):
+                tol: float = 1e-10, backend: str = "auto"):
     """Rigid update that puts ``points`` on their lines: robust Gauss-Newton (IRLS).
 
     The paper's linearised robust solver for the two cases of :func:`solve_pose`'s
@@ -729,8 +729,22 @@ def _solve_irls(points, origins, directions, *, normals=None, fixed_point=None,
         raise ValueError(f"at least {need} point-line pairs are needed with "
                          f"{'normals' if normals is not None else 'a fixed point'}, "
                          f"got {len(x)}")
-    M = None if normals is not None else np.eye(3)[None] - d[:, :, None] * d[:, None, :]
     f = None if fixed_point is None else np.asarray(fixed_point, dtype=np.float64).reshape(3)
+    kernel = _numba_kernel() if backend in ("auto", "numba") else None
+    if backend == "numba" and kernel is None:
+        raise ValueError("backend 'numba' asked for but numba is not installed")
+    if kernel is not None:   # the same iterations compiled (reglib._pose_numba.irls)
+        R, t, dist, w, status = kernel.irls(
+            np.ascontiguousarray(x), np.ascontiguousarray(o), np.ascontiguousarray(d),
+            np.ascontiguousarray(nrm) if normals is not None else np.zeros((0, 3)),
+            normals is not None, f if f is not None else np.zeros(3), f is not None,
+            bool(robust), float(tukey_a), int(max_iterations), float(tol), int(need))
+        message = {kernel.IRLS_OK: "",
+                   kernel.IRLS_FEW_WEIGHTS: f"fewer than {need} matches kept by the biweight",
+                   kernel.IRLS_UNDETERMINED: "the update is undetermined by the matches "
+                                             "(degenerate geometry)"}[int(status)]
+        return RigidTransform(R, t), dist, w, status == kernel.IRLS_OK, message
+    M = None if normals is not None else np.eye(3)[None] - d[:, :, None] * d[:, None, :]
     scale = float(np.sqrt(np.mean(np.sum((x - x.mean(0)) ** 2, axis=1)))) or 1.0
     R_tot, t_tot = np.eye(3), np.zeros(3)
     w = np.ones(len(x))
@@ -915,7 +929,7 @@ def solve_pose(points, origins, directions, method: Method = "robust", *, initia
         U, dist, w, ok, msg = _solve_irls(T0.apply(x), origins, directions, normals=normals,
                                           fixed_point=fixed_point, robust=method == "robust",
                                           tukey_a=tukey_a, max_iterations=max_iterations,
-                                          tol=max(tol, 1e-10))
+                                          tol=max(tol, 1e-10), backend=backend)
         T = U @ T0
         res = PoseResult(T.R, T.t, dist, w, w > 0, max_iterations, bool(ok), method, msg)
         if res.converged and cheirality:

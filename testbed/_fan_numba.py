@@ -91,18 +91,26 @@ def _perturbed_sign(dx, dy):
 
 
 @njit(cache=True, inline="always")
-def _band_span(px, py, qx, qy, lo, hi, smin, smax):
-    """Widen the x range ``[smin, smax]`` by the part of segment P-Q with ``lo <= y <= hi``
-    (returns it unchanged when the segment misses the band), rounded outwards by a relative
-    1e-12 so that the range never excludes a point that the exact edge tests include."""
+def _sorted_edge(px, py, qx, qy):
+    """A triangle edge for :func:`_band_span`: lower-y end first, and its slope dx/dy (0
+    when horizontal), computed once per triangle."""
     if py > qy:
         px, py, qx, qy = qx, qy, px, py
+    k = (qx - px) / (qy - py) if qy != py else 0.0
+    return px, py, qx, qy, k
+
+
+@njit(cache=True, inline="always")
+def _band_span(px, py, qx, qy, k, lo, hi, smin, smax):
+    """Widen the x range ``[smin, smax]`` by the part of the edge P-Q (from
+    :func:`_sorted_edge`, slope ``k``) with ``lo <= y <= hi`` (unchanged when the edge
+    misses the band), rounded outwards by a relative 1e-12 so that the range never
+    excludes a point that the exact edge tests include."""
     if qy < lo or py > hi:
         return smin, smax
     if qy == py:
         a, b = px, qx
     else:
-        k = (qx - px) / (qy - py)
         a = px + k * (max(py, lo) - py)
         b = px + k * (min(qy, hi) - py)
     if a > b:
@@ -161,15 +169,22 @@ def fan_chords(vx, vy, vz, faces, xs, ys, t_scale, t_max, order, start, x0, y0, 
         cy1 = min(_cell(hiy, y0, h, ny), ny - 1)
         if cx1 < cx0 or cy1 < cy0:
             continue
+        e0x, e0y, e1x, e1y, k0 = _sorted_edge(xa, ya, xb, yb)
+        f0x, f0y, f1x, f1y, k1 = _sorted_edge(xb, yb, xc, yc)
+        g0x, g0y, g1x, g1y, k2 = _sorted_edge(xc, yc, xa, ya)
+        # barycentric weight of each directed edge value, over the vertex's depth
+        wa = sig * inv_area * inv_za
+        wb = sig * inv_area * inv_zb
+        wc = sig * inv_area * inv_zc
         for cy in range(cy0, cy1 + 1):
             # the triangle's x extent within this row of cells (its clipped edges)
             # (the band widened by 1e-9 of a cell: a point binned by rounding into this
             # row may lie a rounding error outside it)
             band_lo = y0 + cy * h - 1e-9 * h
             band_hi = y0 + (cy + 1) * h + 1e-9 * h
-            slo, shi = _band_span(xa, ya, xb, yb, band_lo, band_hi, hix, lox)
-            slo, shi = _band_span(xb, yb, xc, yc, band_lo, band_hi, slo, shi)
-            slo, shi = _band_span(xc, yc, xa, ya, band_lo, band_hi, slo, shi)
+            slo, shi = _band_span(e0x, e0y, e1x, e1y, k0, band_lo, band_hi, hix, lox)
+            slo, shi = _band_span(f0x, f0y, f1x, f1y, k1, band_lo, band_hi, slo, shi)
+            slo, shi = _band_span(g0x, g0y, g1x, g1y, k2, band_lo, band_hi, slo, shi)
             if cy == 0:        # points clamped into the border rows: the whole extent
                 slo, shi = lox, hix
             elif cy == ny - 1:
@@ -183,7 +198,7 @@ def fan_chords(vx, vy, vz, faces, xs, ys, t_scale, t_max, order, start, x0, y0, 
             for r in range(start[cy * nx + rx0], start[cy * nx + rx1 + 1]):
                 x = xs[r]
                 y = ys[r]
-                if x < lox or x > hix or y < loy or y > hiy:
+                if y < loy or y > hiy:     # (x is within the row's span)
                     continue
                 v0 = g0 * (d0x * (y - p0y) - d0y * (x - p0x))
                 if v0 < 0.0 or (v0 == 0.0 and t0 < 0.0):
@@ -194,13 +209,32 @@ def fan_chords(vx, vy, vz, faces, xs, ys, t_scale, t_max, order, start, x0, y0, 
                 v2 = g2 * (d2x * (y - p2y) - d2y * (x - p2x))
                 if v2 < 0.0 or (v2 == 0.0 and t2 < 0.0):
                     continue
-                # barycentrics: the directed edge functions over the signed area
-                la = sig * v0 * inv_area
-                lb = sig * v1 * inv_area
-                lc = sig * v2 * inv_area
-                t = t_scale[r] / (la * inv_za + lb * inv_zb + lc * inv_zc)
+                # barycentrics (the directed edge functions over the signed area) over the
+                # depths: the inverse depth of the hit, interpolated
+                t = t_scale[r] / (v0 * wa + v1 * wb + v2 * wc)
                 if t > t_max[r]:
                     t = t_max[r]
                 i = order[r]
                 chord[i] += sig * t
                 balance[i] += sig
+
+
+@njit(cache=True)
+def finish(chord, balance):
+    """After every triangle of a mesh: clamp the chords at 0 (rounding can leave -1e-13
+    on a ray that only grazes the mesh), return the rays whose crossings did not balance,
+    and zero ``balance`` for the next mesh."""
+    n_bad = 0
+    for i in range(chord.shape[0]):
+        if balance[i] != 0.0:
+            n_bad += 1
+        if chord[i] < 0.0:
+            chord[i] = 0.0
+    bad = np.empty(n_bad, dtype=np.int64)
+    k = 0
+    for i in range(chord.shape[0]):
+        if balance[i] != 0.0:
+            bad[k] = i
+            k += 1
+            balance[i] = 0.0
+    return bad

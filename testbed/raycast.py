@@ -392,6 +392,7 @@ class FanRays:
         self.ys = np.ascontiguousarray(y[order])
         self.t_scale = np.ascontiguousarray(1.0 / da[order])
         self.t_max_sorted = np.ascontiguousarray(t_max[order])
+        self._balance = None
 
     @classmethod
     def of(cls, source, directions, t_max) -> FanRays | None:
@@ -421,7 +422,7 @@ class FanRays:
                out: np.ndarray | None = None) -> np.ndarray:
         """Length (mm) of every ray inside the closed ``mesh`` (N,), in the rays' order;
         written into ``out`` (N,) float64 when given (it must hold zeros)."""
-        from testbed._fan_numba import fan_chords
+        from testbed._fan_numba import fan_chords, finish
 
         p = np.asarray(mesh.vertices, dtype=np.float64) - self.source
         z = p @ self.axis
@@ -430,15 +431,15 @@ class FanRays:
         faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
         n = len(self.xs)
         out = np.zeros(n) if out is None else out
-        balance = np.zeros(n)
+        if self._balance is None:
+            self._balance = np.zeros(n)      # zeroed again by finish() after every mesh
         fan_chords(vx, vy, z, faces, self.xs, self.ys, self.t_scale, self.t_max_sorted,
-                   self.order, self.start, *self.grid, out, balance)
-        bad = np.flatnonzero(balance)
+                   self.order, self.start, *self.grid, out, self._balance)
+        bad = finish(out, self._balance)
         if bad.size:
             o = np.broadcast_to(self.source, (bad.size, 3))
             out[bad] = mesh_chords(mesh, o, self.directions[bad], self.t_max[bad],
                                    engine="numpy", name=name)
-        np.maximum(out, 0.0, out=out)
         return out
 
 
