@@ -411,7 +411,7 @@ COMPILED_BLOCK = 8
 
 def _closest_compiled(contours: ContourSet, o, d, within=None) -> ClosestPoints:
     """The capsule pruning compiled (:mod:`reglib._closest_numba`), one loop per line."""
-    from reglib._closest_numba import block_capsules, closest_segments
+    from reglib._closest_numba import block_capsules, closest_segments, contour_spheres
 
     n, nc = len(o), contours.n_contours
     a, b, eps, seg0, cb0 = block_capsules(np.ascontiguousarray(contours.path),
@@ -421,7 +421,9 @@ def _closest_compiled(contours: ContourSet, o, d, within=None) -> ClosestPoints:
                                  np.ascontiguousarray(contours.starts),
                                  np.ascontiguousarray(contours.ends), np.ascontiguousarray(a),
                                  np.ascontiguousarray(b), np.ascontiguousarray(eps), seg0, cb0,
-                                 -1.0 if within is None else float(within))
+                                 -1.0 if within is None else float(within),
+                                 *contour_spheres(np.ascontiguousarray(contours.path),
+                                                  np.ascontiguousarray(contours.offsets)))
     if within is not None:   # beyond the line's threshold: not computed, as "blocks" says
         thr = np.maximum(within, dist.min(axis=1, initial=np.inf))
         seg[dist > (thr + 1e-7 * (1.0 + thr))[:, None]] = -1

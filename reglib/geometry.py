@@ -212,14 +212,28 @@ class RigidTransform:
         c = (np.trace(self.R) - 1.0) / 2.0
         return float(np.arccos(np.clip(c, -1.0, 1.0)))
 
+    @classmethod
+    def _checked_already(cls, R: np.ndarray, t: np.ndarray) -> RigidTransform:
+        """A transform from the product or inverse of checked ones (a proper rotation
+        again, to rounding), without the checks of ``__init__`` (25 us, a registration
+        composes some 300 per start)."""
+        obj = object.__new__(cls)
+        R = np.array(R, dtype=np.float64)
+        t = np.array(t, dtype=np.float64)
+        R.setflags(write=False)
+        t.setflags(write=False)
+        object.__setattr__(obj, "R", R)
+        object.__setattr__(obj, "t", t)
+        return obj
+
     # algebra
     def __matmul__(self, other: RigidTransform) -> RigidTransform:
         if not isinstance(other, RigidTransform):
             return NotImplemented
-        return RigidTransform(self.R @ other.R, self.R @ other.t + self.t)
+        return RigidTransform._checked_already(self.R @ other.R, self.R @ other.t + self.t)
 
     def inverse(self) -> RigidTransform:
-        return RigidTransform(self.R.T, -self.R.T @ self.t)
+        return RigidTransform._checked_already(self.R.T, -self.R.T @ self.t)
 
     def __invert__(self) -> RigidTransform:
         return self.inverse()

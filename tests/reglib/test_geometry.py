@@ -68,3 +68,22 @@ def test_lines_and_center_of_perspective():
     np.testing.assert_allclose(closest_point_to_lines(o + 5 * d, d), c, atol=1e-9)
     with pytest.raises(ValueError, match="parallel"):
         closest_point_to_lines(pts, np.broadcast_to([0, 0, 1.0], pts.shape))
+
+
+def test_composition_and_inverse_stay_rigid_and_read_only():
+    """Products and inverses skip the constructor's checks: they must still be proper
+    rotations (to rounding, also after many compositions), read-only, and equal to the
+    4x4 matrix algebra."""
+    rng = np.random.default_rng(4)
+    ts = [RigidTransform.from_rotvec(rng.normal(size=3), rng.normal(size=3) * 50.0)
+          for _ in range(200)]
+    acc = RigidTransform.identity()
+    mat = np.eye(4)
+    for T in ts:
+        acc = acc @ T.inverse()
+        mat = mat @ np.linalg.inv(T.as_matrix())
+    np.testing.assert_allclose(acc.as_matrix(), mat, atol=1e-9)
+    assert np.abs(acc.R.T @ acc.R - np.eye(3)).max() < 1e-12 and np.linalg.det(acc.R) > 0
+    for arr in (acc.R, acc.t, ts[0].inverse().R, (ts[0] @ ts[1]).t):
+        assert not arr.flags.writeable
+    RigidTransform(acc.R, acc.t)                    # passes the full checks
