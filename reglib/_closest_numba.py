@@ -16,10 +16,18 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from reglib.geometry import line_segment_distance
+from reglib.geometry import line_segment_across
 
-#: reglib.geometry's scalar line-segment distance, compiled
-_line_segment_distance = njit(cache=True, inline="always")(line_segment_distance)
+#: reglib.geometry's scalar line-segment geometry, compiled
+_across = njit(cache=True, inline="always")(line_segment_across)
+
+
+@njit(cache=True, inline="always")
+def _line_segment_distance(ox, oy, oz, dx, dy, dz, ax, ay, az, bx, by, bz):
+    """reglib.geometry.line_segment_distance, compiled."""
+    s, px, py, pz, qx, qy, qz = _across(ox, oy, oz, dx, dy, dz, ax, ay, az, bx, by, bz)
+    rx, ry, rz = px + s * qx, py + s * qy, pz + s * qz
+    return np.sqrt(rx * rx + ry * ry + rz * rz)
 
 
 @njit(cache=True)
@@ -204,3 +212,45 @@ def contour_spheres(path, offsets):
                 m = q
         r[k] = np.sqrt(m) * (1.0 + 1e-12) + 1e-12
     return c, r
+
+
+@njit(cache=True)
+def exact_pairs(o, d, starts, ends, dist_in, seg, within):
+    """For each (line, contour) with a segment (``seg >= 0``): the exact distance and the
+    closest points ``p`` (on the segment) and ``q`` (on the line), the arithmetic of
+    ``reglib.closest._exact`` (the reference, compared in tests) per pair; with ``within >=
+    0``, pairs whose ``dist_in`` lies beyond the line's threshold ``max(within, nearest)``
+    are dropped first (``seg`` set to -1 in place), as the numpy caller did. Returns
+    ``dist (N, C)`` (inf where none), ``p, q (N, C, 3)`` (NaN where none)."""
+    n, nc = seg.shape
+    dist = np.full((n, nc), np.inf)
+    p = np.full((n, nc, 3), np.nan)
+    q = np.full((n, nc, 3), np.nan)
+    for i in range(n):
+        lim = np.inf
+        if within >= 0.0:
+            nearest = np.inf
+            for c in range(nc):
+                nearest = min(nearest, dist_in[i, c])
+            thr = max(within, nearest)
+            lim = thr + 1e-7 * (1.0 + thr)
+        ox, oy, oz = o[i, 0], o[i, 1], o[i, 2]
+        dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
+        for c in range(nc):
+            j = seg[i, c]
+            if j < 0:
+                continue
+            if dist_in[i, c] > lim:
+                seg[i, c] = -1
+                continue
+            ax, ay, az = starts[j, 0], starts[j, 1], starts[j, 2]
+            bx, by, bz = ends[j, 0], ends[j, 1], ends[j, 2]
+            s = _across(ox, oy, oz, dx, dy, dz, ax, ay, az, bx, by, bz)[0]
+            p0, p1, p2 = ax + s * (bx - ax), ay + s * (by - ay), az + s * (bz - az)
+            t = (p0 - ox) * dx + (p1 - oy) * dy + (p2 - oz) * dz
+            q0, q1, q2 = ox + t * dx, oy + t * dy, oz + t * dz
+            r0, r1, r2 = p0 - q0, p1 - q1, p2 - q2
+            dist[i, c] = np.sqrt(r0 ** 2 + r1 ** 2 + r2 ** 2)
+            p[i, c, 0], p[i, c, 1], p[i, c, 2] = p0, p1, p2
+            q[i, c, 0], q[i, c, 1], q[i, c, 2] = q0, q1, q2
+    return dist, p, q

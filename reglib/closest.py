@@ -411,9 +411,13 @@ COMPILED_BLOCK = 8
 
 def _closest_compiled(contours: ContourSet, o, d, within=None) -> ClosestPoints:
     """The capsule pruning compiled (:mod:`reglib._closest_numba`), one loop per line."""
-    from reglib._closest_numba import block_capsules, closest_segments, contour_spheres
+    from reglib._closest_numba import (
+        block_capsules,
+        closest_segments,
+        contour_spheres,
+        exact_pairs,
+    )
 
-    n, nc = len(o), contours.n_contours
     a, b, eps, seg0, cb0 = block_capsules(np.ascontiguousarray(contours.path),
                                           np.ascontiguousarray(contours.offsets),
                                           COMPILED_BLOCK)
@@ -424,15 +428,12 @@ def _closest_compiled(contours: ContourSet, o, d, within=None) -> ClosestPoints:
                                  -1.0 if within is None else float(within),
                                  *contour_spheres(np.ascontiguousarray(contours.path),
                                                   np.ascontiguousarray(contours.offsets)))
-    if within is not None:   # beyond the line's threshold: not computed, as "blocks" says
-        thr = np.maximum(within, dist.min(axis=1, initial=np.inf))
-        seg[dist > (thr + 1e-7 * (1.0 + thr))[:, None]] = -1
-    out = _empty(n, nc)
-    li, ci = np.nonzero(seg >= 0)
-    s = seg[li, ci]
-    dist, p, q = _exact(o[li], d[li], contours.starts[s], contours.ends[s])
-    out.distance[li, ci], out.p[li, ci], out.q[li, ci], out.segment[li, ci] = dist, p, q, s
-    return out
+    # beyond the line's threshold: not computed, as "blocks" says; the rest exactly
+    dist, p, q = exact_pairs(np.ascontiguousarray(o), np.ascontiguousarray(d),
+                             np.ascontiguousarray(contours.starts),
+                             np.ascontiguousarray(contours.ends), dist, seg,
+                             -1.0 if within is None else float(within))
+    return ClosestPoints(dist, p, q, seg)
 
 
 def _closest_blocks(contours: ContourSet, o, d, within=None, sizes=(64, 8)) -> ClosestPoints:

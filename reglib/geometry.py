@@ -366,11 +366,12 @@ def arc_length(points, *, closed: bool = False) -> tuple[np.ndarray, np.ndarray]
     return P, s
 
 
-def line_segment_distance(ox, oy, oz, dx, dy, dz, ax, ay, az, bx, by, bz) -> float:
-    """Distance (mm) between the line ``o + t d`` (unit d) and the segment ``[a, b]``, in
-    scalars: the segment's point ``a + s (b - a)`` (``s`` clipped to [0, 1]) nearest to
-    the line across it. Plain Python for the paper's capsule hierarchy
-    (:mod:`reglib.closest`), compiled as it is by :mod:`reglib._closest_numba`."""
+def line_segment_across(ox, oy, oz, dx, dy, dz, ax, ay, az, bx, by, bz):
+    """The line ``o + t d`` (unit d) and the segment ``[a, b]`` seen across the line, in
+    scalars: ``(s, px, py, pz, qx, qy, qz)`` with ``p = a - o`` and ``q = b - a`` less their
+    components along ``d``, and ``s`` in [0, 1] the parameter of the segment's point
+    ``a + s (b - a)`` nearest to the line (0 for a segment along the line). Plain Python,
+    compiled as it is by :mod:`reglib._closest_numba`."""
     wx, wy, wz = ax - ox, ay - oy, az - oz
     ex, ey, ez = bx - ax, by - ay, bz - az
     wd = wx * dx + wy * dy + wz * dz
@@ -382,5 +383,14 @@ def line_segment_distance(ox, oy, oz, dx, dy, dz, ax, ay, az, bx, by, bz) -> flo
     if qq > 0.0:
         s = -(px * qx + py * qy + pz * qz) / qq
         s = 0.0 if s < 0.0 else (1.0 if s > 1.0 else s)
+    return s, px, py, pz, qx, qy, qz
+
+
+def line_segment_distance(ox, oy, oz, dx, dy, dz, ax, ay, az, bx, by, bz) -> float:
+    """Distance (mm) between the line ``o + t d`` (unit d) and the segment ``[a, b]``, in
+    scalars (:func:`line_segment_across`). Plain Python for the paper's capsule hierarchy
+    (:mod:`reglib.closest`); :mod:`reglib._closest_numba` compiles the same two steps."""
+    s, px, py, pz, qx, qy, qz = line_segment_across(ox, oy, oz, dx, dy, dz, ax, ay, az,
+                                                    bx, by, bz)
     rx, ry, rz = px + s * qx, py + s * qy, pz + s * qz
     return math.sqrt(rx * rx + ry * ry + rz * rz)

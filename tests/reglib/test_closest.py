@@ -238,3 +238,33 @@ def test_compiled_block_capsules_equal_the_numpy_ones(seed):
         np.testing.assert_allclose(geps, eps, rtol=1e-12, atol=1e-12)
         assert np.array_equal(seg0, np.r_[cs.offsets[bc] + j0, cs.n_segments])
         assert np.array_equal(cb0, np.r_[first, len(bc)])
+
+
+def test_compiled_exact_pairs_equal_the_numpy_exact_points():
+    """reglib._closest_numba.exact_pairs against reglib.closest._exact on random pairs
+    (degenerate zero-length segments included), and its threshold masking against the
+    numpy expression it replaced."""
+    from reglib._closest_numba import exact_pairs
+    from reglib.closest import _exact
+
+    rng = np.random.default_rng(6)
+    cs, o, d = random_case(rng)
+    n, c = len(o), 7
+    seg = rng.integers(-1, cs.n_segments, (n, c))
+    starts, ends = cs.starts.copy(), cs.ends.copy()
+    ends[::11] = starts[::11]                                 # zero-length segments
+    dist_in = rng.uniform(0.0, 30.0, (n, c))
+    for within in (-1.0, 0.0, 8.0):
+        s = seg.copy()
+        dist, p, q = exact_pairs(o, d, starts, ends, dist_in, s, within)
+        want = seg.copy()
+        if within >= 0:
+            thr = np.maximum(within, dist_in.min(axis=1))
+            want[dist_in > (thr + 1e-7 * (1.0 + thr))[:, None]] = -1
+        assert np.array_equal(s, want)
+        li, ci = np.nonzero(want >= 0)
+        rd, rp, rq = _exact(o[li], d[li], starts[want[li, ci]], ends[want[li, ci]])
+        np.testing.assert_allclose(dist[li, ci], rd, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(p[li, ci], rp, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(q[li, ci], rq, rtol=0, atol=1e-12)
+        assert np.all(np.isinf(dist[want < 0])) and np.all(np.isnan(p[want < 0]))
