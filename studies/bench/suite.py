@@ -277,7 +277,7 @@ def _rate(fn, items, workers: int, shared=None) -> float:
 def bench_throughput(case, quick: bool) -> dict:
     from studies.scoring import perturbed_start
 
-    n = 8 if quick else 24
+    n = 8 if quick else 48
     starts = [perturbed_start(case.ct2robot, case.pins_ct, 5.0 + 2.0 * (k % 2),
                               np.random.default_rng(100 + k)) for k in range(n)]
     shared = (case.sim.observation, case.stages, case.options)
