@@ -4,7 +4,8 @@ The numpy Newton iterations of :meth:`testbed.fluoroscope.Distortion.undistort` 
 reference; this kernel performs the same iteration per point (the same analytic Jacobian and
 tolerance; the start is the reference's, or, for the next pixel of a row, a prediction from
 the previous pixel's solution) in scalar code, evaluating the distortion and its
-Jacobian together so each local term's phase costs one sine and one cosine.
+Jacobian together; along a grid row each local term's sine and cosine follow from the
+previous point's by angle addition (:func:`_distort_jac_rec`).
 ``tests/testbed/test_fluoroscope.py`` compares both on random distortions.
 """
 
@@ -15,41 +16,6 @@ from numba import njit
 
 WARM_PX = 2.0
 """Largest step (px, per axis) from the previous point for a warm start."""
-
-
-@njit(cache=True, inline="always")
-def _distort_jac(ux, uy, cx, cy, r2, k1, k2, rot, sx, sy, amp, freq, phase):
-    """distort(u) and its Jacobian at one undistorted point (see Distortion)."""
-    px, py = ux - cx, uy - cy
-    rho2 = (px * px + py * py) / r2
-    g = 1.0 + k1 * rho2 + k2 * rho2 * rho2
-    th = rot * rho2
-    cs, sn = np.cos(th), np.sin(th)
-    qx, qy = px * g, py * g
-    fx = cx + cs * qx - sn * qy + sx
-    fy = cy + sn * qx + cs * qy + sy
-    # inner = g I + dg p p^T + dth (-qy, qx) p^T, then J = Rot(th) inner
-    dg = (2.0 / r2) * (k1 + 2.0 * k2 * rho2)
-    dth = (2.0 / r2) * rot
-    i00 = g + dg * px * px - dth * qy * px
-    i01 = dg * px * py - dth * qy * py
-    i10 = dg * py * px + dth * qx * px
-    i11 = g + dg * py * py + dth * qx * py
-    j00 = cs * i00 - sn * i10
-    j01 = cs * i01 - sn * i11
-    j10 = sn * i00 + cs * i10
-    j11 = sn * i01 + cs * i11
-    two_pi = 2.0 * np.pi
-    for k in range(amp.shape[0]):
-        arg = two_pi * (px * freq[k, 0] + py * freq[k, 1]) + phase[k]
-        s, c = np.sin(arg), np.cos(arg)
-        fx += amp[k, 0] * s
-        fy += amp[k, 1] * s
-        j00 += c * amp[k, 0] * two_pi * freq[k, 0]
-        j01 += c * amp[k, 0] * two_pi * freq[k, 1]
-        j10 += c * amp[k, 1] * two_pi * freq[k, 0]
-        j11 += c * amp[k, 1] * two_pi * freq[k, 1]
-    return fx, fy, j00, j01, j10, j11
 
 
 @njit(cache=True, inline="always")
@@ -80,12 +46,13 @@ TINY_RAD = 2e-3
 @njit(cache=True, inline="always")
 def _distort_jac_rec(ux, uy, cx, cy, r2, k1, k2, rot, sx, sy, amp, freq, phase, f_max,
                      S, C, ref):
-    """:func:`_distort_jac` for a sequence of nearby points: each local term's sine and
+    """distort(u) and its Jacobian at one undistorted point (see Distortion), for a
+    sequence of nearby points: each local term's sine and
     cosine at ``u`` are those at the previous point ``ref[:2]`` (kept in ``S``, ``C``)
     turned by the phase step, by angle addition with a Taylor sine and cosine of the small
     step, instead of two library calls per term. ``ref[2] = 0`` (or a step above
-    ``SMALL_RAD``) evaluates them directly and starts a new sequence. Equal to
-    :func:`_distort_jac` to ~1e-13 over a row of a grid (rounding accumulates per step)."""
+    ``SMALL_RAD``) evaluates them directly and starts a new sequence. Equal to the direct
+    evaluation to ~1e-13 over a row of a grid (rounding accumulates per step)."""
     px, py = ux - cx, uy - cy
     rho2 = (px * px + py * py) / r2
     g = 1.0 + k1 * rho2 + k2 * rho2 * rho2
