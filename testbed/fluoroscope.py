@@ -851,6 +851,7 @@ class SweepRenderer:
             self._uv.append((uv, order, uv[order, 0]))
             static.append(a)
         self._static = static
+        self._static_exp = [np.exp(-a) for a in static]
         self._magnification = _magnification(carm, self.bodies)
 
     def _hull_px(self, rod: list[Body]) -> np.ndarray:
@@ -896,13 +897,20 @@ class SweepRenderer:
         weights = attenuation_weights(self.bodies + list(rod))[len(self.bodies):]
         _check_source_outside(self.carm, list(rod))
         pts = self._hull_px(rod)
-        trans = np.zeros(len(self._static[0]))
-        for (o, d, tm), uv, a_static in zip(self._rays, self._uv, self._static):
-            a = a_static.copy()
+        k = len(self._static)
+        trans = np.zeros(len(self._static[0])) if k > 1 else None
+        for (o, d, tm), uv, a_static, e_static in zip(self._rays, self._uv, self._static,
+                                                      self._static_exp):
+            e = e_static.copy()        # exp(-a) of the static bodies, changed where the rod is
             idx = self._inside_hull(uv, pts)
             if len(idx):
-                a[idx] += body_path_lengths(list(rod), o[idx], d[idx], tm[idx]) @ weights
-            trans += np.exp(-a) / len(self._static)
+                a = a_static[idx] + body_path_lengths(list(rod), o[idx], d[idx],
+                                                      tm[idx]) @ weights
+                e[idx] = np.exp(-a)
+            if k == 1:
+                trans = e
+            else:
+                trans += e / k
         full = np.zeros(self.fov.shape)
         full[self.fov] = trans
         return full
