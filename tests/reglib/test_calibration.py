@@ -232,3 +232,17 @@ def test_find_markers_checks_shapes():
     with pytest.raises(ValueError, match="view v: frames"):
         find_markers(SweepData("v", np.zeros((3, 8, 8)), np.zeros(2, int),
                                np.zeros((3, 8, 3)), BEADS))
+
+
+def test_integer_median_equals_numpy_median():
+    """The counting median of the fast marker path (differences of 8-bit frames) against
+    np.median: odd and even counts, negative values, repeated values, one element."""
+    from reglib.markers import _integer_median
+
+    rng = np.random.default_rng(0)
+    for n in (1, 2, 3, 10, 11, 1000, 1001, 24001, 24000):
+        for _ in range(10):
+            v = rng.integers(-255, 256, n).astype(np.float64)
+            if rng.random() < 0.3:
+                v = np.round(v / 50.0) * 50.0
+            assert _integer_median(v) == np.median(v), n
