@@ -26,6 +26,7 @@ Images are ``(H, W)`` float arrays indexed ``[row, col]``, relative to the unatt
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -188,6 +189,37 @@ def _field_weight(fov: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndar
     return _FIELD_WEIGHTS[key]
 
 
+@dataclass(frozen=True)
+class _Field:
+    """Per field of view (and vignetting), for :func:`form_image`: the flat indices of the
+    pixels outside it and the vignetting factor (0 outside)."""
+
+    outside: np.ndarray
+    vignetting: np.ndarray
+    rho: np.ndarray            # held, so that its id (the cache key) stays its own
+
+
+_FIELDS: dict = {}
+
+
+def _field(fov: np.ndarray, rho: np.ndarray, vignetting: float) -> _Field:
+    """The :class:`_Field` of ``fov`` and ``rho`` (the same arrays for every frame of a
+    C-arm: remembered for the last few, by the mask's content and the radius map's
+    identity)."""
+    fov = np.ascontiguousarray(fov, dtype=bool)
+    key = (fov.shape, hash(fov.tobytes()), id(rho), float(vignetting))
+    if key not in _FIELDS:
+        if len(_FIELDS) >= 16:
+            _FIELDS.pop(next(iter(_FIELDS)))
+        vig = np.zeros(fov.shape)
+        vig[fov] = 1.0 - vignetting * np.asarray(rho, dtype=np.float64)[fov] ** 2
+        outside = np.flatnonzero(~fov.ravel())
+        vig.flags.writeable = False
+        outside.flags.writeable = False
+        _FIELDS[key] = _Field(outside, vig, rho)
+    return _FIELDS[key]
+
+
 def add_scatter(primary: np.ndarray, fov: np.ndarray, *, spr: float, sigma_px: float,
                 scatterer: np.ndarray | None = None) -> np.ndarray:
     """Primary plus scatter: ``P + spr * lowpass(P * scatterer)`` inside ``fov`` (H, W) bool.
@@ -201,17 +233,18 @@ def add_scatter(primary: np.ndarray, fov: np.ndarray, *, spr: float, sigma_px: f
     """
     if spr < 0 or not np.isfinite(spr):
         raise ValueError(f"scatter_to_primary must be finite and >= 0, got {spr}")
-    p = np.where(fov, np.asarray(primary, dtype=np.float64), 0.0)
     if spr == 0:
-        return p
+        return np.where(fov, np.asarray(primary, dtype=np.float64), 0.0)
+    den, outside = _field_weight(fov, sigma_px)
+    p = np.array(primary, dtype=np.float64)
+    p.put(outside, 0.0)
     src = p if scatterer is None else np.where(scatterer, p, 0.0)
     low = wide_blur(src, sigma_px)
-    den, outside = _field_weight(fov, sigma_px)
     # in place, with the same roundings as p + spr * (num / den) (0 where den <= 1e-6)
     np.divide(low, den, out=low)
     low *= spr
     low += p
-    low.ravel()[outside] = 0.0
+    low.put(outside, 0.0)
     return low
 
 
@@ -281,7 +314,9 @@ def form_image(transmission: np.ndarray, fov: np.ndarray, rho: np.ndarray, fluor
     """
     rng = np.random.default_rng(rng)
     px = float(fluoro.pixel_mm)
-    img = np.where(fov, np.asarray(transmission, dtype=np.float64), 0.0)
+    field = _field(fov, rho, fluoro.vignetting)
+    img = np.array(transmission, dtype=np.float64)
+    img.put(field.outside, 0.0)
     scatterer = fov & (img < SCATTERER_TRANSMISSION)
     img = blur(img, focal_spot_sigma_px(fluoro.focal_spot_mm, magnification, px))
     img = add_scatter(img, fov, spr=fluoro.scatter_to_primary,
@@ -293,12 +328,14 @@ def form_image(transmission: np.ndarray, fov: np.ndarray, rho: np.ndarray, fluor
             n0 = fluoro.photons_per_pixel
         img[fov] = quantum_noise(img[fov], n0, rng)
     img = blur(img, mtf_sigma_px(fluoro.mtf50_lp_per_mm, px))
-    img[~fov] = 0.0
+    img.put(field.outside, 0.0)
     if fluoro.glare_fraction > 0:
         g = fluoro.glare_fraction
-        img = (1.0 - g) * img + g * wide_blur(img, fluoro.glare_sigma_px)
-    img[fov] *= 1.0 - fluoro.vignetting * rho[fov] ** 2
-    img[~fov] = 0.0
+        glare = wide_blur(img, fluoro.glare_sigma_px)
+        glare *= g
+        img *= 1.0 - g
+        img += glare
+    img *= field.vignetting          # 1 - v rho^2 in the field, 0 outside
     video = video_u8(img, fov, black_u8=fluoro.black_u8, white_u8=fluoro.white_u8,
                      display_range=fluoro.display_range,
                      noise_u8=fluoro.video_noise_u8 if noise else 0.0, rng=rng)
