@@ -146,9 +146,23 @@ def fan_chords(vx, vy, vz, faces, xs, ys, t_scale, t_max, order, start, x0, y0, 
     ``chord`` (N,) mm and ``balance`` (N,), in the rays' own order (``order[r]``): +1 per
     exit, -1 per entry, so 0 for every ray when the mesh's covering is consistent.
     """
+    x_end = x0 + nx * h
+    y_end = y0 + ny * h
     for f in range(faces.shape[0]):
         ia, ib, ic = faces[f, 0], faces[f, 1], faces[f, 2]
         xa, ya, xb, yb, xc, yc = vx[ia], vy[ia], vx[ib], vy[ib], vx[ic], vy[ic]
+        lox = min(xa, min(xb, xc))
+        hix = max(xa, max(xb, xc))
+        loy = min(ya, min(yb, yc))
+        hiy = max(ya, max(yb, yc))
+        if hix < x0 or lox > x_end or hiy < y0 or loy > y_end:
+            continue                   # outside the rays' extent (e.g. outside the field)
+        cx0 = _cell(lox, x0, h, nx)
+        cx1 = min(_cell(hix, x0, h, nx), nx - 1)
+        cy0 = _cell(loy, y0, h, ny)
+        cy1 = min(_cell(hiy, y0, h, ny), ny - 1)
+        if cx1 < cx0 or cy1 < cy0:
+            continue
         area2 = (xb - xa) * (yc - ya) - (yb - ya) * (xc - xa)
         if area2 == 0.0:
             continue
@@ -159,16 +173,6 @@ def fan_chords(vx, vy, vz, faces, xs, ys, t_scale, t_max, order, start, x0, y0, 
         p2x, p2y, d2x, d2y, g2, t2 = _edge(ia, ib, sig, vx, vy)
         inv_za, inv_zb, inv_zc = 1.0 / vz[ia], 1.0 / vz[ib], 1.0 / vz[ic]
         inv_area = 1.0 / area2
-        lox = min(xa, min(xb, xc))
-        hix = max(xa, max(xb, xc))
-        loy = min(ya, min(yb, yc))
-        hiy = max(ya, max(yb, yc))
-        cx0 = _cell(lox, x0, h, nx)
-        cx1 = min(_cell(hix, x0, h, nx), nx - 1)
-        cy0 = _cell(loy, y0, h, ny)
-        cy1 = min(_cell(hiy, y0, h, ny), ny - 1)
-        if cx1 < cx0 or cy1 < cy0:
-            continue
         e0x, e0y, e1x, e1y, k0 = _sorted_edge(xa, ya, xb, yb)
         f0x, f0y, f1x, f1y, k1 = _sorted_edge(xb, yb, xc, yc)
         g0x, g0y, g1x, g1y, k2 = _sorted_edge(xc, yc, xa, ya)
