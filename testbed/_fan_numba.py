@@ -242,3 +242,42 @@ def finish(chord, balance):
             k += 1
             balance[i] = 0.0
     return bad
+
+
+@njit(cache=True)
+def fan_sphere_chords(centres, radii, box_lo, box_hi, ok, dirs, t_max, order, start, x0, y0,
+                      h, nx, ny, source, out):
+    """Add to ``out`` (N,) the length (mm) of every ray inside each sphere, analytically:
+    only the rays binned in the cells of the sphere's image box (``box_lo``, ``box_hi``
+    (K, 2), the image-plane bounds of the central projections of the sphere's bounding
+    cube, which contain the sphere's image; all rays for a sphere with ``ok`` False) are
+    visited. ``dirs`` (N, 3) and ``t_max`` (N,) in the rays' own order, ``source`` (3,).
+    ``testbed.raycast.sphere_chords`` is the reference, compared in tests."""
+    n_cells = nx * ny
+    for k in range(centres.shape[0]):
+        r2 = radii[k] * radii[k]
+        if ok[k]:
+            cx0 = _cell(box_lo[k, 0], x0, h, nx)
+            cx1 = min(_cell(box_hi[k, 0], x0, h, nx), nx - 1)
+            cy0 = _cell(box_lo[k, 1], y0, h, ny)
+            cy1 = min(_cell(box_hi[k, 1], y0, h, ny), ny - 1)
+            if (box_hi[k, 0] < x0 or box_lo[k, 0] > x0 + nx * h or box_hi[k, 1] < y0
+                    or box_lo[k, 1] > y0 + ny * h or cx1 < cx0 or cy1 < cy0):
+                continue
+        else:
+            cx0, cx1, cy0, cy1 = 0, nx - 1, 0, ny - 1
+        wx = centres[k, 0] - source[0]
+        wy = centres[k, 1] - source[1]
+        wz = centres[k, 2] - source[2]
+        ww = wx * wx + wy * wy + wz * wz
+        for cy in range(cy0, cy1 + 1):
+            for r in range(start[cy * nx + cx0], start[min(cy * nx + cx1 + 1, n_cells)]):
+                i = order[r]
+                b = wx * dirs[i, 0] + wy * dirs[i, 1] + wz * dirs[i, 2]   # closest approach
+                perp2 = ww - b * b
+                if perp2 >= r2:
+                    continue
+                hh = np.sqrt(r2 - perp2)
+                t0 = min(max(b - hh, 0.0), t_max[i])
+                t1 = min(max(b + hh, 0.0), t_max[i])
+                out[i] += t1 - t0

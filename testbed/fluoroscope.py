@@ -748,7 +748,9 @@ def render(carm: CArm, bodies: list[Body], *, fluoro: FluoroscopeSpec, rng=None,
         None renders ``carm`` as it is; False renders its undistorted twin; True requires
         ``carm`` to have a distortion.
     engine : "embree", "trimesh" or "numpy"
-        Ray-casting engine (``testbed.raycast``).
+        ``testbed.raycast``'s engines: "embree" is the fast path (:class:`RayScene`: the
+        field's rays binned once per C-arm and the meshes rasterised, Embree for a mesh
+        reaching behind the source), the others the exact references.
     ray_scene : testbed.raycast.RayScene or None
         The same ``bodies`` prepared once for many frames (engine "embree" only).
 

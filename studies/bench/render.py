@@ -8,13 +8,16 @@ calibration rod (an ULTEM cylinder with steel beads) held in the beam, and two O
 
 - ``geometry``: the C-arm of the view and its true pixel -> ray map (distortion inverted at
   every pixel); done once per C-arm pose;
-- ``prepare``: the world's meshes put into Embree (``testbed.raycast.RayScene``); once per
-  world;
-- ``frame``: one frame: ray casting of every pixel in the field of view, Beer-Lambert,
-  quantum noise, glare, vignetting, 8-bit video (``testbed.fluoroscope.render``);
+- ``prepare``: the world's bodies prepared (``testbed.raycast.RayScene``: convex boxes as
+  half-spaces; Embree scenes are built only for a mesh that cannot be rasterised); once
+  per world;
+- ``frame``: one frame: every pixel of the field of view (the meshes rasterised at the
+  pixels' rays, ``testbed.raycast.FanRays``), Beer-Lambert, quantum noise, glare,
+  vignetting, 8-bit video (``testbed.fluoroscope.render``);
 - ``frame_trimesh``: the same frame cast with trimesh's Embree loop (the other engine).
 
-The validator: the largest difference of the line integral between the two engines over
+The validator: the largest difference of the line integral between the fast path and
+trimesh's Embree loop over
 the frame, and between the fast path and the brute-force numpy reference on
 ``--check-rays`` random pixels. Each time (wall clock, and CPU time of this process, which
 is less sensitive to a shared machine) is also given as a ratio to the 33 ms period of 30 Hz
@@ -140,8 +143,8 @@ def main(argv=None) -> int:
     print(f"frame: {fr.time_s * 1e3:.0f} ms wall, {fr.cpu_s * 1e3:.0f} ms CPU for "
           f"{int(fr.rays)} rays = {fr.ratio_to_33ms:.1f} x (CPU: {fr.cpu_ratio_to_33ms:.1f} x) "
           f"the 33 ms video frame period ({val['mrays_per_s']:.2f} Mrays per CPU second)")
-    print(f"validator: line integral, embree vs trimesh engines: max diff "
-          f"{val['engines_max_diff']:.2e}; embree vs numpy reference on "
+    print(f"validator: line integral, fast path vs trimesh's Embree: max diff "
+          f"{val['engines_max_diff']:.2e}; fast path vs numpy reference on "
           f"{val['reference_rays']} rays: max diff {val['reference_max_diff']:.2e}")
     if a.out:
         df.to_csv(a.out, index=False)
