@@ -101,6 +101,9 @@ def run_bench(view: int = 0, repeat: int = 3, check_rays: int = 300, seed: int =
 
     t_geom, carm = _median_time(geometry, repeat)
     t_prep, rs = _median_time(lambda: RayScene(bodies), repeat)
+    # one warm-up frame first (the pose's rays are binned on the first; the allocator
+    # settles over the next), as testbed bench does
+    render(carm, bodies, fluoro=fluoro, rng=rng, ray_scene=rs)
     t_frame, frame = _median_time(
         lambda: render(carm, bodies, fluoro=fluoro, rng=rng, ray_scene=rs), repeat)
     t_tm, frame_tm = _median_time(
