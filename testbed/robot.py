@@ -505,10 +505,17 @@ class Robot:
         q[2] /= _M
         return q
 
+    def _link_position_mm(self, body, link) -> np.ndarray:
+        """The link frame's origin (3,) mm (what ``_link_pose(...).t`` gives, without the
+        rotation: the inverse kinematics' residual needs only positions)."""
+        st = pybullet.getLinkState(body, link, computeForwardKinematics=True,
+                                   physicsClientId=self.client)
+        return np.asarray(st[4]) / _M
+
     def _targets_mm(self, q):
         self._set(self.nominal_id, q)
-        a = self._link_pose(self.nominal_id, self.bead0_link).t
-        b = self._link_pose(self.nominal_id, self.end_link).t
+        a = self._link_position_mm(self.nominal_id, self.bead0_link)
+        b = self._link_position_mm(self.nominal_id, self.end_link)
         return a, b
 
     def _newton(self, q, goal_a, goal_b, *, iterations=12):
