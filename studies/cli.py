@@ -347,9 +347,19 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: BLAS/OpenMP thread counts set to 1 unless the environment sets them (read by the BLAS
+#: when numpy is first imported, which the lazy imports leave until after this)
+SINGLE_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
 def main(argv=None) -> int:
     global _scene_path
     _scene_path = None
+    # One BLAS thread: a multithreaded BLAS sums in an order that depends on its thread
+    # count, so the same seed gave another result on another machine (the default run:
+    # mTRE 0.692 mm with one thread, 0.734 mm with two); studies parallelise by process.
+    for var in SINGLE_THREAD_VARS:
+        os.environ.setdefault(var, "1")
     debug = bool(os.environ.get("TESTBED_DEBUG"))
     try:
         args = build_parser().parse_args(argv)

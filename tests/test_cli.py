@@ -281,3 +281,21 @@ def test_a_write_error_after_the_work_does_not_lose_the_result(tmp_path, capsys,
     assert '"mtre_mm": 1.25' in out  # the result is printed first
     line = _one_error_line(err)
     assert "figs" in line and "No space left" in line
+
+
+def test_the_command_runs_on_one_blas_thread_unless_told_otherwise():
+    """Results must not depend on the machine's core count: the command sets the BLAS and
+    OpenMP thread counts to 1 (before numpy loads: the CLI's imports are lazy), unless the
+    environment already sets them."""
+    code = ("import os, sys; from studies.cli import main; main(['scenes']); "
+            "print('BLAS', os.environ['OPENBLAS_NUM_THREADS'], os.environ['OMP_NUM_THREADS'])")
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "BLAS 1 1" in out.stdout
+    env["OPENBLAS_NUM_THREADS"] = "2"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, timeout=120)
+    assert "BLAS 2 1" in out.stdout
