@@ -352,8 +352,8 @@ class _ConvexMesh:
         """:meth:`chords` of a fan (rays from one point)."""
         from testbed._raycast_numba import convex_chords_fan
 
-        return convex_chords_fan(rays.source, rays.directions, rays.t_max, self.normals,
-                                 self.offsets)
+        return convex_chords_fan(rays.source, *rays.direction_columns, rays.t_max,
+                                 self.normals, self.offsets)
 
 
 class FanRays:
@@ -393,6 +393,15 @@ class FanRays:
         self.t_scale = np.ascontiguousarray(1.0 / da[order])
         self.t_max_sorted = np.ascontiguousarray(t_max[order])
         self._balance = None
+        self._columns = None
+
+    @property
+    def direction_columns(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The directions' x, y, z as three contiguous (N,) arrays (made once)."""
+        if self._columns is None:
+            self._columns = tuple(np.ascontiguousarray(self.directions[:, k])
+                                  for k in range(3))
+        return self._columns
 
     @classmethod
     def of(cls, source, directions, t_max) -> FanRays | None:
