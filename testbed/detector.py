@@ -254,7 +254,7 @@ def abc_photons(fluence: np.ndarray, fov: np.ndarray, target_photons: float) -> 
 
     ``fluence`` (H, W): detected fluence relative to the unattenuated beam.
     """
-    med = float(np.median(fluence[fov])) if np.any(fov) else 0.0
+    med = float(np.median(fluence[fov], overwrite_input=True)) if np.any(fov) else 0.0
     if not med > 0:
         raise ValueError("automatic brightness control: no X-rays reach the field of view")
     return target_photons / med
@@ -265,7 +265,10 @@ def quantum_noise(fluence: np.ndarray, photons: float, rng) -> np.ndarray:
     if not photons > 0:
         raise ValueError(f"photons per pixel must be > 0, got {photons}")
     rng = np.random.default_rng(rng)
-    return rng.poisson(photons * np.maximum(fluence, 0.0)) / photons
+    lam = np.maximum(fluence, 0.0)
+    lam *= photons
+    counts = rng.poisson(lam)
+    return np.divide(counts, photons, out=lam)
 
 
 def video_u8(intensity: np.ndarray, fov: np.ndarray, *, black_u8: int, white_u8: int,
