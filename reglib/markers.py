@@ -364,6 +364,109 @@ class Markers:
         return self.xy_px[m], self.robot[m]
 
 
+#: a row's labels disagree with its plane when one of its markers lies this many bead gaps
+#: (the smallest predicted spacing between the row's beads, px) from where the plane's other
+#: rows place that bead: a wrong label is a whole gap or more off, a right one a pixel or less
+RELABEL_GAPS = 0.4
+
+
+def _plane_map(robot_mm: np.ndarray, xy_px: np.ndarray, rod_mm: np.ndarray, n_rows: int):
+    """A smooth map from robot points of one sweep plane to pixels, fitted to identified
+    markers: a polynomial in ``u`` (mm along the rod) and ``v`` (mm across it, in the plane)
+    of total degree <= 3, degree <= ``min(2, n_rows - 1)`` in ``v`` (``n_rows`` rows give
+    ``n_rows`` distinct ``v``). Returns ``predict(points (k, 3)) -> (k, 2) px`` or None when
+    there are too few markers for the terms."""
+    c = robot_mm.mean(axis=0)
+    normal = np.linalg.svd(robot_mm - c, full_matrices=False)[2][2]
+    u = rod_mm - np.dot(rod_mm, normal) * normal
+    if not np.linalg.norm(u) > 0:
+        return None
+    u /= np.linalg.norm(u)
+    axes = np.stack([u, np.cross(normal, u)], axis=1)          # (3, 2)
+    uv = (robot_mm - c) @ axes
+    scale = np.maximum(np.abs(uv).max(axis=0), 1e-9)
+    terms = [(a, b) for a in range(4) for b in range(min(2, n_rows - 1) + 1) if a + b <= 3]
+    if len(robot_mm) < len(terms) + 2:
+        return None
+
+    def design(points):
+        w = ((np.asarray(points, dtype=np.float64) - c) @ axes) / scale
+        return np.stack([w[:, 0] ** a * w[:, 1] ** b for a, b in terms], axis=1)
+
+    coef = np.linalg.lstsq(design(robot_mm), xy_px, rcond=None)[0]
+    return lambda points: design(points) @ coef
+
+
+def _relabel_rows(rows, blobs, names, beads, plane_of, problems) -> None:
+    """Check the identified rows of the near and far planes against each other and relabel
+    the rows that disagree with the plane's consensus (in place).
+
+    :func:`identify_row` matches one row's blobs to the rod's bead spacing alone; with beads
+    missing and a stray blob a shifted labelling can fit as well as the right one, and a
+    wrong label moves a marker by a whole bead gap, which the thin-plate spline then bends
+    the calibration to. Consensus over pairs of rows: each pair fixes a smooth map from the
+    plane to the image (:func:`_plane_map`, linear across rows) and the rows whose every
+    marker lies within ``RELABEL_GAPS`` bead gaps of it agree; the pair with most agreeing
+    rows wins (a wrong row cannot bend it, as a least-squares fit over all rows would be
+    bent). A row outside the consensus takes the labels of the consensus map's predictions
+    (each blob the bead predicted nearest to it, within ``RELABEL_GAPS`` gaps and unique),
+    or is dropped when no blob matches; both are named in ``problems``.
+    """
+    for p in (NEAR, FAR):
+        idx = [i for i, f in enumerate(rows["frame"]) if len(f) and plane_of[f[0]] == p]
+        if len(idx) < 3:
+            continue
+        fr = {i: int(rows["frame"][i][0]) for i in idx}
+        rod = np.mean([beads[fr[i]][-1] - beads[fr[i]][0] for i in idx], axis=0)
+
+        def fit(use, rod=rod):
+            return _plane_map(np.concatenate([rows["robot"][i] for i in use]),
+                              np.concatenate([rows["xy"][i] for i in use]), rod, 2)
+
+        def offsets(predict, i, fr=fr):
+            pred = predict(beads[fr[i]])
+            gap = max(float(np.min(np.linalg.norm(np.diff(pred, axis=0), axis=1))), 1e-9)
+            return np.linalg.norm(rows["xy"][i] - pred[rows["bead"][i]], axis=1) / gap, pred, gap
+
+        best = None
+        for pair in itertools.combinations(idx, 2):
+            predict = fit(pair)
+            if predict is None:
+                continue
+            score = {i: float(offsets(predict, i)[0].max()) for i in idx}
+            agree = tuple(i for i in idx if score[i] <= RELABEL_GAPS)
+            key = (len(agree), -sum(score[i] for i in agree))
+            if best is None or key > best[0]:
+                best = (key, agree)
+        if best is None or len(best[1]) == len(idx) or len(best[1]) < 2:
+            continue          # all agree, or no consensus to judge by (validation decides)
+        agree = best[1]
+        predict = fit(agree)
+        for i in idx:
+            if i in agree:
+                continue
+            f = fr[i]
+            off, pred, gap = offsets(predict, i)
+            xy = blobs[f]
+            dist = np.linalg.norm(xy[:, None, :] - pred[None], axis=2)
+            j = np.argmin(dist, axis=1)
+            good = dist[np.arange(len(xy)), j] < RELABEL_GAPS * gap
+            good &= np.array([np.sum(j[good] == jj) == 1 for jj in j], dtype=bool)
+            before = rows["bead"][i].tolist()
+            problems[:] = [m for m in problems if not m.startswith(names[f] + ":")]
+            rows["bead"][i] = j[good]
+            rows["xy"][i] = xy[good]
+            rows["robot"][i] = beads[f][j[good]]
+            rows["frame"][i] = np.full(int(good.sum()), f)
+            rows["plane"][i] = np.full(int(good.sum()), p)
+            problems.append(
+                f"{names[f]}: labels {before} disagreed with the plane's other rows (a marker "
+                f"{off.max():.1f} bead gaps from its prediction); "
+                + (f"relabelled {j[good].tolist()} from them" if good.any()
+                   else "no blob matches them; row dropped")
+                + (f"; {int((~good).sum())} blob(s) unmatched" if (~good).any() else ""))
+
+
 def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int = 4,
                  **detect_kw) -> Markers:
     """Detect and identify every marker of a sweep (see :func:`detect_markers`,
@@ -385,6 +488,8 @@ def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int =
     rows = {k: [] for k in ("frame", "plane", "bead", "xy", "robot")}
     problems: list[str] = []
     weak = []  # rows too short to identify on their own: (frame, name, blobs, message index)
+    blobs: dict[int, np.ndarray] = {}   # every blob of an identified row, by frame
+    names: dict[int, str] = {}
     expected = 0
 
     def add(f, bead, xy):
@@ -414,6 +519,7 @@ def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int =
                 weak.append((f, name, xy, len(problems) - 1))
             continue
         ok = bead >= 0
+        blobs[f], names[f] = xy, name
         missing = sorted(set(range(len(s))) - set(bead[ok].tolist()))
         if missing:
             problems.append(f"{name}: beads {missing} not found (outside the field or hidden)")
@@ -422,12 +528,14 @@ def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int =
                             f"{np.round(xy[~ok], 1).tolist()} px ignored")
         add(f, bead[ok], xy[ok])
 
+    _relabel_rows(rows, blobs, names, beads, plane, problems)
+
     # rows with too few blobs (at the edge of the field): predict where their beads appear
     # from the identified rows of the same plane (a TPS from in-plane mm to pixels) and take
     # the blobs that fall on a prediction
     for f, name, xy, k in weak:
         p = int(plane[f])
-        have = [i for i, fr in enumerate(rows["frame"]) if plane[fr[0]] == p]
+        have = [i for i, fr in enumerate(rows["frame"]) if len(fr) and plane[fr[0]] == p]
         if len(have) < 2:
             continue
         P = np.concatenate([rows["robot"][i] for i in have])

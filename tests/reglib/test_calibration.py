@@ -228,6 +228,58 @@ def test_calibrate_names_view_and_plane_when_too_few_markers():
     assert cal.problems == ("view lateral, far plane, frame 12: row dropped",)
 
 
+def _distorted_rows(rng, rows=5):
+    """The near plane of a sweep as identified rows (pinhole with a pincushion distortion of
+    a few px and 0.1 px detection noise): ``(rows dict, blobs, names, beads per frame)``."""
+    carm2robot = RigidTransform.from_rotvec([0.1, -0.2, 0.3], [20.0, -30.0, 10.0])
+    out = {k: [] for k in ("frame", "plane", "bead", "xy", "robot")}
+    blobs, names, beads = {}, {}, {0: np.zeros((8, 3))}
+    for f, y in enumerate(np.linspace(-40, 40, rows), start=1):
+        pts = carm2robot.apply(np.column_stack([1.2 * BEADS - 80.0, np.full(8, y),
+                                                np.full(8, 650.0)]))
+        xy = _pinhole(carm2robot, pts)
+        r = xy - [319.5, 239.5]
+        xy = xy + 2e-6 * r * np.sum(r ** 2, axis=1, keepdims=True) + rng.normal(0, 0.1, (8, 2))
+        keep = np.arange(8)
+        out["frame"].append(np.full(8, f))
+        out["plane"].append(np.zeros(8, int))
+        out["bead"].append(keep)
+        out["xy"].append(xy)
+        out["robot"].append(pts)
+        blobs[f], names[f], beads[f] = xy, f"view t, near plane, frame {f}", pts
+    plane_of = np.zeros(rows + 1, int)
+    return out, blobs, names, beads, plane_of
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_row_labelled_one_bead_off_is_relabelled_from_the_plane(seed):
+    """identify_row can shift a short row's labels by a bead (beads missing, a stray blob);
+    the plane's other rows put it right, and rows that agree are left alone."""
+    from reglib.markers import _relabel_rows
+
+    rng = np.random.default_rng(seed)
+    rows, blobs, names, beads, plane_of = _distorted_rows(rng)
+    problems = []
+    _relabel_rows(rows, blobs, names, beads, plane_of, problems)
+    assert problems == []                                   # correct rows: untouched
+    bad = int(rng.integers(0, 5))
+    f = int(rows["frame"][bad][0])
+    sub = np.array([1, 2, 4, 5])                            # beads 0, 3, 6, 7 not seen
+    blobs[f] = np.vstack([blobs[f][sub], [[331.7, 372.5]]])   # and a stray blob
+    rows["xy"][bad] = blobs[f][:4]
+    rows["bead"][bad] = sub + 1                             # labelled one bead off
+    rows["robot"][bad] = beads[f][sub + 1]
+    rows["frame"][bad] = np.full(4, f)
+    rows["plane"][bad] = np.zeros(4, int)
+    problems = [f"{names[f]}: beads [0, 3, 6, 7] not found", "view t, far plane, frame 9: x"]
+    _relabel_rows(rows, blobs, names, beads, plane_of, problems)
+    assert rows["bead"][bad].tolist() == sub.tolist()
+    np.testing.assert_array_equal(rows["robot"][bad], beads[f][sub])
+    assert len(problems) == 2 and problems[0] == "view t, far plane, frame 9: x"
+    assert f"frame {f}: labels [2, 3, 5, 6] disagreed" in problems[1]
+    assert "relabelled [1, 2, 4, 5]" in problems[1] and "1 blob(s) unmatched" in problems[1]
+
+
 def test_find_markers_checks_shapes():
     with pytest.raises(ValueError, match="view v: frames"):
         find_markers(SweepData("v", np.zeros((3, 8, 8)), np.zeros(2, int),
