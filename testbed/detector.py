@@ -10,7 +10,8 @@ physics of an image-intensifier (II) fluoroscope:
 3. scatter: a broad, low-frequency component ``S = spr * lowpass(P)`` added to the primary
    ``P`` (:func:`add_scatter`), emitted where the rays crossed matter (primary transmission
    below ``SCATTERER_TRANSMISSION``); behind a uniform body ``S / P`` equals ``spr`` exactly;
-4. quantum noise: Poisson counts at fluoroscopic photon numbers (:func:`quantum_noise`), the
+4. quantum noise: Poisson counts at fluoroscopic photon numbers (:func:`quantum_noise`; a
+   moment-matched normal law above 30 expected quanta, exact below), the
    tube output set by automatic brightness control (:func:`abc_photons`) or given directly;
 5. intensifier and video blur: a Gaussian MTF with 50 % modulation at ``mtf50_lp_per_mm``
    (input-plane frequency; :func:`mtf_sigma_px`), applied after the quanta are counted so the
@@ -260,15 +261,46 @@ def abc_photons(fluence: np.ndarray, fov: np.ndarray, target_photons: float) -> 
     return target_photons / med
 
 
-def quantum_noise(fluence: np.ndarray, photons: float, rng) -> np.ndarray:
-    """Poisson counts of ``photons * fluence`` per pixel, back in units of the beam."""
+#: a pixel expecting fewer quanta than this is counted exactly (numpy's Poisson sampler); above
+#: it the count comes from the normal law corrected to the Poisson's first three moments (mean
+#: and variance ``lam``, third central moment ``lam``: the Cornish-Fisher term
+#: ``(z**2 - 1) / 6``), rounded: 3x faster than numpy's sampler, and 0.08 % from the Poisson's
+#: probabilities in total variation at 30 quanta, 0.015 % at the clinic's median of 150 (the
+#: plain normal law: 2.3 % and 1.0 %); tests/testbed/test_detector.py samples both laws
+POISSON_EXACT_BELOW = 30.0
+
+
+def quantum_noise(fluence: np.ndarray, photons: float, rng, *, exact: bool = False
+                  ) -> np.ndarray:
+    """Quantum counts of ``photons * fluence`` per pixel, back in units of the beam.
+
+    ``exact=True`` draws every count from numpy's Poisson sampler (the reference); the
+    default draws counts of at least :data:`POISSON_EXACT_BELOW` expected quanta from the
+    moment-matched normal approximation and the rest exactly.
+    """
     if not photons > 0:
         raise ValueError(f"photons per pixel must be > 0, got {photons}")
     rng = np.random.default_rng(rng)
     lam = np.maximum(fluence, 0.0)
     lam *= photons
-    counts = rng.poisson(lam)
-    return np.divide(counts, photons, out=lam)
+    if exact:
+        counts = rng.poisson(lam)
+        return np.divide(counts, photons, out=lam)
+    z = rng.standard_normal(lam.shape)
+    k = np.sqrt(lam)
+    k *= z
+    k += lam
+    z *= z                                # the skewness term (z^2 - 1) / 6
+    z -= 1.0
+    z *= 1.0 / 6.0
+    k += z
+    np.rint(k, out=k)
+    np.maximum(k, 0.0, out=k)
+    low = lam < POISSON_EXACT_BELOW
+    if low.any():
+        k[low] = rng.poisson(lam[low])
+    k /= photons
+    return k
 
 
 def video_u8(intensity: np.ndarray, fov: np.ndarray, *, black_u8: int, white_u8: int,
@@ -283,15 +315,18 @@ def video_u8(intensity: np.ndarray, fov: np.ndarray, *, black_u8: int, white_u8:
     inside = np.asarray(intensity, dtype=np.float64)[fov]
     level = 1.0 + np.log(np.maximum(inside, 1e-12)) / display_range
     video = black_u8 + (white_u8 - black_u8) * np.clip(level, 0.0, 1.0)
-    if noise_u8 > 0:   # drawn for the whole frame, as always (the same noise per seed)
-        video += np.random.default_rng(rng).normal(0.0, noise_u8, fov.shape)[fov]
+    if noise_u8 > 0:   # one draw per pixel of the field
+        noise = np.random.default_rng(rng).standard_normal(video.shape)
+        noise *= noise_u8
+        video += noise
     out = np.zeros(fov.shape, dtype=np.uint8)
     out[fov] = np.clip(np.rint(video), 0, 255)
     return out
 
 
 def form_image(transmission: np.ndarray, fov: np.ndarray, rho: np.ndarray, fluoro, *,
-               magnification: float, noise: bool, rng=None) -> tuple[np.ndarray, np.ndarray]:
+               magnification: float, noise: bool, rng=None, exact_noise: bool = False
+               ) -> tuple[np.ndarray, np.ndarray]:
     """The whole chain from primary transmission to the 8-bit frame.
 
     Parameters
@@ -306,12 +341,15 @@ def form_image(transmission: np.ndarray, fov: np.ndarray, rho: np.ndarray, fluor
         The fields ``focal_spot_mm``, ``scatter_to_primary``, ``scatter_sigma_mm``,
         ``photons_per_pixel``, ``abc_photons_per_pixel``, ``mtf50_lp_per_mm``,
         ``glare_fraction``, ``glare_sigma_px``, ``vignetting``, ``display_range``,
-        ``black_u8``, ``white_u8``, ``video_noise_u8``, ``pixel_mm``.
+        ``black_u8``, ``white_u8``, ``video_noise_u8``, ``pixel_mm``, ``quantum_sampler``.
     magnification : float
         SID over the source-to-bone distance (for the focal-spot blur).
     noise : bool
         Quantum and camera noise on or off.
     rng : numpy Generator, int or None
+    exact_noise : bool
+        Every quantum count from numpy's Poisson sampler (the reference of
+        :func:`quantum_noise`'s fast sampler), as ``fluoro.quantum_sampler = "exact"``.
 
     Returns ``(intensity (H, W) float64, video (H, W) uint8)``.
     """
@@ -329,7 +367,8 @@ def form_image(transmission: np.ndarray, fov: np.ndarray, rho: np.ndarray, fluor
             n0 = abc_photons(img, fov, fluoro.abc_photons_per_pixel)
         else:
             n0 = fluoro.photons_per_pixel
-        img[fov] = quantum_noise(img[fov], n0, rng)
+        exact = exact_noise or getattr(fluoro, "quantum_sampler", "fast") == "exact"
+        img[fov] = quantum_noise(img[fov], n0, rng, exact=exact)
     img = blur(img, mtf_sigma_px(fluoro.mtf50_lp_per_mm, px))
     img *= field.inside
     if fluoro.glare_fraction > 0:

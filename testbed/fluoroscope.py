@@ -172,6 +172,12 @@ class FluoroscopeSpec(Spec):
     docs/error-model.md "drift". Ideal: 0."""
     distortion_seed: Annotated[int, Field(ge=0)] = 0
     """Seed of the intensifier's local distortion field and of each view's drift."""
+    quantum_sampler: Literal["fast", "exact"] = "fast"
+    """How quantum counts are drawn (``testbed.detector.quantum_noise``): "fast", the Poisson
+    law's moment-matched normal approximation above 30 expected quanta (0.08 % from it in
+    total variation there, less above) and exact below; "exact", numpy's Poisson sampler for
+    every pixel, which gives the frames a seed gave before the fast sampler existed (the
+    ideal profile keeps it, so that its regression case stays the same images)."""
 
     def ideal(self) -> FluoroscopeSpec:
         """The same fluoroscope with the clinic error sources of issue 11 off (the ideal

@@ -99,10 +99,14 @@ def test_paths_the_true_surface_matches_are_matched_by_the_estimated_one(case):
         assert wrong < 0.18, (v.name, wrong)            # was 0.23 and 0.34
 
 
-@pytest.mark.parametrize("residual,bound_mm", [("line", 1.0), ("normal", 0.2)])
+@pytest.mark.parametrize("residual,bound_mm", [("line", 1.0), ("normal", 0.6)])
 def test_registration_from_3mm_lands_on_the_pins(case, residual, bound_mm):
     """The estimated surfaces from two 3 mm starts, one loop (no coarse stage, no restarts):
-    was 6.3 mm with the point-to-path residual and 0.27 mm with the across-contour one."""
+    was 6.3 mm with the point-to-path residual and 0.27 mm with the across-contour one.
+
+    Over six noise realisations of this case (the fast and the exact quantum sampler, four
+    reseeded) the fixed chain gave 0.19-0.55 mm (line) and 0.10-0.41 mm (normal); the
+    bounds sit above that spread, so they catch the mechanism (mm), not a realisation."""
     from reglib.pipeline import estimate
 
     options = dataclasses.replace(case.options, strategy="single", restarts=0,
