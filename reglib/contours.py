@@ -227,14 +227,103 @@ def refine_subpixel(image, contour_xy, *, search_px: float = 2.5, step_px: float
     return c + off[:, None] * n
 
 
-def _run_snake(potential, init_xy, *, alpha, beta, gamma, max_iter, closed, boundary):
+def _run_snake(potential, init_xy, *, alpha, beta, gamma, max_iter, closed, boundary,
+               reference: bool = False):
+    """The snake on ``potential`` from ``init_xy`` (n, 2) px; ``reference=True`` runs
+    scikit-image's ``active_contour``, the default :func:`_snake_steps`, the same
+    iteration with a compiled evaluation of the image's spline (equal to rounding)."""
+    bc = "periodic" if closed else boundary
+    if not reference and np.asarray(potential).dtype == np.float64:
+        return _snake_steps(potential, init_xy, alpha=alpha, beta=beta, gamma=gamma,
+                            max_iter=max_iter, boundary=bc)
     rc = np.ascontiguousarray(init_xy[:, ::-1])
     out = active_contour(
         potential, rc, alpha=alpha, beta=beta, gamma=gamma, w_line=1.0, w_edge=0.0,
-        max_px_move=1.0, max_num_iter=max_iter, convergence=0.05,
-        boundary_condition="periodic" if closed else boundary,
+        max_px_move=1.0, max_num_iter=max_iter, convergence=0.05, boundary_condition=bc,
     )
     return np.asarray(out, dtype=np.float64)[:, ::-1]
+
+
+def _snake_steps(img, init_xy, *, alpha, beta, gamma, max_iter, boundary,
+                 max_px_move=1.0, convergence=0.05, convergence_order=10):
+    """scikit-image's ``active_contour`` (0.2x) with ``w_line=1, w_edge=0`` on a float64
+    ``img``, step for step: the semi-implicit Euler iteration of Kass et al. with the
+    image's quadratic interpolating spline (the same FITPACK fit), its gradient evaluated
+    by :func:`reglib._snake_numba.spline_gradient` instead of two FITPACK calls per step
+    (about 18 us each: 0.45 s of a capture-range trial). Returns (n, 2) px ``(x, y)``."""
+    from scipy.interpolate import RectBivariateSpline
+
+    from reglib._snake_numba import spline_gradient
+
+    intp = RectBivariateSpline(np.arange(img.shape[1]), np.arange(img.shape[0]), img.T,
+                               kx=2, ky=2, s=0)
+    tx, ty, c = (np.ascontiguousarray(v, dtype=np.float64) for v in intp.tck)
+    x = np.array(init_xy[:, 0], dtype=np.float64)
+    y = np.array(init_xy[:, 1], dtype=np.float64)
+    n = len(x)
+    eye = np.eye(n)
+    a = np.roll(eye, -1, axis=0) + np.roll(eye, -1, axis=1) - 2 * eye
+    b = (np.roll(eye, -2, axis=0) + np.roll(eye, -2, axis=1) - 4 * np.roll(eye, -1, axis=0)
+         - 4 * np.roll(eye, -1, axis=1) + 6 * eye)
+    A = -alpha * a + beta * b
+    sfixed = efixed = sfree = efree = False
+    if boundary.startswith("fixed"):
+        A[0, :] = 0
+        A[1, :] = 0
+        A[1, :3] = [1, -2, 1]
+        sfixed = True
+    if boundary.endswith("fixed"):
+        A[-1, :] = 0
+        A[-2, :] = 0
+        A[-2, -3:] = [1, -2, 1]
+        efixed = True
+    if boundary.startswith("free"):
+        A[0, :] = 0
+        A[0, :3] = [1, -2, 1]
+        A[1, :] = 0
+        A[1, :4] = [-1, 3, -3, 1]
+        sfree = True
+    if boundary.endswith("free"):
+        A[-1, :] = 0
+        A[-1, -3:] = [1, -2, 1]
+        A[-2, :] = 0
+        A[-2, -4:] = [-1, 3, -3, 1]
+        efree = True
+    inv = np.linalg.inv(A + gamma * eye)
+    xsave = np.empty((convergence_order, n))
+    ysave = np.empty((convergence_order, n))
+    fx, fy = np.empty(n), np.empty(n)
+    for i in range(max_iter):
+        spline_gradient(tx, ty, c, 2, 2, x, y, fx, fy)
+        if sfixed:
+            fx[0] = fy[0] = 0
+        if efixed:
+            fx[-1] = fy[-1] = 0
+        if sfree:
+            fx[0] *= 2
+            fy[0] *= 2
+        if efree:
+            fx[-1] *= 2
+            fy[-1] *= 2
+        xn = inv @ (gamma * x + fx)
+        yn = inv @ (gamma * y + fy)
+        dx = max_px_move * np.tanh(xn - x)
+        dy = max_px_move * np.tanh(yn - y)
+        if sfixed:
+            dx[0] = dy[0] = 0
+        if efixed:
+            dx[-1] = dy[-1] = 0
+        x += dx
+        y += dy
+        j = i % (convergence_order + 1)
+        if j < convergence_order:
+            xsave[j, :] = x
+            ysave[j, :] = y
+        else:
+            dist = np.min(np.max(np.abs(xsave - x[None, :]) + np.abs(ysave - y[None, :]), 1))
+            if dist < convergence:
+                break
+    return np.column_stack([x, y])
 
 
 # --------------------------------------------------------------------------- the snake

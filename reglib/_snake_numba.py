@@ -1,0 +1,100 @@
+"""Compiled parts of the image snake (reglib.contours): the derivatives of a tensor-product
+B-spline surface at scattered points, as ``scipy.interpolate.RectBivariateSpline(...)(x, y,
+dx=1, grid=False)`` computes them from the same knots and coefficients.
+
+scikit-image's ``active_contour`` evaluates the image's spline twice per iteration through
+FITPACK, about 9 us a call whatever the number of points: 0.45 s of a capture-range trial's
+3.3 s. The same de Boor recursion, compiled, is a few microseconds; the reference is
+scipy's evaluation, compared in tests/reglib/test_contours.py.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def _span(t, k, n_coef, v):
+    """Index ``l`` with ``t[l] <= v < t[l+1]``, ``k <= l < n_coef`` (the last piece for
+    ``v`` at the right end)."""
+    lo, hi = k, n_coef - 1
+    if v >= t[hi + 1]:
+        return hi
+    if v < t[lo]:
+        return lo
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if t[mid] <= v:
+            lo = mid
+        else:
+            hi = mid
+    if t[hi] <= v:
+        return hi
+    return lo
+
+
+@njit(cache=True)
+def _basis(t, k, l, v, nu, out):
+    """The ``k + 1`` non-zero B-splines of degree ``k`` (their ``nu``-th derivative, nu 0 or
+    1) at ``v`` on span ``l``, into ``out[:k + 1]`` (Cox-de Boor)."""
+    kk = k - nu
+    out[0] = 1.0
+    for j in range(1, kk + 1):
+        saved = 0.0
+        for r in range(j):
+            left = t[l + r + 1 - j]
+            right = t[l + r + 1]
+            w = out[r] / (right - left)
+            out[r] = saved + (right - v) * w
+            saved = (v - left) * w
+        out[j] = saved
+    if nu == 1:   # d/dv of degree-k splines from the degree-(k-1) ones
+        prev = np.empty(kk + 1)
+        for r in range(kk + 1):
+            prev[r] = out[r]
+        for r in range(k + 1):
+            a = 0.0
+            if r >= 1:
+                den = t[l + r] - t[l + r - k]
+                if den > 0:
+                    a += prev[r - 1] / den
+            if r <= kk:
+                den = t[l + r + 1] - t[l + r + 1 - k]
+                if den > 0:
+                    a -= prev[r] / den
+            out[r] = k * a
+    return out
+
+
+@njit(cache=True)
+def spline_gradient(tx, ty, c, kx, ky, x, y, gx, gy):
+    """``gx[i] = dS/dx`` and ``gy[i] = dS/dy`` of the spline surface ``S`` (knots ``tx``,
+    ``ty``, coefficients ``c`` (nx - kx - 1) * (ny - ky - 1) row-major in x, degrees ``kx``,
+    ``ky``) at the points ``(x[i], y[i])``."""
+    nyc = len(ty) - ky - 1
+    nxc = len(tx) - kx - 1
+    bx = np.empty(kx + 1)
+    dbx = np.empty(kx + 1)
+    by = np.empty(ky + 1)
+    dby = np.empty(ky + 1)
+    for i in range(len(x)):
+        # FITPACK clamps a point outside the knots' range to it
+        xi = min(max(x[i], tx[kx]), tx[nxc])
+        yi = min(max(y[i], ty[ky]), ty[nyc])
+        lx = _span(tx, kx, nxc, xi)
+        ly = _span(ty, ky, nyc, yi)
+        _basis(tx, kx, lx, xi, 0, bx)
+        _basis(tx, kx, lx, xi, 1, dbx)
+        _basis(ty, ky, ly, yi, 0, by)
+        _basis(ty, ky, ly, yi, 1, dby)
+        sx = 0.0
+        sy = 0.0
+        for a in range(kx + 1):
+            row = (lx - kx + a) * nyc
+            for b in range(ky + 1):
+                cv = c[row + ly - ky + b]
+                sx += dbx[a] * by[b] * cv
+                sy += bx[a] * dby[b] * cv
+        gx[i] = sx
+        gy[i] = sy
