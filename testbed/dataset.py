@@ -220,6 +220,23 @@ def _png_read(path: Path) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- writing
+#: deflate level of the .npz files: 1, not numpy's 6 -- the float64 ray maps (most of a
+#: case's bytes) compress to the same size (6.65 against 6.64 MB a view) in 0.6x the time
+NPZ_COMPRESSLEVEL = 1
+
+
+def _savez_fast(path: Path, arrs: dict) -> None:
+    """``np.savez_compressed(path, **arrs)`` at deflate level :data:`NPZ_COMPRESSLEVEL`: the
+    same .npz (a zip of ``<key>.npy`` members), read back by ``np.load``."""
+    import zipfile
+
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED,
+                         compresslevel=NPZ_COMPRESSLEVEL) as zf:
+        for key, a in arrs.items():
+            with zf.open(f"{key}.npy", "w", force_zip64=True) as f:
+                np.lib.format.write_array(f, np.asanyarray(a), allow_pickle=False)
+
+
 def _write_entry(root: Path, group: str, name: str, value, rec: dict) -> list[str]:
     """Write one entry under ``root``; fill ``rec``; return the files written (relative)."""
     what = f"{group}/{name}"
@@ -259,7 +276,7 @@ def _write_entry(root: Path, group: str, name: str, value, rec: dict) -> list[st
                     raise ValueError(f"{what}: keys must be identifiers, got {k!r}")
                 arrs[k] = _numeric(v, f"{what}[{k!r}]")
             rel = f"arrays/{name}.npz"
-            np.savez_compressed(root / rel, **arrs)
+            _savez_fast(root / rel, arrs)
             rec.update(keys={k: {"dtype": str(a.dtype), "shape": list(a.shape)}
                              for k, a in arrs.items()})
         else:
