@@ -79,6 +79,21 @@ def _integer_median(v: np.ndarray) -> float:
     return (lower + upper) / 2.0
 
 
+def _median(v: np.ndarray, reference: bool) -> float:
+    """``np.median`` of a non-empty 1-D float array without NaN. The fast path partitions at
+    one rank and takes the largest value below it for an even count: numpy's median
+    partitions at both middle ranks at once, 9x slower here (1.9 against 0.21 ms on a
+    frame's 240,000 values); the same value (the two middle ones' mean, as numpy takes it)."""
+    if reference:
+        return float(np.median(v))
+    n = len(v)
+    k = n // 2
+    p = np.partition(v, k)
+    if n % 2:
+        return float(p[k])
+    return float((p[:k].max() + p[k]) / 2)
+
+
 def _gaussian(img, sigma_px: float, reference: bool) -> np.ndarray:
     """``scipy.ndimage.gaussian_filter(img, sigma_px)`` (mode "reflect"); the fast path is
     OpenCV's separable filter with scipy's kernel (radius ``int(4 sigma + 0.5)``) and border
@@ -150,7 +165,7 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
     if inside.any():
         integral = (not reference and response == "log" and np.issubdtype(a.dtype, np.integer)
                     and np.issubdtype(b.dtype, np.integer))
-        d = d - (_integer_median(d[inside]) if integral else np.median(d[inside]))
+        d = d - (_integer_median(d[inside]) if integral else _median(d[inside], reference))
     if mask is not None:
         d = np.where(mask, d, 0.0)
     # a band-pass at the beads' scale (difference of Gaussians): the rod's band and the
@@ -159,7 +174,7 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
     g1 = _gaussian(d, BLOB_SIGMA_PX, reference)
     ds = g1 - _gaussian(d, BACKGROUND_SIGMA_PX, reference)
     dsi = ds[inside] if inside.any() else ds.ravel()  # the noise of the field, not the black
-    noise = 1.4826 * np.median(np.abs(dsi - np.median(dsi)))
+    noise = 1.4826 * _median(np.abs(dsi - _median(dsi, reference)), reference)
     # ...of attenuation that was added: the positive rim the band-pass leaves around a bead
     # that went away (or any dip) is no blob
     ds = np.where(g1 > 0.5 * ds, ds, 0.0)

@@ -286,6 +286,24 @@ def test_find_markers_checks_shapes():
                                np.zeros((3, 8, 3)), BEADS))
 
 
+def test_fast_median_equals_numpy_median():
+    """The one-rank partition median of the fast marker path against np.median: odd and
+    even counts, ties, sorted input, one element."""
+    from reglib.markers import _median
+
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 3, 10, 11, 1000, 1001, 24000, 24001):
+        for _ in range(10):
+            v = rng.normal(size=n)
+            if rng.random() < 0.3:
+                v = np.round(v * 3) / 3
+            if n > 1 and rng.random() < 0.2:
+                v[: n // 2] = 0.0
+            if rng.random() < 0.2:
+                v = np.sort(v)
+            assert _median(v, False) == np.median(v), n
+
+
 def test_integer_median_equals_numpy_median():
     """The counting median of the fast marker path (differences of 8-bit frames) against
     np.median: odd and even counts, negative values, repeated values, one element."""
