@@ -327,7 +327,56 @@ def identify_row(xy_px, bead_positions_mm, *, tolerance: float = 0.15,
     if len(scored) > 1 and scored[1][0] > score - 0.5:
         raise ValueError(f"identify_row: ambiguous (two bead assignments fit {K} blobs about "
                          f"as well: RMS {rms:.2f} and {scored[1][1]:.2f} px)")
-    return np.where(inl[k], j[k], -1), rms
+    bead = np.where(inl[k], j[k], -1)
+    m = bead >= 0
+    coef = np.linalg.lstsq(np.column_stack([s[bead[m]], np.ones(m.sum())]), t[m], rcond=None)[0]
+    tol_px = tolerance * abs(coef[0]) * np.min(np.diff(s))
+    w = (xy - c) @ np.array([-u[1], u[0]])
+    keep = _on_row(t, w, m, tol_px)
+    if (keep != m).any():
+        # a blob beside the row took a bead's label: drop it, and give the label to an
+        # unmatched blob on the row at that bead's place, if there is one
+        bead[m & ~keep] = -1
+        if keep.sum() < min_matched:
+            raise ValueError(f"identify_row: {int((m & ~keep).sum())} of the blobs that fit "
+                             "the spacing lie off the row's line; too few left")
+        A = np.column_stack([s[bead[keep]], np.ones(keep.sum())])
+        coef = np.linalg.lstsq(A, t[keep], rcond=None)[0]
+        curve = np.polyfit(t[keep], w[keep], 2 if keep.sum() >= 5 else 1)
+        for i in np.flatnonzero(bead < 0):
+            p = int(np.argmin(np.abs(coef[0] * s + coef[1] - t[i])))
+            if (abs(coef[0] * s[p] + coef[1] - t[i]) < tol_px and p not in bead
+                    and abs(w[i] - np.polyval(curve, t[i])) < tol_px):
+                bead[i] = p
+        m = bead >= 0
+        A = np.column_stack([s[bead[m]], np.ones(m.sum())])
+        rms = float(np.sqrt(np.mean((t[m] - A @ np.linalg.lstsq(A, t[m], rcond=None)[0]) ** 2)))
+    return bead, rms
+
+
+def _on_row(t, w, matched, tol_px: float) -> np.ndarray:
+    """Which of the ``matched`` blobs lie on the row's line (a bool mask).
+
+    The spacing match uses the coordinate ``t`` along the row alone, so a stray blob beside
+    the row (the rod's steel tip, an instrument's corner) can take a missing or a present
+    bead's label. The offsets ``w`` across the row of the matched blobs follow a gentle curve
+    (a quadratic in ``t``, a line for four blobs: the intensifier bends the imaged row);
+    the blob farthest from the curve fitted to the others (leave one out, so that one far
+    blob at the end of the row cannot bend the fit towards itself) is dropped while it is
+    more than ``tol_px`` off, and the test repeated on the rest."""
+    keep = matched.copy()
+    while keep.sum() >= 4:
+        idx = np.flatnonzero(keep)
+        deg = 2 if len(idx) >= 6 else 1
+        res = np.empty(len(idx))
+        for q, i in enumerate(idx):
+            rest = idx[idx != i]
+            res[q] = abs(w[i] - np.polyval(np.polyfit(t[rest], w[rest], deg), t[i]))
+        worst = int(np.argmax(res))
+        if res[worst] <= tol_px:
+            break
+        keep[idx[worst]] = False
+    return keep
 
 
 # --------------------------------------------------------------------------- sweep data
