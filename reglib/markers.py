@@ -368,10 +368,13 @@ def _on_row(t, w, matched, tol_px: float) -> np.ndarray:
     while keep.sum() >= 4:
         idx = np.flatnonzero(keep)
         deg = 2 if len(idx) >= 6 else 1
-        res = np.empty(len(idx))
-        for q, i in enumerate(idx):
-            rest = idx[idx != i]
-            res[q] = abs(w[i] - np.polyval(np.polyfit(t[rest], w[rest], deg), t[i]))
+        # leave-one-out residuals from one least-squares fit: r_i / (1 - h_ii), h the hat
+        # matrix's diagonal (row norms of Q for X = QR)
+        x = t[idx] / max(float(np.abs(t[idx]).max()), 1e-9)
+        q, r = np.linalg.qr(np.vander(x, deg + 1))
+        fit = q @ (q.T @ w[idx])
+        h = np.sum(q * q, axis=1)
+        res = np.abs(w[idx] - fit) / np.maximum(1.0 - h, 1e-12)
         worst = int(np.argmax(res))
         if res[worst] <= tol_px:
             break
