@@ -97,13 +97,14 @@ def _median(v: np.ndarray, reference: bool) -> float:
 def _gaussian(img, sigma_px: float, reference: bool) -> np.ndarray:
     """``scipy.ndimage.gaussian_filter(img, sigma_px)`` (mode "reflect"); the fast path is
     OpenCV's separable filter with scipy's kernel (radius ``int(4 sigma + 0.5)``) and border
-    (BORDER_REFLECT is scipy's "reflect"): equal to rounding, 3-4x faster."""
+    (BORDER_REFLECT is scipy's "reflect") in float32: 1e-6 of the band-pass's range from the
+    reference, 4x faster than in float64 (0.56 against 2.2 ms for sigma 4 on a frame)."""
     if reference:
         return ndimage.gaussian_filter(img, sigma_px)
     import cv2
 
     r = int(4.0 * sigma_px + 0.5)
-    return cv2.GaussianBlur(np.ascontiguousarray(img, dtype=np.float64), (2 * r + 1, 2 * r + 1),
+    return cv2.GaussianBlur(np.ascontiguousarray(img, dtype=np.float32), (2 * r + 1, 2 * r + 1),
                             sigmaX=sigma_px, sigmaY=sigma_px, borderType=cv2.BORDER_REFLECT)
 
 
@@ -155,6 +156,17 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
         mask = np.asarray(mask, dtype=bool)
         if mask.shape != a.shape:
             raise ValueError(f"mask: expected shape {a.shape}, got {mask.shape}")
+    x_off = y_off = 0
+    if mask is not None and not reference:
+        # the work on the field's bounding box, widened by the wider Gaussian's radius: d is
+        # 0 outside the field, so every value that can differ from 0 lies inside it
+        rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+        if len(rows):
+            m = int(4.0 * BACKGROUND_SIGMA_PX + 0.5) + 1
+            y_off, x_off = max(rows[0] - m, 0), max(cols[0] - m, 0)
+            y_end, x_end = min(rows[-1] + m + 1, a.shape[0]), min(cols[-1] + m + 1, a.shape[1])
+            a, b = a[y_off:y_end, x_off:x_end], b[y_off:y_end, x_off:x_end]
+            mask = mask[y_off:y_end, x_off:x_end]
     d = _log_image(a, response) - _log_image(b, response)
     if polarity == "bright":
         d = -d
@@ -239,7 +251,7 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
         strength.append(float(ds[sl][sub].max()))
     if not out:
         return np.zeros((0, 2)), np.zeros(0)
-    return np.asarray(out, dtype=np.float64), np.asarray(strength)
+    return np.asarray(out, dtype=np.float64) + [x_off, y_off], np.asarray(strength)
 
 
 # --------------------------------------------------------------------------- identification

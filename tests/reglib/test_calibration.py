@@ -105,9 +105,10 @@ def test_detect_markers_finds_new_beads_with_subpixel_accuracy():
 
 @pytest.mark.parametrize("seed", range(4))
 def test_detect_markers_fast_path_equals_the_scipy_reference(seed):
-    """The fast detection (OpenCV Gaussians, bincount and maximum.at over the labels)
-    against the reference in scipy.ndimage, on random rows of beads with video noise,
-    a stray blob and a field-of-view mask: the same blobs, centroids equal to 1e-9 px."""
+    """The fast detection (the field's bounding box, OpenCV Gaussians in float32, bincount
+    and maximum.at over the labels) against the reference in scipy.ndimage (float64, the
+    whole frame), on random rows of beads with video noise, a stray blob and a field-of-view
+    mask: the same blobs, centroids equal to 1e-6 px, strengths to 1e-6 of the largest."""
     rng = np.random.default_rng(seed)
     shape = (240, 320)
     ang = rng.uniform(0, np.pi)
@@ -124,8 +125,8 @@ def test_detect_markers_fast_path_equals_the_scipy_reference(seed):
         fast = detect_markers(prev, cur, mask=mask)
         ref = detect_markers(prev, cur, mask=mask, reference=True)
         assert fast[0].shape == ref[0].shape and len(ref[0]) >= 4
-        assert np.abs(fast[0] - ref[0]).max() < 1e-9
-        assert np.abs(fast[1] - ref[1]).max() < 1e-9
+        assert np.abs(fast[0] - ref[0]).max() < 1e-6         # the centroids weigh d (exact)
+        assert np.abs(fast[1] - ref[1]).max() < 1e-6 * ref[1].max()   # float32 band-pass
 
 
 def test_detect_markers_bad_input():
