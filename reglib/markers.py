@@ -449,12 +449,16 @@ class Markers:
 RELABEL_GAPS = 0.4
 
 
-def _plane_map(robot_mm: np.ndarray, xy_px: np.ndarray, rod_mm: np.ndarray, n_rows: int):
-    """A smooth map from robot points of one sweep plane to pixels, fitted to identified
-    markers: a polynomial in ``u`` (mm along the rod) and ``v`` (mm across it, in the plane)
-    of total degree <= 3, degree <= ``min(2, n_rows - 1)`` in ``v`` (``n_rows`` rows give
-    ``n_rows`` distinct ``v``). Returns ``predict(points (k, 3)) -> (k, 2) px`` or None when
-    there are too few markers for the terms."""
+#: the terms u^a v^b of the plane-to-image map: total degree <= 3, linear across the rows
+_PLANE_TERMS = tuple((a, b) for a in range(4) for b in range(2) if a + b <= 3)
+
+
+def _plane_design(robot_mm: np.ndarray, rod_mm: np.ndarray):
+    """The design of a smooth map from robot points of one sweep plane to pixels: a
+    polynomial in ``u`` (along the rod) and ``v`` (across it, in the plane), of total degree
+    <= 3 and linear in ``v`` (:data:`_PLANE_TERMS`), in coordinates centred and scaled on
+    ``robot_mm`` (the plane's markers). Returns ``design(points (..., 3)) -> (..., T)``, or
+    None when the rod is normal to the plane."""
     c = robot_mm.mean(axis=0)
     normal = np.linalg.svd(robot_mm - c, full_matrices=False)[2][2]
     u = rod_mm - np.dot(rod_mm, normal) * normal
@@ -462,18 +466,13 @@ def _plane_map(robot_mm: np.ndarray, xy_px: np.ndarray, rod_mm: np.ndarray, n_ro
         return None
     u /= np.linalg.norm(u)
     axes = np.stack([u, np.cross(normal, u)], axis=1)          # (3, 2)
-    uv = (robot_mm - c) @ axes
-    scale = np.maximum(np.abs(uv).max(axis=0), 1e-9)
-    terms = [(a, b) for a in range(4) for b in range(min(2, n_rows - 1) + 1) if a + b <= 3]
-    if len(robot_mm) < len(terms) + 2:
-        return None
+    scale = np.maximum(np.abs((robot_mm - c) @ axes).max(axis=0), 1e-9)
 
     def design(points):
         w = ((np.asarray(points, dtype=np.float64) - c) @ axes) / scale
-        return np.stack([w[:, 0] ** a * w[:, 1] ** b for a, b in terms], axis=1)
+        return np.stack([w[..., 0] ** a * w[..., 1] ** b for a, b in _PLANE_TERMS], axis=-1)
 
-    coef = np.linalg.lstsq(design(robot_mm), xy_px, rcond=None)[0]
-    return lambda points: design(points) @ coef
+    return design
 
 
 def _relabel_rows(rows, blobs, names, beads, plane_of, problems) -> None:
@@ -484,7 +483,7 @@ def _relabel_rows(rows, blobs, names, beads, plane_of, problems) -> None:
     missing and a stray blob a shifted labelling can fit as well as the right one, and a
     wrong label moves a marker by a whole bead gap, which the thin-plate spline then bends
     the calibration to. Consensus over pairs of rows: each pair fixes a smooth map from the
-    plane to the image (:func:`_plane_map`, linear across rows) and the rows whose every
+    plane to the image (:func:`_plane_design`, linear across rows) and the rows whose every
     marker lies within ``RELABEL_GAPS`` bead gaps of it agree; the pair with most agreeing
     rows wins (a wrong row cannot bend it, as a least-squares fit over all rows would be
     bent). A row outside the consensus takes the labels of the consensus map's predictions
@@ -492,58 +491,78 @@ def _relabel_rows(rows, blobs, names, beads, plane_of, problems) -> None:
     or is dropped when no blob matches; both are named in ``problems``.
     """
     for p in (NEAR, FAR):
-        idx = [i for i, f in enumerate(rows["frame"]) if len(f) and plane_of[f[0]] == p]
-        if len(idx) < 3:
+        _relabel_plane(rows, blobs, names, beads, plane_of, problems, p)
+
+
+def _relabel_plane(rows, blobs, names, beads, plane_of, problems, p: int) -> None:
+    """:func:`_relabel_rows` on plane ``p``."""
+    idx = [i for i, f in enumerate(rows["frame"]) if len(f) and plane_of[f[0]] == p]
+    if len(idx) < 3:
+        return
+    fr = [int(rows["frame"][i][0]) for i in idx]
+    rod = np.mean([beads[f][-1] - beads[f][0] for f in fr], axis=0)
+    design = _plane_design(np.concatenate([rows["robot"][i] for i in idx]), rod)
+    if design is None:
+        return
+    D = design(np.stack([beads[f] for f in fr]))                    # (R, n, T)
+    # every marker of the plane: its row (0..R-1), bead and pixel
+    row_of = np.concatenate([np.full(len(rows["bead"][i]), r) for r, i in enumerate(idx)])
+    bead_of = np.concatenate([rows["bead"][i] for i in idx])
+    xy = np.concatenate([rows["xy"][i] for i in idx])
+    A_all = D[row_of, bead_of]                                      # (M, T)
+    R = len(idx)
+
+    def fit(use):
+        sel = np.isin(row_of, use)
+        if sel.sum() < len(_PLANE_TERMS) + 2:
+            return None
+        return np.linalg.lstsq(A_all[sel], xy[sel], rcond=None)[0]
+
+    def scores(coef):
+        pred = D @ coef                                             # (R, n, 2)
+        gap = np.maximum(np.linalg.norm(np.diff(pred, axis=1), axis=2).min(axis=1), 1e-9)
+        off = np.linalg.norm(xy - pred[row_of, bead_of], axis=1) / gap[row_of]
+        worst = np.zeros(R)
+        np.maximum.at(worst, row_of, off)
+        return worst, pred, gap
+
+    best = None
+    for pair in itertools.combinations(range(R), 2):
+        coef = fit(list(pair))
+        if coef is None:
             continue
-        fr = {i: int(rows["frame"][i][0]) for i in idx}
-        rod = np.mean([beads[fr[i]][-1] - beads[fr[i]][0] for i in idx], axis=0)
-
-        def fit(use, rod=rod):
-            return _plane_map(np.concatenate([rows["robot"][i] for i in use]),
-                              np.concatenate([rows["xy"][i] for i in use]), rod, 2)
-
-        def offsets(predict, i, fr=fr):
-            pred = predict(beads[fr[i]])
-            gap = max(float(np.min(np.linalg.norm(np.diff(pred, axis=0), axis=1))), 1e-9)
-            return np.linalg.norm(rows["xy"][i] - pred[rows["bead"][i]], axis=1) / gap, pred, gap
-
-        best = None
-        for pair in itertools.combinations(idx, 2):
-            predict = fit(pair)
-            if predict is None:
-                continue
-            score = {i: float(offsets(predict, i)[0].max()) for i in idx}
-            agree = tuple(i for i in idx if score[i] <= RELABEL_GAPS)
-            key = (len(agree), -sum(score[i] for i in agree))
-            if best is None or key > best[0]:
-                best = (key, agree)
-        if best is None or len(best[1]) == len(idx) or len(best[1]) < 2:
-            continue          # all agree, or no consensus to judge by (validation decides)
-        agree = best[1]
-        predict = fit(agree)
-        for i in idx:
-            if i in agree:
-                continue
-            f = fr[i]
-            off, pred, gap = offsets(predict, i)
-            xy = blobs[f]
-            dist = np.linalg.norm(xy[:, None, :] - pred[None], axis=2)
-            j = np.argmin(dist, axis=1)
-            good = dist[np.arange(len(xy)), j] < RELABEL_GAPS * gap
-            good &= np.array([np.sum(j[good] == jj) == 1 for jj in j], dtype=bool)
-            before = rows["bead"][i].tolist()
-            problems[:] = [m for m in problems if not m.startswith(names[f] + ":")]
-            rows["bead"][i] = j[good]
-            rows["xy"][i] = xy[good]
-            rows["robot"][i] = beads[f][j[good]]
-            rows["frame"][i] = np.full(int(good.sum()), f)
-            rows["plane"][i] = np.full(int(good.sum()), p)
-            problems.append(
-                f"{names[f]}: labels {before} disagreed with the plane's other rows (a marker "
-                f"{off.max():.1f} bead gaps from its prediction); "
-                + (f"relabelled {j[good].tolist()} from them" if good.any()
-                   else "no blob matches them; row dropped")
-                + (f"; {int((~good).sum())} blob(s) unmatched" if (~good).any() else ""))
+        worst = scores(coef)[0]
+        agree = worst <= RELABEL_GAPS
+        key = (int(agree.sum()), -float(worst[agree].sum()))
+        if best is None or key > best[0]:
+            best = (key, np.flatnonzero(agree))
+    if best is None or len(best[1]) == R or len(best[1]) < 2:
+        return          # all agree, or no consensus to judge by (validation decides)
+    coef = fit(list(best[1]))
+    if coef is None:
+        return
+    worst, pred_all, gap_all = scores(coef)
+    for r in sorted(set(range(R)) - set(best[1].tolist())):
+        i, f = idx[r], fr[r]
+        pred, gap = pred_all[r], gap_all[r]
+        xy_f = blobs[f]
+        dist = np.linalg.norm(xy_f[:, None, :] - pred[None], axis=2)
+        j = np.argmin(dist, axis=1)
+        good = dist[np.arange(len(xy_f)), j] < RELABEL_GAPS * gap
+        good &= np.array([np.sum(j[good] == jj) == 1 for jj in j], dtype=bool)
+        before = rows["bead"][i].tolist()
+        problems[:] = [m for m in problems if not m.startswith(names[f] + ":")]
+        rows["bead"][i] = j[good]
+        rows["xy"][i] = xy_f[good]
+        rows["robot"][i] = beads[f][j[good]]
+        rows["frame"][i] = np.full(int(good.sum()), f)
+        rows["plane"][i] = np.full(int(good.sum()), p)
+        problems.append(
+            f"{names[f]}: labels {before} disagreed with the plane's other rows (a marker "
+            f"{worst[r]:.1f} bead gaps from its prediction); "
+            + (f"relabelled {j[good].tolist()} from them" if good.any()
+               else "no blob matches them; row dropped")
+            + (f"; {int((~good).sum())} blob(s) unmatched" if (~good).any() else ""))
 
 
 def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int = 4,
