@@ -51,3 +51,52 @@ def dp_kernel(cost_i, cost_j):
             else:
                 total[i, j] = from_i
     return total[m, n], _backtrack_compiled(came_j)
+
+
+@njit(cache=True)
+def douglas_peucker(xy, tol):
+    """Which vertices of the polyline ``xy`` (K, 2) the Douglas-Peucker reduction keeps
+    within ``tol`` (a bool mask; the ends always): a segment's farthest vertex (the first
+    of equals) is kept and the segment split there while it lies more than ``tol`` from the
+    segment, the distance of a vertex being to the segment itself (to its nearer end when
+    its projection falls outside, as for a zero-length segment). An explicit stack of
+    index pairs replaces the recursion. ``skimage.measure.approximate_polygon`` is the
+    reference (tests/reglib/test_surface.py)."""
+    k = xy.shape[0]
+    keep = np.zeros(k, dtype=np.bool_)
+    if k == 0:
+        return keep
+    keep[0] = True
+    keep[k - 1] = True
+    stack = np.empty((k, 2), dtype=np.int64)
+    top = 0
+    stack[0, 0], stack[0, 1] = 0, k - 1
+    top = 1
+    while top > 0:
+        top -= 1
+        a, b = stack[top, 0], stack[top, 1]
+        if b - a < 2:
+            continue
+        ax, ay = xy[a, 0], xy[a, 1]
+        bx, by = xy[b, 0], xy[b, 1]
+        ex, ey = bx - ax, by - ay
+        length = np.sqrt(ex * ex + ey * ey)
+        best = -1.0
+        arg = -1
+        for i in range(a + 1, b):
+            px, py = xy[i, 0] - ax, xy[i, 1] - ay
+            qx, qy = xy[i, 0] - bx, xy[i, 1] - by
+            if px * ex + py * ey > 0 and -(qx * ex + qy * ey) > 0:
+                dist = abs(px * ey - py * ex) / length
+            else:
+                dist = min(np.sqrt(px * px + py * py), np.sqrt(qx * qx + qy * qy))
+            if dist > best:
+                best = dist
+                arg = i
+        if best > tol:
+            keep[arg] = True
+            stack[top, 0], stack[top, 1] = arg, b
+            top += 1
+            stack[top, 0], stack[top, 1] = a, arg
+            top += 1
+    return keep

@@ -7,8 +7,10 @@ down-sampled potential (long range), a second one on the full-resolution potenti
 vertex is finally moved along the contour normal to the sub-pixel maximum of the gradient
 norm (parabola through the three samples around the maximum).
 
-The solver is :func:`skimage.segmentation.active_contour`, given our potential as its "line"
-image (``w_line=1, w_edge=0``), so the snake climbs the gradient-norm ridge. skimage works in
+The solver is the iteration of :func:`skimage.segmentation.active_contour` (:func:`_snake_steps`,
+with a compiled gradient of the potential's spline; skimage's function is its reference),
+given our potential as its "line" image (``w_line=1, w_edge=0``), so the snake climbs the
+gradient-norm ridge. skimage works in
 (row, col); everything here takes and returns pixel coordinates ``(x, y) = (col, row)`` with
 the centre of the top-left pixel at (0, 0).
 
@@ -24,7 +26,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
-from skimage.segmentation import active_contour
 
 from reglib.geometry import arc_length
 
@@ -236,6 +237,8 @@ def _run_snake(potential, init_xy, *, alpha, beta, gamma, max_iter, closed, boun
     if not reference and np.asarray(potential).dtype == np.float64:
         return _snake_steps(potential, init_xy, alpha=alpha, beta=beta, gamma=gamma,
                             max_iter=max_iter, boundary=bc)
+    from skimage.segmentation import active_contour
+
     rc = np.ascontiguousarray(init_xy[:, ::-1])
     out = active_contour(
         potential, rc, alpha=alpha, beta=beta, gamma=gamma, w_line=1.0, w_edge=0.0,

@@ -312,17 +312,27 @@ def surface_from_contours(slices, *, quality: Quality = "area",
     return surf
 
 
-def _decimate(c: np.ndarray, tol_mm: float) -> np.ndarray:
-    """Douglas-Peucker reduction of a closed planar contour (K, 3) to within ``tol_mm``."""
-    from skimage.measure import approximate_polygon
-
+def _decimate(c: np.ndarray, tol_mm: float, *, reference: bool = False) -> np.ndarray:
+    """Douglas-Peucker reduction of a closed planar contour (K, 3) to within ``tol_mm``
+    (compiled, :func:`reglib._surface_numba.douglas_peucker`; ``reference=True``:
+    scikit-image's ``approximate_polygon``, whose module's import of scipy.signal alone
+    took 0.5 s of a ``testbed run``)."""
     closed = np.vstack([c[:, :2], c[:1, :2]])
-    keep = approximate_polygon(closed, tolerance=tol_mm)[:-1]
-    if len(keep) < 3:
-        return c
-    # approximate_polygon returns a subset of the input points: find their indices.
-    _, idx = cKDTree(c[:, :2]).query(keep)
-    idx = np.unique(idx)
+    if reference:
+        from skimage.measure import approximate_polygon
+
+        keep = approximate_polygon(closed, tolerance=tol_mm)[:-1]
+        if len(keep) < 3:
+            return c
+        # approximate_polygon returns a subset of the input points: find their indices.
+        _, idx = cKDTree(c[:, :2]).query(keep)
+        idx = np.unique(idx)
+    else:
+        from reglib._surface_numba import douglas_peucker
+
+        if not tol_mm > 0:
+            return c
+        idx = np.flatnonzero(douglas_peucker(np.ascontiguousarray(closed), float(tol_mm))[:-1])
     return c[idx] if len(idx) >= 3 else c
 
 

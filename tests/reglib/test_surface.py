@@ -173,3 +173,21 @@ def test_bad_contours_raise():
     with pytest.raises(ValueError, match="at least 2 slices"):
         surface_from_contours([[_ellipse(0, 0, 5, 5, 1, 8)]])
     assert isinstance(Surface(np.zeros((3, 3)), np.array([[0, 1, 2]])).n_triangles, int)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_compiled_douglas_peucker_keeps_what_scikit_image_keeps(seed):
+    """_decimate's compiled Douglas-Peucker against skimage's approximate_polygon (the
+    reference): the same vertices of noisy closed contours, at several tolerances."""
+    from reglib.surface import _decimate
+
+    rng = np.random.default_rng(seed)
+    t = np.sort(rng.uniform(0, 2 * np.pi, 300))
+    r = 20 + 3 * np.sin(5 * t) + rng.normal(0, 0.3, t.size)
+    c = np.column_stack([r * np.cos(t), r * np.sin(t), np.full(t.size, 7.0)])
+    for tol in (0.0, 0.05, 0.3, 1.0, 5.0, 50.0):
+        fast = _decimate(c, tol)
+        ref = _decimate(c, tol, reference=True)
+        np.testing.assert_array_equal(fast, ref)
+        if 0.0 < tol < 1.0:
+            assert 3 <= len(fast) < len(c)
