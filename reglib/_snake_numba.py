@@ -98,3 +98,67 @@ def spline_gradient(tx, ty, c, kx, ky, x, y, gx, gy):
                 sy += bx[a] * dby[b] * cv
         gx[i] = sx
         gy[i] = sy
+
+
+@njit(cache=True)
+def snake_loop(inv, x, y, tx, ty, c, gamma, max_px_move, convergence, convergence_order,
+               max_iter, sfixed, efixed, sfree, efree):
+    """The explicit steps of the snake (reglib.contours._snake_steps) on ``x``, ``y`` (n,)
+    px in place: image forces from :func:`spline_gradient`, the implicit shape step
+    ``inv @ (gamma * x + fx)``, moves capped by ``max_px_move * tanh``, and the convergence
+    test against the last ``convergence_order`` positions every ``convergence_order + 1``
+    steps, as in scikit-image's active_contour. Returns the number of steps taken."""
+    n = x.shape[0]
+    fx = np.empty(n)
+    fy = np.empty(n)
+    bx = np.empty(n)
+    by = np.empty(n)
+    xsave = np.empty((convergence_order, n))
+    ysave = np.empty((convergence_order, n))
+    steps = 0
+    for i in range(max_iter):
+        steps = i + 1
+        spline_gradient(tx, ty, c, 2, 2, x, y, fx, fy)
+        if sfixed:
+            fx[0] = 0.0
+            fy[0] = 0.0
+        if efixed:
+            fx[n - 1] = 0.0
+            fy[n - 1] = 0.0
+        if sfree:
+            fx[0] *= 2.0
+            fy[0] *= 2.0
+        if efree:
+            fx[n - 1] *= 2.0
+            fy[n - 1] *= 2.0
+        for k in range(n):
+            bx[k] = gamma * x[k] + fx[k]
+            by[k] = gamma * y[k] + fy[k]
+        xn = inv @ bx
+        yn = inv @ by
+        for k in range(n):
+            dx = max_px_move * np.tanh(xn[k] - x[k])
+            dy = max_px_move * np.tanh(yn[k] - y[k])
+            if (sfixed and k == 0) or (efixed and k == n - 1):
+                dx = 0.0
+                dy = 0.0
+            x[k] += dx
+            y[k] += dy
+        j = i % (convergence_order + 1)
+        if j < convergence_order:
+            for k in range(n):
+                xsave[j, k] = x[k]
+                ysave[j, k] = y[k]
+        else:
+            dist = np.inf
+            for r in range(convergence_order):
+                m = 0.0
+                for k in range(n):
+                    v = abs(xsave[r, k] - x[k]) + abs(ysave[r, k] - y[k])
+                    if v > m:
+                        m = v
+                if m < dist:
+                    dist = m
+            if dist < convergence:
+                break
+    return steps

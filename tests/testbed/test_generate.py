@@ -226,8 +226,19 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path):
     assert result["pins"] == from_disk
     assert result["accepted"] == est.accepted and result["converged"] == est.converged
     # and the estimate means something: the start was off, the result is near the truth
+    # across the view's rays. One view leaves the pose along its rays weakly determined
+    # (seeds 5-8: in-plane pin errors 0.04-1.2 mm, along the rays 1.1-8.9 mm; the mTRE moved
+    # from below a third of the start's to 4.0 mm with a rounding-level change of the
+    # CT snakes), so the check is on the errors across the rays.
     assert result["start_mtre_mm"] > 5.0
-    assert result["mtre_mm"] < result["start_mtre_mm"] / 3
+    pins = np.array(list(case.pins_ct.values()))
+    err = run_est.ct2robot.apply(pins) - case.ct2robot.apply(pins)
+    err0 = run_start_pose.apply(pins) - case.ct2robot.apply(pins)
+    d = case.stages.views[0].directions.mean(axis=0)
+    d /= np.linalg.norm(d)
+    across = np.linalg.norm(err - np.outer(err @ d, d), axis=1)
+    across0 = np.linalg.norm(err0 - np.outer(err0 @ d, d), axis=1)
+    assert across.max() < 2.0 and np.all(across < across0 / 5), (across, across0)
 
     # testbed score: reglib by default, and a user's function by name
     import pandas as pd
