@@ -94,6 +94,19 @@ def _median(v: np.ndarray, reference: bool) -> float:
     return float((p[:k].max() + p[k]) / 2)
 
 
+def _label(binary: np.ndarray, reference: bool) -> tuple[np.ndarray, int]:
+    """``scipy.ndimage.label(binary)`` (4-connected, labels 1..n in raster order of each
+    region's first pixel); the fast path is OpenCV's connectedComponents, the same labels
+    (tests/reglib/test_calibration.py), 2.4x faster."""
+    if reference:
+        return ndimage.label(binary)
+    import cv2
+
+    n, labels = cv2.connectedComponents(np.ascontiguousarray(binary, dtype=np.uint8),
+                                        connectivity=4, ltype=cv2.CV_32S)
+    return labels, n - 1
+
+
 def _gaussian(img, sigma_px: float, reference: bool) -> np.ndarray:
     """``scipy.ndimage.gaussian_filter(img, sigma_px)`` (mode "reflect"); the fast path is
     OpenCV's separable filter with scipy's kernel (radius ``int(4 sigma + 0.5)``) and border
@@ -167,58 +180,85 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
             y_end, x_end = min(rows[-1] + m + 1, a.shape[0]), min(cols[-1] + m + 1, a.shape[1])
             a, b = a[y_off:y_end, x_off:x_end], b[y_off:y_end, x_off:x_end]
             mask = mask[y_off:y_end, x_off:x_end]
-    d = _log_image(a, response) - _log_image(b, response)
-    if polarity == "bright":
-        d = -d
-    # the automatic brightness control changes the tube output from frame to frame: a
-    # uniform gain, i.e. a constant in log intensity, that would lift the whole field above
-    # the threshold; it is the median difference (the beads cover a few hundred pixels)
-    inside = mask if mask is not None else np.ones(d.shape, dtype=bool)
-    if inside.any():
-        integral = (not reference and response == "log" and np.issubdtype(a.dtype, np.integer)
-                    and np.issubdtype(b.dtype, np.integer))
-        d = d - (_integer_median(d[inside]) if integral else _median(d[inside], reference))
-    if mask is not None:
-        d = np.where(mask, d, 0.0)
-    # a band-pass at the beads' scale (difference of Gaussians): the rod's band and the
-    # broad steel tip fade, bead-sized blobs stay, so that a strong tip or a blurred frame
-    # does not lift the threshold above the beads
-    g1 = _gaussian(d, BLOB_SIGMA_PX, reference)
-    ds = g1 - _gaussian(d, BACKGROUND_SIGMA_PX, reference)
-    dsi = ds[inside] if inside.any() else ds.ravel()  # the noise of the field, not the black
-    noise = 1.4826 * _median(np.abs(dsi - _median(dsi, reference)), reference)
-    # ...of attenuation that was added: the positive rim the band-pass leaves around a bead
-    # that went away (or any dip) is no blob
-    ds = np.where(g1 > 0.5 * ds, ds, 0.0)
-    peak = ds.max()
+    small_int = (np.issubdtype(a.dtype, np.integer) and np.issubdtype(b.dtype, np.integer)
+                 and max(a.dtype.itemsize, b.dtype.itemsize) <= 2)
+    inside = mask if mask is not None else np.ones(a.shape, dtype=bool)
+    if not reference and response == "log" and small_int:
+        # the same steps compiled, one pass each (reglib._markers_numba)
+        from reglib import _markers_numba as mk
+
+        top = max(int(np.iinfo(a.dtype).max) - min(int(np.iinfo(b.dtype).min), 0),
+                  int(np.iinfo(b.dtype).max) - min(int(np.iinfo(a.dtype).min), 0))
+        d, d32, n_in = mk.centred_difference(a, b, inside, -1 if polarity == "bright" else 1,
+                                             top)
+        g1 = _gaussian(d32, BLOB_SIGMA_PX, False)
+        ds, dsi, peak = mk.band(g1, _gaussian(d32, BACKGROUND_SIGMA_PX, False), inside, n_in)
+        noise = 1.4826 * _median(np.abs(dsi - _median(dsi, False)), False)
+    else:
+        d = _log_image(a, response) - _log_image(b, response)
+        if polarity == "bright":
+            d = -d
+        # the automatic brightness control changes the tube output from frame to frame: a
+        # uniform gain, i.e. a constant in log intensity, that would lift the whole field above
+        # the threshold; it is the median difference (the beads cover a few hundred pixels)
+        inside = mask if mask is not None else np.ones(d.shape, dtype=bool)
+        if inside.any():
+            integral = (not reference and response == "log" and np.issubdtype(a.dtype, np.integer)
+                        and np.issubdtype(b.dtype, np.integer))
+            d = d - (_integer_median(d[inside]) if integral else _median(d[inside], reference))
+        if mask is not None:
+            d = np.where(mask, d, 0.0)
+        # a band-pass at the beads' scale (difference of Gaussians): the rod's band and the
+        # broad steel tip fade, bead-sized blobs stay, so that a strong tip or a blurred frame
+        # does not lift the threshold above the beads
+        g1 = _gaussian(d, BLOB_SIGMA_PX, reference)
+        ds = g1 - _gaussian(d, BACKGROUND_SIGMA_PX, reference)
+        dsi = ds[inside] if inside.any() else ds.ravel()  # the noise of the field, not the black
+        noise = 1.4826 * _median(np.abs(dsi - _median(dsi, reference)), reference)
+        # ...of attenuation that was added: the positive rim the band-pass leaves around a bead
+        # that went away (or any dip) is no blob
+        ds = np.where(g1 > 0.5 * ds, ds, 0.0)
+        peak = ds.max()
     if peak <= 0:
         return np.zeros((0, 2)), np.zeros(0)
     # relative threshold per region: each connected region above the noise gets
     # rel_threshold times its own peak (a bright newcomer elsewhere, e.g. an instrument
     # moved into the field, does not raise the threshold for the beads)
     low = max(n_sigma * noise, 0.02 * peak)
-    regions, n_regions = ndimage.label(ds > low)
-    region_peak = np.zeros(n_regions + 1)
-    if reference:
-        region_peak[1:] = ndimage.maximum(ds, regions, np.arange(1, n_regions + 1))
-    else:  # ndimage.maximum sorts all labels (45 ms on a noisy frame); only labelled pixels
-        on = regions > 0
-        np.maximum.at(region_peak, regions[on], ds[on])
+    regions, n_regions = _label(ds > low, reference)
     # never below half the global relative threshold: noise specks are regions of their own
-    thr = np.maximum(max(low, 0.5 * rel_threshold * peak), rel_threshold * region_peak[regions])
-    labels, n = ndimage.label((ds > thr) & (regions > 0))
+    base = max(low, 0.5 * rel_threshold * peak)
+    if reference:
+        region_peak = np.zeros(n_regions + 1)
+        region_peak[1:] = ndimage.maximum(ds, regions, np.arange(1, n_regions + 1))
+        thr = np.maximum(base, rel_threshold * region_peak[regions])
+        labels, n = ndimage.label((ds > thr) & (regions > 0))
+    else:  # ndimage.maximum sorts all labels (45 ms on a noisy frame); one compiled pass
+        from reglib import _markers_numba as mk
+
+        labels, n = _label(mk.above_region_thresholds(regions, n_regions, ds, base,
+                                                      rel_threshold), False)
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0)
-    idx = np.arange(1, n + 1)
     if reference:
-        areas = ndimage.sum_labels(np.ones_like(ds), labels, idx)
+        areas = ndimage.sum_labels(np.ones_like(ds), labels, np.arange(1, n + 1))
+        slices = ndimage.find_objects(labels)
     else:
-        areas = np.bincount(labels[labels > 0], minlength=n + 1)[1:].astype(np.float64)
+        areas, boxes = mk.label_boxes(labels, n)
+        slices = [(slice(b[0], b[1]), slice(b[2], b[3])) for b in boxes.tolist()]
     H, W = d.shape
     out, strength = [], []
-    slices = ndimage.find_objects(labels)
     for k, sl in enumerate(slices):
         if sl is None or not (min_area_px <= areas[k] <= max_area_px):
+            continue
+        if not reference:    # the same steps compiled (reglib._markers_numba.blob_centroid)
+            ok, cx, cy, x0, x1, y0, y1 = mk.blob_centroid(
+                d, labels, k + 1, sl[0].start, sl[0].stop, sl[1].start, sl[1].stop,
+                float(areas[k]), float(max_elongation), float(centroid_floor))
+            if not ok or (mask is not None and not mask[y0:y1, x0:x1].all()):
+                continue
+            out.append((cx, cy))
+            strength.append(float(ds[sl][labels[sl] == k + 1].max()))
             continue
         sub = labels[sl] == k + 1
         ys, xs = np.nonzero(sub)
@@ -256,7 +296,7 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
 
 # --------------------------------------------------------------------------- identification
 def identify_row(xy_px, bead_positions_mm, *, tolerance: float = 0.15,
-                 min_matched: int = 4) -> tuple[np.ndarray, float]:
+                 min_matched: int = 4, reference: bool = False) -> tuple[np.ndarray, float]:
     """Which bead of the rod each blob of one row is.
 
     The rod lies parallel to the image plane in a sweep, so along the imaged row the bead
@@ -272,6 +312,8 @@ def identify_row(xy_px, bead_positions_mm, *, tolerance: float = 0.15,
     ----------
     xy_px : (K, 2) blob centroids of one row.
     bead_positions_mm : (n,) bead positions along the rod, increasing, unequal gaps.
+    reference : the hypotheses as numpy arrays (the reference of the compiled loop,
+        compared in tests/reglib/test_calibration.py).
 
     Returns
     -------
@@ -295,19 +337,25 @@ def identify_row(xy_px, bead_positions_mm, *, tolerance: float = 0.15,
     u = np.linalg.svd(xy - c)[2][0]
     t = (xy - c) @ u
     # hypotheses: blob pair (i, j), bead pair (p, q) with p != q (order gives the orientation)
-    bi, bj = np.array(list(itertools.combinations(range(K), 2))).T
-    bp, bq = np.array([(p, q) for p in range(n) for q in range(n) if p != q]).T
-    I, P = np.repeat(bi, len(bp)), np.tile(bp, len(bi))
-    J, Q = np.repeat(bj, len(bq)), np.tile(bq, len(bj))
-    a = (t[J] - t[I]) / (s[Q] - s[P])
-    b = t[I] - a * s[P]
-    pred = a[:, None] * s[None, :] + b[:, None]                       # (B, n) px
-    gap = np.abs(a) * np.min(np.diff(s))                               # (B,)
-    err = np.abs(t[None, :, None] - pred[:, None, :])                  # (B, K, n)
-    j = np.argmin(err, axis=2)
-    e = np.take_along_axis(err, j[..., None], axis=2)[..., 0]          # (B, K)
-    inl = e < tolerance * gap[:, None]
-    count = inl.sum(axis=1)
+    if reference:
+        bi, bj = np.array(list(itertools.combinations(range(K), 2))).T
+        bp, bq = np.array([(p, q) for p in range(n) for q in range(n) if p != q]).T
+        I, P = np.repeat(bi, len(bp)), np.tile(bp, len(bi))
+        J, Q = np.repeat(bj, len(bq)), np.tile(bq, len(bj))
+        a = (t[J] - t[I]) / (s[Q] - s[P])
+        b = t[I] - a * s[P]
+        pred = a[:, None] * s[None, :] + b[:, None]                   # (B, n) px
+        gap = np.abs(a) * np.min(np.diff(s))                           # (B,)
+        err = np.abs(t[None, :, None] - pred[:, None, :])              # (B, K, n)
+        j = np.argmin(err, axis=2)
+        e = np.take_along_axis(err, j[..., None], axis=2)[..., 0]      # (B, K)
+        inl = e < tolerance * gap[:, None]
+        count = inl.sum(axis=1)
+    else:   # the same, one compiled loop (reglib._markers_numba.row_hypotheses)
+        from reglib._markers_numba import row_hypotheses
+
+        j, e, inl, count = row_hypotheses(np.ascontiguousarray(t), np.ascontiguousarray(s),
+                                          float(tolerance))
     if count.max() < min_matched:
         raise ValueError(f"identify_row: the spacing pattern matches at most {count.max()} "
                          f"of {K} blobs (need {min_matched})")
@@ -328,11 +376,8 @@ def identify_row(xy_px, bead_positions_mm, *, tolerance: float = 0.15,
         if final in seen:  # the same assignment once the doubles are resolved
             continue
         seen.add(final)
-        sk, tk = s[j[k][m]], t[m]
-        A = np.column_stack([sk, np.ones_like(sk)])
-        coef = np.linalg.lstsq(A, tk, rcond=None)[0]
-        rms = float(np.sqrt(np.mean((tk - A @ coef) ** 2)))
-        unit = 0.2 * tolerance * abs(coef[0]) * np.min(np.diff(s))
+        slope, _, rms = _line_fit(s[j[k][m]], t[m])
+        unit = 0.2 * tolerance * abs(slope) * np.min(np.diff(s))
         scored.append((m.sum() - rms / unit, rms, k))
     scored.sort(reverse=True)
     score, rms, k = scored[0]
@@ -341,8 +386,7 @@ def identify_row(xy_px, bead_positions_mm, *, tolerance: float = 0.15,
                          f"as well: RMS {rms:.2f} and {scored[1][1]:.2f} px)")
     bead = np.where(inl[k], j[k], -1)
     m = bead >= 0
-    coef = np.linalg.lstsq(np.column_stack([s[bead[m]], np.ones(m.sum())]), t[m], rcond=None)[0]
-    tol_px = tolerance * abs(coef[0]) * np.min(np.diff(s))
+    tol_px = tolerance * abs(_line_fit(s[bead[m]], t[m])[0]) * np.min(np.diff(s))
     w = (xy - c) @ np.array([-u[1], u[0]])
     keep = _on_row(t, w, m, ACROSS_ROW_TOLERANCES * tol_px)
     if (keep != m).any():
@@ -352,18 +396,27 @@ def identify_row(xy_px, bead_positions_mm, *, tolerance: float = 0.15,
         if keep.sum() < min_matched:
             raise ValueError(f"identify_row: {int((m & ~keep).sum())} of the blobs that fit "
                              "the spacing lie off the row's line; too few left")
-        A = np.column_stack([s[bead[keep]], np.ones(keep.sum())])
-        coef = np.linalg.lstsq(A, t[keep], rcond=None)[0]
-        line = np.polyfit(t[keep], w[keep], 1)
+        slope, icpt, _ = _line_fit(s[bead[keep]], t[keep])
+        w_slope, w_icpt, _ = _line_fit(t[keep], w[keep])
         for i in np.flatnonzero(bead < 0):
-            p = int(np.argmin(np.abs(coef[0] * s + coef[1] - t[i])))
-            if (abs(coef[0] * s[p] + coef[1] - t[i]) < tol_px and p not in bead
-                    and abs(w[i] - np.polyval(line, t[i])) < ACROSS_ROW_TOLERANCES * tol_px):
+            p = int(np.argmin(np.abs(slope * s + icpt - t[i])))
+            if (abs(slope * s[p] + icpt - t[i]) < tol_px and p not in bead
+                    and abs(w[i] - (w_slope * t[i] + w_icpt)) < ACROSS_ROW_TOLERANCES * tol_px):
                 bead[i] = p
         m = bead >= 0
-        A = np.column_stack([s[bead[m]], np.ones(m.sum())])
-        rms = float(np.sqrt(np.mean((t[m] - A @ np.linalg.lstsq(A, t[m], rcond=None)[0]) ** 2)))
+        rms = _line_fit(s[bead[m]], t[m])[2]
     return bead, rms
+
+
+def _line_fit(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
+    """Least-squares line ``y = slope x + intercept`` through ``(x, y)`` (at least two
+    distinct ``x``) and its RMS residual."""
+    xm, ym = float(x.mean()), float(y.mean())
+    dx = x - xm
+    slope = float(np.dot(dx, y - ym) / np.dot(dx, dx))
+    icpt = ym - slope * xm
+    rms = float(np.sqrt(np.mean((y - (slope * x + icpt)) ** 2)))
+    return slope, icpt, rms
 
 
 def _on_row(t, w, matched, tol_px: float) -> np.ndarray:
@@ -378,12 +431,13 @@ def _on_row(t, w, matched, tol_px: float) -> np.ndarray:
     keep = matched.copy()
     while keep.sum() >= 4:
         idx = np.flatnonzero(keep)
-        # leave-one-out residuals from one least-squares fit: r_i / (1 - h_ii), h the hat
-        # matrix's diagonal (row norms of Q for X = QR)
-        x = t[idx] / max(float(np.abs(t[idx]).max()), 1e-9)
-        q, _ = np.linalg.qr(np.column_stack([x, np.ones(len(idx))]))
-        h = np.sum(q * q, axis=1)
-        res = np.abs(w[idx] - q @ (q.T @ w[idx])) / np.maximum(1.0 - h, 1e-12)
+        # leave-one-out residuals from one least-squares line: r_i / (1 - h_i), with the
+        # line's leverages h_i = 1/n + (x_i - mean)^2 / Sxx
+        x, y = t[idx], w[idx]
+        slope, icpt, _ = _line_fit(x, y)
+        dx = x - x.mean()
+        h = 1.0 / len(idx) + dx * dx / max(float(np.sum(dx * dx)), 1e-300)
+        res = np.abs(y - (slope * x + icpt)) / np.maximum(1.0 - h, 1e-12)
         worst = int(np.argmax(res))
         if res[worst] <= tol_px:
             break

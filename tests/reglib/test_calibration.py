@@ -129,6 +129,24 @@ def test_detect_markers_fast_path_equals_the_scipy_reference(seed):
         assert np.abs(fast[1] - ref[1]).max() < 1e-6 * ref[1].max()   # float32 band-pass
 
 
+def test_fast_labels_equal_ndimage_labels():
+    """OpenCV's connected components against scipy.ndimage.label (the reference): the same
+    label of every pixel on random binary images of blobs, rings and U shapes."""
+    from scipy.ndimage import gaussian_filter
+
+    from reglib.markers import _label
+
+    rng = np.random.default_rng(2)
+    for _ in range(40):
+        shape = tuple(rng.integers(20, 160, 2))
+        field = gaussian_filter(rng.random(shape), rng.uniform(0.5, 4.0))
+        binary = field > np.quantile(field, rng.uniform(0.3, 0.95))
+        ref, n_ref = _label(binary, True)
+        got, n = _label(binary, False)
+        assert n == n_ref
+        np.testing.assert_array_equal(got, ref)
+
+
 def test_detect_markers_bad_input():
     with pytest.raises(ValueError, match="same shape"):
         detect_markers(np.zeros((10, 10)), np.zeros((10, 11)))
@@ -153,6 +171,34 @@ def test_identify_row_finds_every_bead_index():
         bead, rms = identify_row(pts[keep][perm], BEADS)
         assert np.array_equal(bead, keep[perm])
         assert rms < 2.0
+
+
+def test_identify_row_compiled_hypotheses_equal_the_numpy_reference():
+    """The compiled hypothesis loop against the numpy arrays (reference=True): the same
+    labels and RMS, or the same error, on random rows with missing beads and strays."""
+    rng = np.random.default_rng(12)
+    outcomes = set()
+    for _ in range(200):
+        ang = rng.uniform(0, np.pi)
+        t = rng.uniform(1.5, 3.0) * BEADS + rng.uniform(-150, 0)
+        pts = 240 + t[:, None] * np.r_[np.cos(ang), np.sin(ang)] + rng.normal(0, 0.1, (8, 2))
+        xy = np.vstack([pts[rng.random(8) < 0.8], rng.uniform(0, 480, (rng.integers(0, 3), 2))])
+        got = ref = None
+        try:
+            ref = identify_row(xy, BEADS, reference=True)
+        except ValueError as exc:
+            ref = str(exc)
+        try:
+            got = identify_row(xy, BEADS)
+        except ValueError as exc:
+            got = str(exc)
+        if isinstance(ref, str):
+            assert got == ref
+            outcomes.add("error")
+        else:
+            assert np.array_equal(got[0], ref[0]) and got[1] == ref[1]
+            outcomes.add("labels")
+    assert outcomes == {"error", "labels"}
 
 
 def test_identify_row_rejects_a_stray_blob_and_too_few_blobs():

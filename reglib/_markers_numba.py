@@ -1,0 +1,253 @@
+"""Compiled passes of the fast marker detector (:func:`reglib.markers.detect_markers`).
+
+Each computes what the numpy steps of the detector compute (the same values, in one pass
+over the field's bounding box instead of several whole-array temporaries); the reference
+detector (``detect_markers(reference=True)``, scipy.ndimage alone) is compared with the
+fast one in tests/reglib/test_calibration.py.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def centred_difference(a, b, mask, sign, max_abs):
+    """``d = sign * (a - b)`` less its median over ``mask`` (integer frames: the median by
+    counting, the two middle values' mean for an even count), 0 outside ``mask``. Returns
+    ``(d float64, d float32, pixels in mask)``; ``max_abs`` bounds ``|a - b|`` (255 for 8-bit
+    frames). The arrays may be views (a crop of a frame)."""
+    H, W = a.shape
+    counts = np.zeros(2 * max_abs + 1, dtype=np.int64)
+    n = 0
+    for r in range(H):
+        for c in range(W):
+            if mask[r, c]:
+                counts[sign * (np.int64(a[r, c]) - np.int64(b[r, c])) + max_abs] += 1
+                n += 1
+    med = 0.0
+    if n > 0:
+        hi_rank = n // 2
+        lo_rank = hi_rank - 1 if n % 2 == 0 else hi_rank
+        cum = 0
+        lo_v = 0
+        hi_v = 0
+        found_lo = False
+        for v in range(counts.shape[0]):
+            cum += counts[v]
+            if not found_lo and cum > lo_rank:
+                lo_v = v
+                found_lo = True
+            if cum > hi_rank:
+                hi_v = v
+                break
+        med = ((lo_v - max_abs) + (hi_v - max_abs)) / 2.0
+    d = np.zeros((H, W))
+    d32 = np.zeros((H, W), dtype=np.float32)
+    for r in range(H):
+        for c in range(W):
+            if mask[r, c]:
+                v = sign * (np.float64(a[r, c]) - np.float64(b[r, c])) - med
+                d[r, c] = v
+                d32[r, c] = v
+    return d, d32, n
+
+
+@njit(cache=True)
+def band(g1, g2, mask, n):
+    """``ds = g1 - g2`` (float32); its values in ``mask`` (``n`` pixels; all of them if
+    ``n`` is 0), row-major; then ``ds`` where ``g1 > 0.5 ds`` and 0 elsewhere, and its
+    maximum. Returns ``(ds after the rim test, the masked values before it, the maximum)``."""
+    H, W = g1.shape
+    use_all = n == 0
+    vals = np.empty(H * W if use_all else n, dtype=np.float32)
+    ds = np.empty((H, W), dtype=np.float32)
+    peak = -np.inf
+    j = 0
+    for r in range(H):
+        for c in range(W):
+            v = g1[r, c] - g2[r, c]
+            if use_all or mask[r, c]:
+                vals[j] = v
+                j += 1
+            v = v if g1[r, c] > 0.5 * v else np.float32(0.0)
+            ds[r, c] = v
+            peak = max(peak, v)
+    return ds, vals, peak
+
+
+@njit(cache=True)
+def above_region_thresholds(regions, n_regions, ds, base, rel):
+    """The pixels of a labelled region above ``max(base, rel * the region's peak of ds)``."""
+    H, W = ds.shape
+    peak = np.zeros(n_regions + 1)
+    for r in range(H):
+        for c in range(W):
+            k = regions[r, c]
+            if k > 0 and ds[r, c] > peak[k]:
+                peak[k] = ds[r, c]
+    out = np.zeros((H, W), dtype=np.bool_)
+    for r in range(H):
+        for c in range(W):
+            k = regions[r, c]
+            if k > 0:
+                t = max(base, rel * peak[k])
+                out[r, c] = ds[r, c] > t
+    return out
+
+
+@njit(cache=True)
+def label_boxes(labels, n):
+    """Pixel count and bounding box (rows ``[r0, r1)``, columns ``[c0, c1)``) of labels 1..n:
+    ``(areas (n,), boxes (n, 4))``."""
+    areas = np.zeros(n + 1)
+    boxes = np.empty((n + 1, 4), dtype=np.int64)
+    boxes[:, 0] = labels.shape[0]
+    boxes[:, 1] = -1
+    boxes[:, 2] = labels.shape[1]
+    boxes[:, 3] = -1
+    H, W = labels.shape
+    for r in range(H):
+        for c in range(W):
+            k = labels[r, c]
+            if k > 0:             # most pixels are background: no chain of updates on [0]
+                areas[k] += 1.0
+                boxes[k, 0] = min(boxes[k, 0], r)
+                boxes[k, 1] = max(boxes[k, 1], r)
+                boxes[k, 2] = min(boxes[k, 2], c)
+                boxes[k, 3] = max(boxes[k, 3], c)
+    boxes[:, 1] += 1
+    boxes[:, 3] += 1
+    return areas[1:], boxes[1:]
+
+
+@njit(cache=True)
+def blob_centroid(d, labels, k, r0, r1, c0, c1, area, max_elongation, centroid_floor):
+    """The sub-pixel centroid of blob ``k`` (its pixels: ``labels == k`` within rows
+    ``r0:r1`` and columns ``c0:c1``), as the detector's Python loop computes it: rejected
+    (``ok`` False) when not round (the 2x2 sample covariance of its pixels has a
+    non-positive eigenvalue or an axis ratio above ``max_elongation``); else the mean over a
+    disc about the blob of ``d`` above a floor (the median of a ring around the disc plus
+    ``centroid_floor`` times the disc's height above it), the disc re-centred three times.
+    Returns ``(ok, cx, cy, x0, x1, y0, y1)`` (the last window)."""
+    H, W = d.shape
+    n = 0
+    sx = 0.0
+    sy = 0.0
+    for r in range(r0, r1):
+        for c in range(c0, c1):
+            if labels[r, c] == k:
+                n += 1
+                sx += c
+                sy += r
+    cx = sx / n
+    cy = sy / n
+    if n > 2:
+        cxx = 0.0
+        cyy = 0.0
+        cxy = 0.0
+        for r in range(r0, r1):
+            for c in range(c0, c1):
+                if labels[r, c] == k:
+                    dx = c - cx
+                    dy = r - cy
+                    cxx += dx * dx
+                    cyy += dy * dy
+                    cxy += dx * dy
+        cxx /= n - 1
+        cyy /= n - 1
+        cxy /= n - 1
+        half = 0.5 * (cxx + cyy)
+        rad = np.sqrt(0.25 * (cxx - cyy) ** 2 + cxy * cxy)
+        ev0 = half - rad
+        ev1 = half + rad
+        if ev0 <= 0 or np.sqrt(ev1 / ev0) > max_elongation:
+            return False, cx, cy, 0, 0, 0, 0
+    r_in = np.sqrt(area / np.pi) * 1.6 + 1.5
+    x0 = x1 = y0 = y1 = 0
+    ring = np.empty(H * W if H * W < 4096 else 4096)
+    for _ in range(3):
+        x0 = int(max(cx - r_in - 4, 0))
+        x1 = int(min(cx + r_in + 5, W))
+        y0 = int(max(cy - r_in - 4, 0))
+        y1 = int(min(cy + r_in + 5, H))
+        m = 0
+        top = -np.inf
+        any_inner = False
+        for r in range(y0, y1):
+            for c in range(x0, x1):
+                rr = np.hypot(c - cx, r - cy)
+                if rr > r_in and rr <= r_in + 3:
+                    if m == ring.shape[0]:
+                        bigger = np.empty(2 * m)
+                        bigger[:m] = ring
+                        ring = bigger
+                    ring[m] = d[r, c]
+                    m += 1
+                if rr <= r_in:
+                    any_inner = True
+                    if d[r, c] > top:
+                        top = d[r, c]
+        bg = np.median(ring[:m]) if m > 0 else 0.0
+        floor = bg + centroid_floor * (top - bg) if any_inner else bg
+        sw = 0.0
+        swx = 0.0
+        swy = 0.0
+        for r in range(y0, y1):
+            for c in range(x0, x1):
+                if np.hypot(c - cx, r - cy) <= r_in:
+                    w = max(d[r, c] - floor, 0.0)
+                    sw += w
+                    swx += w * c
+                    swy += w * r
+        if sw <= 0:
+            break
+        cx = swx / sw
+        cy = swy / sw
+    return True, cx, cy, x0, x1, y0, y1
+
+
+@njit(cache=True)
+def row_hypotheses(t, s, tolerance):
+    """The spacing hypotheses of :func:`reglib.markers.identify_row`: for every blob pair
+    ``i < j`` (in ``itertools.combinations`` order) and bead pair ``p != q`` (``p``-major),
+    the affine map ``t = a s + b`` through them, each blob's nearest predicted bead ``jb``,
+    its distance ``e`` (px), and whether it is within ``tolerance`` times the smallest
+    predicted gap. Returns ``(jb (B, K), e (B, K), inl (B, K), count (B,))``."""
+    K = t.shape[0]
+    n = s.shape[0]
+    min_gap = np.inf
+    for m in range(n - 1):
+        min_gap = min(min_gap, s[m + 1] - s[m])
+    B = (K * (K - 1) // 2) * n * (n - 1)
+    jb = np.empty((B, K), dtype=np.int64)
+    e = np.empty((B, K))
+    inl = np.empty((B, K), dtype=np.bool_)
+    count = np.zeros(B, dtype=np.int64)
+    h = 0
+    for i in range(K):
+        for j in range(i + 1, K):
+            for p in range(n):
+                for q in range(n):
+                    if p == q:
+                        continue
+                    a = (t[j] - t[i]) / (s[q] - s[p])
+                    b = t[i] - a * s[p]
+                    lim = tolerance * (abs(a) * min_gap)
+                    for k in range(K):
+                        best = np.inf
+                        arg = 0
+                        for m in range(n):
+                            v = abs(t[k] - (a * s[m] + b))
+                            if v < best:
+                                best = v
+                                arg = m
+                        jb[h, k] = arg
+                        e[h, k] = best
+                        inside = best < lim
+                        inl[h, k] = inside
+                        if inside:
+                            count[h] += 1
+                    h += 1
+    return jb, e, inl, count
