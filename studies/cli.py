@@ -369,6 +369,9 @@ def main(argv=None) -> int:
         if not getattr(args, "command", None):
             raise UsageError(f"{PROG}: a command is needed: run, study, generate, score, "
                              f"render, bench, scenes (see {PROG} --help)")
+        from studies.threads import single_threaded_kernels
+
+        single_threaded_kernels()   # and OpenCV's threads off (studies/threads.py)
         return int(args.func(args) or 0)
     except UsageError as exc:
         print(_one_line(str(exc)), file=sys.stderr)

@@ -255,6 +255,9 @@ def _check_rows(rows, trial: Trial) -> list[dict]:
 
 def execute_trial(trial_fn: Callable[[Trial], list[dict]], trial: Trial) -> TrialResult:
     """Run one trial, catching its exceptions: the unit of work sent to a worker."""
+    from studies.threads import single_threaded_kernels
+
+    single_threaded_kernels()       # workers parallelise by process
     who = f"{socket.gethostname()}:{os.getpid()}"
     t0 = time.perf_counter()
     try:

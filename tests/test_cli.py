@@ -299,3 +299,28 @@ def test_the_command_runs_on_one_blas_thread_unless_told_otherwise():
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
                          text=True, timeout=120)
     assert "BLAS 2 1" in out.stdout
+
+
+def test_testbed_commands_run_opencv_single_threaded(monkeypatch, capsys):
+    """OpenCV's thread pool spins between calls (CPU time doubled for the same wall time on
+    2 cores); the testbed command turns its threading off unless the user set
+    OPENCV_FOR_THREADS_NUM (studies/threads.py)."""
+    import cv2
+
+    import studies.threads
+    from studies.cli import main
+
+    before = cv2.getNumThreads()
+    try:
+        monkeypatch.delenv("OPENCV_FOR_THREADS_NUM", raising=False)
+        monkeypatch.setattr(studies.threads, "_done", False)
+        cv2.setNumThreads(2)
+        assert main(["scenes"]) == 0
+        assert cv2.getNumThreads() == 1          # threading off reads as one thread
+        monkeypatch.setenv("OPENCV_FOR_THREADS_NUM", "2")
+        monkeypatch.setattr(studies.threads, "_done", False)
+        cv2.setNumThreads(2)
+        assert main(["scenes"]) == 0
+        assert cv2.getNumThreads() == 2
+    finally:
+        cv2.setNumThreads(before)
