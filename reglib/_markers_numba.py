@@ -132,32 +132,28 @@ def blob_centroid(d, labels, k, r0, r1, c0, c1, area, max_elongation, centroid_f
     ``centroid_floor`` times the disc's height above it), the disc re-centred three times.
     Returns ``(ok, cx, cy, x0, x1, y0, y1)`` (the last window)."""
     H, W = d.shape
+    # raw moments about the box's corner (small numbers: no cancellation to speak of)
     n = 0
-    sx = 0.0
-    sy = 0.0
+    sx = sy = sxx = syy = sxy = 0.0
     for r in range(r0, r1):
         for c in range(c0, c1):
             if labels[r, c] == k:
+                u = float(c - c0)
+                v = float(r - r0)
                 n += 1
-                sx += c
-                sy += r
-    cx = sx / n
-    cy = sy / n
+                sx += u
+                sy += v
+                sxx += u * u
+                syy += v * v
+                sxy += u * v
+    mx = sx / n
+    my = sy / n
+    cx = c0 + mx
+    cy = r0 + my
     if n > 2:
-        cxx = 0.0
-        cyy = 0.0
-        cxy = 0.0
-        for r in range(r0, r1):
-            for c in range(c0, c1):
-                if labels[r, c] == k:
-                    dx = c - cx
-                    dy = r - cy
-                    cxx += dx * dx
-                    cyy += dy * dy
-                    cxy += dx * dy
-        cxx /= n - 1
-        cyy /= n - 1
-        cxy /= n - 1
+        cxx = (sxx - n * mx * mx) / (n - 1)
+        cyy = (syy - n * my * my) / (n - 1)
+        cxy = (sxy - n * mx * my) / (n - 1)
         half = 0.5 * (cxx + cyy)
         rad = np.sqrt(0.25 * (cxx - cyy) ** 2 + cxy * cxy)
         ev0 = half - rad
