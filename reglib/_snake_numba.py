@@ -35,12 +35,24 @@ def _span(t, k, n_coef, v):
 
 
 @njit(cache=True)
-def _basis(t, k, l, v, nu, out):
-    """The ``k + 1`` non-zero B-splines of degree ``k`` (their ``nu``-th derivative, nu 0 or
-    1) at ``v`` on span ``l``, into ``out[:k + 1]`` (Cox-de Boor)."""
-    kk = k - nu
+def _basis(t, k, l, v, out, dout):
+    """The ``k + 1`` non-zero B-splines of degree ``k`` at ``v`` on span ``l`` into
+    ``out[:k + 1]`` and their derivatives into ``dout[:k + 1]`` (Cox-de Boor: the
+    derivatives come from the degree-``k - 1`` values the recursion passes through)."""
     out[0] = 1.0
-    for j in range(1, kk + 1):
+    for j in range(1, k + 1):
+        if j == k:   # d/dv of the degree-k splines from the degree-(k-1) ones
+            for r in range(k + 1):
+                a = 0.0
+                if r >= 1:
+                    den = t[l + r] - t[l + r - k]
+                    if den > 0:
+                        a += out[r - 1] / den
+                if r <= k - 1:
+                    den = t[l + r + 1] - t[l + r + 1 - k]
+                    if den > 0:
+                        a -= out[r] / den
+                dout[r] = k * a
         saved = 0.0
         for r in range(j):
             left = t[l + r + 1 - j]
@@ -49,22 +61,8 @@ def _basis(t, k, l, v, nu, out):
             out[r] = saved + (right - v) * w
             saved = (v - left) * w
         out[j] = saved
-    if nu == 1:   # d/dv of degree-k splines from the degree-(k-1) ones
-        prev = np.empty(kk + 1)
-        for r in range(kk + 1):
-            prev[r] = out[r]
-        for r in range(k + 1):
-            a = 0.0
-            if r >= 1:
-                den = t[l + r] - t[l + r - k]
-                if den > 0:
-                    a += prev[r - 1] / den
-            if r <= kk:
-                den = t[l + r + 1] - t[l + r + 1 - k]
-                if den > 0:
-                    a -= prev[r] / den
-            out[r] = k * a
-    return out
+    if k == 0:
+        dout[0] = 0.0
 
 
 @njit(cache=True)
@@ -84,10 +82,8 @@ def spline_gradient(tx, ty, c, kx, ky, x, y, gx, gy):
         yi = min(max(y[i], ty[ky]), ty[nyc])
         lx = _span(tx, kx, nxc, xi)
         ly = _span(ty, ky, nyc, yi)
-        _basis(tx, kx, lx, xi, 0, bx)
-        _basis(tx, kx, lx, xi, 1, dbx)
-        _basis(ty, ky, ly, yi, 0, by)
-        _basis(ty, ky, ly, yi, 1, dby)
+        _basis(tx, kx, lx, xi, bx, dbx)
+        _basis(ty, ky, ly, yi, by, dby)
         sx = 0.0
         sy = 0.0
         for a in range(kx + 1):

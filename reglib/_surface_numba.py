@@ -69,7 +69,6 @@ def douglas_peucker(xy, tol):
     keep[0] = True
     keep[k - 1] = True
     stack = np.empty((k, 2), dtype=np.int64)
-    top = 0
     stack[0, 0], stack[0, 1] = 0, k - 1
     top = 1
     while top > 0:
