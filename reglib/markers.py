@@ -64,21 +64,6 @@ def _log_image(img, response: str) -> np.ndarray:
     return np.log(np.maximum(a, lo))
 
 
-def _integer_median(v: np.ndarray) -> float:
-    """``np.median`` of integer-valued floats (differences of two 8- or 16-bit frames) by
-    counting: the same value (the mean of the two middle ones for an even count), in one
-    pass instead of a partial sort."""
-    lo = int(v.min())
-    counts = np.bincount((v - lo).astype(np.int64))
-    cum = np.cumsum(counts)
-    n = len(v)
-    upper = lo + int(np.searchsorted(cum, n // 2, side="right"))     # the element n // 2
-    if n % 2:
-        return float(upper)
-    lower = lo + int(np.searchsorted(cum, n // 2 - 1, side="right"))  # element n // 2 - 1
-    return (lower + upper) / 2.0
-
-
 def _median(v: np.ndarray, reference: bool) -> float:
     """``np.median`` of a non-empty 1-D float array without NaN. The fast path partitions at
     one rank and takes the largest value below it for an even count: numpy's median
@@ -203,11 +188,8 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
         # the automatic brightness control changes the tube output from frame to frame: a
         # uniform gain, i.e. a constant in log intensity, that would lift the whole field above
         # the threshold; it is the median difference (the beads cover a few hundred pixels)
-        inside = mask if mask is not None else np.ones(d.shape, dtype=bool)
         if inside.any():
-            integral = (not reference and response == "log" and np.issubdtype(a.dtype, np.integer)
-                        and np.issubdtype(b.dtype, np.integer))
-            d = d - (_integer_median(d[inside]) if integral else _median(d[inside], reference))
+            d = d - _median(d[inside], reference)
         if mask is not None:
             d = np.where(mask, d, 0.0)
         # a band-pass at the beads' scale (difference of Gaussians): the rod's band and the
@@ -535,6 +517,17 @@ def _plane_design(robot_mm: np.ndarray, rod_mm: np.ndarray):
     return design
 
 
+def _match_predictions(xy: np.ndarray, pred: np.ndarray, within_px: float):
+    """Each blob ``xy`` (K, 2) the bead whose predicted pixel ``pred`` (n, 2) is nearest to
+    it: ``(bead (K,), good (K,))``, ``good`` where it is within ``within_px`` and no other
+    good blob took the same bead."""
+    dist = np.linalg.norm(xy[:, None, :] - pred[None], axis=2)
+    j = np.argmin(dist, axis=1)
+    good = dist[np.arange(len(xy)), j] < within_px
+    good &= np.array([np.sum(j[good] == jj) == 1 for jj in j], dtype=bool)
+    return j, good
+
+
 def _relabel_rows(rows, blobs, names, beads, plane_of, problems) -> None:
     """Check the identified rows of the near and far planes against each other and relabel
     the rows that disagree with the plane's consensus (in place).
@@ -606,10 +599,7 @@ def _relabel_plane(rows, blobs, names, beads, plane_of, problems, p: int) -> Non
         i, f = idx[r], fr[r]
         pred, gap = pred_all[r], gap_all[r]
         xy_f = blobs[f]
-        dist = np.linalg.norm(xy_f[:, None, :] - pred[None], axis=2)
-        j = np.argmin(dist, axis=1)
-        good = dist[np.arange(len(xy_f)), j] < RELABEL_GAPS * gap
-        good &= np.array([np.sum(j[good] == jj) == 1 for jj in j], dtype=bool)
+        j, good = _match_predictions(xy_f, pred, RELABEL_GAPS * gap)
         before = rows["bead"][i].tolist()
         problems[:] = [m for m in problems if not m.startswith(names[f] + ":")]
         rows["bead"][i] = j[good]
@@ -706,10 +696,7 @@ def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int =
             continue
         pred = to_px((beads[f] - c) @ basis)
         gap = np.min(np.linalg.norm(np.diff(pred, axis=0), axis=1))
-        dist = np.linalg.norm(xy[:, None, :] - pred[None], axis=2)
-        j = np.argmin(dist, axis=1)
-        good = dist[np.arange(len(xy)), j] < 0.2 * gap
-        good &= np.array([np.sum(j[good] == jj) == 1 for jj in j])
+        j, good = _match_predictions(xy, pred, 0.2 * gap)
         if good.any():
             add(f, j[good], xy[good])
             missing = sorted(set(range(len(s))) - set(j[good].tolist()))

@@ -241,9 +241,6 @@ def _share(payload) -> None:
     """Worker initializer: the data every item of a rate measurement uses, sent once per
     worker (an observation's images are tens of MB; pickling them with every start made
     the workers wait on the pipe, not on the registration)."""
-    from studies.threads import single_threaded_kernels
-
-    single_threaded_kernels()
     _SHARED["payload"] = payload
 
 

@@ -374,14 +374,25 @@ def test_fast_median_equals_numpy_median():
 
 
 def test_integer_median_equals_numpy_median():
-    """The counting median of the fast marker path (differences of 8-bit frames) against
-    np.median: odd and even counts, negative values, repeated values, one element."""
-    from reglib.markers import _integer_median
+    """The counting median of the fast marker path (differences of 8-bit frames, in
+    reglib._markers_numba.centred_difference) against np.median: odd and even counts,
+    negative values, repeated values, one element."""
+    from reglib._markers_numba import centred_difference
 
     rng = np.random.default_rng(0)
     for n in (1, 2, 3, 10, 11, 1000, 1001, 24001, 24000):
         for _ in range(10):
-            v = rng.integers(-255, 256, n).astype(np.float64)
+            a = rng.integers(0, 256, (200, 200)).astype(np.uint8)
+            b = rng.integers(0, 256, (200, 200)).astype(np.uint8)
             if rng.random() < 0.3:
-                v = np.round(v / 50.0) * 50.0
-            assert _integer_median(v) == np.median(v), n
+                a = (np.round(a / 50.0) * 50).astype(np.uint8)
+                b = (np.round(b / 50.0) * 50).astype(np.uint8)
+            mask = np.zeros(a.size, dtype=bool)
+            mask[rng.choice(a.size, n, replace=False)] = True
+            mask = mask.reshape(a.shape)
+            v = a[mask].astype(np.float64) - b[mask]
+            d, _, n_in = centred_difference(a, b, mask, 1, 255)
+            assert n_in == n
+            assert v[0] - d[mask][0] == np.median(v), n
+            np.testing.assert_array_equal(d[mask], v - np.median(v))
+            assert not d[~mask].any()
