@@ -281,3 +281,26 @@ def fan_sphere_chords(centres, radii, box_lo, box_hi, ok, dirs, t_max, order, st
                 t0 = min(max(b - hh, 0.0), t_max[i])
                 t1 = min(max(b + hh, 0.0), t_max[i])
                 out[i] += t1 - t0
+
+
+@njit(cache=True)
+def points_in_hull(uv, lo, hi, equations, margin):
+    """Indices (ascending) of the points ``uv (M, 2)`` inside the box ``lo``-``hi`` and within
+    ``margin`` of every half-plane ``nx x + ny y + off <= 0`` of ``equations (E, 3)`` (a
+    convex hull's, outward unit normals); the rays of a fan that a small body can meet. The
+    numpy form in ``SweepRenderer._inside_hull`` is the reference (same expressions)."""
+    out = np.empty(uv.shape[0], np.int64)
+    n = 0
+    for i in range(uv.shape[0]):
+        x, y = uv[i, 0], uv[i, 1]
+        if x < lo[0] or x > hi[0] or y < lo[1] or y > hi[1]:
+            continue
+        inside = True
+        for e in range(equations.shape[0]):
+            if equations[e, 0] * x + equations[e, 1] * y + equations[e, 2] > margin:
+                inside = False
+                break
+        if inside:
+            out[n] = i
+            n += 1
+    return out[:n]

@@ -135,6 +135,35 @@ def _block_mean(img: np.ndarray, f: int, *, fast: bool = False) -> np.ndarray:
     return pad.reshape(h, f, w, f).mean(axis=(1, 3))
 
 
+_BAND_MATRICES: dict = {}
+
+
+def _gaussian_matrix(n: int, sigma_px: float) -> np.ndarray:
+    """``(n, n)`` matrix of a 1-D Gaussian of ``sigma_px`` over ``n`` samples, zero beyond the
+    ends: OpenCV's kernel (radius ``int(4 sigma + 0.5)``, normalised over its taps) in each
+    band; remembered for the last few sizes, read-only."""
+    key = (n, float(sigma_px))
+    if key not in _BAND_MATRICES:
+        if len(_BAND_MATRICES) >= 16:
+            _BAND_MATRICES.pop(next(iter(_BAND_MATRICES)))
+        r = int(4.0 * sigma_px + 0.5)
+        taps = cv2.getGaussianKernel(2 * r + 1, sigma_px, cv2.CV_64F).ravel()
+        offset = np.arange(n)[None, :] - np.arange(n)[:, None]      # column - row
+        m = np.where(np.abs(offset) <= r, taps[np.clip(offset + r, 0, 2 * r)], 0.0)
+        m.flags.writeable = False
+        _BAND_MATRICES[key] = m
+    return _BAND_MATRICES[key]
+
+
+def _gaussian_small(img: np.ndarray, sigma_px: float) -> np.ndarray:
+    """``_gaussian(img, sigma_px, cv2.BORDER_CONSTANT)`` of a small image with a wide kernel
+    as two products with banded matrices (BLAS): equal to it to ~1e-15 relative and 3-6x
+    faster where the kernel spans much of the image (OpenCV's double-precision filter
+    has no vector path); compared in ``tests/testbed/test_detector.py``."""
+    h, w = img.shape
+    return _gaussian_matrix(h, sigma_px) @ img @ _gaussian_matrix(w, sigma_px).T
+
+
 def wide_blur(img: np.ndarray, sigma_px: float) -> np.ndarray:
     """Gaussian blur (zero outside the image) of a wide kernel, computed on a grid coarser by
     ``sigma / 8`` (at most 4x) and interpolated back (the result is smooth at that scale).
@@ -147,7 +176,7 @@ def wide_blur(img: np.ndarray, sigma_px: float) -> np.ndarray:
     if f == 1:
         return _gaussian(img, sigma_px, cv2.BORDER_CONSTANT)
     H, W = img.shape
-    small = _gaussian(_block_mean(img, f, fast=True), sigma_px / f, cv2.BORDER_CONSTANT)
+    small = _gaussian_small(_block_mean(img, f, fast=True), sigma_px / f)
     h, w = small.shape
     # back to full resolution: small pixel (i, j) is centred at full (f i + (f-1)/2, ...),
     # OpenCV's pixel-centre convention for a resize by f; bilinear, edges held
@@ -303,14 +332,37 @@ def quantum_noise(fluence: np.ndarray, photons: float, rng, *, exact: bool = Fal
     return k
 
 
+def _quantum_noise_in_field(img: np.ndarray, fov: np.ndarray, photons: float, rng) -> None:
+    """``img[fov] = quantum_noise(img[fov], photons, rng)`` in place, compiled
+    (:func:`testbed._detector_numba.quantum_counts`): the same draws in the same order, the
+    same numbers, without gathering the field's pixels."""
+    from testbed._detector_numba import quantum_counts
+
+    if not photons > 0:
+        raise ValueError(f"photons per pixel must be > 0, got {photons}")
+    idx, lam = quantum_counts(img, np.ascontiguousarray(fov, dtype=bool), float(photons),
+                              POISSON_EXACT_BELOW, rng)
+    if len(idx):
+        img.flat[idx] = rng.poisson(lam) / photons
+
+
 def video_u8(intensity: np.ndarray, fov: np.ndarray, *, black_u8: int, white_u8: int,
-             display_range: float, noise_u8: float = 0.0, rng=None) -> np.ndarray:
+             display_range: float, noise_u8: float = 0.0, rng=None,
+             reference: bool = False) -> np.ndarray:
     """8-bit video of ``intensity`` (relative to the unattenuated beam; (H, W)).
 
     Logarithmic amplifier: ``level = 1 + ln(I) / display_range`` clipped to [0, 1], mapped to
     ``black_u8 + (white_u8 - black_u8) * level`` (offset and gain), plus Gaussian camera noise
-    of ``noise_u8`` grey levels, rounded and clipped to 0..255; 0 outside ``fov``.
+    of ``noise_u8`` grey levels, rounded and clipped to 0..255; 0 outside ``fov``. Compiled
+    (:func:`testbed._detector_numba.video`, the same draws); ``reference=True`` runs the
+    numpy code below (compared in tests).
     """
+    if not reference:
+        from testbed._detector_numba import video
+
+        return video(np.ascontiguousarray(intensity, dtype=np.float64),
+                     np.ascontiguousarray(fov, dtype=bool), int(black_u8), int(white_u8),
+                     float(display_range), float(noise_u8), np.random.default_rng(rng))
     fov = np.asarray(fov, dtype=bool)
     inside = np.asarray(intensity, dtype=np.float64)[fov]
     level = 1.0 + np.log(np.maximum(inside, 1e-12)) / display_range
@@ -325,8 +377,8 @@ def video_u8(intensity: np.ndarray, fov: np.ndarray, *, black_u8: int, white_u8:
 
 
 def form_image(transmission: np.ndarray, fov: np.ndarray, rho: np.ndarray, fluoro, *,
-               magnification: float, noise: bool, rng=None, exact_noise: bool = False
-               ) -> tuple[np.ndarray, np.ndarray]:
+               magnification: float, noise: bool, rng=None, exact_noise: bool = False,
+               reference: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The whole chain from primary transmission to the 8-bit frame.
 
     Parameters
@@ -350,6 +402,9 @@ def form_image(transmission: np.ndarray, fov: np.ndarray, rho: np.ndarray, fluor
     exact_noise : bool
         Every quantum count from numpy's Poisson sampler (the reference of
         :func:`quantum_noise`'s fast sampler), as ``fluoro.quantum_sampler = "exact"``.
+    reference : bool
+        The per-pixel stages in numpy instead of compiled (the same draws and numbers; the
+        compiled ones are compared with them in tests).
 
     Returns ``(intensity (H, W) float64, video (H, W) uint8)``.
     """
@@ -368,7 +423,10 @@ def form_image(transmission: np.ndarray, fov: np.ndarray, rho: np.ndarray, fluor
         else:
             n0 = fluoro.photons_per_pixel
         exact = exact_noise or getattr(fluoro, "quantum_sampler", "fast") == "exact"
-        img[fov] = quantum_noise(img[fov], n0, rng, exact=exact)
+        if exact or reference:
+            img[fov] = quantum_noise(img[fov], n0, rng, exact=exact)
+        else:
+            _quantum_noise_in_field(img, fov, n0, rng)
     img = blur(img, mtf_sigma_px(fluoro.mtf50_lp_per_mm, px))
     img *= field.inside
     if fluoro.glare_fraction > 0:
@@ -380,5 +438,6 @@ def form_image(transmission: np.ndarray, fov: np.ndarray, rho: np.ndarray, fluor
     img *= field.vignetting          # 1 - v rho^2 in the field, 0 outside
     video = video_u8(img, fov, black_u8=fluoro.black_u8, white_u8=fluoro.white_u8,
                      display_range=fluoro.display_range,
-                     noise_u8=fluoro.video_noise_u8 if noise else 0.0, rng=rng)
+                     noise_u8=fluoro.video_noise_u8 if noise else 0.0, rng=rng,
+                     reference=reference)
     return img, video

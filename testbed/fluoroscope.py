@@ -855,8 +855,7 @@ class SweepRenderer:
         for fan, (o, d, tm, uv) in zip(fans, _field_rays(carm, self.fov, fluoro.oversample)):
             a = (scene.fan_path_lengths(fan) @ weights if self.bodies else np.zeros(len(o)))
             self._rays.append((np.ascontiguousarray(o), np.ascontiguousarray(d), tm))
-            order = np.argsort(uv[:, 0], kind="stable")   # rays by undistorted x, for culling
-            self._uv.append((uv, order, uv[order, 0]))
+            self._uv.append(np.ascontiguousarray(uv))      # undistorted pixel of each ray
             static.append(a)
         self._static = static
         self._static_exp = [np.exp(-a) for a in static]
@@ -876,26 +875,28 @@ class SweepRenderer:
         return self.carm.project_undistorted(np.vstack(pts))
 
     @classmethod
-    def _inside_hull(cls, uv, pts: np.ndarray) -> np.ndarray:
-        """Indices of the points ``uv`` (M, 2) within the margin of the convex hull of
-        ``pts`` (K, 2). ``uv`` is ``(points, order, sorted x)``: the points' indices sorted
-        by x and their sorted x, so the hull's x range is two binary searches."""
+    def _inside_hull(cls, uv, pts: np.ndarray, *, reference: bool = False) -> np.ndarray:
+        """Indices (ascending) of the points ``uv`` (M, 2) within the margin of the convex
+        hull of ``pts`` (K, 2); compiled (:func:`testbed._fan_numba.points_in_hull`).
+        ``reference=True``: the same tests in numpy (compared in tests)."""
         from scipy.spatial import ConvexHull, QhullError
 
-        uv, order, xs = uv
         m = cls.HULL_MARGIN_PX
         lo, hi = pts.min(axis=0) - m, pts.max(axis=0) + m
-        cand = order[np.searchsorted(xs, lo[0], "left"):np.searchsorted(xs, hi[0], "right")]
-        y = uv[cand, 1]
-        cand = np.sort(cand[(y >= lo[1]) & (y <= hi[1])])
         try:
-            hull = ConvexHull(pts)
+            # rows (nx, ny, offset), outward unit normals; inside: n.x + off <= 0
+            equations = ConvexHull(pts).equations
         except QhullError:   # flat (a rod seen end-on): its bounding box is conservative
-            return cand
-        # hull.equations: rows (nx, ny, offset), outward unit normals; inside: n.x + off <= 0
+            equations = np.zeros((0, 3))
+        if not reference:
+            from testbed._fan_numba import points_in_hull
+
+            return points_in_hull(uv, lo, hi, np.ascontiguousarray(equations), m)
+        x, y = uv[:, 0], uv[:, 1]
+        cand = np.flatnonzero((x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1]))
         # one edge at a time on the survivors: most candidates fall at the first few edges
         x, y = uv[cand, 0], uv[cand, 1]
-        for nx, ny, off in hull.equations:
+        for nx, ny, off in equations:
             keep = nx * x + ny * y + off <= m
             cand, x, y = cand[keep], x[keep], y[keep]
         return cand

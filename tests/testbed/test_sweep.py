@@ -191,6 +191,25 @@ def test_an_instrument_moved_into_the_field_is_a_stray_blob(clean_sweep):
     assert any(f"frame {f}:" in p and "stray blob" in p for p in m.problems)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_compiled_hull_culling_equals_the_numpy_reference(seed):
+    """The rays a rod can meet (points within the margin of a convex hull, compiled) against
+    the numpy selection, on random point clouds and hulls, a flat hull (a rod seen end-on)
+    included."""
+    from testbed.fluoroscope import SweepRenderer
+
+    rng = np.random.default_rng(seed)
+    uv = rng.uniform(0, 640, (20000, 2))
+    centre = rng.uniform(100, 540, 2)
+    pts = centre + rng.normal(0, 1, (40, 2)) @ np.diag(rng.uniform(2, 150, 2))
+    flat = centre + np.outer(rng.uniform(-100, 100, 12), [1.0, 0.5])
+    for p in (pts, flat):
+        got = SweepRenderer._inside_hull(uv, p)
+        ref = SweepRenderer._inside_hull(uv, p, reference=True)
+        np.testing.assert_array_equal(got, ref)
+    assert len(SweepRenderer._inside_hull(uv, pts)) > 10
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("oversample", [1, 2])
 def test_sweep_renderer_gives_the_frames_of_a_full_render(oversample):
