@@ -261,8 +261,7 @@ def add_scatter(primary: np.ndarray, fov: np.ndarray, *, spr: float, sigma_px: f
     1987). Behind a dense body ``S / P`` exceeds ``spr``, as measured; where nothing scatters
     (an empty beam) there is none. ``spr = 0`` returns the primary.
     """
-    if spr < 0 or not np.isfinite(spr):
-        raise ValueError(f"scatter_to_primary must be finite and >= 0, got {spr}")
+    _check_spr(spr)
     if spr == 0:
         return np.where(fov, np.asarray(primary, dtype=np.float64), 0.0)
     den, inside = _field_weight(fov, sigma_px)
@@ -278,13 +277,53 @@ def add_scatter(primary: np.ndarray, fov: np.ndarray, *, spr: float, sigma_px: f
     return low
 
 
-def abc_photons(fluence: np.ndarray, fov: np.ndarray, target_photons: float) -> float:
+def _check_spr(spr: float) -> None:
+    if spr < 0 or not np.isfinite(spr):
+        raise ValueError(f"scatter_to_primary must be finite and >= 0, got {spr}")
+
+
+def _scatter_and_field(primary: np.ndarray, fov: np.ndarray, *, spr: float, sigma_px: float,
+                       scatterer: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``add_scatter(primary, fov, ...)`` for ``spr > 0`` in two compiled passes around the
+    wide blur (the same numbers), and the field's values in row-major order
+    (``result[fov]``, for the brightness control) without another gather."""
+    from testbed._detector_numba import add_scatter_field, scatter_source
+
+    _check_spr(spr)
+    fov = np.ascontiguousarray(fov, dtype=bool)
+    den, _ = _field_weight(fov, sigma_px)
+    p, src = scatter_source(np.ascontiguousarray(primary, dtype=np.float64), fov,
+                            np.ascontiguousarray(scatterer, dtype=bool))
+    low = wide_blur(src, sigma_px)
+    values = add_scatter_field(low, den, float(spr), p, fov, int(np.count_nonzero(fov)))
+    return low, values
+
+
+def _median(values: np.ndarray) -> float:
+    """``np.median(values)`` (the same number), partitioning one rank instead of two: for an
+    even count the lower middle value is the largest below the upper one. Reorders
+    ``values``."""
+    n = len(values)
+    if n == 0:
+        return float("nan")
+    k = n // 2
+    values.partition(k)
+    upper = values[k]
+    if n % 2:
+        return float(upper)
+    return float((values[:k].max() + upper) / 2.0)
+
+
+def abc_photons(fluence: np.ndarray, fov: np.ndarray, target_photons: float, *,
+                field_values: np.ndarray | None = None) -> float:
     """Photons per pixel of the unattenuated beam that automatic brightness control sets so
     that the median detected count in ``fov`` equals ``target_photons``.
 
-    ``fluence`` (H, W): detected fluence relative to the unattenuated beam.
+    ``fluence`` (H, W): detected fluence relative to the unattenuated beam;
+    ``field_values``: ``fluence[fov]`` when the caller has them (reordered here).
     """
-    med = float(np.median(fluence[fov], overwrite_input=True)) if np.any(fov) else 0.0
+    values = fluence[fov] if field_values is None else field_values
+    med = _median(values) if len(values) else 0.0
     if not med > 0:
         raise ValueError("automatic brightness control: no X-rays reach the field of view")
     return target_photons / med
@@ -360,8 +399,9 @@ def video_u8(intensity: np.ndarray, fov: np.ndarray, *, black_u8: int, white_u8:
     if not reference:
         from testbed._detector_numba import video
 
-        return video(np.ascontiguousarray(intensity, dtype=np.float64),
-                     np.ascontiguousarray(fov, dtype=bool), int(black_u8), int(white_u8),
+        log_img = np.maximum(intensity, 1e-12, dtype=np.float64)
+        np.log(log_img, out=log_img)
+        return video(log_img, np.ascontiguousarray(fov, dtype=bool), int(black_u8), int(white_u8),
                      float(display_range), float(noise_u8), np.random.default_rng(rng))
     fov = np.asarray(fov, dtype=bool)
     inside = np.asarray(intensity, dtype=np.float64)[fov]
@@ -415,11 +455,17 @@ def form_image(transmission: np.ndarray, fov: np.ndarray, rho: np.ndarray, fluor
     img *= field.inside
     scatterer = fov & (img < SCATTERER_TRANSMISSION)
     img = blur(img, focal_spot_sigma_px(fluoro.focal_spot_mm, magnification, px))
-    img = add_scatter(img, fov, spr=fluoro.scatter_to_primary,
-                      sigma_px=fluoro.scatter_sigma_mm / px, scatterer=scatterer)
+    values = None
+    if reference or fluoro.scatter_to_primary == 0:
+        img = add_scatter(img, fov, spr=fluoro.scatter_to_primary,
+                          sigma_px=fluoro.scatter_sigma_mm / px, scatterer=scatterer)
+    else:
+        img, values = _scatter_and_field(img, fov, spr=fluoro.scatter_to_primary,
+                                         sigma_px=fluoro.scatter_sigma_mm / px,
+                                         scatterer=scatterer)
     if noise:
         if fluoro.abc_photons_per_pixel > 0:
-            n0 = abc_photons(img, fov, fluoro.abc_photons_per_pixel)
+            n0 = abc_photons(img, fov, fluoro.abc_photons_per_pixel, field_values=values)
         else:
             n0 = fluoro.photons_per_pixel
         exact = exact_noise or getattr(fluoro, "quantum_sampler", "fast") == "exact"

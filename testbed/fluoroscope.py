@@ -859,6 +859,9 @@ class SweepRenderer:
             static.append(a)
         self._static = static
         self._static_exp = [np.exp(-a) for a in static]
+        self._field_px = np.flatnonzero(self.fov)   # the flat pixel of each field ray
+        self._static_full = np.zeros(self.fov.shape)     # the frame without the rod (k = 1)
+        self._static_full[self.fov] = self._static_exp[0]
         self._magnification = _magnification(carm, self.bodies)
 
     def _hull_px(self, rod: list[Body]) -> np.ndarray:
@@ -901,25 +904,34 @@ class SweepRenderer:
             cand, x, y = cand[keep], x[keep], y[keep]
         return cand
 
+    def _with_rod(self, fan: int, rod: list[Body], pts: np.ndarray, weights: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """The rays of fan ``fan`` the rod can meet (indices) and their transmission with the
+        static bodies and the rod."""
+        (o, d, tm), a_static = self._rays[fan], self._static[fan]
+        idx = self._inside_hull(self._uv[fan], pts)
+        if not len(idx):
+            return idx, np.zeros(0)
+        a = a_static[idx] + body_path_lengths(list(rod), o[idx], d[idx], tm[idx]) @ weights
+        return idx, np.exp(-a)
+
     def transmission(self, rod: list[Body]) -> np.ndarray:
         """Primary transmission (H, W) with ``rod`` (robot frame) in the beam."""
         weights = attenuation_weights(self.bodies + list(rod))[len(self.bodies):]
         _check_source_outside(self.carm, list(rod))
         pts = self._hull_px(rod)
         k = len(self._static)
-        trans = np.zeros(len(self._static[0])) if k > 1 else None
-        for (o, d, tm), uv, a_static, e_static in zip(self._rays, self._uv, self._static,
-                                                      self._static_exp):
-            e = e_static.copy()        # exp(-a) of the static bodies, changed where the rod is
-            idx = self._inside_hull(uv, pts)
-            if len(idx):
-                a = a_static[idx] + body_path_lengths(list(rod), o[idx], d[idx],
-                                                      tm[idx]) @ weights
-                e[idx] = np.exp(-a)
-            if k == 1:
-                trans = e
-            else:
-                trans += e / k
+        if k == 1:    # the static frame, changed at the rays the rod can meet
+            full = self._static_full.copy()
+            idx, e = self._with_rod(0, rod, pts, weights)
+            full.flat[self._field_px[idx]] = e
+            return full
+        trans = np.zeros(len(self._static[0]))
+        for fan in range(k):
+            e = self._static_exp[fan].copy()
+            idx, e_rod = self._with_rod(fan, rod, pts, weights)
+            e[idx] = e_rod
+            trans += e / k
         full = np.zeros(self.fov.shape)
         full[self.fov] = trans
         return full

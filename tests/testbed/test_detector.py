@@ -199,6 +199,14 @@ def test_compiled_frame_stages_equal_the_numpy_reference(seed):
     assert np.mean(lam < detector.POISSON_EXACT_BELOW) > 0.01     # both samplers ran
 
 
+def test_one_rank_median_equals_numpy_median():
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 3, 10, 1001, 5000):
+        for values in (rng.normal(0, 1, n), rng.integers(0, 4, n).astype(float)):
+            assert detector._median(values.copy()) == np.median(values)
+    assert math.isnan(detector._median(np.zeros(0)))
+
+
 def test_wide_blur_matches_scipy_reference():
     rng = np.random.default_rng(5)
     img = gaussian_filter(rng.uniform(0, 1, (96, 128)), 6)
