@@ -2,8 +2,8 @@
 
 The numpy Newton iterations of :meth:`testbed.fluoroscope.Distortion.undistort` are the
 reference; this kernel performs the same iteration per point (the same analytic Jacobian and
-tolerance; the start is the reference's, or, for the next pixel of a row, a prediction from
-the previous pixel's solution) in scalar code, evaluating the distortion and its
+tolerance; the start is the reference's, or, along a row of pixels, a prediction from the
+previous solutions) in scalar code, evaluating the distortion and its
 Jacobian together; along a grid row each local term's sine and cosine follow from the
 previous point's by angle addition (:func:`_distort_jac_rec`).
 ``tests/testbed/test_fluoroscope.py`` compares both on random distortions.
@@ -105,20 +105,26 @@ def _distort_jac_rec(ux, uy, cx, cy, r2, k1, k2, rot, sx, sy, amp, freq, phase, 
 
 
 @njit(cache=True)
-def undistort(d, cx, cy, radius, k1, k2, rot, sx, sy, amp, freq, phase, tol, max_iter):
+def undistort(d, cx, cy, radius, k1, k2, rot, sx, sy, amp, freq, phase, tol, max_iter,
+              half_curvature, reach):
     """Undistorted pixels ``(N, 2)`` of distorted ``d (N, 2)``; ``ok`` False where the
     iteration did not reach ``tol`` px in ``max_iter`` steps.
 
-    A point within ``WARM_PX`` of the previous one (the next pixel of a grid row) starts
-    from the previous solution moved by the inverse Jacobian there (a first-order
-    prediction, ~1e-3 px off), and a Newton step shorter than ``0.1 sqrt(tol)`` is accepted
-    without evaluating the residual again (it leaves ~curvature x step^2, some 1e-13 px):
-    two evaluations of the distortion per pixel of a grid instead of the five a cold start
-    with a residual test needs. The result is the reference's to ``tol``.
+    Starts: a point continuing an evenly spaced run of at least four solved points (a row of
+    a pixel grid) starts from their cubic extrapolation (~1e-5 px off for the clinic's
+    distortion); a point within ``WARM_PX`` of the previous one from the previous solution
+    moved by the inverse Jacobian there (~1e-3 px off); others from the reference's start.
+    A Newton step ``s`` is accepted without evaluating the residual again when
+    ``half_curvature * |s|^2 < tol``, ``half_curvature`` half a bound of the distortion's
+    second derivative within ``reach`` px of the centre
+    (:meth:`testbed.fluoroscope.Distortion.curvature_bound`) and both ends of the step
+    inside that disc: by Taylor's theorem the residual after the step is then below ``tol``,
+    the reference's test. From the cubic start that is one evaluation of the distortion per
+    pixel of a grid.
     """
     n = d.shape[0]
     r2 = radius * radius
-    step_tol = 0.1 * np.sqrt(tol)
+    reach2 = reach * reach
     nk = amp.shape[0]
     S = np.zeros(nk)
     C = np.zeros(nk)
@@ -129,15 +135,22 @@ def undistort(d, cx, cy, radius, k1, k2, rot, sx, sy, amp, freq, phase, tol, max
     out = np.empty((n, 2))
     ok = np.ones(n, dtype=np.bool_)
     have_prev = False
-    pdx = pdy = pux = puy = 0.0
+    pdx = pdy = 0.0
     pj00 = pj01 = pj10 = pj11 = 0.0
+    hist = np.zeros((4, 2))     # the last four solutions, the newest first
+    run = 0                     # evenly spaced solved points ending at the previous one
+    rex = rey = 0.0             # their spacing
     for i in range(n):
         dx, dy = d[i, 0], d[i, 1]
-        if have_prev and abs(dx - pdx) <= WARM_PX and abs(dy - pdy) <= WARM_PX:
+        ex, ey = dx - pdx, dy - pdy
+        warm = have_prev and abs(ex) <= WARM_PX and abs(ey) <= WARM_PX
+        if warm and run >= 4 and ex == rex and ey == rey:
+            ux = 4.0 * hist[0, 0] - 6.0 * hist[1, 0] + 4.0 * hist[2, 0] - hist[3, 0]
+            uy = 4.0 * hist[0, 1] - 6.0 * hist[1, 1] + 4.0 * hist[2, 1] - hist[3, 1]
+        elif warm:
             det = pj00 * pj11 - pj01 * pj10
-            ex, ey = dx - pdx, dy - pdy
-            ux = pux + (pj11 * ex - pj01 * ey) / det
-            uy = puy + (-pj10 * ex + pj00 * ey) / det
+            ux = hist[0, 0] + (pj11 * ex - pj01 * ey) / det
+            uy = hist[0, 1] + (-pj10 * ex + pj00 * ey) / det
         else:
             ref[2] = 0.0        # a new sequence: the phases evaluated directly again
             fx, fy, _, _, _, _ = _distort_jac_rec(dx, dy, cx, cy, r2, k1, k2, rot, sx, sy,
@@ -155,16 +168,26 @@ def undistort(d, cx, cy, radius, k1, k2, rot, sx, sy, amp, freq, phase, tol, max
             det = j00 * j11 - j01 * j10
             sx_ = (j11 * rx - j01 * ry) / det
             sy_ = (-j10 * rx + j00 * ry) / det
+            before = (ux - cx) ** 2 + (uy - cy) ** 2
             ux -= sx_
             uy -= sy_
-            if abs(sx_) < step_tol and abs(sy_) < step_tol:
-                # a Newton step this short leaves a residual of order curvature * step^2,
-                # far below tol: accept without another evaluation
-                done = True
+            if (half_curvature * (sx_ * sx_ + sy_ * sy_) < tol and before <= reach2
+                    and (ux - cx) ** 2 + (uy - cy) ** 2 <= reach2):
+                done = True     # the residual after this step is below tol (Taylor)
                 break
         out[i, 0], out[i, 1] = ux, uy
         ok[i] = done
+        if not done:
+            run = 0
+        elif have_prev and run >= 2 and ex == rex and ey == rey:
+            run += 1
+        elif have_prev:
+            run, rex, rey = 2, ex, ey
+        else:
+            run = 1
         have_prev = done
-        pdx, pdy, pux, puy = dx, dy, ux, uy
+        pdx, pdy = dx, dy
+        hist[3], hist[2], hist[1] = hist[2], hist[1], hist[0]
+        hist[0, 0], hist[0, 1] = ux, uy
         pj00, pj01, pj10, pj11 = j00, j01, j10, j11
     return out, ok

@@ -297,6 +297,35 @@ class Distortion:
             J = J + (np.cos(arg) @ m).reshape(J.shape)
         return J
 
+    def curvature_bound(self, radius_px: float) -> float:
+        """An upper bound (1/px) of ``|D2 distort(u)[v, v]|`` over unit ``v`` and every
+        undistorted ``u`` within ``radius_px`` of the centre: a Newton step ``s`` then leaves
+        a residual of at most ``bound / 2 * |s|^2`` (Taylor's theorem), anywhere in that disc.
+
+        With ``t = |p|^2 / R^2`` (``p = u - c``, ``R = radius_px`` of the field), ``g = 1 + k1 t
+        + k2 t^2``, ``theta = rot t`` and ``h = g p``, ``D2 (Rot(theta) h) = Rot''(theta) h
+        Dtheta^2 + Rot'(theta) (h D2theta + 2 Dh Dtheta) + Rot(theta) D2h``, each rotation of
+        norm 1, bounded term by term with ``|g| <= 1 + |k1| T + |k2| T^2``, ``|g'| <= |k1| +
+        2 |k2| T`` (``T`` the largest ``t``), ``|Dh| <= |g| + 2 |g'| T``, ``|D2h| <= 6 |g'| P /
+        R^2 + 8 |k2| P^3 / R^4``, ``|Dtheta| <= 2 |rot| P / R^2``, ``|D2theta| <= 2 |rot| /
+        R^2`` (``P = radius_px``); each local term adds ``|a_k| (2 pi |f_k|)^2``.
+        """
+        P = float(radius_px)
+        R2 = float(self.radius_px) ** 2
+        T = P * P / R2
+        k1, k2, rot = abs(self.k1), abs(self.k2), abs(self.rotation_edge_rad)
+        g = 1.0 + k1 * T + k2 * T * T
+        dg = k1 + 2.0 * k2 * T
+        h, dh = g * P, g + 2.0 * dg * T
+        d2h = 6.0 * dg * P / R2 + 8.0 * k2 * P**3 / R2**2
+        dth, d2th = 2.0 * rot * P / R2, 2.0 * rot / R2
+        bound = h * dth * dth + h * d2th + 2.0 * dh * dth + d2h
+        if self.local:
+            a, f, _ = self._local_arrays()
+            bound += float(np.sum(np.linalg.norm(a, axis=1)
+                                  * (2.0 * np.pi * np.linalg.norm(f, axis=1)) ** 2))
+        return bound
+
     def undistort(self, xy_px, *, tol_px: float = 1e-10, max_iter: int = 50,
                   reference: bool = False) -> np.ndarray:
         """Undistorted pixels ``(N, 2)`` of distorted pixels ``(N, 2)``: ``distort``'s inverse.
@@ -313,12 +342,18 @@ class Distortion:
             from testbed._distortion_numba import undistort
 
             a, f, ph = self._local_arrays()
+            # the disc where a step may be accepted by the curvature bound (beyond it, the
+            # residual is evaluated): the inputs' reach and room for the displacement
+            reach = 1.25 * float(np.max(np.hypot(d[:, 0] - self.center_px[0],
+                                                 d[:, 1] - self.center_px[1]),
+                                        initial=0.0)) + 20.0
             u, ok = undistort(np.ascontiguousarray(d), float(self.center_px[0]),
                               float(self.center_px[1]), float(self.radius_px), float(self.k1),
                               float(self.k2), float(self.rotation_edge_rad),
                               float(self.shift_px[0]), float(self.shift_px[1]),
                               np.ascontiguousarray(a), np.ascontiguousarray(f),
-                              np.ascontiguousarray(ph), float(tol_px), int(max_iter))
+                              np.ascontiguousarray(ph), float(tol_px), int(max_iter),
+                              0.5 * self.curvature_bound(reach), reach)
             if ok.all():
                 return u.reshape(shape)
             raise ValueError(
