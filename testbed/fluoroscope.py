@@ -553,15 +553,21 @@ class CArm:
     def pixel_ray_map(self) -> tuple[np.ndarray, np.ndarray]:
         """The truth: the X-ray path of every pixel, ``origins (H, W, 3)`` and unit
         ``directions (H, W, 3)`` in the robot frame (mm)."""
+        o, d = self._ray_map()
+        return o.copy(), d.copy()
+
+    def _ray_map(self) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`pixel_ray_map`'s arrays as cached (read-only; origins a broadcast view)."""
         if "rays" not in self._cache:
             p = self._plane_points(self._undistorted_grid().reshape(-1, 2))
             d = p / np.linalg.norm(p, axis=1, keepdims=True)
             d = np.einsum("ij,nj->ni", self.carm2robot.R, d)
             shape = (self.height_px, self.width_px, 3)
             o = np.broadcast_to(self.source_robot, d.shape)
-            self._cache["rays"] = (o.reshape(shape), d.reshape(shape))
-        o, d = self._cache["rays"]
-        return o.copy(), d.copy()
+            d = d.reshape(shape)
+            d.flags.writeable = False
+            self._cache["rays"] = (o.reshape(shape), d)
+        return self._cache["rays"]
 
     def fov_rho(self, xy_px) -> np.ndarray:
         """Radius on the input plane over the field-of-view radius, for distorted pixels
@@ -734,21 +740,30 @@ def _sub_offsets(n: int) -> np.ndarray:
     return np.stack([x.ravel(), y.ravel()], 1)
 
 
-def _field_rays(carm: CArm, fov: np.ndarray, n_sub: int):
+def _field_rays(carm: CArm, n_sub: int) -> list[tuple]:
     """Per sub-pixel offset of an ``n_sub`` x ``n_sub`` oversampling, the X-ray paths of
-    the field's pixels: ``(origins, directions, t_max, undistorted pixels)``, t_max (mm)
-    reaching the input plane. One sample per pixel takes the C-arm's cached ray map."""
-    subs = _sub_offsets(n_sub)
-    grid = carm.pixel_grid()[fov] if n_sub > 1 else None
-    for off in subs:
-        if n_sub == 1:
-            o, d = carm.pixel_ray_map()
-            o, d = o[fov], d[fov]
-            uv = carm._undistorted_grid()[fov]
-        else:
-            uv = carm.undistort_px(grid + off)
-            o, d = carm.rays_of_undistorted(uv)
-        yield o, d, carm.sid_mm / (d @ carm.axis_robot), uv
+    the pixels of the C-arm's field of view: ``(origins, directions, t_max, undistorted
+    pixels)``, t_max (mm) reaching the input plane. One sample per pixel takes the C-arm's
+    ray map. Kept in the C-arm's cache (a pose's rays never change), read-only."""
+    key = ("field_rays", n_sub)
+    if key not in carm._cache:
+        fov = carm.fov_mask()
+        grid = carm.pixel_grid()[fov] if n_sub > 1 else None
+        rays = []
+        for off in _sub_offsets(n_sub):
+            if n_sub == 1:
+                o, d = carm._ray_map()
+                o, d = o[fov], d[fov]
+                uv = carm._undistorted_grid()[fov]
+            else:
+                uv = carm.undistort_px(grid + off)
+                o, d = carm.rays_of_undistorted(uv)
+            ray = (o, d, carm.sid_mm / (d @ carm.axis_robot), uv)
+            for a in ray:
+                a.flags.writeable = False
+            rays.append(ray)
+        carm._cache[key] = rays
+    return carm._cache[key]
 
 
 def _field_fans(carm: CArm, n_sub: int) -> list[FanRays]:
@@ -758,7 +773,7 @@ def _field_fans(carm: CArm, n_sub: int) -> list[FanRays]:
     key = ("fans", n_sub)
     if key not in carm._cache:
         fans = []
-        for _o, d, tm, _ in _field_rays(carm, carm.fov_mask(), n_sub):
+        for _o, d, tm, _ in _field_rays(carm, n_sub):
             fan = FanRays.of(carm.source_robot, np.ascontiguousarray(d), tm)
             if fan is None:  # a field wider than 160 degrees: not a fluoroscope
                 raise ValueError(f"view {carm.name!r}: the field of view is too wide to "
@@ -823,7 +838,7 @@ def render(carm: CArm, bodies: list[Body], *, fluoro: FluoroscopeSpec, rng=None,
         per_offset = (ray_scene.fan_path_lengths(fan) for fan in _field_fans(carm, n_sub))
     else:
         per_offset = (body_path_lengths(bodies, o, d, t_max, engine=engine)
-                      for o, d, t_max, _ in _field_rays(carm, fov, n_sub))
+                      for o, d, t_max, _ in _field_rays(carm, n_sub))
     for L in per_offset:
         a = L @ weights
         if n_sub == 1:
@@ -887,7 +902,7 @@ class SweepRenderer:
         weights = attenuation_weights(self.bodies)
         scene = RayScene(self.bodies) if self.bodies else None
         fans = _field_fans(carm, fluoro.oversample)
-        for fan, (o, d, tm, uv) in zip(fans, _field_rays(carm, self.fov, fluoro.oversample)):
+        for fan, (o, d, tm, uv) in zip(fans, _field_rays(carm, fluoro.oversample)):
             a = (scene.fan_path_lengths(fan) @ weights if self.bodies else np.zeros(len(o)))
             self._rays.append((np.ascontiguousarray(o), np.ascontiguousarray(d), tm))
             self._uv.append(np.ascontiguousarray(uv))      # undistorted pixel of each ray
