@@ -311,6 +311,40 @@ def test_curvature_bound_bounds_the_second_derivative(seed):
 
 
 @pytest.mark.parametrize("seed", range(3))
+def test_field_of_view_from_the_bounded_pixels_equals_the_full_map(seed):
+    """The field found by inverting only the pixels within the field's radius plus the
+    displacement bound equals the one from the whole inverted grid (a fresh C-arm), and so
+    do its undistorted pixels, its radius map and the rays cast through it; the bound holds
+    on random points of the disc."""
+    from testbed.fluoroscope import _field_rays
+
+    rng = np.random.default_rng(seed)
+    spec = FluoroscopeSpec(distortion_local_mm=float(rng.uniform(0.0, 1.0)),
+                           distortion_drift_mm=float(rng.uniform(0.0, 0.5)),
+                           distortion_seed=int(rng.integers(0, 1000)),
+                           pincushion_k1=float(rng.uniform(-0.05, 0.08)))
+    view = ViewSpec(name=f"v{seed}", isocenter_mm=(800.0, 0.0, 200.0),
+                    orbital_deg=float(rng.uniform(-30, 30)))
+    bounded = make_carm(spec, view, view_index=seed)
+    full = make_carm(spec, view, view_index=seed)
+    fov_full = full.rho_map() <= 1.0
+    np.testing.assert_array_equal(bounded.fov_mask(), fov_full)
+    fov, uv, rho = bounded._field()
+    assert np.abs(uv - full._undistorted_grid()[fov_full]).max() < 1e-9
+    assert np.abs(rho[fov] - full.rho_map()[fov_full]).max() < 1e-12
+    d_field = _field_rays(bounded, 1)[0][1]
+    assert np.abs(d_field - full.pixel_ray_map()[1][fov_full]).max() < 1e-12
+    # the whole grid afterwards takes the field's values: truth and rendering agree exactly
+    np.testing.assert_array_equal(bounded._undistorted_grid()[fov], uv)
+    dist = bounded.distortion
+    radius = bounded.fov_radius_mm / bounded.pixel_mm
+    ang, r = rng.uniform(0, 2 * np.pi, 20000), radius * np.sqrt(rng.uniform(0, 1, 20000))
+    u = np.asarray(bounded.principal_px) + np.column_stack([r * np.cos(ang), r * np.sin(ang)])
+    seen = np.linalg.norm(dist.distort(u) - u, axis=1).max()
+    assert seen <= dist.displacement_bound(bounded.principal_px, radius) < 4 * seen + 1
+
+
+@pytest.mark.parametrize("seed", range(3))
 def test_compiled_undistort_equals_the_numpy_reference(seed):
     """The compiled per-point Newton inverse against the numpy iterations, on random
     distortion magnitudes (pincushion, S-rotation, local terms and drift) over the whole
