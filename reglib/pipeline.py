@@ -358,7 +358,7 @@ def xray_contours(view: str, image, clicks: Mapping) -> ViewContours:
     each click, ``external`` (T,) bool, ``closed`` (T,) bool. A trace the snake cannot follow
     is left out and named in ``problems``.
     """
-    from reglib.xray_contours import field_of_view_mask, xray_contour
+    from reglib.xray_contours import field_of_view_mask, prepare_xray, xray_contour
 
     img = np.asarray(image, dtype=np.float64)
     xy = np.asarray(clicks["clicks_xy"], dtype=np.float64).reshape(-1, 2)
@@ -366,10 +366,14 @@ def xray_contours(view: str, image, clicks: Mapping) -> ViewContours:
     ext = np.asarray(clicks["external"], dtype=bool).reshape(-1)
     closed = np.asarray(clicks["closed"], dtype=bool).reshape(-1)
     mask = field_of_view_mask(img)
+    try:
+        filled = prepare_xray(img, fov_mask=mask)
+    except ValueError as exc:      # no field of view: no trace can be followed
+        return ViewContours(view, np.zeros((0, 2)), np.zeros(0, bool), (f"view {view}: {exc}",))
     pts, flags, problems = [], [], []
     for t in range(len(ext)):
         try:
-            c = xray_contour(img, xy[tr == t], fov_mask=mask,
+            c = xray_contour(img, xy[tr == t], fov_mask=mask, filled=filled,
                              label="external" if ext[t] else "internal", closed=bool(closed[t]))
         except ValueError as exc:
             problems.append(f"view {view}: trace {t}: {exc}")

@@ -187,6 +187,28 @@ def refine_edge_profile(image, contour_xy, *, closed: bool = False, half_width_p
     return c + off[:, None] * n
 
 
+LENIENT_PX = 4
+"""A click within this many pixels (4-connected steps) of the field of view is accepted."""
+
+
+def _near_mask(mask: np.ndarray, rows: np.ndarray, cols: np.ndarray, steps: int) -> np.ndarray:
+    """For pixels ``(rows, cols)``: whether they lie in ``ndimage.binary_dilation(mask,
+    iterations=steps)`` (a pixel of the mask within ``steps`` 4-connected steps, i.e. L1
+    distance; a pixel outside the image is not), looked up in a window per pixel instead of
+    dilating the whole mask (``tests/reglib/test_xray_contours.py`` compares them)."""
+    H, W = mask.shape
+    out = np.zeros(len(rows), dtype=bool)
+    for i, (r, c) in enumerate(zip(rows, cols, strict=True)):
+        if not (0 <= r < H and 0 <= c < W):
+            continue
+        r0, r1 = max(r - steps, 0), min(r + steps + 1, H)
+        c0, c1 = max(c - steps, 0), min(c + steps + 1, W)
+        dr = np.abs(np.arange(r0, r1) - r)[:, None]
+        dc = np.abs(np.arange(c0, c1) - c)[None, :]
+        out[i] = bool(np.any(mask[r0:r1, c0:c1] & (dr + dc <= steps)))
+    return out
+
+
 def xray_contour(
     image,
     clicks_xy,
@@ -197,6 +219,7 @@ def xray_contour(
     fine_sigma_px: float = 1.0,
     spacing_px: float = 2.0,
     profile_fit: bool = True,
+    filled=None,
     **snake_options,
 ) -> XrayContour:
     """One bone contour from a few clicks on an X-ray image.
@@ -212,6 +235,8 @@ def xray_contour(
     fine_sigma_px, spacing_px, snake_options : passed to
         :func:`reglib.contours.snake_contour`.
     profile_fit : finish with :func:`refine_edge_profile` (else the snake's gradient maximum).
+    filled : the image as :func:`prepare_xray` gives it for ``fov_mask`` (computed when
+        None); pass it when tracing several contours on one image.
 
     Returns
     -------
@@ -232,16 +257,16 @@ def xray_contour(
         raise ValueError(f"clicks_xy: expected a (K, 2) array of (x, y) px, got {pts.shape}")
     # a click is accepted anywhere in the field, its blurred rim included (the snake works on
     # the filled image, so a click just outside the eroded mask does no harm)
-    lenient = ndimage.binary_dilation(mask, iterations=4)
-    inside = np.zeros(len(pts), dtype=bool)
-    r = np.rint(pts[:, 1]).astype(int)
-    c = np.rint(pts[:, 0]).astype(int)
-    ok = (r >= 0) & (r < img.shape[0]) & (c >= 0) & (c < img.shape[1])
-    inside[ok] = lenient[r[ok], c[ok]]
+    inside = _near_mask(mask, np.rint(pts[:, 1]).astype(int), np.rint(pts[:, 0]).astype(int),
+                        LENIENT_PX)
     if not inside.all():
         bad = np.flatnonzero(~inside).tolist()
         raise ValueError(f"clicks_xy: clicks {bad} lie outside the image's field of view")
-    filled = prepare_xray(img, fov_mask=mask)
+    if filled is None:
+        filled = prepare_xray(img, fov_mask=mask)
+    elif np.shape(filled) != img.shape:
+        raise ValueError(f"filled: shape {np.shape(filled)} differs from the image's "
+                         f"{img.shape}")
     pts_out = snake_contour(filled, pts, closed=closed, fine_sigma_px=fine_sigma_px,
                             spacing_px=spacing_px, **snake_options)
     if profile_fit:
@@ -253,10 +278,12 @@ def xray_contours(image, traces: Sequence[dict], *, fov_mask=None) -> list[XrayC
     """Several contours on one image.
 
     ``traces``: a sequence of dicts with ``clicks_xy`` and optionally ``label`` and
-    ``closed`` (and snake options); the field of view is estimated once.
+    ``closed`` (and snake options); the field of view is estimated and the image prepared
+    once.
     """
     img = np.asarray(image, dtype=np.float64)
     mask = field_of_view_mask(img) if fov_mask is None else fov_mask
+    filled = prepare_xray(img, fov_mask=mask) if len(traces) else None
     out = []
     for i, tr in enumerate(traces):
         tr = dict(tr)
@@ -264,7 +291,7 @@ def xray_contours(image, traces: Sequence[dict], *, fov_mask=None) -> list[XrayC
             raise ValueError(f"traces[{i}]: missing 'clicks_xy'")
         clicks = tr.pop("clicks_xy")
         try:
-            out.append(xray_contour(img, clicks, fov_mask=mask, **tr))
+            out.append(xray_contour(img, clicks, fov_mask=mask, filled=filled, **tr))
         except ValueError as exc:
             raise ValueError(f"traces[{i}]: {exc}") from None
     return out

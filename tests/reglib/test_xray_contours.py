@@ -6,7 +6,13 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from reglib.xray_contours import XrayContour, field_of_view_mask, xray_contour, xray_contours
+from reglib.xray_contours import (
+    XrayContour,
+    _near_mask,
+    field_of_view_mask,
+    xray_contour,
+    xray_contours,
+)
 from testbed.bodies import Body
 from testbed.fluoroscope import FluoroscopeSpec, ViewSpec, make_carm, render
 
@@ -93,3 +99,18 @@ def test_field_of_view_and_bad_input(frames):
         xray_contour(np.zeros((3, 4, 5)), edge[[1000, 1500]])
     with pytest.raises(ValueError, match="label"):
         XrayContour(np.zeros((3, 2)), "middle", False)
+
+
+def test_click_window_check_equals_the_dilated_mask():
+    """The per-click window lookup against ndimage.binary_dilation of the mask (4 steps),
+    on random masks with clicks everywhere, beyond the image's edges included."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(4)
+    for _ in range(5):
+        mask = ndimage.binary_opening(rng.uniform(0, 1, (40, 60)) > 0.7)
+        rows, cols = rng.integers(-6, 46, 400), rng.integers(-6, 66, 400)
+        ref = np.zeros(len(rows), dtype=bool)
+        ok = (rows >= 0) & (rows < 40) & (cols >= 0) & (cols < 60)
+        ref[ok] = ndimage.binary_dilation(mask, iterations=4)[rows[ok], cols[ok]]
+        np.testing.assert_array_equal(_near_mask(mask, rows, cols, 4), ref)
