@@ -518,24 +518,42 @@ class Robot:
         b = self._link_position_mm(self.nominal_id, self.end_link)
         return a, b
 
-    def _newton(self, q, goal_a, goal_b, *, iterations=12):
-        """Gauss-Newton refinement of joints ``q`` (internal units) towards the two targets.
+    def _jacobian(self, q) -> np.ndarray:
+        """``d(bead 0, last bead) / dq`` (6, 5), mm per internal joint unit, of the nominal
+        arm at joints ``q`` (internal units): pybullet's analytic Jacobian of the two link
+        frames' origins (their inertial frames coincide with them in our URDF)."""
+        self._set(self.nominal_id, q)
+        zeros = [0.0] * len(self.movable)
+        rows = []
+        for link in (self.bead0_link, self.end_link):
+            lin, _ = pybullet.calculateJacobian(self.nominal_id, link, [0.0, 0.0, 0.0],
+                                                [float(v) for v in q], zeros, zeros,
+                                                physicsClientId=self.client)
+            rows.append(np.asarray(lin, dtype=float) / _M)
+        return np.vstack(rows)
 
-        Jacobian by central differences (pybullet returns link poses in single precision, so
-        the step is large enough to stay above its rounding); steps are clipped to the limits.
-        """
+    def _jacobian_reference(self, q, h: float = 1e-3) -> np.ndarray:
+        """:meth:`_jacobian` by central differences of the forward kinematics (the reference
+        in tests; pybullet's link poses are single precision, hence the large step)."""
+        J = np.empty((6, 5))
+        for k in range(5):
+            e = np.zeros(5)
+            e[k] = h
+            plus = np.concatenate(self._targets_mm(q + e))
+            minus = np.concatenate(self._targets_mm(q - e))
+            J[:, k] = (plus - minus) / (2 * h)
+        return J
+
+    def _newton(self, q, goal_a, goal_b, *, iterations=12):
+        """Gauss-Newton refinement of joints ``q`` (internal units) towards the two targets
+        (analytic Jacobian); steps are clipped to the limits."""
         def resid(x):
             a, b = self._targets_mm(x)
             return np.r_[a - goal_a, b - goal_b]
 
-        h = 1e-5
         r = resid(q)
         for _ in range(iterations):
-            J = np.empty((6, 5))
-            for k in range(5):
-                e = np.zeros(5)
-                e[k] = h
-                J[:, k] = (resid(q + e) - resid(q - e)) / (2 * h)
+            J = self._jacobian(q)
             dq = np.linalg.lstsq(J, -r, rcond=1e-10)[0]
             q_new = np.clip(q + dq, self.lower, self.upper)
             r_new = resid(q_new)

@@ -32,6 +32,20 @@ def test_ik_fk_round_trip_below_0_01_mm():
             assert np.abs(robot.bead_positions(true=True) - beads).max() < 1e-3
 
 
+def test_analytic_jacobian_equals_finite_differences():
+    """The inverse kinematics' Jacobian (pybullet's analytic one) against central differences
+    of the forward kinematics at random joints: equal to the differences' own error (their
+    step's curvature term and single-precision link poses, ~0.05 mm per unit)."""
+    rng = np.random.default_rng(3)
+    with Robot(RobotSpec(), rng=0) as robot:
+        for _ in range(6):
+            q = robot.lower + rng.uniform(0.1, 0.9, 5) * (robot.upper - robot.lower)
+            J = robot._jacobian(q)
+            ref = robot._jacobian_reference(q)
+            assert np.abs(J - ref).max() < 0.1, np.abs(J - ref).max()
+            assert np.abs(ref).max() > 100.0
+
+
 def test_reported_pose_differs_from_true_pose_with_robot_errors():
     rng = np.random.default_rng(3)
     spec = RobotSpec(encoder_noise_deg=0.002, encoder_noise_mm=0.005,
