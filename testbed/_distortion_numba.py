@@ -43,7 +43,7 @@ TINY_RAD = 2e-3
 """Phase steps up to this (rad) need only three Taylor terms."""
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", fastmath={"reassoc", "contract", "nsz"})
 def _distort_jac_rec(ux, uy, cx, cy, r2, k1, k2, rot, sx, sy, amp, freq, phase, f_max,
                      S, C, ref):
     """distort(u) and its Jacobian at one undistorted point (see Distortion), for a
@@ -104,7 +104,7 @@ def _distort_jac_rec(ux, uy, cx, cy, r2, k1, k2, rot, sx, sy, amp, freq, phase, 
     return fx, fy, j00, j01, j10, j11
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"reassoc", "contract", "nsz"})
 def undistort(d, cx, cy, radius, k1, k2, rot, sx, sy, amp, freq, phase, tol, max_iter,
               half_curvature, reach):
     """Undistorted pixels ``(N, 2)`` of distorted ``d (N, 2)``; ``ok`` False where the
