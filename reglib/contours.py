@@ -34,6 +34,7 @@ __all__ = [
     "contours_from_ct",
     "gradient_potential",
     "refine_subpixel",
+    "cubic_coefficients",
     "resample_polygon",
     "snake_contour",
 ]
@@ -139,10 +140,42 @@ def _outward(c: np.ndarray, n: np.ndarray, closed: bool) -> np.ndarray:
     return n if area2 > 0 else -n
 
 
+SPLINE_PAD_PX = 12
+"""Edge padding before the cubic B-spline prefilter: what ``ndimage.map_coordinates`` pads
+for ``mode="nearest"``, so that :func:`cubic_coefficients` and :func:`_sample_cubic` give
+its values."""
+
+
+def cubic_coefficients(image) -> np.ndarray:
+    """Cubic B-spline coefficients of ``image`` (H, W) for :func:`refine_subpixel`'s
+    ``spline``: the prefilter ``ndimage.map_coordinates(..., order=3, mode="nearest")``
+    runs on every call, done once for several calls on one image."""
+    padded = np.pad(np.asarray(image, dtype=np.float64), SPLINE_PAD_PX, mode="edge")
+    return ndimage.spline_filter(padded, 3, output=np.float64, mode="nearest")
+
+
+def _sample_cubic(coefficients: np.ndarray, rows, cols) -> np.ndarray:
+    """``ndimage.map_coordinates(image, [rows, cols], order=3, mode="nearest")`` from
+    :func:`cubic_coefficients` of ``image`` (compared in tests)."""
+    return ndimage.map_coordinates(coefficients, [rows + SPLINE_PAD_PX, cols + SPLINE_PAD_PX],
+                                   order=3, mode="nearest", prefilter=False)
+
+
+def _nanmedian_rows(a: np.ndarray) -> np.ndarray:
+    """``np.nanmedian(a, axis=1)`` (the same numbers; NaN for a row without a finite
+    value, without the warning) by one sort of the rows: NaN sorts last."""
+    s = np.sort(a, axis=1)
+    n = np.count_nonzero(~np.isnan(a), axis=1)
+    rows = np.arange(len(a))
+    hi = s[rows, np.minimum(n // 2, a.shape[1] - 1)]
+    lo = s[rows, np.maximum((n - 1) // 2, 0)]
+    return np.where(n == 0, np.nan, np.where(n % 2 == 1, hi, (lo + hi) / 2.0))
+
+
 def refine_subpixel(image, contour_xy, *, search_px: float = 2.5, step_px: float = 0.25,
                     closed: bool = True, polarity: str | None = None,
                     max_jump_px: float = 1.0, normal_sigma: float = 0.0,
-                    neighbour_edges: bool = False) -> np.ndarray:
+                    neighbour_edges: bool = False, spline=None) -> np.ndarray:
     """Move each vertex along its normal to the sub-pixel position of the edge.
 
     ``image`` is sampled (bicubic) at ``step_px`` intervals within ``+-search_px`` along the
@@ -174,6 +207,8 @@ def refine_subpixel(image, contour_xy, *, search_px: float = 2.5, step_px: float
         (0: the contour's own central differences).
     neighbour_edges : also accept an edge point that lies on the neighbours' edge curve
         (see above; :func:`contours_from_ct` turns it on).
+    spline : :func:`cubic_coefficients` of ``image`` (computed when None), for several calls
+        on one image.
 
     Returns
     -------
@@ -189,8 +224,9 @@ def refine_subpixel(image, contour_xy, *, search_px: float = 2.5, step_px: float
     t = np.arange(-search_px, search_px + step_px / 2, step_px)
     px = c[:, None, 0] + t[None, :] * n[:, None, 0]
     py = c[:, None, 1] + t[None, :] * n[:, None, 1]
-    vals = ndimage.map_coordinates(image, [py.ravel(), px.ravel()], order=3,
-                                   mode="nearest").reshape(px.shape)
+    if spline is None:
+        spline = cubic_coefficients(image)
+    vals = _sample_cubic(spline, py.ravel(), px.ravel()).reshape(px.shape)
     if polarity is not None:
         if polarity not in ("bright_inside", "dark_inside"):
             raise ValueError(f"polarity must be None, 'bright_inside' or 'dark_inside', "
@@ -210,9 +246,7 @@ def refine_subpixel(image, contour_xy, *, search_px: float = 2.5, step_px: float
     w = 3
     idx = np.arange(-w, w + 1)[None, :] + np.arange(len(c))[:, None]
     idx = idx % len(c) if closed else np.clip(idx, 0, len(c) - 1)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows
-        med = np.nanmedian(off[idx], axis=1)
+    med = _nanmedian_rows(off[idx])
     med = np.where(np.isfinite(med), med, 0.0)
     # the edge points of the next vertex on either side, along this vertex's normal
     edge = c + off[:, None] * n                      # NaN where no edge was found
@@ -404,14 +438,16 @@ def snake_contour(
                    closed=closed, boundary=boundary_condition)
     c = np.clip(c, 0, lim)
     if subpixel:
+        spline = cubic_coefficients(edge_img)
         for _ in range(2):
             c = refine_subpixel(edge_img, c, closed=closed, polarity=polarity,
                                 search_px=search_px, normal_sigma=normal_sigma,
-                                neighbour_edges=neighbour_edges)
+                                neighbour_edges=neighbour_edges, spline=spline)
             c = resample_polygon(np.clip(c, 0, lim), spacing_px, closed=closed,
                                  min_points=len(c) // 2)
         c = refine_subpixel(edge_img, c, closed=closed, polarity=polarity, search_px=search_px,
-                            normal_sigma=normal_sigma, neighbour_edges=neighbour_edges)
+                            normal_sigma=normal_sigma, neighbour_edges=neighbour_edges,
+                            spline=spline)
     return c + off
 
 

@@ -4,7 +4,14 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from reglib.contours import contours_from_ct, refine_subpixel, snake_contour
+from reglib.contours import (
+    _nanmedian_rows,
+    _sample_cubic,
+    contours_from_ct,
+    cubic_coefficients,
+    refine_subpixel,
+    snake_contour,
+)
 
 
 def _ellipse_points(cx, cy, a, b, ang, n):
@@ -169,3 +176,29 @@ def test_fast_snake_steps_equal_scikit_image(seed, boundary):
                     x, y, gx, gy)
     assert np.abs(gx - intp(x, y, dx=1, grid=False)).max() < 1e-12
     assert np.abs(gy - intp(x, y, dy=1, grid=False)).max() < 1e-12
+
+
+def test_prefiltered_cubic_sampling_equals_map_coordinates():
+    """The spline coefficients computed once and sampled, against
+    ndimage.map_coordinates(order=3, mode="nearest") on random images, points beyond the
+    edges included."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(2)
+    for shape in ((17, 23), (64, 40)):
+        img = rng.normal(0, 1, shape)
+        rows = rng.uniform(-5, shape[0] + 5, 500)
+        cols = rng.uniform(-5, shape[1] + 5, 500)
+        ref = ndimage.map_coordinates(img, [rows, cols], order=3, mode="nearest")
+        got = _sample_cubic(cubic_coefficients(img), rows, cols)
+        assert np.abs(got - ref).max() < 1e-12
+
+
+def test_row_nanmedian_equals_numpy():
+    rng = np.random.default_rng(5)
+    a = rng.normal(0, 1, (300, 7))
+    a[rng.uniform(0, 1, a.shape) < 0.3] = np.nan
+    a[:4] = np.nan                     # rows without a finite value
+    with np.errstate(all="ignore"), pytest.warns(RuntimeWarning):
+        ref = np.nanmedian(a, axis=1)
+    np.testing.assert_array_equal(_nanmedian_rows(a), ref)
