@@ -109,6 +109,26 @@ def test_case_round_trips_exactly(tmp_path):
     assert _same(frame, case["images"]["xray"][1])
 
 
+def test_npz_members_deflate_only_when_it_pays(tmp_path):
+    """Noise-like float64 (the ray directions' kind) is stored as it is, regular data is
+    deflated; np.load reads both back exactly."""
+    import zipfile
+
+    from testbed import dataset
+
+    rng = np.random.default_rng(0)
+    arrs = {"noise": rng.normal(size=(400, 600)), "flat": np.zeros((400, 600)),
+            "small": rng.normal(size=10)}
+    path = tmp_path / "x.npz"
+    dataset._savez_fast(path, arrs)
+    kinds = {i.filename: i.compress_type for i in zipfile.ZipFile(path).infolist()}
+    assert kinds == {"noise.npy": zipfile.ZIP_STORED, "flat.npy": zipfile.ZIP_DEFLATED,
+                     "small.npy": zipfile.ZIP_DEFLATED}
+    with np.load(path) as z:
+        for k, a in arrs.items():
+            np.testing.assert_array_equal(z[k], a)
+
+
 def test_load_splits_observation_and_truth(tmp_path):
     case = small_case(4)
     write_case(tmp_path / "c", case, truth=TRUTH)
