@@ -185,10 +185,9 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
                          "choose a new or empty folder")
     # an impossible acquisition is refused before anything is written (each case is checked
     # again when it is simulated: its femur may differ)
-    from testbed.simulate import case_world
-    from testbed.workspace import require_feasible
+    from testbed.simulate import checked_world
 
-    require_feasible(*case_world(scene, case_seed(int(seed), 0)))
+    first = checked_world(scene, case_seed(int(seed), 0))      # case 0 reuses it
     out.mkdir(parents=True, exist_ok=True)
     n_all = max(int(cases), len(old.get("cases", [])))
     dirs = [out / f"case_{i:04d}" for i in range(n_all)]
@@ -203,7 +202,8 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
         case_dir = dirs[i]
         if (case_dir / CASE_FILE).is_file() and case_dir.name in hashes:
             continue
-        sim = simulate(scene, case_seed(int(seed), i), truth_rays=True, progress=progress)
+        sim = simulate(scene, case_seed(int(seed), i), truth_rays=True, progress=progress,
+                       prepared=first if i == 0 else None)
         case, truth = case_entries(sim)
         case["meta"].update(case_index=i, dataset_seed=int(seed), scene_path=str(scene_path),
                             timings_s=sim.timings)

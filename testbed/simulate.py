@@ -48,6 +48,7 @@ __all__ = [
     "Simulation",
     "case_seed",
     "case_world",
+    "checked_world",
     "simulate",
     "simulate_case",
     "simulate_ct",
@@ -149,6 +150,16 @@ def case_world(scene, seed=0, *, index: int = 0):
     return scene, build_world(scene, np.random.default_rng(streams["world"]))
 
 
+def checked_world(scene, seed=0, *, index: int = 0):
+    """:func:`case_world` and its workspace check (``testbed.workspace.require_feasible``,
+    which raises for a view that cannot be taken): ``(scene, world, reports)``, as
+    :func:`simulate` makes them; pass it to :func:`simulate` as ``prepared``."""
+    from testbed.workspace import require_feasible
+
+    scene, world = case_world(scene, seed, index=index)
+    return scene, world, require_feasible(scene, world)
+
+
 def simulate_ct(scene, seed=0, *, index: int = 0, world=None) -> CtCase:
     """The world, the CT scan and the operator's CT clicks of a case, exactly as
     :func:`simulate` makes them (same seed streams), without fluoroscopy. ``world``: the
@@ -168,7 +179,7 @@ def simulate_ct(scene, seed=0, *, index: int = 0, world=None) -> CtCase:
 
 
 def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: bool = False,
-             progress: bool = False) -> Simulation:
+             progress: bool = False, prepared=None) -> Simulation:
     """Simulate one case of an operating-room scene.
 
     Parameters
@@ -187,6 +198,9 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
         per 640 x 480 view; the datasets have them).
     progress : bool
         A progress bar over the stages.
+    prepared : tuple or None
+        This case's :func:`checked_world` when the caller has already made it (the world
+        is then not built and checked again).
 
     Raises ``ValueError`` naming the scene, view or stage when the case cannot be simulated.
     """
@@ -196,7 +210,6 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
     from testbed.operator import xray_clicks
     from testbed.robot import Robot
     from testbed.sweep import run_sweep
-    from testbed.workspace import require_feasible
 
     if scene.scene.kind != "operating_room" or not scene.views:
         raise ValueError(f"scene {scene.scene.name!r} (kind {scene.scene.kind!r}): simulating a "
@@ -221,8 +234,7 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
 
     # 1. the world, and the check that every view and sweep pose can be taken
     t0 = time.perf_counter()
-    scene, world = case_world(scene, css)
-    workspace = require_feasible(scene, world)
+    scene, world, workspace = checked_world(scene, css) if prepared is None else prepared
     tick("world+workspace", t0)
     # 2. CT and the operator's clicks on it
     t0 = time.perf_counter()
