@@ -197,26 +197,47 @@ def wide_blur_reference(img: np.ndarray, sigma_px: float) -> np.ndarray:
                            mode="nearest")
 
 
-_FIELD_WEIGHTS: dict = {}
+_FOV_ENTRIES: dict = {}
+
+
+def _fov_entry(fov: np.ndarray) -> dict:
+    """What the chain derives from a field-of-view mask, remembered by the mask's content for
+    the last 16 masks (every frame of a C-arm has the same field): ``"inside"``, the mask as
+    1.0 / 0.0 (a product with it zeroes the outside, faster than indexing), and whatever
+    :func:`_field_weight` and :func:`_field` add; arrays read-only."""
+    fov = np.ascontiguousarray(fov, dtype=bool)
+    key = (fov.shape, hash(fov.tobytes()))
+    if key not in _FOV_ENTRIES:
+        if len(_FOV_ENTRIES) >= 16:
+            _FOV_ENTRIES.pop(next(iter(_FOV_ENTRIES)))
+        inside = fov.astype(np.float64)
+        inside.flags.writeable = False
+        _FOV_ENTRIES[key] = {"inside": inside}
+    return _FOV_ENTRIES[key]
+
+
+def _derived(entry: dict, key, make):
+    """``entry[key]``, made by ``make()`` when missing; an entry keeps its 16 newest derived
+    items (a study's C-arms may share one mask, each with its own radius map)."""
+    if key not in entry:
+        if len(entry) > 16:
+            entry.pop(next(k for k in entry if k != "inside"))
+        entry[key] = make()
+    return entry[key]
 
 
 def _field_weight(fov: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
     """For :func:`add_scatter`: ``wide_blur(fov, sigma_px)`` with ``inf`` where it is at most
-    1e-6 (so that a division by it gives exactly 0 there), and ``fov`` as 1.0 / 0.0 (a
-    product with it zeroes the outside, faster than indexing); remembered for the last few
-    fields (every frame of a C-arm has the same field of view), read-only."""
-    fov = np.ascontiguousarray(fov, dtype=bool)
-    key = (fov.shape, float(sigma_px), hash(fov.tobytes()))
-    if key not in _FIELD_WEIGHTS:
-        if len(_FIELD_WEIGHTS) >= 16:
-            _FIELD_WEIGHTS.pop(next(iter(_FIELD_WEIGHTS)))
-        den = wide_blur(fov.astype(np.float64), sigma_px)
+    1e-6 (so that a division by it gives exactly 0 there), and the field as 1.0 / 0.0."""
+    entry = _fov_entry(fov)
+
+    def make():
+        den = wide_blur(entry["inside"], sigma_px)
         den[den <= 1e-6] = np.inf
-        inside = fov.astype(np.float64)
         den.flags.writeable = False
-        inside.flags.writeable = False
-        _FIELD_WEIGHTS[key] = (den, inside)
-    return _FIELD_WEIGHTS[key]
+        return den
+
+    return _derived(entry, ("scatter", float(sigma_px)), make), entry["inside"]
 
 
 @dataclass(frozen=True)
@@ -229,25 +250,19 @@ class _Field:
     rho: np.ndarray            # held, so that its id (the cache key) stays its own
 
 
-_FIELDS: dict = {}
-
-
 def _field(fov: np.ndarray, rho: np.ndarray, vignetting: float) -> _Field:
     """The :class:`_Field` of ``fov`` and ``rho`` (the same arrays for every frame of a
-    C-arm: remembered for the last few, by the mask's content and the radius map's
-    identity)."""
-    fov = np.ascontiguousarray(fov, dtype=bool)
-    key = (fov.shape, hash(fov.tobytes()), id(rho), float(vignetting))
-    if key not in _FIELDS:
-        if len(_FIELDS) >= 16:
-            _FIELDS.pop(next(iter(_FIELDS)))
-        vig = np.zeros(fov.shape)
-        vig[fov] = 1.0 - vignetting * np.asarray(rho, dtype=np.float64)[fov] ** 2
-        inside = fov.astype(np.float64)
+    C-arm: kept with the mask's entry, by the radius map's identity)."""
+    entry = _fov_entry(fov)
+
+    def make():
+        mask = np.asarray(fov, dtype=bool)
+        vig = np.zeros(mask.shape)
+        vig[mask] = 1.0 - vignetting * np.asarray(rho, dtype=np.float64)[mask] ** 2
         vig.flags.writeable = False
-        inside.flags.writeable = False
-        _FIELDS[key] = _Field(inside, vig, rho)
-    return _FIELDS[key]
+        return _Field(entry["inside"], vig, rho)
+
+    return _derived(entry, ("vignetting", id(rho), float(vignetting)), make)
 
 
 def add_scatter(primary: np.ndarray, fov: np.ndarray, *, spr: float, sigma_px: float,
