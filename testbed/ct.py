@@ -276,6 +276,21 @@ class _MeshSlicer:
         fl = np.floor(u).astype(np.int64)
         return rows, fl, u - fl, sgn[idx]
 
+    def add_to(self, acc: _Accumulator, z: float, y_rows, x0: float, px: float, width: int,
+               weight: float, *, reference: bool = False) -> None:
+        """``acc.add(self.crossings(z, y_rows, x0, px, width), weight)``, compiled
+        (:func:`testbed._ct_numba.add_section`, the same sums); ``reference=True`` runs
+        that numpy code."""
+        if reference:
+            acc.add(self.crossings(z, y_rows, x0, px, width), weight)
+            return
+        from testbed._ct_numba import add_section
+
+        y_rows = np.asarray(y_rows, dtype=np.float64)
+        dy = float(y_rows[1] - y_rows[0]) if len(y_rows) > 1 else 1.0
+        add_section(self.tri, self.zmin, self.zmax, self.sign, float(z), y_rows, dy,
+                    float(x0), float(px), int(width), float(weight), acc.part, acc.full)
+
     def coverage(self, z: float, y_rows, x0: float, px: float, width: int) -> np.ndarray:
         """(len(y_rows), width) fraction of each pixel of each row y inside the mesh."""
         acc = _Accumulator(len(y_rows), width)
@@ -393,7 +408,7 @@ def scan(phantom, spec: CTSpec | None = None, rng=None, *, bodies: list[Body] | 
             bz = body.mesh.bounds[:, 2]
             for zz in zs:
                 if bz[0] < zz < bz[1]:
-                    acc.add(slicer.crossings(zz, y_sub, origin[0], px, n), dhu / n_sub)
+                    slicer.add_to(acc, zz, y_sub, origin[0], px, n, dhu / n_sub)
         img = air + acc.result().reshape(n, ss, n).mean(axis=1)
         if spec.metal_streaks:
             metal = [p[:2] for name, p in phantom.pins.items()
