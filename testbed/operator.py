@@ -143,7 +143,17 @@ def bone_sections(slice_hu, *, threshold_hu: float, min_area_px: float) -> list[
     from scipy import ndimage
     from skimage.measure import find_contours
 
-    bright = ndimage.binary_fill_holes(np.asarray(slice_hu) > threshold_hu)
+    above = np.asarray(slice_hu) > threshold_hu
+    rows, cols = np.flatnonzero(above.any(axis=1)), np.flatnonzero(above.any(axis=0))
+    if len(rows) == 0:
+        return []
+    # work on the bright pixels' box with a 1-pixel margin: the outside of the box is all
+    # background connected to the margin, so the holes, parts and outlines are the whole
+    # slice's (outline points lie on half pixels: the offset adds exactly)
+    r0, c0 = max(rows[0] - 1, 0), max(cols[0] - 1, 0)
+    above = above[r0:rows[-1] + 2, c0:cols[-1] + 2]
+    offset = np.array([c0, r0], dtype=np.float64)
+    bright = ndimage.binary_fill_holes(above)
     labels, n = ndimage.label(bright)
     areas = np.bincount(labels.ravel())[1:] if n else np.zeros(0)
     # islands much smaller than the bone's section (a streak, a pin's head) are not bone
@@ -157,7 +167,7 @@ def bone_sections(slice_hu, *, threshold_hu: float, min_area_px: float) -> list[
         if not cs:
             continue
         c = max(cs, key=len)[:-1] - 1.0  # undo the padding; (row, col)
-        out.append(c[:, ::-1].copy())
+        out.append(c[:, ::-1] + offset)
     return sorted(out, key=lambda p: float(np.mean(p[:, 0])))
 
 
