@@ -132,13 +132,15 @@ class CtClicks:
                 "slice": np.concatenate(sl), "contour": np.concatenate(co)}
 
 
-def bone_sections(slice_hu, *, threshold_hu: float, min_area_px: float) -> list[np.ndarray]:
+def bone_sections(slice_hu, *, threshold_hu: float, min_area_px: float,
+                  whole_slice: bool = False) -> list[np.ndarray]:
     """Outlines of the bright cross-sections of a CT slice, as a user sees them.
 
     The slice is thresholded, holes (marrow) filled, and each connected part of at least
     ``min_area_px`` pixels and :data:`MIN_SECTION_SHARE` of the largest part outlined.
     Returns a list of (K, 2) (x, y) px closed polygons (last point not repeated), ordered
-    by mean x.
+    by mean x. The work is done on the bright pixels' box; ``whole_slice=True`` does it on
+    the whole slice (the reference, compared in tests).
     """
     from scipy import ndimage
     from skimage.measure import find_contours
@@ -150,8 +152,9 @@ def bone_sections(slice_hu, *, threshold_hu: float, min_area_px: float) -> list[
     # work on the bright pixels' box with a 1-pixel margin: the outside of the box is all
     # background connected to the margin, so the holes, parts and outlines are the whole
     # slice's (outline points lie on half pixels: the offset adds exactly)
-    r0, c0 = max(rows[0] - 1, 0), max(cols[0] - 1, 0)
-    above = above[r0:rows[-1] + 2, c0:cols[-1] + 2]
+    r0, c0 = (0, 0) if whole_slice else (max(rows[0] - 1, 0), max(cols[0] - 1, 0))
+    if not whole_slice:
+        above = above[r0:rows[-1] + 2, c0:cols[-1] + 2]
     offset = np.array([c0, r0], dtype=np.float64)
     bright = ndimage.binary_fill_holes(above)
     labels, n = ndimage.label(bright)

@@ -34,28 +34,6 @@ def test_bone_sections_outline_the_bright_parts_and_ignore_islands():
         assert np.all(np.abs(r - 22) < 1.5)
 
 
-def _bone_sections_whole_slice(slice_hu, threshold_hu, min_area_px):
-    """bone_sections on the whole slice (its arithmetic before it cropped to the bright
-    pixels' box): the reference."""
-    from scipy import ndimage
-    from skimage.measure import find_contours
-
-    from testbed.operator import MIN_SECTION_SHARE
-
-    bright = ndimage.binary_fill_holes(np.asarray(slice_hu) > threshold_hu)
-    labels, n = ndimage.label(bright)
-    areas = np.bincount(labels.ravel())[1:] if n else np.zeros(0)
-    keep_px = max(min_area_px, MIN_SECTION_SHARE * (areas.max() if n else 0.0))
-    out = []
-    for lab in range(1, n + 1):
-        if areas[lab - 1] < keep_px:
-            continue
-        cs = find_contours(np.pad(labels == lab, 1).astype(np.float64), 0.5)
-        if cs:
-            out.append((max(cs, key=len)[:-1] - 1.0)[:, ::-1].copy())
-    return sorted(out, key=lambda p: float(np.mean(p[:, 0])))
-
-
 @pytest.mark.parametrize("seed", range(4))
 def test_bone_sections_on_the_bright_box_equal_the_whole_slice(seed):
     """Rings with marrow, islands, parts touching the slice's edge: the same outlines."""
@@ -66,7 +44,7 @@ def test_bone_sections_on_the_bright_box_equal_the_whole_slice(seed):
         img[_disk(img.shape, c, r)] = 1500.0
         img[_disk(img.shape, c, 0.6 * r)] = -50.0
     got = bone_sections(img, threshold_hu=400.0, min_area_px=10.0)
-    ref = _bone_sections_whole_slice(img, 400.0, 10.0)
+    ref = bone_sections(img, threshold_hu=400.0, min_area_px=10.0, whole_slice=True)
     assert len(got) == len(ref) > 0
     for a, b in zip(got, ref, strict=True):
         np.testing.assert_array_equal(a, b)
