@@ -10,6 +10,7 @@ from reglib.xray_contours import (
     XrayContour,
     _near_mask,
     field_of_view_mask,
+    refine_edge_profile,
     xray_contour,
     xray_contours,
 )
@@ -114,3 +115,20 @@ def test_click_window_check_equals_the_dilated_mask():
         ok = (rows >= 0) & (rows < 40) & (cols >= 0) & (cols < 60)
         ref[ok] = ndimage.binary_dilation(mask, iterations=4)[rows[ok], cols[ok]]
         np.testing.assert_array_equal(_near_mask(mask, rows, cols, 4), ref)
+
+
+def test_edge_profile_on_the_samples_box_equals_the_whole_image():
+    """The profile fit smoothing only the box of its samples against smoothing the whole
+    image: the same vertices, bit for bit, contours near and beyond the image's edges
+    included."""
+    rng = np.random.default_rng(8)
+    yy, xx = np.mgrid[0:120, 0:160]
+    img = 100 + 80 * np.sqrt(np.clip(35.0**2 - (xx - 70.0) ** 2 - (yy - 60.0) ** 2, 0, None))
+    img += rng.normal(0, 2, img.shape)
+    t = np.linspace(0.3, 2.6, 40)
+    for centre, r in (((70.0, 60.0), 35.0), ((5.0, 60.0), 30.0), ((150.0, 115.0), 40.0)):
+        c = np.column_stack([centre[0] + r * np.cos(t), centre[1] + r * np.sin(t)])
+        c += rng.normal(0, 0.5, c.shape)
+        got = refine_edge_profile(img, c)
+        ref = refine_edge_profile(img, c, whole_image=True)
+        np.testing.assert_array_equal(got, ref)
