@@ -350,6 +350,10 @@ def build_parser() -> argparse.ArgumentParser:
 #: BLAS/OpenMP thread counts set to 1 unless the environment sets them (read by the BLAS
 #: when numpy is first imported, which the lazy imports leave until after this)
 SINGLE_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+#: commands whose process simulates or estimates and then exits: their imports are frozen
+#: out of the garbage collector's scans (studies.threads.freeze_work_modules); not when
+#: main() is called in a longer-lived process (``argv`` given)
+FREEZING_COMMANDS = ("run", "generate", "score")
 
 
 def main(argv=None) -> int:
@@ -369,9 +373,11 @@ def main(argv=None) -> int:
         if not getattr(args, "command", None):
             raise UsageError(f"{PROG}: a command is needed: run, study, generate, score, "
                              f"render, bench, scenes (see {PROG} --help)")
-        from studies.threads import single_threaded_kernels
+        from studies.threads import freeze_work_modules, single_threaded_kernels
 
         single_threaded_kernels()   # and OpenCV's threads off (studies/threads.py)
+        if argv is None and args.command in FREEZING_COMMANDS:
+            freeze_work_modules()   # a process that does the work and exits (threads.py)
         return int(args.func(args) or 0)
     except UsageError as exc:
         print(_one_line(str(exc)), file=sys.stderr)

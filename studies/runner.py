@@ -255,7 +255,7 @@ def _check_rows(rows, trial: Trial) -> list[dict]:
 
 def execute_trial(trial_fn: Callable[[Trial], list[dict]], trial: Trial) -> TrialResult:
     """Run one trial, catching its exceptions: the unit of work sent to a worker."""
-    from studies.threads import single_threaded_kernels
+    from studies.threads import freeze_worker, single_threaded_kernels
 
     single_threaded_kernels()       # workers parallelise by process
     who = f"{socket.gethostname()}:{os.getpid()}"
@@ -267,8 +267,10 @@ def execute_trial(trial_fn: Callable[[Trial], list[dict]], trial: Trial) -> Tria
                            error=f"{type(exc).__name__}: {exc}",
                            traceback=traceback.format_exc(),
                            seconds=time.perf_counter() - t0, worker=who)
-    return TrialResult(trial.key, trial.index, "done", tuple(rows),
-                       seconds=time.perf_counter() - t0, worker=who)
+    result = TrialResult(trial.key, trial.index, "done", tuple(rows),
+                         seconds=time.perf_counter() - t0, worker=who)
+    freeze_worker()                 # after a worker's first trial (studies/threads.py)
+    return result
 
 
 # --------------------------------------------------------------------------- database

@@ -324,3 +324,34 @@ def test_testbed_commands_run_opencv_single_threaded(monkeypatch, capsys):
         assert cv2.getNumThreads() == 2
     finally:
         cv2.setNumThreads(before)
+
+
+def test_work_processes_freeze_their_imports_out_of_the_collector():
+    """A command-line process of run/generate/score freezes what its imports left alive
+    (gc.freeze) before the work; main() called in a longer-lived process (argv given) and a
+    study's parent process leave the collector alone; a study worker freezes after its
+    first trial. Each case in a fresh interpreter."""
+    def py(code):
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+        assert out.returncode == 0, out.stderr
+        return out.stdout.split()
+
+    # the command's own process: argv from the command line, a freezing command
+    frozen = py("import gc, sys; from studies import cli; "
+                "cli.FREEZING_COMMANDS = ('scenes',); sys.argv = ['testbed', 'scenes']; "
+                "cli.main(); print(gc.get_freeze_count(), 'reglib.pipeline' in sys.modules)")
+    assert int(frozen[-2]) > 50_000 and frozen[-1] == "True"
+    # in-process callers and the study's own process: nothing frozen
+    kept = py("import gc; from studies import cli, threads; "
+              "cli.FREEZING_COMMANDS = ('scenes',); cli.main(['scenes']); "
+              "threads.freeze_worker(); print(gc.get_freeze_count())")
+    assert int(kept[-1]) == 0
+    # a worker process of a pool: frozen after its first trial
+    worker = py("import gc, concurrent.futures as cf, multiprocessing as mp\n"
+                "from studies import threads\n"
+                "with cf.ProcessPoolExecutor(1, mp_context=mp.get_context('spawn')) as ex:\n"
+                "    before = ex.submit(gc.get_freeze_count).result()\n"
+                "    ex.submit(threads.freeze_worker).result()\n"
+                "    print(before, ex.submit(gc.get_freeze_count).result())\n")
+    assert int(worker[-2]) == 0 and int(worker[-1]) > 0
