@@ -260,11 +260,22 @@ def bench_commands(quick: bool) -> dict:
 _SHARED: dict = {}
 
 
-def _share(payload) -> None:
+def _share(payload, barrier=None) -> None:
     """Worker initializer: the data every item of a rate measurement uses, sent once per
     worker (an observation's images are tens of MB; pickling them with every start made
-    the workers wait on the pipe, not on the registration)."""
+    the workers wait on the pipe, not on the registration), and the barrier of the warm-up
+    (:func:`_warm`)."""
     _SHARED["payload"] = payload
+    _SHARED["barrier"] = barrier
+
+
+def _warm(task) -> None:
+    """One item of the work, then wait until every worker has done its own: a worker waiting
+    here takes no other task, so the warm-up items go one to each worker, and every worker
+    has imported and loaded its compiled code before the timing starts."""
+    fn, item = task
+    fn(item)
+    _SHARED["barrier"].wait(timeout=600)
 
 
 def _register_start(start):
@@ -293,8 +304,10 @@ def _rate(fn, items, workers: int, shared=None) -> float:
     ctx = multiprocessing.get_context("forkserver" if "forkserver" in
                                       multiprocessing.get_all_start_methods() else "spawn")
     with cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_share,
-                                initargs=(shared,)) as ex:
-        list(ex.map(fn, items[:workers]))  # warm the workers
+                                initargs=(shared, ctx.Barrier(workers))) as ex:
+        # warm every worker (ex.map(fn, items[:workers]) could give both items to one worker
+        # and leave the other to import and load its compiled code inside the timing)
+        list(ex.map(_warm, [(fn, item) for item in items[:workers]]))
         t0 = time.perf_counter()
         list(ex.map(fn, items))
         return 60.0 * len(items) / (time.perf_counter() - t0)
