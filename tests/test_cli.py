@@ -6,6 +6,7 @@ Every case of the bad-input issue is here, run in-process through ``studies.cli.
 the fields of a real scene file.
 """
 
+import json
 import math
 import os
 import socket
@@ -15,6 +16,7 @@ import sys
 import tomllib
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -355,3 +357,26 @@ def test_work_processes_freeze_their_imports_out_of_the_collector():
                 "    ex.submit(threads.freeze_worker).result()\n"
                 "    print(before, ex.submit(gc.get_freeze_count).result())\n")
     assert int(worker[-2]) == 0 and int(worker[-1]) > 0
+
+
+@pytest.mark.slow
+def test_bench_quick_prints_every_workload_with_value_unit_goal_reference():
+    """`testbed bench --quick --json` (the DESIGN.md contract): one object keyed by the 11
+    workloads, each with a finite value, its unit, goal and reference; the rates' warm-up
+    and the medians run as in the full bench, on fewer repetitions."""
+    keys = {"frame_ms", "sweep_frame_ms", "markers_ms", "registration_ms", "ransac_ms",
+            "run_cpu_s", "capture_trials_per_min", "registrations_per_min",
+            "generate_case_s", "scaling_2_workers", "help_s"}
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+    out = subprocess.run([sys.executable, "-m", "studies.cli", "bench", "--quick", "--json"],
+                         capture_output=True, text=True, timeout=900, env=env)
+    assert out.returncode == 0, out.stderr[-2000:]
+    result = json.loads(out.stdout)
+    assert keys <= set(result)
+    for key in keys:
+        row = result[key]
+        assert {"value", "unit", "goal", "reference"} <= set(row), key
+        assert row["value"] is not None and np.isfinite(row["value"]) and row["value"] > 0, key
+        assert row["unit"] and row["goal"] is not None, key
+    assert 1.0 < result["scaling_2_workers"]["value"] < 2.5
+    assert result["run_cpu_s"]["value"] > result["run_cpu_s"]["reference"]  # above imports
