@@ -103,11 +103,12 @@ def label_boxes(labels, n):
     ``(areas (n,), boxes (n, 4))``."""
     areas = np.zeros(n + 1)
     boxes = np.empty((n + 1, 4), dtype=np.int64)
-    boxes[:, 0] = labels.shape[0]
-    boxes[:, 1] = -1
-    boxes[:, 2] = labels.shape[1]
-    boxes[:, 3] = -1
     H, W = labels.shape
+    for k in range(n + 1):    # element by element: slice assignments compile numba's
+        boxes[k, 0] = H       # shape-checked copy with its message formatting (~1 s cold)
+        boxes[k, 1] = -1
+        boxes[k, 2] = W
+        boxes[k, 3] = -1
     for r in range(H):
         for c in range(W):
             k = labels[r, c]
@@ -117,8 +118,9 @@ def label_boxes(labels, n):
                 boxes[k, 1] = max(boxes[k, 1], r)
                 boxes[k, 2] = min(boxes[k, 2], c)
                 boxes[k, 3] = max(boxes[k, 3], c)
-    boxes[:, 1] += 1
-    boxes[:, 3] += 1
+    for k in range(n + 1):
+        boxes[k, 1] += 1
+        boxes[k, 3] += 1
     return areas[1:], boxes[1:]
 
 
@@ -177,7 +179,8 @@ def blob_centroid(d, labels, k, r0, r1, c0, c1, area, max_elongation, centroid_f
                 if rr > r_in and rr <= r_in + 3:
                     if m == ring.shape[0]:
                         bigger = np.empty(2 * m)
-                        bigger[:m] = ring
+                        for j in range(m):  # not a slice copy: see testbed._distortion_numba
+                            bigger[j] = ring[j]
                         ring = bigger
                     ring[m] = d[r, c]
                     m += 1

@@ -187,7 +187,9 @@ def undistort(d, cx, cy, radius, k1, k2, rot, sx, sy, amp, freq, phase, tol, max
             run = 1
         have_prev = done
         pdx, pdy = dx, dy
-        hist[3], hist[2], hist[1] = hist[2], hist[1], hist[0]
+        for j in range(3, 0, -1):   # element by element: a row assignment would compile
+            hist[j, 0] = hist[j - 1, 0]     # numba's shape-checked copy (+1 s first run)
+            hist[j, 1] = hist[j - 1, 1]
         hist[0, 0], hist[0, 1] = ux, uy
         pj00, pj01, pj10, pj11 = j00, j01, j10, j11
     return out, ok
