@@ -107,3 +107,39 @@ def add_scatter_field(low, den, spr, p, fov, n_field):
             else:
                 low[r, c] = 0.0
     return values
+
+
+@njit(cache=True)
+def masked_transmission(trans, fov, threshold):
+    """The first step of :func:`testbed.detector.form_image` in one pass: the transmission in
+    ``fov`` (0 outside) and the scatterers (``fov`` and transmission below ``threshold``)."""
+    H, W = trans.shape
+    img = np.zeros((H, W))
+    scatterer = np.zeros((H, W), np.bool_)
+    for r in range(H):
+        for c in range(W):
+            if fov[r, c]:
+                v = trans[r, c]
+                img[r, c] = v
+                scatterer[r, c] = v < threshold
+    return img, scatterer
+
+
+@njit(cache=True)
+def glare_vignetting(img, glare, g, vignetting, floor):
+    """In place on ``img``: ``(img (1 - g) + g glare) vignetting`` (the reference's roundings;
+    ``g = 0``: ``img vignetting``); returns the result floored at ``floor`` (a new array,
+    the logarithm's input)."""
+    H, W = img.shape
+    out = np.empty((H, W))
+    keep = 1.0 - g
+    for r in range(H):
+        for c in range(W):
+            v = img[r, c]
+            if g > 0:
+                v *= keep
+                v += glare[r, c] * g
+            v *= vignetting[r, c]
+            img[r, c] = v
+            out[r, c] = max(v, floor)
+    return out

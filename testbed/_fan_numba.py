@@ -289,18 +289,51 @@ def points_in_hull(uv, lo, hi, equations, margin):
     ``margin`` of every half-plane ``nx x + ny y + off <= 0`` of ``equations (E, 3)`` (a
     convex hull's, outward unit normals); the rays of a fan that a small body can meet. The
     numpy form in ``SweepRenderer._inside_hull`` is the reference (same expressions)."""
+    return points_in_hull_blocks(uv, np.full((1, 2), -np.inf), np.full((1, 2), np.inf),
+                                 uv.shape[0], lo, hi, equations, margin)
+
+
+@njit(cache=True)
+def points_in_hull_blocks(uv, block_lo, block_hi, block, lo, hi, equations, margin):
+    """:func:`points_in_hull` skipping the blocks of ``block`` consecutive points whose
+    bounding boxes (:func:`block_boxes`) miss the box ``lo``-``hi`` (the same indices: a
+    point outside that box is never kept). Rays in row-major order make compact blocks."""
     out = np.empty(uv.shape[0], np.int64)
     n = 0
-    for i in range(uv.shape[0]):
-        x, y = uv[i, 0], uv[i, 1]
-        if x < lo[0] or x > hi[0] or y < lo[1] or y > hi[1]:
+    for b in range(block_lo.shape[0]):
+        if (block_hi[b, 0] < lo[0] or block_lo[b, 0] > hi[0] or block_hi[b, 1] < lo[1]
+                or block_lo[b, 1] > hi[1]):
             continue
-        inside = True
-        for e in range(equations.shape[0]):
-            if equations[e, 0] * x + equations[e, 1] * y + equations[e, 2] > margin:
-                inside = False
-                break
-        if inside:
-            out[n] = i
-            n += 1
+        for i in range(b * block, min((b + 1) * block, uv.shape[0])):
+            x, y = uv[i, 0], uv[i, 1]
+            if x < lo[0] or x > hi[0] or y < lo[1] or y > hi[1]:
+                continue
+            inside = True
+            for e in range(equations.shape[0]):
+                if equations[e, 0] * x + equations[e, 1] * y + equations[e, 2] > margin:
+                    inside = False
+                    break
+            if inside:
+                out[n] = i
+                n += 1
     return out[:n]
+
+
+@njit(cache=True)
+def block_boxes(uv, block):
+    """Bounding boxes ``(lo (B, 2), hi (B, 2))`` of consecutive blocks of ``block`` points of
+    ``uv (M, 2)`` (the last block may be shorter), for :func:`points_in_hull`."""
+    m = uv.shape[0]
+    nb = (m + block - 1) // block
+    lo = np.empty((nb, 2))
+    hi = np.empty((nb, 2))
+    for b in range(nb):
+        i0 = b * block
+        lo[b, 0] = hi[b, 0] = uv[i0, 0]
+        lo[b, 1] = hi[b, 1] = uv[i0, 1]
+        for i in range(i0 + 1, min(i0 + block, m)):
+            lo[b, 0] = min(lo[b, 0], uv[i, 0])
+            hi[b, 0] = max(hi[b, 0], uv[i, 0])
+            lo[b, 1] = min(lo[b, 1], uv[i, 1])
+            hi[b, 1] = max(hi[b, 1], uv[i, 1])
+    return lo, hi

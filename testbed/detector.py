@@ -240,29 +240,80 @@ def _field_weight(fov: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndar
     return _derived(entry, ("scatter", float(sigma_px)), make), entry["inside"]
 
 
+#: the chain runs on the field's bounding box grown by this margin (at least one zero row and
+#: column around the field for the edge-replicating blurs, and more than half a coarse block
+#: for the wide blurs' interpolation back to full resolution) ...
+CROP_PAD_PX = 8
+#: ... with its first row and column on multiples of this (a multiple of every coarse-grid
+#: factor of :func:`wide_blur`, 1 to 4), so that the block means fall on the full frame's grid
+CROP_ALIGN_PX = 12
+
+
+def _crop_box(fov: np.ndarray) -> tuple[slice, slice]:
+    """The box (rows, columns) on which :func:`form_image` computes: every pixel of ``fov``,
+    :data:`CROP_PAD_PX` around it, starts and lengths multiples of :data:`CROP_ALIGN_PX`,
+    clipped to the frame. Outside the field every stage's input is 0 and stays 0 beyond the
+    box, so each stage on the box equals the whole frame's there (compared in tests)."""
+    H, W = fov.shape
+    rows, cols = np.flatnonzero(fov.any(axis=1)), np.flatnonzero(fov.any(axis=0))
+    if not len(rows):
+        return slice(0, H), slice(0, W)
+
+    def span(idx, n):     # whole coarse blocks where the frame allows (no padding copies)
+        lo = max(int(idx[0]) - CROP_PAD_PX, 0) // CROP_ALIGN_PX * CROP_ALIGN_PX
+        hi = int(idx[-1]) + 1 + CROP_PAD_PX
+        return slice(lo, min(lo - (lo - hi) // CROP_ALIGN_PX * CROP_ALIGN_PX, n))
+
+    return span(rows, H), span(cols, W)
+
+
 @dataclass(frozen=True)
 class _Field:
-    """Per field of view (and vignetting), for :func:`form_image`: the field as 1.0 / 0.0
-    and the vignetting factor (0 outside)."""
+    """Per field of view (and vignetting), for :func:`form_image`, on the box the chain
+    computes on (:func:`_crop_box`, or the whole frame): the mask, the mask as 1.0 / 0.0, the
+    vignetting factor (0 outside), the field's pixel count, and the scatter weights by
+    sigma (:func:`_field_weight` of the box's mask)."""
 
+    box: tuple[slice, slice]
+    whole: bool                # the box is the whole frame
+    fov: np.ndarray
     inside: np.ndarray
     vignetting: np.ndarray
+    n: int
     rho: np.ndarray            # held, so that its id (the cache key) stays its own
+    weights: dict
+
+    def scatter_weight(self, sigma_px: float) -> np.ndarray:
+        key = float(sigma_px)
+        if key not in self.weights:
+            self.weights[key] = _field_weight(self.fov, sigma_px)[0]
+        return self.weights[key]
 
 
-def _field(fov: np.ndarray, rho: np.ndarray, vignetting: float) -> _Field:
+def _field(fov: np.ndarray, rho: np.ndarray, vignetting: float, *, crop: bool = True
+           ) -> _Field:
     """The :class:`_Field` of ``fov`` and ``rho`` (the same arrays for every frame of a
     C-arm: kept with the mask's entry, by the radius map's identity)."""
     entry = _fov_entry(fov)
 
     def make():
         mask = np.asarray(fov, dtype=bool)
+        H, W = mask.shape
+        box = _crop_box(mask) if crop else (slice(0, H), slice(0, W))
+        whole = (box[0].stop - box[0].start, box[1].stop - box[1].start) == (H, W)
         vig = np.zeros(mask.shape)
         vig[mask] = 1.0 - vignetting * np.asarray(rho, dtype=np.float64)[mask] ** 2
-        vig.flags.writeable = False
-        return _Field(entry["inside"], vig, rho)
+        if whole:
+            sub, inside = mask, entry["inside"]
+        else:
+            sub, inside = np.ascontiguousarray(mask[box]), np.ascontiguousarray(
+                entry["inside"][box])
+            vig = np.ascontiguousarray(vig[box])
+        for a in (sub, inside, vig):
+            a.flags.writeable = False
+        return _Field(box, whole, sub, inside, vig, int(np.count_nonzero(sub)), rho, {})
 
-    return _derived(entry, ("vignetting", id(rho), float(vignetting)), make)
+    return _derived(entry, ("vignetting", id(rho), float(vignetting), bool(crop)), make)
 
 
 def add_scatter(primary: np.ndarray, fov: np.ndarray, *, spr: float, sigma_px: float,
@@ -298,19 +349,23 @@ def _check_spr(spr: float) -> None:
 
 
 def _scatter_and_field(primary: np.ndarray, fov: np.ndarray, *, spr: float, sigma_px: float,
-                       scatterer: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                       scatterer: np.ndarray, den: np.ndarray | None = None,
+                       n_field: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``add_scatter(primary, fov, ...)`` for ``spr > 0`` in two compiled passes around the
     wide blur (the same numbers), and the field's values in row-major order
-    (``result[fov]``, for the brightness control) without another gather."""
+    (``result[fov]``, for the brightness control) without another gather. ``den`` and
+    ``n_field``: ``_field_weight(fov, sigma_px)[0]`` and the field's pixel count, when the
+    caller has them."""
     from testbed._detector_numba import add_scatter_field, scatter_source
 
     _check_spr(spr)
     fov = np.ascontiguousarray(fov, dtype=bool)
-    den, _ = _field_weight(fov, sigma_px)
+    den = _field_weight(fov, sigma_px)[0] if den is None else den
+    n_field = int(np.count_nonzero(fov)) if n_field is None else n_field
     p, src = scatter_source(np.ascontiguousarray(primary, dtype=np.float64), fov,
                             np.ascontiguousarray(scatterer, dtype=bool))
     low = wide_blur(src, sigma_px)
-    values = add_scatter_field(low, den, float(spr), p, fov, int(np.count_nonzero(fov)))
+    values = add_scatter_field(low, den, float(spr), p, fov, n_field)
     return low, values
 
 
@@ -431,14 +486,21 @@ def video_u8(intensity: np.ndarray, fov: np.ndarray, *, black_u8: int, white_u8:
     return out
 
 
+def field_box(fov: np.ndarray, rho: np.ndarray, vignetting: float) -> tuple[slice, slice]:
+    """The box (rows, columns) of the frame on which :func:`form_image` computes for this
+    field (``crop=True``); a transmission given on it is taken as such."""
+    return _field(fov, rho, vignetting).box
+
+
 def form_image(transmission: np.ndarray, fov: np.ndarray, rho: np.ndarray, fluoro, *,
                magnification: float, noise: bool, rng=None, exact_noise: bool = False,
-               reference: bool = False) -> tuple[np.ndarray, np.ndarray]:
+               reference: bool = False, crop: bool = True, intensity: bool = True
+               ) -> tuple[np.ndarray | None, np.ndarray]:
     """The whole chain from primary transmission to the 8-bit frame.
 
     Parameters
     ----------
-    transmission : (H, W) float
+    transmission : (H, W) float, or on the box of :func:`field_box` (with ``crop``)
         Primary transmission ``exp(-integral mu)`` per pixel (0 outside ``fov``).
     fov : (H, W) bool
         The circular field of view.
@@ -460,24 +522,62 @@ def form_image(transmission: np.ndarray, fov: np.ndarray, rho: np.ndarray, fluor
     reference : bool
         The per-pixel stages in numpy instead of compiled (the same draws and numbers; the
         compiled ones are compared with them in tests).
+    crop : bool
+        Compute on the field's bounding box (:func:`_crop_box`; outside the field every
+        stage's input is 0, so the frame is the whole frame's, compared in tests);
+        ``False``: on the whole frame.
+    intensity : bool
+        ``False``: the intensity is not returned (None; the frame's video only).
 
     Returns ``(intensity (H, W) float64, video (H, W) uint8)``.
     """
     rng = np.random.default_rng(rng)
+    field = _field(fov, rho, fluoro.vignetting, crop=crop)
+    trans = np.asarray(transmission, dtype=np.float64)
+    if trans.shape != np.shape(fov):
+        if trans.shape != field.inside.shape:
+            raise ValueError(f"transmission: shape {trans.shape}, expected the frame's "
+                             f"{np.shape(fov)} or the field's box {field.inside.shape}")
+    else:
+        trans = trans[field.box]
+    img, video = _chain(trans, field, fluoro, magnification=magnification, noise=noise,
+                        rng=rng, exact_noise=exact_noise, reference=reference)
+    if field.whole:
+        return (img if intensity else None), video
+    full = None
+    if intensity:
+        full = np.zeros(np.shape(fov))
+        full[field.box] = img
+    full_video = np.zeros(np.shape(fov), dtype=np.uint8)
+    full_video[field.box] = video
+    return full, full_video
+
+
+def _chain(trans: np.ndarray, field: _Field, fluoro, *, magnification: float, noise: bool,
+           rng, exact_noise: bool, reference: bool) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`form_image` on the box of ``field`` (``trans`` is the box's transmission)."""
+    from testbed import _detector_numba as compiled
+
     px = float(fluoro.pixel_mm)
-    field = _field(fov, rho, fluoro.vignetting)
-    img = np.array(transmission, dtype=np.float64)
-    img *= field.inside
-    scatterer = fov & (img < SCATTERER_TRANSMISSION)
+    fov = field.fov
+    if reference:
+        img = np.array(trans, dtype=np.float64)
+        img *= field.inside
+        scatterer = fov & (img < SCATTERER_TRANSMISSION)
+    else:
+        img, scatterer = compiled.masked_transmission(np.ascontiguousarray(trans), fov,
+                                                      SCATTERER_TRANSMISSION)
     img = blur(img, focal_spot_sigma_px(fluoro.focal_spot_mm, magnification, px))
     values = None
+    sigma_scatter = fluoro.scatter_to_primary and fluoro.scatter_sigma_mm / px
     if reference or fluoro.scatter_to_primary == 0:
-        img = add_scatter(img, fov, spr=fluoro.scatter_to_primary,
-                          sigma_px=fluoro.scatter_sigma_mm / px, scatterer=scatterer)
+        img = add_scatter(img, fov, spr=fluoro.scatter_to_primary, sigma_px=sigma_scatter,
+                          scatterer=scatterer)
     else:
         img, values = _scatter_and_field(img, fov, spr=fluoro.scatter_to_primary,
-                                         sigma_px=fluoro.scatter_sigma_mm / px,
-                                         scatterer=scatterer)
+                                         sigma_px=sigma_scatter, scatterer=scatterer,
+                                         den=field.scatter_weight(sigma_scatter),
+                                         n_field=field.n)
     if noise:
         if fluoro.abc_photons_per_pixel > 0:
             n0 = abc_photons(img, fov, fluoro.abc_photons_per_pixel, field_values=values)
@@ -490,15 +590,23 @@ def form_image(transmission: np.ndarray, fov: np.ndarray, rho: np.ndarray, fluor
             _quantum_noise_in_field(img, fov, n0, rng)
     img = blur(img, mtf_sigma_px(fluoro.mtf50_lp_per_mm, px))
     img *= field.inside
-    if fluoro.glare_fraction > 0:
-        g = fluoro.glare_fraction
-        glare = wide_blur(img, fluoro.glare_sigma_px)
-        glare *= g
-        img *= 1.0 - g
-        img += glare
-    img *= field.vignetting          # 1 - v rho^2 in the field, 0 outside
-    video = video_u8(img, fov, black_u8=fluoro.black_u8, white_u8=fluoro.white_u8,
-                     display_range=fluoro.display_range,
-                     noise_u8=fluoro.video_noise_u8 if noise else 0.0, rng=rng,
-                     reference=reference)
+    g = float(fluoro.glare_fraction)
+    noise_u8 = fluoro.video_noise_u8 if noise else 0.0
+    if reference:
+        if g > 0:
+            glare = wide_blur(img, fluoro.glare_sigma_px)
+            glare *= g
+            img *= 1.0 - g
+            img += glare
+        img *= field.vignetting          # 1 - v rho^2 in the field, 0 outside
+        video = video_u8(img, fov, black_u8=fluoro.black_u8, white_u8=fluoro.white_u8,
+                         display_range=fluoro.display_range, noise_u8=noise_u8, rng=rng,
+                         reference=True)
+        return img, video
+    # glare, vignetting and the logarithm's floor in one compiled pass, then numpy's log
+    glare = wide_blur(img, fluoro.glare_sigma_px) if g > 0 else img
+    log_img = compiled.glare_vignetting(img, glare, g, field.vignetting, 1e-12)
+    np.log(log_img, out=log_img)
+    video = compiled.video(log_img, fov, int(fluoro.black_u8), int(fluoro.white_u8),
+                           float(fluoro.display_range), float(noise_u8), rng)
     return img, video

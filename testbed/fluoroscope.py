@@ -52,7 +52,7 @@ from scipy.spatial.transform import Rotation
 
 from reglib.geometry import RigidTransform
 from testbed.bodies import Body
-from testbed.detector import form_image
+from testbed.detector import field_box, form_image
 from testbed.materials import material
 from testbed.raycast import FanRays, RayScene, attenuation_weights, body_path_lengths
 from testbed.spec import Positive, Spec, Vec2, Vec3
@@ -949,8 +949,10 @@ class SweepRenderer:
     its undistorted pixel lies within ``HULL_MARGIN_PX`` of that hull, so the culling is
     conservative and the frame is that of :func:`render` with all bodies (the reference,
     compared in ``tests/testbed/test_sweep.py``) up to the order of floating-point sums.
-    The image chain (:func:`testbed.detector.form_image`) runs on the whole frame, with the
-    same generator draws as :func:`render`.
+    The image chain (:func:`testbed.detector.form_image`) runs on the field's box, as in
+    :func:`render`, with the same generator draws; the culling skips whole blocks of
+    ``CULL_BLOCK`` rays (consecutive in row-major order) whose undistorted pixels' bounding
+    box misses the hull's.
 
     Parameters
     ----------
@@ -960,6 +962,7 @@ class SweepRenderer:
     """
 
     HULL_MARGIN_PX = 0.5
+    CULL_BLOCK = 64      # rays per block of the culling's bounding boxes
 
     def __init__(self, carm: CArm, fluoro: FluoroscopeSpec, bodies: list[Body]):
         self.carm, self.fluoro, self.bodies = carm, fluoro, list(bodies)
@@ -967,7 +970,9 @@ class SweepRenderer:
             material(b.material)
         _check_source_outside(carm, self.bodies)
         self.fov = carm.fov_mask()
-        self._rays, self._uv, static = [], [], []
+        from testbed._fan_numba import block_boxes
+
+        self._rays, self._uv, self._blocks, static = [], [], [], []
         weights = attenuation_weights(self.bodies)
         scene = RayScene(self.bodies) if self.bodies else None
         fans = _field_fans(carm, fluoro.oversample)
@@ -975,12 +980,17 @@ class SweepRenderer:
             a = (scene.fan_path_lengths(fan) @ weights if self.bodies else np.zeros(len(o)))
             self._rays.append((np.ascontiguousarray(o), np.ascontiguousarray(d), tm))
             self._uv.append(np.ascontiguousarray(uv))      # undistorted pixel of each ray
+            self._blocks.append((*block_boxes(self._uv[-1], self.CULL_BLOCK),
+                                 self.CULL_BLOCK))
             static.append(a)
         self._static = static
         self._static_exp = [np.exp(-a) for a in static]
-        self._field_px = np.flatnonzero(self.fov)   # the flat pixel of each field ray
-        self._static_full = np.zeros(self.fov.shape)     # the frame without the rod (k = 1)
-        self._static_full[self.fov] = self._static_exp[0]
+        # the image chain computes on the field's box: the frames are built there
+        self._box = field_box(self.fov, carm._field()[2], fluoro.vignetting)
+        self._fov_box = np.ascontiguousarray(self.fov[self._box])
+        self._field_px = np.flatnonzero(self._fov_box)  # the box's flat pixel of each ray
+        self._static_box = np.zeros(self._fov_box.shape)  # the frame without the rod (k = 1)
+        self._static_box[self._fov_box] = self._static_exp[0]
         self._magnification = _magnification(carm, self.bodies)
 
     def _hull_px(self, rod: list[Body]) -> np.ndarray:
@@ -997,10 +1007,13 @@ class SweepRenderer:
         return self.carm.project_undistorted(np.vstack(pts))
 
     @classmethod
-    def _inside_hull(cls, uv, pts: np.ndarray, *, reference: bool = False) -> np.ndarray:
+    def _inside_hull(cls, uv, pts: np.ndarray, *, reference: bool = False,
+                     blocks=None) -> np.ndarray:
         """Indices (ascending) of the points ``uv`` (M, 2) within the margin of the convex
-        hull of ``pts`` (K, 2); compiled (:func:`testbed._fan_numba.points_in_hull`).
-        ``reference=True``: the same tests in numpy (compared in tests)."""
+        hull of ``pts`` (K, 2); compiled (:func:`testbed._fan_numba.points_in_hull`;
+        ``blocks``: ``(block_lo, block_hi, block)`` of ``uv`` from
+        :func:`testbed._fan_numba.block_boxes`, so that blocks outside the hull's box are
+        skipped). ``reference=True``: the same tests in numpy (compared in tests)."""
         from scipy.spatial import ConvexHull, QhullError
 
         m = cls.HULL_MARGIN_PX
@@ -1011,8 +1024,11 @@ class SweepRenderer:
         except QhullError:   # flat (a rod seen end-on): its bounding box is conservative
             equations = np.zeros((0, 3))
         if not reference:
-            from testbed._fan_numba import points_in_hull
+            from testbed._fan_numba import points_in_hull, points_in_hull_blocks
 
+            if blocks is not None:
+                return points_in_hull_blocks(uv, *blocks, lo, hi,
+                                             np.ascontiguousarray(equations), m)
             return points_in_hull(uv, lo, hi, np.ascontiguousarray(equations), m)
         x, y = uv[:, 0], uv[:, 1]
         cand = np.flatnonzero((x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1]))
@@ -1028,40 +1044,52 @@ class SweepRenderer:
         """The rays of fan ``fan`` the rod can meet (indices) and their transmission with the
         static bodies and the rod."""
         (o, d, tm), a_static = self._rays[fan], self._static[fan]
-        idx = self._inside_hull(self._uv[fan], pts)
+        idx = self._inside_hull(self._uv[fan], pts, blocks=self._blocks[fan])
         if not len(idx):
             return idx, np.zeros(0)
-        a = a_static[idx] + body_path_lengths(list(rod), o[idx], d[idx], tm[idx]) @ weights
+        # what body_path_lengths does for rays from one point, without checking that they are
+        rays = FanRays.of(o[0], d[idx], tm[idx]) if len(idx) >= FanRays.MIN_RAYS else None
+        scene = RayScene(list(rod))
+        lengths = (scene.fan_path_lengths(rays) if rays is not None
+                   else scene.path_lengths(o[idx], d[idx], tm[idx]))
+        a = a_static[idx] + lengths @ weights
         return idx, np.exp(-a)
 
     def transmission(self, rod: list[Body]) -> np.ndarray:
         """Primary transmission (H, W) with ``rod`` (robot frame) in the beam."""
+        full = np.zeros(self.fov.shape)
+        full[self._box] = self._transmission_box(rod)
+        return full
+
+    def _transmission_box(self, rod: list[Body]) -> np.ndarray:
+        """:meth:`transmission` on the image chain's box (``self._box``)."""
         weights = attenuation_weights(self.bodies + list(rod))[len(self.bodies):]
         _check_source_outside(self.carm, list(rod))
         pts = self._hull_px(rod)
         k = len(self._static)
         if k == 1:    # the static frame, changed at the rays the rod can meet
-            full = self._static_full.copy()
+            box = self._static_box.copy()
             idx, e = self._with_rod(0, rod, pts, weights)
-            full.flat[self._field_px[idx]] = e
-            return full
+            box.flat[self._field_px[idx]] = e
+            return box
         trans = np.zeros(len(self._static[0]))
         for fan in range(k):
             e = self._static_exp[fan].copy()
             idx, e_rod = self._with_rod(fan, rod, pts, weights)
             e[idx] = e_rod
             trans += e / k
-        full = np.zeros(self.fov.shape)
-        full[self.fov] = trans
-        return full
+        box = np.zeros(self._fov_box.shape)
+        box[self._fov_box] = trans
+        return box
 
     def render(self, rod: list[Body], *, rng=None, noise: bool | None = None) -> np.ndarray:
         """The 8-bit video frame (H, W) uint8 with ``rod`` in the beam; ``rng`` as in
         :func:`render` (the same draws)."""
         use_noise = self.fluoro.noise if noise is None else bool(noise)
-        _, video = form_image(self.transmission(rod), self.fov, self.carm._field()[2],
+        _, video = form_image(self._transmission_box(rod), self.fov, self.carm._field()[2],
                               self.fluoro, magnification=self._magnification,
-                              noise=use_noise, rng=np.random.default_rng(rng))
+                              noise=use_noise, rng=np.random.default_rng(rng),
+                              intensity=False)
         return video
 
 

@@ -199,6 +199,39 @@ def test_compiled_frame_stages_equal_the_numpy_reference(seed):
     assert np.mean(lam < detector.POISSON_EXACT_BELOW) > 0.01     # both samplers ran
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_chain_on_the_field_box_equals_the_whole_frame(seed):
+    """form_image computes on the field's bounding box (crop=True, the default) and pastes
+    it back: against the whole frame (crop=False), on random fields (off-centre, one cut by
+    the frame's edge) with every clinic stage on, the same intensities to rounding and the
+    same 8-bit frame; a transmission given on the box gives the same frame."""
+    rng = np.random.default_rng(seed)
+    h, w = 150, 200
+    yy, xx = np.mgrid[:h, :w]
+    cx = rng.uniform(60, 140) if seed < 2 else 185.0        # seed 2: cut by the right edge
+    rho = np.hypot(xx - cx, yy - rng.uniform(60, 90)) / rng.uniform(35, 55)
+    fov = rho <= 1.0
+    trans = gaussian_filter(rng.uniform(0.02, 1.0, (h, w)), 2) * (rng.uniform(0, 1, (h, w)) > 0.05)
+    trans[~fov] = 0
+    spec = FluoroscopeSpec(pixel_mm=0.5, abc_photons_per_pixel=float(rng.uniform(40, 200)),
+                           video_noise_u8=1.0)
+    box = detector.field_box(fov, rho, spec.vignetting)
+    assert fov[box].sum() == fov.sum()
+    kw = dict(magnification=1.5, noise=True)
+    got = detector.form_image(trans, fov, rho, spec, rng=seed, **kw)
+    whole = detector.form_image(trans, fov, rho, spec, rng=seed, crop=False, **kw)
+    on_box = detector.form_image(np.ascontiguousarray(trans[box]), fov, rho, spec, rng=seed,
+                                 intensity=False, **kw)
+    np.testing.assert_allclose(got[0], whole[0], rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(got[1], whole[1])
+    np.testing.assert_array_equal(on_box[1], got[1])
+    assert on_box[0] is None and (got[0][~fov] == 0).all() and got[1][fov].min() > 0
+    if seed < 2:
+        assert fov[box].size < fov.size           # the box is smaller than the frame
+    with pytest.raises(ValueError, match="transmission: shape"):
+        detector.form_image(trans[:10], fov, rho, spec, rng=seed, **kw)
+
+
 def test_one_rank_median_equals_numpy_median():
     rng = np.random.default_rng(3)
     for n in (1, 2, 3, 10, 1001, 5000):

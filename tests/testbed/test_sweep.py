@@ -203,10 +203,18 @@ def test_compiled_hull_culling_equals_the_numpy_reference(seed):
     centre = rng.uniform(100, 540, 2)
     pts = centre + rng.normal(0, 1, (40, 2)) @ np.diag(rng.uniform(2, 150, 2))
     flat = centre + np.outer(rng.uniform(-100, 100, 12), [1.0, 0.5])
+    from testbed._fan_numba import block_boxes
+
+    rows = uv[np.lexsort((uv[:, 0], uv[:, 1] // 8))]     # coherent blocks, as rays of a frame
     for p in (pts, flat):
         got = SweepRenderer._inside_hull(uv, p)
         ref = SweepRenderer._inside_hull(uv, p, reference=True)
         np.testing.assert_array_equal(got, ref)
+        for pts_uv in (uv, rows):    # the block-culled path: the same indices
+            blocks = (*block_boxes(pts_uv, 64), 64)
+            np.testing.assert_array_equal(
+                SweepRenderer._inside_hull(pts_uv, p, blocks=blocks),
+                SweepRenderer._inside_hull(pts_uv, p, reference=True))
     assert len(SweepRenderer._inside_hull(uv, pts)) > 10
 
 
