@@ -556,8 +556,10 @@ def form_image(transmission: np.ndarray, fov: np.ndarray, rho: np.ndarray, fluor
 def _chain(trans: np.ndarray, field: _Field, fluoro, *, magnification: float, noise: bool,
            rng, exact_noise: bool, reference: bool) -> tuple[np.ndarray, np.ndarray]:
     """:func:`form_image` on the box of ``field`` (``trans`` is the box's transmission)."""
-    from testbed import _detector_numba as compiled
-
+    if not reference and fluoro.scatter_to_primary > 0:
+        p, src = _sources(trans, field.fov, fluoro, magnification)
+        return _after_sources(p, src, field, fluoro, noise=noise, rng=rng,
+                              exact_noise=exact_noise)
     px = float(fluoro.pixel_mm)
     fov = field.fov
     if reference:
@@ -565,19 +567,63 @@ def _chain(trans: np.ndarray, field: _Field, fluoro, *, magnification: float, no
         img *= field.inside
         scatterer = fov & (img < SCATTERER_TRANSMISSION)
     else:
-        img, scatterer = compiled.masked_transmission(np.ascontiguousarray(trans), fov,
-                                                      SCATTERER_TRANSMISSION)
+        from testbed._detector_numba import masked_transmission
+
+        img, scatterer = masked_transmission(np.ascontiguousarray(trans), fov,
+                                             SCATTERER_TRANSMISSION)
     img = blur(img, focal_spot_sigma_px(fluoro.focal_spot_mm, magnification, px))
-    values = None
-    sigma_scatter = fluoro.scatter_to_primary and fluoro.scatter_sigma_mm / px
-    if reference or fluoro.scatter_to_primary == 0:
-        img = add_scatter(img, fov, spr=fluoro.scatter_to_primary, sigma_px=sigma_scatter,
-                          scatterer=scatterer)
-    else:
-        img, values = _scatter_and_field(img, fov, spr=fluoro.scatter_to_primary,
-                                         sigma_px=sigma_scatter, scatterer=scatterer,
-                                         den=field.scatter_weight(sigma_scatter),
-                                         n_field=field.n)
+    img = add_scatter(img, fov, spr=fluoro.scatter_to_primary,
+                      sigma_px=fluoro.scatter_to_primary and fluoro.scatter_sigma_mm / px,
+                      scatterer=scatterer)
+    return _after_scatter(img, None, field, fluoro, noise=noise, rng=rng,
+                          exact_noise=exact_noise, reference=reference)
+
+
+def _focal_radius_px(fluoro, magnification: float) -> int:
+    """The focal-spot blur's kernel radius (px; 0 without blur)."""
+    sigma = focal_spot_sigma_px(fluoro.focal_spot_mm, magnification, float(fluoro.pixel_mm))
+    return int(4.0 * sigma + 0.5) if sigma > 0 else 0
+
+
+def _sources(trans: np.ndarray, fov: np.ndarray, fluoro, magnification: float
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """The compiled chain's stages before the scatter's wide blur, on the box ``fov`` covers
+    (or on a window of it): the transmission masked to the field, blurred by the focal spot,
+    and split into ``(p, src)``, the primary in the field and the scatter source. Each pixel
+    depends only on the transmission within :func:`_focal_radius_px` of it (what
+    :class:`testbed.fluoroscope.SweepRenderer` uses to redo only the rod's neighbourhood)."""
+    from testbed._detector_numba import masked_transmission, scatter_source
+
+    fov = np.ascontiguousarray(fov)
+    img, scatterer = masked_transmission(np.ascontiguousarray(trans), fov,
+                                         SCATTERER_TRANSMISSION)
+    img = blur(img, focal_spot_sigma_px(fluoro.focal_spot_mm, magnification,
+                                        float(fluoro.pixel_mm)))
+    return scatter_source(img, fov, scatterer)
+
+
+def _after_sources(p: np.ndarray, src: np.ndarray, field: _Field, fluoro, *, noise: bool,
+                   rng, exact_noise: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """The compiled chain from the scatter sources (:func:`_sources`, ``scatter_to_primary >
+    0``) to ``(intensity, video)`` on the box."""
+    from testbed._detector_numba import add_scatter_field
+
+    sigma = fluoro.scatter_sigma_mm / float(fluoro.pixel_mm)
+    low = wide_blur(src, sigma)
+    values = add_scatter_field(low, field.scatter_weight(sigma),
+                               float(fluoro.scatter_to_primary), p, field.fov, field.n)
+    return _after_scatter(low, values, field, fluoro, noise=noise, rng=rng,
+                          exact_noise=exact_noise, reference=False)
+
+
+def _after_scatter(img: np.ndarray, values, field: _Field, fluoro, *, noise: bool, rng,
+                   exact_noise: bool, reference: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The chain from primary plus scatter (``img`` on the box; ``values``: its field values
+    in row-major order, or None) to ``(intensity, video)``."""
+    from testbed import _detector_numba as compiled
+
+    px = float(fluoro.pixel_mm)
+    fov = field.fov
     if noise:
         if fluoro.abc_photons_per_pixel > 0:
             n0 = abc_photons(img, fov, fluoro.abc_photons_per_pixel, field_values=values)

@@ -225,6 +225,7 @@ def test_sweep_renderer_gives_the_frames_of_a_full_render(oversample):
     projected hull) against render() with every body, the patient and table in the beam
     and the clinic's distortion: transmission equal to float32 rounding, the noise-free
     video equal, and with noise the same draws (video equal but for rounding ties)."""
+    from testbed.detector import form_image
     from testbed.fluoroscope import SweepRenderer, render
     from testbed.scene import find_scene, load_scene
     from testbed.world import build_world
@@ -249,6 +250,10 @@ def test_sweep_renderer_gives_the_frames_of_a_full_render(oversample):
             assert np.array_equal(fast.render(rod, rng=0, noise=False), ref.image_u8), i
             noisy = render(carm, bodies + rod, fluoro=fl, rng=7, noise=True).image_u8
             got = fast.render(rod, rng=7, noise=True)
+            # the sources redone only near the rod: the frame of the whole chain, exactly
+            whole = form_image(t_fast, carm.fov_mask(), carm._field()[2], fl,
+                               magnification=fast._magnification, noise=True, rng=7)[1]
+            assert np.array_equal(got, whole), i
             diff = np.abs(got.astype(int) - noisy.astype(int))
             assert diff.max() <= 1 and np.mean(diff > 0) < 1e-3, i
             if plan[i].plane >= 0:   # the rod is in the field: its rays were cast
