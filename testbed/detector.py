@@ -22,6 +22,8 @@ physics of an image-intensifier (II) fluoroscope:
 
 Images are ``(H, W)`` float arrays indexed ``[row, col]``, relative to the unattenuated beam;
 ``fov`` is the ``(H, W)`` bool mask of the circular field of view (outside it the image is 0).
+:func:`form_image` computes on the field's bounding box (:func:`field_box`) and pastes the
+result into the frame: every stage's input is 0 outside the field, so nothing changes.
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ __all__ = [
     "abc_photons",
     "quantum_noise",
     "video_u8",
+    "field_box",
     "form_image",
 ]
 
