@@ -973,7 +973,7 @@ class SweepRenderer:
         self.fov = carm.fov_mask()
         from testbed._fan_numba import block_boxes
 
-        self._rays, self._uv, self._blocks, static = [], [], [], []
+        self._rays, self._uv, self._blocks, self._planes, static = [], [], [], [], []
         weights = attenuation_weights(self.bodies)
         scene = RayScene(self.bodies) if self.bodies else None
         fans = _field_fans(carm, fluoro.oversample)
@@ -983,6 +983,7 @@ class SweepRenderer:
             self._uv.append(np.ascontiguousarray(uv))      # undistorted pixel of each ray
             self._blocks.append((*block_boxes(self._uv[-1], self.CULL_BLOCK),
                                  self.CULL_BLOCK))
+            self._planes.append((fan.axis, fan.e1, fan.e2))   # the field fan's image plane
             static.append(a)
         self._static = static
         self._static_exp = [np.exp(-a) for a in static]
@@ -1056,8 +1057,10 @@ class SweepRenderer:
         idx = self._inside_hull(self._uv[fan], pts, blocks=self._blocks[fan])
         if not len(idx):
             return idx, np.zeros(0)
-        # what body_path_lengths does for rays from one point, without checking that they are
-        rays = FanRays.of(o[0], d[idx], tm[idx]) if len(idx) >= FanRays.MIN_RAYS else None
+        # what body_path_lengths does for rays from one point (without checking that they
+        # are), binned on the field fan's image plane (a subset of its rays: within its angle)
+        rays = (FanRays(o[0], d[idx], tm[idx], *self._planes[fan])
+                if len(idx) >= FanRays.MIN_RAYS else None)
         scene = RayScene(list(rod))
         lengths = (scene.fan_path_lengths(rays) if rays is not None
                    else scene.path_lengths(o[idx], d[idx], tm[idx]))
