@@ -351,27 +351,6 @@ def _check_spr(spr: float) -> None:
         raise ValueError(f"scatter_to_primary must be finite and >= 0, got {spr}")
 
 
-def _scatter_and_field(primary: np.ndarray, fov: np.ndarray, *, spr: float, sigma_px: float,
-                       scatterer: np.ndarray, den: np.ndarray | None = None,
-                       n_field: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """``add_scatter(primary, fov, ...)`` for ``spr > 0`` in two compiled passes around the
-    wide blur (the same numbers), and the field's values in row-major order
-    (``result[fov]``, for the brightness control) without another gather. ``den`` and
-    ``n_field``: ``_field_weight(fov, sigma_px)[0]`` and the field's pixel count, when the
-    caller has them."""
-    from testbed._detector_numba import add_scatter_field, scatter_source
-
-    _check_spr(spr)
-    fov = np.ascontiguousarray(fov, dtype=bool)
-    den = _field_weight(fov, sigma_px)[0] if den is None else den
-    n_field = int(np.count_nonzero(fov)) if n_field is None else n_field
-    p, src = scatter_source(np.ascontiguousarray(primary, dtype=np.float64), fov,
-                            np.ascontiguousarray(scatterer, dtype=bool))
-    low = wide_blur(src, sigma_px)
-    values = add_scatter_field(low, den, float(spr), p, fov, n_field)
-    return low, values
-
-
 def _median(values: np.ndarray) -> float:
     """``np.median(values)`` (the same number), partitioning one rank instead of two: for an
     even count the lower middle value is the largest below the upper one. Reorders
@@ -470,12 +449,10 @@ def video_u8(intensity: np.ndarray, fov: np.ndarray, *, black_u8: int, white_u8:
     numpy code below (compared in tests).
     """
     if not reference:
-        from testbed._detector_numba import video
-
         log_img = np.maximum(intensity, 1e-12, dtype=np.float64)
         np.log(log_img, out=log_img)
-        return video(log_img, np.ascontiguousarray(fov, dtype=bool), int(black_u8), int(white_u8),
-                     float(display_range), float(noise_u8), np.random.default_rng(rng))
+        return _video_of_log(log_img, fov, black_u8=black_u8, white_u8=white_u8,
+                             display_range=display_range, noise_u8=noise_u8, rng=rng)
     fov = np.asarray(fov, dtype=bool)
     inside = np.asarray(intensity, dtype=np.float64)[fov]
     level = 1.0 + np.log(np.maximum(inside, 1e-12)) / display_range
@@ -487,6 +464,16 @@ def video_u8(intensity: np.ndarray, fov: np.ndarray, *, black_u8: int, white_u8:
     out = np.zeros(fov.shape, dtype=np.uint8)
     out[fov] = np.clip(np.rint(video), 0, 255)
     return out
+
+
+def _video_of_log(log_img: np.ndarray, fov: np.ndarray, *, black_u8: int, white_u8: int,
+                  display_range: float, noise_u8: float, rng) -> np.ndarray:
+    """:func:`video_u8`'s compiled path from ``log_img``, the logarithm of the intensity
+    floored at 1e-12 (:func:`testbed._detector_numba.video`)."""
+    from testbed._detector_numba import video
+
+    return video(log_img, np.ascontiguousarray(fov, dtype=bool), int(black_u8), int(white_u8),
+                 float(display_range), float(noise_u8), np.random.default_rng(rng))
 
 
 def field_box(fov: np.ndarray, rho: np.ndarray, vignetting: float) -> tuple[slice, slice]:
@@ -559,24 +546,21 @@ def form_image(transmission: np.ndarray, fov: np.ndarray, rho: np.ndarray, fluor
 def _chain(trans: np.ndarray, field: _Field, fluoro, *, magnification: float, noise: bool,
            rng, exact_noise: bool, reference: bool) -> tuple[np.ndarray, np.ndarray]:
     """:func:`form_image` on the box of ``field`` (``trans`` is the box's transmission)."""
-    if not reference and fluoro.scatter_to_primary > 0:
-        p, src = _sources(trans, field.fov, fluoro, magnification)
-        return _after_sources(p, src, field, fluoro, noise=noise, rng=rng,
-                              exact_noise=exact_noise)
-    px = float(fluoro.pixel_mm)
     fov = field.fov
     if reference:
         img = np.array(trans, dtype=np.float64)
         img *= field.inside
         scatterer = fov & (img < SCATTERER_TRANSMISSION)
+        img = blur(img, focal_spot_sigma_px(fluoro.focal_spot_mm, magnification,
+                                            float(fluoro.pixel_mm)))
+    elif fluoro.scatter_to_primary > 0:
+        p, src = _sources(trans, fov, fluoro, magnification)
+        return _after_sources(p, src, field, fluoro, noise=noise, rng=rng,
+                              exact_noise=exact_noise)
     else:
-        from testbed._detector_numba import masked_transmission
-
-        img, scatterer = masked_transmission(np.ascontiguousarray(trans), fov,
-                                             SCATTERER_TRANSMISSION)
-    img = blur(img, focal_spot_sigma_px(fluoro.focal_spot_mm, magnification, px))
+        img, scatterer = _primary(trans, fov, fluoro, magnification)
     img = add_scatter(img, fov, spr=fluoro.scatter_to_primary,
-                      sigma_px=fluoro.scatter_to_primary and fluoro.scatter_sigma_mm / px,
+                      sigma_px=fluoro.scatter_sigma_mm / float(fluoro.pixel_mm),
                       scatterer=scatterer)
     return _after_scatter(img, None, field, fluoro, noise=noise, rng=rng,
                           exact_noise=exact_noise, reference=reference)
@@ -588,20 +572,31 @@ def _focal_radius_px(fluoro, magnification: float) -> int:
     return int(4.0 * sigma + 0.5) if sigma > 0 else 0
 
 
+def _primary(trans: np.ndarray, fov: np.ndarray, fluoro, magnification: float
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """The compiled chain's first stages: the transmission masked to ``fov``, blurred by the
+    focal spot, and the scatterers (``fov`` and the unblurred transmission below
+    :data:`SCATTERER_TRANSMISSION`)."""
+    from testbed._detector_numba import masked_transmission
+
+    img, scatterer = masked_transmission(np.ascontiguousarray(trans),
+                                         np.ascontiguousarray(fov), SCATTERER_TRANSMISSION)
+    img = blur(img, focal_spot_sigma_px(fluoro.focal_spot_mm, magnification,
+                                        float(fluoro.pixel_mm)))
+    return img, scatterer
+
+
 def _sources(trans: np.ndarray, fov: np.ndarray, fluoro, magnification: float
              ) -> tuple[np.ndarray, np.ndarray]:
     """The compiled chain's stages before the scatter's wide blur, on the box ``fov`` covers
-    (or on a window of it): the transmission masked to the field, blurred by the focal spot,
-    and split into ``(p, src)``, the primary in the field and the scatter source. Each pixel
-    depends only on the transmission within :func:`_focal_radius_px` of it (what
-    :class:`testbed.fluoroscope.SweepRenderer` uses to redo only the rod's neighbourhood)."""
-    from testbed._detector_numba import masked_transmission, scatter_source
+    (or on a window of it): :func:`_primary` split into ``(p, src)``, the primary in the
+    field and the scatter source. Each pixel depends only on the transmission within
+    :func:`_focal_radius_px` of it (what :class:`testbed.fluoroscope.SweepRenderer` uses to
+    redo only the rod's neighbourhood)."""
+    from testbed._detector_numba import scatter_source
 
     fov = np.ascontiguousarray(fov)
-    img, scatterer = masked_transmission(np.ascontiguousarray(trans), fov,
-                                         SCATTERER_TRANSMISSION)
-    img = blur(img, focal_spot_sigma_px(fluoro.focal_spot_mm, magnification,
-                                        float(fluoro.pixel_mm)))
+    img, scatterer = _primary(trans, fov, fluoro, magnification)
     return scatter_source(img, fov, scatterer)
 
 
@@ -611,6 +606,7 @@ def _after_sources(p: np.ndarray, src: np.ndarray, field: _Field, fluoro, *, noi
     0``) to ``(intensity, video)`` on the box."""
     from testbed._detector_numba import add_scatter_field
 
+    _check_spr(fluoro.scatter_to_primary)
     sigma = fluoro.scatter_sigma_mm / float(fluoro.pixel_mm)
     low = wide_blur(src, sigma)
     values = add_scatter_field(low, field.scatter_weight(sigma),
@@ -623,8 +619,6 @@ def _after_scatter(img: np.ndarray, values, field: _Field, fluoro, *, noise: boo
                    exact_noise: bool, reference: bool) -> tuple[np.ndarray, np.ndarray]:
     """The chain from primary plus scatter (``img`` on the box; ``values``: its field values
     in row-major order, or None) to ``(intensity, video)``."""
-    from testbed import _detector_numba as compiled
-
     px = float(fluoro.pixel_mm)
     fov = field.fov
     if noise:
@@ -653,9 +647,11 @@ def _after_scatter(img: np.ndarray, values, field: _Field, fluoro, *, noise: boo
                          reference=True)
         return img, video
     # glare, vignetting and the logarithm's floor in one compiled pass, then numpy's log
+    from testbed._detector_numba import glare_vignetting
+
     glare = wide_blur(img, fluoro.glare_sigma_px) if g > 0 else img
-    log_img = compiled.glare_vignetting(img, glare, g, field.vignetting, 1e-12)
+    log_img = glare_vignetting(img, glare, g, field.vignetting, 1e-12)
     np.log(log_img, out=log_img)
-    video = compiled.video(log_img, fov, int(fluoro.black_u8), int(fluoro.white_u8),
-                           float(fluoro.display_range), float(noise_u8), rng)
+    video = _video_of_log(log_img, fov, black_u8=fluoro.black_u8, white_u8=fluoro.white_u8,
+                          display_range=fluoro.display_range, noise_u8=noise_u8, rng=rng)
     return img, video

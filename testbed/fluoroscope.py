@@ -53,7 +53,7 @@ from scipy.spatial.transform import Rotation
 from reglib.geometry import RigidTransform
 from testbed import detector
 from testbed.bodies import Body
-from testbed.detector import field_box, form_image
+from testbed.detector import form_image
 from testbed.materials import material
 from testbed.raycast import FanRays, RayScene, attenuation_weights, body_path_lengths
 from testbed.spec import Positive, Spec, Vec2, Vec3
@@ -988,17 +988,18 @@ class SweepRenderer:
         self._static = static
         self._static_exp = [np.exp(-a) for a in static]
         # the image chain computes on the field's box: the frames are built there
-        self._box = field_box(self.fov, carm._field()[2], fluoro.vignetting)
-        self._fov_box = np.ascontiguousarray(self.fov[self._box])
+        field = detector._field(self.fov, carm._field()[2], fluoro.vignetting)
+        self._box, self._fov_box = field.box, field.fov
         self._field_px = np.flatnonzero(self._fov_box)  # the box's flat pixel of each ray
         self._static_box = np.zeros(self._fov_box.shape)  # the frame without the rod (k = 1)
         self._static_box[self._fov_box] = self._static_exp[0]
         self._magnification = _magnification(carm, self.bodies)
-        # with scatter, the stages before its wide blur are redone only near the rod
-        # (each pixel depends on the transmission within the focal spot's kernel radius)
-        self._field = None
+        # with scatter, the stages before its wide blur are redone only near the rod (each
+        # pixel depends on the transmission within the focal spot's kernel radius): the
+        # chain's field then, else None (the whole chain per frame)
+        self._local = None
         if fluoro.scatter_to_primary > 0 and len(self._static) == 1:
-            self._field = detector._field(self.fov, carm._field()[2], fluoro.vignetting)
+            self._local = field
             self._sources0 = detector._sources(self._static_box, self._fov_box, fluoro,
                                                self._magnification)
             self._focal_r = detector._focal_radius_px(fluoro, self._magnification)
@@ -1070,12 +1071,12 @@ class SweepRenderer:
     def transmission(self, rod: list[Body]) -> np.ndarray:
         """Primary transmission (H, W) with ``rod`` (robot frame) in the beam."""
         full = np.zeros(self.fov.shape)
-        full[self._box] = self._transmission_box(rod)
+        full[self._box] = self._transmission_box(rod)[0]
         return full
 
-    def _transmission_box(self, rod: list[Body], *, changed: bool = False):
-        """:meth:`transmission` on the image chain's box (``self._box``); ``changed``: also
-        the box's flat indices of the pixels that differ from the static frame (one fan)."""
+    def _transmission_box(self, rod: list[Body]) -> tuple[np.ndarray, np.ndarray | None]:
+        """:meth:`transmission` on the image chain's box (``self._box``), and the box's flat
+        indices of the pixels that differ from the static frame (None with oversampling)."""
         weights = attenuation_weights(self.bodies + list(rod))[len(self.bodies):]
         _check_source_outside(self.carm, list(rod))
         pts = self._hull_px(rod)
@@ -1084,7 +1085,7 @@ class SweepRenderer:
             box = self._static_box.copy()
             idx, e = self._with_rod(0, rod, pts, weights)
             box.flat[self._field_px[idx]] = e
-            return (box, self._field_px[idx]) if changed else box
+            return box, self._field_px[idx]
         trans = np.zeros(len(self._static[0]))
         for fan in range(k):
             e = self._static_exp[fan].copy()
@@ -1093,38 +1094,48 @@ class SweepRenderer:
             trans += e / k
         box = np.zeros(self._fov_box.shape)
         box[self._fov_box] = trans
-        return box
+        return box, None
+
+    def _local_sources(self, trans: np.ndarray, px: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray]:
+        """The chain's scatter sources (:func:`testbed.detector._sources`) of the box's
+        transmission ``trans``, which differs from the static frame at the flat pixels
+        ``px``: the static frame's, redone on those pixels' box grown by the focal kernel's
+        radius (computed on it grown by twice the radius, so that the kept part never sees
+        the window's edge)."""
+        p, src = (a.copy() for a in self._sources0)
+        if not len(px):
+            return p, src
+        r = self._focal_r
+        H, W = trans.shape
+        rows, cols = np.divmod(px, W)
+        lo = np.array([rows.min(), cols.min()])
+        hi = np.array([rows.max(), cols.max()]) + 1
+        o_lo, o_hi = np.maximum(lo - 2 * r, 0), np.minimum(hi + 2 * r, (H, W))
+        i_lo, i_hi = np.maximum(lo - r, 0), np.minimum(hi + r, (H, W))
+        outer = (slice(o_lo[0], o_hi[0]), slice(o_lo[1], o_hi[1]))
+        ps, ss = detector._sources(trans[outer], self._fov_box[outer], self.fluoro,
+                                   self._magnification)
+        inner = (slice(i_lo[0], i_hi[0]), slice(i_lo[1], i_hi[1]))
+        sub = (slice(i_lo[0] - o_lo[0], i_hi[0] - o_lo[0]),
+               slice(i_lo[1] - o_lo[1], i_hi[1] - o_lo[1]))
+        p[inner] = ps[sub]
+        src[inner] = ss[sub]
+        return p, src
 
     def render(self, rod: list[Body], *, rng=None, noise: bool | None = None) -> np.ndarray:
         """The 8-bit video frame (H, W) uint8 with ``rod`` in the beam; ``rng`` as in
         :func:`render` (the same draws)."""
         use_noise = self.fluoro.noise if noise is None else bool(noise)
         rng = np.random.default_rng(rng)
-        if self._field is None:
-            _, video = form_image(self._transmission_box(rod), self.fov,
-                                  self.carm._field()[2], self.fluoro,
+        trans, px = self._transmission_box(rod)
+        if self._local is None:
+            _, video = form_image(trans, self.fov, self.carm._field()[2], self.fluoro,
                                   magnification=self._magnification, noise=use_noise,
                                   rng=rng, intensity=False)
             return video
-        trans, px = self._transmission_box(rod, changed=True)
-        p, src = (a.copy() for a in self._sources0)
-        if len(px):   # redo the sources on the changed pixels' box grown by the kernel
-            r = self._focal_r
-            H, W = trans.shape
-            rows, cols = np.divmod(px, W)
-            lo = np.array([rows.min(), cols.min()])
-            hi = np.array([rows.max(), cols.max()]) + 1
-            o_lo, o_hi = np.maximum(lo - 2 * r, 0), np.minimum(hi + 2 * r, (H, W))
-            i_lo, i_hi = np.maximum(lo - r, 0), np.minimum(hi + r, (H, W))
-            outer = (slice(o_lo[0], o_hi[0]), slice(o_lo[1], o_hi[1]))
-            ps, ss = detector._sources(trans[outer], self._fov_box[outer], self.fluoro,
-                                       self._magnification)
-            inner = (slice(i_lo[0], i_hi[0]), slice(i_lo[1], i_hi[1]))
-            sub = (slice(i_lo[0] - o_lo[0], i_hi[0] - o_lo[0]),
-                   slice(i_lo[1] - o_lo[1], i_hi[1] - o_lo[1]))
-            p[inner] = ps[sub]
-            src[inner] = ss[sub]
-        _, video_box = detector._after_sources(p, src, self._field, self.fluoro,
+        p, src = self._local_sources(trans, px)
+        _, video_box = detector._after_sources(p, src, self._local, self.fluoro,
                                                noise=use_noise, rng=rng)
         video = np.zeros(self.fov.shape, dtype=np.uint8)
         video[self._box] = video_box
