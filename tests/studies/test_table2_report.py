@@ -22,3 +22,17 @@ def test_targets_say_met_or_missed_and_what_is_missing():
     ok = targets_markdown(_rows(2.8, 0.5))
     assert "met: mean pin error 2.80 mm" in ok and "is missing" not in ok
     assert "**missed**: calibration validation" in ok
+
+
+def test_the_paper_method_rows_are_reported_apart_from_the_default():
+    default = _rows(1.0, 0.3).assign(method="default")
+    paper = _rows(2.5, 0.3).assign(method="paper")
+    paper = paper[paper.metric == "pin_error"]
+    text = targets_markdown(pd.concat([default, paper], ignore_index=True))
+    # the targets are the default method's: the paper's rows do not enter its mean
+    assert "**missed**: mean pin error 1.00 mm" in text
+    assert "the paper's registration method on the same cases and starts: mean pin error " \
+           "2.50 mm, median 2.50 mm (" in text
+    # the per-view reading of the validation target
+    assert "median over the cases of each view's largest distance is 0.30-0.30 mm, inside " \
+           "the range for 1 of 1 views" in text
