@@ -13,8 +13,12 @@ equilateral triangle). :func:`tile_pair` with ``method="brute_force"`` enumerate
 Branching (one contour above two, as at the condyles): the two contours are joined into one
 by a bridge between their closest vertices (traversed once each way), and that keyhole contour
 is tiled with the single one; the bridge edge gets one triangle from each side of the strip,
-so the surface stays manifold. The result is a consistently oriented manifold surface with
-boundary (normals point out of the bone); its two ends are open.
+so the surface stays manifold. A branch is made only when the single contour overlaps both
+(seen from above, :func:`contours_overlap`); when it overlaps one of them alone, as where
+the lowest slice of a real femur cuts one condyle and the next one both, it is tiled with
+that one and the other starts there as an open end (bridging it would join a condyle to
+its neighbour's tip and give edges of four triangles). The result is a consistently oriented
+manifold surface with boundary (normals point out of the bone); its ends are open.
 
 Simplification within a tolerance, verified afterwards with exact closest points (and backed
 off when over): by default each contour is reduced (Douglas-Peucker, scikit-image) and the
@@ -46,6 +50,8 @@ __all__ = [
     "Surface",
     "bridge_contours",
     "check_manifold",
+    "contours_overlap",
+    "points_in_polygon",
     "simplify_surface",
     "surface_distances",
     "surface_distances_fast",
@@ -368,11 +374,37 @@ def _match(lo, hi, vertices, k):
             raise ValueError(f"slices {k} and {k + 1}: cannot match their contours one to one")
         return [(lo[i], hi[o]) for i, o in enumerate(order)]
     if sorted((len(lo), len(hi))) == [1, 2]:
+        one, two = (lo[0], hi) if len(lo) == 1 else (hi[0], lo)
+        meets = [contours_overlap(vertices[one], vertices[c]) for c in two]
+        if meets[0] != meets[1]:  # the single contour continues one of the two only
+            match = two[0] if meets[0] else two[1]
+            return [(lo[0], match) if len(lo) == 1 else (match, hi[0])]
         if len(lo) == 2:
             return [(bridge_contours(vertices, lo[0], lo[1]), hi[0])]
         return [(lo[0], bridge_contours(vertices, hi[0], hi[1]))]
     raise ValueError(f"slices {k} and {k + 1} hold {len(lo)} and {len(hi)} contours; "
                      "only 1-1, 2-2 and 1-2 branching are supported")
+
+
+def points_in_polygon(points_xy, polygon_xy) -> np.ndarray:
+    """Which of ``points_xy`` (N, 2) lie inside the closed polygon ``polygon_xy`` (K, 2)
+    (crossing number; either orientation; a point on an edge may go either way)."""
+    p = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+    a = np.asarray(polygon_xy, dtype=np.float64).reshape(-1, 2)
+    b = np.roll(a, -1, axis=0)
+    x, y = p[:, :1], p[:, 1:]
+    straddle = (a[None, :, 1] > y) != (b[None, :, 1] > y)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x_cross = a[None, :, 0] + (y - a[None, :, 1]) * (b[None, :, 0] - a[None, :, 0]) / (
+            b[None, :, 1] - a[None, :, 1])
+    return np.count_nonzero(straddle & (x < x_cross), axis=1) % 2 == 1
+
+
+def contours_overlap(c1, c2) -> bool:
+    """Whether two closed contours (K, 2 or 3; their xy, seen along z) overlap: a vertex of
+    either lies inside the other."""
+    c1, c2 = np.asarray(c1)[:, :2], np.asarray(c2)[:, :2]
+    return bool(points_in_polygon(c1, c2).any() or points_in_polygon(c2, c1).any())
 
 
 def check_manifold(vertices, faces) -> dict:

@@ -191,3 +191,54 @@ def test_compiled_douglas_peucker_keeps_what_scikit_image_keeps(seed):
         np.testing.assert_array_equal(fast, ref)
         if 0.0 < tol < 1.0:
             assert 3 <= len(fast) < len(c)
+
+
+def test_points_in_polygon_equals_matplotlibs_path_on_random_polygons():
+    from matplotlib.path import Path
+
+    from reglib.surface import points_in_polygon
+
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        k = int(rng.integers(3, 40))
+        t = np.sort(rng.uniform(0, 2 * np.pi, k))
+        r = rng.uniform(2, 10, k)
+        poly = np.column_stack([r * np.cos(t), r * np.sin(t)])  # star-shaped, often concave
+        if rng.uniform() < 0.5:
+            poly = poly[::-1]
+        pts = rng.uniform(-11, 11, (500, 2))
+        np.testing.assert_array_equal(points_in_polygon(pts, poly),
+                                      Path(poly).contains_points(pts))
+
+
+def test_a_slice_cutting_one_condyle_below_two_continues_that_one_only():
+    """The lowest slice of a real femur cuts one condyle, the next ones both: the lone
+    contour is tiled with the condyle it lies under, and the other condyle's lowest contour
+    is an open end (bridging the lone contour to both gave edges of four triangles)."""
+    slices = [
+        [_ellipse(12, 0, 4, 4, 0.0, 24)],                       # the lower condyle's tip
+        [_ellipse(-12, 0, 5, 5, 1.0, 26), _ellipse(12, 0, 6, 6, 1.0, 30)],
+        [_ellipse(-12, 0, 6, 6, 2.0, 30), _ellipse(12, 0, 6.5, 6.5, 2.0, 32)],
+        [_ellipse(0, 0, 20, 8, 3.0, 70)],                       # the condyles merged
+    ]
+    s = surface_from_contours(slices)
+    info = check_manifold(s.vertices, s.faces)
+    assert info["manifold"] and info["max_faces_per_edge"] == 2, info
+    # Open ends: the tip's contour, the other condyle's lowest contour, the top ellipse.
+    assert info["boundary_edges"] == 24 + 26 + 70
+    assert trimesh.Trimesh(s.vertices, s.faces, process=False).is_winding_consistent
+    # The tip is joined to the condyle above it, not to the other one.
+    tip = np.arange(24)
+    other_low = np.arange(24, 24 + 26)
+    tip_faces = s.faces[np.isin(s.faces, tip).any(axis=1)]
+    assert not np.isin(tip_faces, other_low).any()
+    # The same from above: a lone contour over one of two below.
+    flipped = [[c * np.array([1, 1, -1]) for c in sl] for sl in slices[::-1]]
+    flipped = [[c[::-1] for c in sl] for sl in flipped]
+    info = check_manifold(*_tiled(flipped))
+    assert info["manifold"] and info["max_faces_per_edge"] == 2, info
+
+
+def _tiled(slices):
+    s = surface_from_contours(slices)
+    return s.vertices, s.faces
