@@ -58,6 +58,7 @@ __all__ = [
     "surface_from_contours",
     "surface_from_ct",
     "tile_pair",
+    "tileable_contours",
 ]
 
 Quality = Literal["area", "compactness"]
@@ -539,10 +540,39 @@ def surface_from_ct(volume_hu, slice2ct, slice_indices: Sequence[int],
 
     Returns
     -------
-    (Surface, list of SliceContours)
+    (Surface, list of SliceContours): the contours are all the snakes gave; those enclosing
+    less than ``MIN_CONTOUR_AREA_MM2`` (or with fewer than 3 points) are not tiled.
+
+    Raises ``ValueError`` when fewer than 2 slices keep a contour to tile.
     """
     contours = contours_from_ct(volume_hu, slice2ct, slice_indices, clicks_xy,
                                 **(snake_options or {}))
     contours = sorted(contours, key=lambda s: s.z_mm)
-    surf = surface_from_contours(contours, quality=quality, simplify_tol_mm=simplify_tol_mm)
+    kept = tileable_contours([s.contours_ct for s in contours])
+    if len(kept) < 2:
+        raise ValueError(f"{len(kept)} slice(s) with a contour large enough to tile "
+                         f"(at least 3 points enclosing {MIN_CONTOUR_AREA_MM2:g} mm^2); a "
+                         "surface needs 2")
+    surf = surface_from_contours(kept, quality=quality, simplify_tol_mm=simplify_tol_mm)
     return surf, contours
+
+
+#: the smallest cross-section (mm^2) a CT contour must enclose to be tiled: a snake on the
+#: tip of a condyle that a slice only grazes can shrink to a point or a segment; left out,
+#: the contour above it is the surface's open end there
+MIN_CONTOUR_AREA_MM2 = 2.0
+
+
+def tileable_contours(slices) -> list[list[np.ndarray]]:
+    """The slices' contours (a sequence over slices of sequences of (K, 3) mm arrays) without
+    those too small to tile: fewer than 3 points, not finite, or enclosing less than
+    :data:`MIN_CONTOUR_AREA_MM2` (a snake on the tip of a condyle that the slice grazes); a
+    slice left without a contour is left out."""
+    def ok(c):
+        p = np.asarray(c, dtype=np.float64)
+        return bool(p.ndim == 2 and p.shape[1] == 3 and len(p) >= 3
+                    and np.all(np.isfinite(p))
+                    and abs(_signed_area_xy(p)) >= MIN_CONTOUR_AREA_MM2)
+
+    return [cs for cs in ([np.asarray(c, dtype=np.float64) for c in s if ok(c)]
+                          for s in slices) if cs]

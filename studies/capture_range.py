@@ -88,7 +88,7 @@ QUICK_BINS_MM = (0.0, 10.0, 20.0, 30.0)
 SHAPE_FIELDS = ("length_mm", "head_radius_mm", "neck_length_mm", "neck_radius_mm",
                 "neck_shaft_angle_deg", "anteversion_deg", "shaft_diameter_mm",
                 "cortical_thickness_mm", "end_cortex_mm", "shaft_bow_mm", "condyle_width_mm",
-                "notch_width_mm", "condyle_depth_mm")
+                "notch_width_mm", "condyle_depth_mm", "distal_joint_angle_deg")
 #: how many femurs to draw at most before giving up on one case (implausible combinations,
 #: e.g. a neck wider than the head, are drawn again)
 MAX_SHAPE_DRAWS = 50

@@ -149,8 +149,17 @@ def _region_slices(lo, hi, pins_z, spec: CTSpec) -> np.ndarray:
     coarse = np.arange(lo, hi + 1e-9, spec.coarse_spacing_mm)
     windows = [(z - spec.fine_half_width_mm, z + spec.fine_half_width_mm)
                for z in pins_z if lo - spec.fine_half_width_mm <= z <= hi + spec.fine_half_width_mm]
+    # overlapping windows (pins at nearby heights, e.g. in the two condyles of a tilted knee)
+    # are one fine series on one grid, as a scanner runs them; laid window by window, their
+    # grids interleaved (slices 0.24 and 0.76 mm apart)
+    merged: list[list[float]] = []
+    for a, b in sorted(windows):
+        if merged and a <= merged[-1][1] + spec.fine_spacing_mm:
+            merged[-1][1] = max(merged[-1][1], b)
+        else:
+            merged.append([a, b])
     fine = []
-    for a, b in windows:
+    for a, b in merged:
         a, b = max(a, lo), min(b, hi)
         if a <= b:
             fine.append(np.arange(a, b + 1e-9, spec.fine_spacing_mm))

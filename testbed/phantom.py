@@ -11,10 +11,11 @@ The ``ct`` frame is the phantom's own frame (mm), the frame the CT scanner image
 The femur is built with robust booleans (manifold3d): the union of convex lofts between
 elliptic cross-sections along an anteriorly bowed shaft (with metaphyseal flares), a sphere
 for the head, a loft for the neck (neck-shaft angle, anteversion), ellipsoids for the greater
-and lesser trochanters and the two condyles (with the intercondylar notch between them) and a
-trochlear bridge joining the condyles anteriorly. The same construction with every part
-inset by the end-cortex thickness gives the cancellous bone at the two ends; a tapered loft
-inside the shaft gives the medullary canal. Every mesh is watertight and manifold.
+and lesser trochanters and the two condyles (with the intercondylar notch between them; the
+medial one lower, the knee's joint line tilted to the shaft by the anatomical lateral distal
+femoral angle) and a trochlear bridge joining the condyles anteriorly. The same construction
+with every part inset by the end-cortex thickness gives the cancellous bone at the two ends; a
+tapered loft inside the shaft gives the medullary canal. Every mesh is watertight and manifold.
 
 Pins: small steel cylinders in cancellous bone, one in the greater trochanter
 (``proximal``) and one in each condyle (``distal_1`` medial, ``distal_2`` lateral); their
@@ -62,6 +63,12 @@ class PhantomSpec(Spec):
     condyle_width_mm: Annotated[float, Field(ge=60, le=100)] = 80.0
     notch_width_mm: Annotated[float, Field(ge=10, le=30)] = 18.0
     condyle_depth_mm: Annotated[float, Field(ge=45, le=80)] = 60.0
+    distal_joint_angle_deg: Annotated[float, Field(ge=75, le=90)] = 81.0
+    """Anatomical lateral distal femoral angle (aLDFA, deg): between the shaft's axis and the
+    knee's joint line, on the lateral side. Normal 81 (79-83; Paley & Tetsworth, Clin.
+    Orthop. 280, 1992 [memory]): with the shaft along z the medial condyle reaches lower
+    than the lateral one, so the lowest CT slices cut one condyle only. 90: level condyles
+    (the phantom before this field)."""
     thigh_radius_mm: Annotated[float, Field(ge=50, le=200)] = 85.0
     knee_radius_mm: Annotated[float, Field(ge=45, le=120)] = 60.0
     pin_diameter_mm: Annotated[float, Field(gt=0, le=8)] = 4.0
@@ -167,12 +174,14 @@ class _Dims:
     notch_w: float
     condyle_d: float
     n: int
+    aldfa: float = 90.0
 
 
 def _resolve(spec: PhantomSpec) -> _Dims:
     v = float(spec.shape_variation)
     rng = np.random.default_rng(spec.shape_seed)
-    z = np.clip(rng.standard_normal(12), -2.5, 2.5) * v
+    # the 13th draw (the joint angle) came later: the first 12 stay what they were per seed
+    z = np.clip(rng.standard_normal(13), -2.5, 2.5) * v
     s_len = 1 + 0.05 * z[0]
     s_wid = 1 + 0.06 * z[1]
     return _Dims(
@@ -190,6 +199,7 @@ def _resolve(spec: PhantomSpec) -> _Dims:
         notch_w=spec.notch_width_mm * s_wid * (1 + 0.08 * z[11]),
         condyle_d=spec.condyle_depth_mm * s_wid,
         n=int(spec.segments),
+        aldfa=float(np.clip(spec.distal_joint_angle_deg + 2.0 * z[12], 75.0, 90.0)),
     )
 
 
@@ -208,7 +218,11 @@ def _geometry(d: _Dims) -> dict:
     cond_ax = (cw - d.notch_w / 2) / 2                # ML semi-axis of one condyle
     cond_x = d.notch_w / 2 + cond_ax
     cond_h = 0.40 * d.condyle_d                       # SI semi-axis
-    cond = dict(ax=(cond_ax, d.condyle_d / 2, cond_h), y=-0.12 * d.condyle_d, z=cond_h)
+    # the medial condyle (-x, the head's side) lowest; the lateral one raised by the joint
+    # line's tilt across the condyles' centres
+    lat_dz = 2 * cond_x * np.tan(np.radians(90.0 - d.aldfa))
+    cond = dict(ax=(cond_ax, d.condyle_d / 2, cond_h), y=-0.12 * d.condyle_d, z=cond_h,
+                lat_dz=lat_dz)
     z_shaft0 = 2.4 * cond_h                           # shaft sections start above condyles
     z_shaft1 = neck_base[2] - 0.3 * r
     # (z, ML semi-axis, AP semi-axis, y offset) knots of the shaft sections.
@@ -278,8 +292,8 @@ def _femur_manifold(d: _Dims, g: dict, inset: float) -> mf.Manifold:
     # Condyles and the trochlear bridge.
     c = g["cond"]
     for sx in (-1.0, 1.0):
-        parts.append(_ellipsoid((sx * g["cond_x"], c["y"], c["z"]), np.asarray(c["ax"]) - inset,
-                                n))
+        z = c["z"] + (c["lat_dz"] if sx > 0 else 0.0)
+        parts.append(_ellipsoid((sx * g["cond_x"], c["y"], z), np.asarray(c["ax"]) - inset, n))
     parts.append(_ellipsoid(g["trochlea"]["c"], np.asarray(g["trochlea"]["ax"]) - inset, n))
     return mf.Manifold.batch_boolean(parts, mf.OpType.Add)
 
@@ -445,7 +459,7 @@ def _procedural_phantom(spec: PhantomSpec) -> Phantom:
     pins = {
         "proximal": np.array([gt[0] + 1.0, gt[1], gt[2] - 0.15 * g["gt"]["ax"][2]]) * flip,
         "distal_1": np.array([-g["cond_x"], c["y"] + 2.0, 0.9 * c["z"]]) * flip,
-        "distal_2": np.array([g["cond_x"], c["y"] + 2.0, 0.9 * c["z"]]) * flip,
+        "distal_2": np.array([g["cond_x"], c["y"] + 2.0, 0.9 * c["z"] + c["lat_dz"]]) * flip,
     }
     axes = {"proximal": (1.0, 0.0, 0.0), "distal_1": (0.0, 1.0, 0.0),
             "distal_2": (0.0, 1.0, 0.0)}
@@ -454,7 +468,7 @@ def _procedural_phantom(spec: PhantomSpec) -> Phantom:
     gl = {"head_center": g["head_c"], "neck_base": g["neck_base"],
           "greater_trochanter": gt, "lesser_trochanter": g["lt"]["c"],
           "medial_condyle": np.array([-g["cond_x"], c["y"], c["z"]]),
-          "lateral_condyle": np.array([g["cond_x"], c["y"], c["z"]])}
+          "lateral_condyle": np.array([g["cond_x"], c["y"], c["z"] + c["lat_dz"]])}
     landmarks = {k: np.asarray(v, dtype=np.float64) * flip for k, v in gl.items()}
     return Phantom(femur=femur, canal=canal, cancellous=canc, soft_tissue=soft, pins=pins,
                    pin_meshes=pin_meshes, pin_inside={k: "cancellous" for k in PIN_NAMES},

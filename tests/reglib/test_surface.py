@@ -242,3 +242,26 @@ def test_a_slice_cutting_one_condyle_below_two_continues_that_one_only():
 def _tiled(slices):
     s = surface_from_contours(slices)
     return s.vertices, s.faces
+
+
+def test_contours_too_small_to_tile_are_left_out_with_their_empty_slices():
+    """A snake on a condyle's tip that the slice grazes can shrink to a segment (seen on a
+    clinic case with the anatomical knee: 'a contour needs at least 3 points, got 2'); such
+    contours, and a slice left without a contour, are not tiled."""
+    from reglib.surface import MIN_CONTOUR_AREA_MM2, tileable_contours
+
+    segment = np.array([[10.0, 0.0, 0.0], [11.0, 0.0, 0.0]])
+    sliver = _ellipse(12, 0, 1.0, 0.5, 1.0, 12)          # 1.6 mm^2
+    assert np.pi * 1.0 * 0.5 < MIN_CONTOUR_AREA_MM2
+    slices = [
+        [_ellipse(-12, 0, 5, 5, 0.0, 26), segment],
+        [sliver],
+        [_ellipse(-12, 0, 6, 6, 2.0, 30), _ellipse(12, 0, 6, 6, 2.0, 30)],
+        [_ellipse(0, 0, 20, 8, 3.0, 70)],
+    ]
+    kept = tileable_contours(slices)
+    assert [len(s) for s in kept] == [1, 2, 1]
+    np.testing.assert_array_equal(kept[0][0], slices[0][0])
+    s = surface_from_contours(kept)
+    info = check_manifold(s.vertices, s.faces)
+    assert info["manifold"] and info["boundary_edges"] == 26 + 30 + 70, info

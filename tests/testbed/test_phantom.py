@@ -52,8 +52,10 @@ def test_pins_inside_bone(phantom):
 
 
 def test_dimensions_follow_the_spec():
+    # level condyles, so that one section measures their width (the tilt: the test below)
     spec = PhantomSpec(length_mm=420.0, head_radius_mm=25.0, shaft_diameter_mm=30.0,
-                       condyle_width_mm=84.0, neck_shaft_angle_deg=130.0, anteversion_deg=15.0)
+                       condyle_width_mm=84.0, neck_shaft_angle_deg=130.0, anteversion_deg=15.0,
+                       distal_joint_angle_deg=90.0)
     ph = make_phantom(spec)
     lo, hi = ph.femur.bounds
     assert lo[2] == pytest.approx(0.0, abs=0.05) and hi[2] == pytest.approx(420.0, abs=0.05)
@@ -145,3 +147,22 @@ def test_phantoms_are_remembered_but_handed_out_as_copies():
     assert np.array_equal(b.femur.vertices, fresh.femur.vertices)
     assert np.array_equal(b.pins["proximal"], fresh.pins["proximal"])
     assert b.femur is not make_phantom(spec).femur
+
+
+@pytest.mark.parametrize("side", ["right", "left"])
+def test_the_knee_joint_line_is_tilted_by_the_distal_femoral_angle(side):
+    """The medial condyle reaches lower than the lateral one by the joint line's tilt across
+    the condyles' centres (2 x 24.5 mm x tan(90 - aLDFA)); at 90 deg they are level."""
+    sign = 1.0 if side == "right" else -1.0     # lateral: +x for a right femur
+    for angle in (81.0, 90.0):
+        ph = make_phantom(PhantomSpec(side=side, distal_joint_angle_deg=angle))
+        v = ph.femur.vertices
+        lateral = v[sign * v[:, 0] > 9.0, 2].min()
+        medial = v[-sign * v[:, 0] > 9.0, 2].min()
+        drop = 2 * 24.5 * np.tan(np.radians(90.0 - angle))
+        assert medial == pytest.approx(0.0, abs=0.05)
+        assert lateral == pytest.approx(drop, abs=0.3)
+        # the pins follow their condyles
+        assert ph.pins["distal_2"][2] - ph.pins["distal_1"][2] == pytest.approx(drop, abs=1e-9)
+        n_low = len(ph.femur.section([0, 0, 1], [0, 0, 3.0]).discrete)
+        assert n_low == (1 if angle < 90 else 2)
