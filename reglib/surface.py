@@ -309,7 +309,10 @@ def surface_from_contours(slices, *, quality: Quality = "area",
         raise ValueError(f"simplify tolerance must be in [0, 5] mm, got {simplify_tol_mm}")
     for frac in (1.0, 0.7, 0.5, 0.3):
         reduced = [[_decimate(c, frac * simplify_tol_mm) for c in s] for s in stack]
-        v, f = _tile_stack(reduced, quality)
+        try:
+            v, f = _tile_stack(reduced, quality)
+        except ValueError:  # a reduced contour that no strip tiles: reduce it less
+            continue
         # The tolerance is measured at the data: the contour points (the full surface's
         # vertices). Between slices both surfaces only interpolate the contours.
         h = float(surface_distances_fast(vertices, v, f, tol_mm=simplify_tol_mm).max())
@@ -359,8 +362,44 @@ def _tile_stack(stack, quality):
     faces = []
     for k in range(len(stack) - 1):
         for la, lb in _match(loops[k], loops[k + 1], vertices, k):
-            faces.append(_tile_indices(la, lb, vertices, quality, "dp", None)[0])
+            faces.append(_tile_strip(la, lb, vertices, quality))
     return vertices, np.vstack(faces)
+
+
+def _strip_is_manifold(faces: np.ndarray) -> bool:
+    """No edge of the strip in more than two of its triangles."""
+    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(e, axis=0, return_counts=True)
+    return bool(counts.max() <= 2)
+
+
+def _tile_strip(la, lb, vertices, quality, tries: int = 8) -> np.ndarray:
+    """The least-cost strip between two loops from their closest pair; if its path runs
+    along one loop from the start and back to the same vertices at the end (the cross edge
+    to vertex 0 of a loop met twice: four triangles on one edge, seen on a snake contour
+    that crossed itself on a grazed condyle), the strip from other start pairs: ``tries``
+    vertices evenly around the longer loop, each with its closest vertex on the other."""
+    faces = _tile_indices(la, lb, vertices, quality, "dp", None)[0]
+    if _strip_is_manifold(faces):
+        return faces
+    if len(la) * len(lb) <= 256:  # small loops (e.g. simplified): every start pair
+        starts = list(itertools.product(la.tolist(), lb.tolist()))
+    else:
+        swap = len(lb) > len(la)
+        long_, short = (lb, la) if swap else (la, lb)
+        starts = []
+        for i in np.linspace(0, len(long_), tries, endpoint=False).astype(int):
+            j = int(np.argmin(np.linalg.norm(vertices[short] - vertices[long_[i]], axis=1)))
+            starts.append((short[j], long_[i]) if swap else (long_[i], short[j]))
+    best = None
+    for start in starts:
+        f, cost = _tile_indices(la, lb, vertices, quality, "dp", start)
+        if _strip_is_manifold(f) and (best is None or cost < best[1]):
+            best = (f, cost)
+    if best is None:
+        raise ValueError("two contours cannot be tiled into a manifold strip from any of "
+                         f"{len(starts) + 1} start pairs (a contour may cross itself)")
+    return best[0]
 
 
 def _match(lo, hi, vertices, k):

@@ -265,3 +265,36 @@ def test_contours_too_small_to_tile_are_left_out_with_their_empty_slices():
     s = surface_from_contours(kept)
     info = check_manifold(s.vertices, s.faces)
     assert info["manifold"] and info["boundary_edges"] == 26 + 30 + 70, info
+
+
+#: two contours of a grazed condyle's tip on neighbouring slices (a clinic case with the
+#: anatomical knee, rounded to 0.1 mm): the upper one crosses itself, and the strip from
+#: their closest pair ran along one contour from the start and back over the same vertices
+#: at the end (an edge of four triangles)
+_TIP_LOW = [[17.8, -12.5], [18.2, -14.1], [18.7, -15.6], [19.4, -17.1], [20.2, -18.4],
+            [21.2, -19.7], [22.5, -20.6], [24.0, -21.2], [25.6, -21.0], [27.0, -20.2],
+            [28.2, -19.1], [29.2, -17.9], [29.9, -16.4], [30.5, -14.9], [31.1, -13.4],
+            [29.7, -13.2], [28.2, -13.5], [26.7, -13.5], [25.4, -11.8], [23.7, -13.0],
+            [22.1, -11.3], [20.7, -13.3], [19.1, -12.9]]
+_TIP_HIGH = [[25.3, -0.6], [21.4, -2.6], [20.2, -4.7], [21.6, -7.5], [23.1, -7.8],
+             [24.4, -8.0], [25.1, -8.6], [25.5, -8.9], [26.0, -7.9], [25.2, -7.6],
+             [24.0, -7.7], [23.3, -8.2], [23.9, -9.3], [24.2, -8.9], [25.0, -8.4],
+             [27.2, -8.7], [25.9, -6.9], [27.6, -5.3], [27.5, -3.8]]
+
+
+def test_a_strip_that_would_fold_onto_itself_is_tiled_from_another_start():
+    from reglib.surface import _ccw, _strip_is_manifold, _tile_indices
+
+    a = np.column_stack([_TIP_LOW, np.full(len(_TIP_LOW), 10.6)])
+    b = np.column_stack([_TIP_HIGH, np.full(len(_TIP_HIGH), 11.6)])
+    v = np.vstack([a, b])
+    la, lb = _ccw(np.arange(len(a)), v), _ccw(np.arange(len(b)) + len(a), v)
+    # the closest pair's strip is the defect this guards against
+    assert not _strip_is_manifold(_tile_indices(la, lb, v, "area", "dp", None)[0])
+    slices = [[_ellipse(-24, 0, 16, 10, 10.6, 60), a],
+              [_ellipse(-24, 0, 16.5, 10, 11.6, 62), b],
+              [_ellipse(0, -5, 30, 14, 12.6, 90)]]
+    for tol in (None, 0.3):
+        s = surface_from_contours(slices, simplify_tol_mm=tol)
+        info = check_manifold(s.vertices, s.faces)
+        assert info["manifold"] and info["max_faces_per_edge"] == 2, (tol, info)
