@@ -367,6 +367,12 @@ def _user_phantom(spec: PhantomSpec) -> Phantom:
         raise ValueError(f"phantom.mesh_path: the mesh in {str(path)!r} is not watertight "
                          "(it has holes or open edges); give a closed surface")
     _check_closed(mesh, f"phantom.mesh_path {str(path)!r}")
+    ext = mesh.extents
+    if ext[2] < max(ext[0], ext[1]):
+        raise ValueError(
+            f"phantom.mesh_path: the femur in {str(path)!r} must lie along the ct frame's z "
+            "axis (proximal up, the lowest point of the condyles near z = 0, mm); its extents "
+            f"are x {ext[0]:.0f}, y {ext[1]:.0f}, z {ext[2]:.0f} mm")
     if spec.mesh_pins_mm is None:
         raise ValueError("phantom.mesh_pins_mm must give the pin centres (proximal, distal_1, "
                          "distal_2) for a user mesh")

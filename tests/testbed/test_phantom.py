@@ -131,6 +131,13 @@ def test_user_mesh(tmp_path):
     with pytest.raises(ValueError, match="not inside"):
         make_phantom(PhantomSpec(mesh_path=str(path),
                                  mesh_pins_mm={**pins, "proximal": (0.0, 0.0, 600.0)}))
+    # A femur lying along x (a mesh exported in another frame) is refused, naming the axis.
+    sideways = good.copy()
+    sideways.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))
+    side_path = tmp_path / "sideways.stl"
+    sideways.export(side_path)
+    with pytest.raises(ValueError, match="must lie along the ct frame's z axis"):
+        make_phantom(PhantomSpec(mesh_path=str(side_path), mesh_pins_mm=pins))
 
 
 def test_phantoms_are_remembered_but_handed_out_as_copies():
