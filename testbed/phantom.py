@@ -368,6 +368,11 @@ def _user_phantom(spec: PhantomSpec) -> Phantom:
                          "(it has holes or open edges); give a closed surface")
     _check_closed(mesh, f"phantom.mesh_path {str(path)!r}")
     ext = mesh.extents
+    if ext.max() < 50.0:
+        raise ValueError(
+            f"phantom.mesh_path: the mesh in {str(path)!r} is {ext.max():.3g} units long; "
+            "its units must be millimetres (an adult femur is 300-600 mm; a mesh in metres "
+            "or centimetres needs scaling)")
     if ext[2] < max(ext[0], ext[1]):
         raise ValueError(
             f"phantom.mesh_path: the femur in {str(path)!r} must lie along the ct frame's z "

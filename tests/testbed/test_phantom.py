@@ -138,6 +138,13 @@ def test_user_mesh(tmp_path):
     sideways.export(side_path)
     with pytest.raises(ValueError, match="must lie along the ct frame's z axis"):
         make_phantom(PhantomSpec(mesh_path=str(side_path), mesh_pins_mm=pins))
+    # A mesh in metres is refused, naming the units.
+    metres = good.copy()
+    metres.apply_scale(0.001)
+    m_path = tmp_path / "metres.stl"
+    metres.export(m_path)
+    with pytest.raises(ValueError, match="units must be millimetres"):
+        make_phantom(PhantomSpec(mesh_path=str(m_path), mesh_pins_mm=pins))
 
 
 def test_phantoms_are_remembered_but_handed_out_as_copies():
