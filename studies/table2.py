@@ -110,7 +110,54 @@ def run(ctx) -> pd.DataFrame:
     ctx.report("Targets of a clinic-realistic simulation", targets_markdown(ok))
     if failures:
         ctx.report("Failed cases", "\n".join(f"- case {k}: {v}" for k, v in failures.items()))
+    _figure(ctx, ok)
     return df
+
+
+def _figure(ctx, df: pd.DataFrame) -> None:
+    """Per pin, the simulated pin errors of the perturbed starts (a box per method: quartiles,
+    whiskers at the 5th and 95th percentiles) beside the paper's Table II values
+    (diamonds)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pe = df[(df.metric == "pin_error") & (df.start != "identity")]
+    if pe.empty:
+        return
+    methods = [m for m in ("default", "paper") if len(_of_method(pe, m))]
+    fig, ax = plt.subplots(figsize=(7.5, 4.2))
+    width = 0.8 / (len(methods) + 1)
+    paper = [v for k, v in PAPER_TABLE2.items() if k != "identity"]
+    for i, pin in enumerate(PIN_NAMES):
+        for j, m in enumerate(methods):
+            x = i + (j - len(methods) / 2) * width
+            vals = _of_method(pe, m)
+            vals = vals[vals.pin == pin]["value"].to_numpy()
+            ax.boxplot(vals, positions=[x], widths=width * 0.8, whis=(5, 95),
+                       showfliers=False, patch_artist=True,
+                       boxprops={"facecolor": ("tab:blue", "tab:orange")[j], "alpha": 0.5},
+                       medianprops={"color": "k"})
+        xp = i + (len(methods) / 2) * width
+        ax.plot(np.full(len(paper), xp), [r[i] for r in paper], "D", color="tab:red",
+                ms=5, label="paper, Table II" if i == 0 else None)
+    for j, m in enumerate(methods):
+        ax.plot([], [], "s", color=("tab:blue", "tab:orange")[j], alpha=0.5,
+                label={"default": "simulated, reglib default", "paper": "simulated, the "
+                       "paper's method"}[m])
+    ax.set_xticks(range(len(PIN_NAMES)), PIN_NAMES)
+    ax.set_ylabel("error at the pin (mm)")
+    ax.set_yscale("log")
+    ax.set_title("Pin errors from the 5 and 7 deg starts (boxes: quartiles, whiskers 5-95 %)",
+                 fontsize=9)
+    ax.legend(fontsize=8, loc="upper left")
+    ax.grid(axis="y", alpha=0.3, which="both")
+    fig.tight_layout()
+    fig.savefig(ctx.figure("table2_pins.png", "Pin errors after registration from the "
+                           "perturbed starts, simulated (per method) beside the paper's "
+                           "Table II"), dpi=110)
+    plt.close(fig)
 
 
 def _iqr(x) -> str:
