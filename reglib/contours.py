@@ -37,6 +37,7 @@ __all__ = [
     "cubic_coefficients",
     "resample_polygon",
     "snake_contour",
+    "untangle_contour",
 ]
 
 
@@ -480,6 +481,53 @@ def _to_ct(slice2ct: np.ndarray, k: int, xy: np.ndarray) -> np.ndarray:
     return (hom @ a.T)[:, :3]
 
 
+def _first_crossing(p: np.ndarray):
+    """The first pair (i, j), i < j, of non-adjacent edges of the closed polygon ``p`` (K, 2)
+    that cross (edge i joins p[i] and p[i + 1]), with the crossing point; None if simple."""
+    a = p
+    d = np.roll(p, -1, axis=0) - p
+    n = len(p)
+    for i in range(n - 2):
+        j = np.arange(i + 2, n if i else n - 1)
+        if not len(j):
+            continue
+        r, sj, q = d[i], d[j], a[j] - a[i]
+        den = r[0] * sj[:, 1] - r[1] * sj[:, 0]
+        ok = den != 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (q[:, 0] * sj[:, 1] - q[:, 1] * sj[:, 0]) / den
+            u = (q[:, 0] * r[1] - q[:, 1] * r[0]) / den
+        hit = np.flatnonzero(ok & (t > 0) & (t < 1) & (u > 0) & (u < 1))
+        if len(hit):
+            jj = int(j[hit[0]])
+            return i, jj, a[i] + t[hit[0]] * r
+    return None
+
+
+def untangle_contour(xy) -> np.ndarray:
+    """A closed contour (K, 2) px without self-crossings: where two of its edges cross, it
+    is cut there into two loops and the one enclosing the larger area is kept, until none
+    cross (a snake whose vertices crossed over, as on the tip of a condyle that a CT slice
+    grazes, leaves a twisted loop that tiles into a folded surface). Returns the contour
+    itself when it is simple; the kept loop's vertices are a subset of the contour's plus
+    the crossing points."""
+    p = np.asarray(xy, dtype=np.float64)
+    for _ in range(len(p)):
+        hit = _first_crossing(p) if len(p) >= 4 else None
+        if hit is None:
+            return p
+        i, j, x = hit
+        inner = np.vstack([x, p[i + 1:j + 1]])           # x, p[i+1] .. p[j]
+        outer = np.vstack([p[j + 1:], p[:i + 1], x])     # p[j+1] .. p[i], x
+        p = max((inner, outer), key=lambda c: abs(_polygon_area(c)) if len(c) >= 3 else -1.0)
+    return p
+
+
+def _polygon_area(p: np.ndarray) -> float:
+    x, y = p[:, 0], p[:, 1]
+    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+
+
 def contours_from_ct(
     volume_hu,
     slice2ct,
@@ -536,6 +584,7 @@ def contours_from_ct(
                 c = snake_contour(vol[k], clicks, **snake_options)
             except ValueError as exc:
                 raise ValueError(f"slice {k} (clicks of slice {src}), contour {j}: {exc}") from None
+            c = untangle_contour(c)
             px.append(c)
             ct.append(_to_ct(aff, k, c))
         z = float(np.mean(np.concatenate([p[:, 2] for p in ct])))

@@ -43,7 +43,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from reglib.contours import contours_from_ct
+from reglib.contours import _polygon_area, contours_from_ct
 
 __all__ = [
     "SURFACE_SIMPLIFY_TOL_MM",
@@ -96,8 +96,7 @@ def _as_contour(c, name: str) -> np.ndarray:
 
 
 def _signed_area_xy(p: np.ndarray) -> float:
-    x, y = p[:, 0], p[:, 1]
-    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+    return _polygon_area(p)
 
 
 def _ccw(idx: np.ndarray, pts: np.ndarray) -> np.ndarray:

@@ -202,3 +202,53 @@ def test_row_nanmedian_equals_numpy():
     with np.errstate(all="ignore"), pytest.warns(RuntimeWarning):
         ref = np.nanmedian(a, axis=1)
     np.testing.assert_array_equal(_nanmedian_rows(a), ref)
+
+
+def _crossings_brute_force(p):
+    """Every pair of non-adjacent edges of the closed polygon p that cross (plain loops)."""
+    n, out = len(p), []
+    for i in range(n):
+        for j in range(i + 1, n):
+            if j == i + 1 or (i == 0 and j == n - 1):
+                continue
+            a, b, c, d = p[i], p[(i + 1) % n], p[j], p[(j + 1) % n]
+
+            def orient(u, v, w):
+                return (v[0] - u[0]) * (w[1] - u[1]) - (v[1] - u[1]) * (w[0] - u[0])
+
+            if (orient(a, b, c) * orient(a, b, d) < 0) and (orient(c, d, a) * orient(c, d, b) < 0):
+                out.append((i, j))
+    return out
+
+
+def test_untangle_contour_leaves_a_simple_loop_and_keeps_the_larger_lobe():
+    from reglib.contours import untangle_contour
+
+    # a figure of eight: a big lobe and a small one, crossing once at the origin
+    t = np.linspace(0, 2 * np.pi, 80, endpoint=False)
+    big = np.column_stack([10 + 10 * np.cos(t), 10 * np.sin(t)])
+    small = np.column_stack([-3 - 3 * np.cos(t), 3 * np.sin(t)])[::-1]
+    eight = np.vstack([big[1:], small[1:]])
+    assert _crossings_brute_force(eight)
+    kept = untangle_contour(eight)
+    assert _crossings_brute_force(kept) == []
+    assert kept[:, 0].min() > -0.5 and abs(kept[:, 0].max() - 20) < 0.1   # the big lobe
+    # a simple contour is returned as it is
+    np.testing.assert_array_equal(untangle_contour(big), big)
+
+
+def test_untangled_random_contours_are_simple_by_brute_force():
+    """Random jittered circles (crossings of every kind): the result has no crossing by
+    an independent all-pairs test, and its vertices are the contour's plus crossings."""
+    from reglib.contours import untangle_contour
+
+    rng = np.random.default_rng(11)
+    for _ in range(30):
+        n = int(rng.integers(8, 60))
+        t = np.sort(rng.uniform(0, 2 * np.pi, n))
+        r = 10 + rng.normal(0, 3, n)
+        p = np.column_stack([r * np.cos(t), r * np.sin(t)]) + rng.normal(0, 1.5, (n, 2))
+        q = untangle_contour(p)
+        assert len(q) >= 3 and _crossings_brute_force(q) == []
+        if not _crossings_brute_force(p):
+            np.testing.assert_array_equal(q, p)
