@@ -482,8 +482,39 @@ def _to_ct(slice2ct: np.ndarray, k: int, xy: np.ndarray) -> np.ndarray:
 
 
 def _first_crossing(p: np.ndarray):
-    """The first pair (i, j), i < j, of non-adjacent edges of the closed polygon ``p`` (K, 2)
-    that cross (edge i joins p[i] and p[i + 1]), with the crossing point; None if simple."""
+    """The first pair (i, j), i < j (in that order), of non-adjacent edges of the closed
+    polygon ``p`` (K, 2) that cross (edge i joins p[i] and p[i + 1]), with the crossing
+    point; None if simple. The crossing test runs only on the pairs whose bounding boxes
+    meet (a simple contour has few besides its neighbours);
+    :func:`_first_crossing_loop`, one edge against all later ones at a time, is the
+    reference."""
+    n = len(p)
+    if n < 4:
+        return None
+    b = np.roll(p, -1, axis=0)
+    d = b - p
+    lo, hi = np.minimum(p, b), np.maximum(p, b)
+    near = ((lo[:, None, 0] <= hi[None, :, 0]) & (lo[None, :, 0] <= hi[:, None, 0])
+            & (lo[:, None, 1] <= hi[None, :, 1]) & (lo[None, :, 1] <= hi[:, None, 1]))
+    near = np.triu(near, 2)          # j >= i + 2: not the same or the next edge
+    near[0, n - 1] = False           # edges n - 1 and 0 are neighbours too
+    i, j = np.nonzero(near)          # in order of i, then j
+    if not len(i):
+        return None
+    r, sj, q = d[i], d[j], p[j] - p[i]
+    den = r[:, 0] * sj[:, 1] - r[:, 1] * sj[:, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (q[:, 0] * sj[:, 1] - q[:, 1] * sj[:, 0]) / den
+        u = (q[:, 0] * r[:, 1] - q[:, 1] * r[:, 0]) / den
+    hit = np.flatnonzero((den != 0) & (t > 0) & (t < 1) & (u > 0) & (u < 1))
+    if not len(hit):
+        return None
+    k = hit[0]
+    return int(i[k]), int(j[k]), p[i[k]] + t[k] * d[i[k]]
+
+
+def _first_crossing_loop(p: np.ndarray):
+    """Reference of :func:`_first_crossing`: one edge against the later ones at a time."""
     a = p
     d = np.roll(p, -1, axis=0) - p
     n = len(p)

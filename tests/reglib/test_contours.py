@@ -252,3 +252,19 @@ def test_untangled_random_contours_are_simple_by_brute_force():
         assert len(q) >= 3 and _crossings_brute_force(q) == []
         if not _crossings_brute_force(p):
             np.testing.assert_array_equal(q, p)
+
+
+def test_first_crossing_equals_its_one_edge_at_a_time_reference():
+    from reglib.contours import _first_crossing, _first_crossing_loop
+
+    rng = np.random.default_rng(5)
+    for _ in range(40):
+        n = int(rng.integers(4, 300))
+        t = np.sort(rng.uniform(0, 2 * np.pi, n))
+        r = 10 + rng.normal(0, rng.uniform(0.1, 3), n)
+        p = np.column_stack([r * np.cos(t), r * np.sin(t)]) + rng.normal(0, 0.5, (n, 2))
+        got, ref = _first_crossing(p), _first_crossing_loop(p)
+        assert (got is None) == (ref is None)
+        if got is not None:
+            assert got[:2] == ref[:2]
+            np.testing.assert_allclose(got[2], ref[2], atol=1e-12)
