@@ -366,10 +366,12 @@ def _tile_stack(stack, quality):
 
 
 def _strip_is_manifold(faces: np.ndarray) -> bool:
-    """No edge of the strip in more than two of its triangles."""
-    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-    _, counts = np.unique(e, axis=0, return_counts=True)
-    return bool(counts.max() <= 2)
+    """No edge of the strip in more than two of its triangles (edges as sorted 1-D keys: a
+    key three times in a row is an edge of three or more)."""
+    a = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2]])
+    b = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])
+    keys = np.sort(np.minimum(a, b) * (int(faces.max()) + 1) + np.maximum(a, b))
+    return not bool(np.any(keys[2:] == keys[:-2]))
 
 
 def _tile_strip(la, lb, vertices, quality, tries: int = 8) -> np.ndarray:
