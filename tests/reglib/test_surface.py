@@ -298,3 +298,20 @@ def test_a_strip_that_would_fold_onto_itself_is_tiled_from_another_start():
         s = surface_from_contours(slices, simplify_tol_mm=tol)
         info = check_manifold(s.vertices, s.faces)
         assert info["manifold"] and info["max_faces_per_edge"] == 2, (tol, info)
+
+
+def test_strip_check_equals_counting_edges_with_numpy_unique():
+    from reglib.surface import _strip_is_manifold
+
+    rng = np.random.default_rng(8)
+    seen = set()
+    for _ in range(300):
+        f = rng.integers(0, 12, size=(int(rng.integers(2, 20)), 3))
+        f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+        if not len(f):
+            continue
+        e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+        ref = np.unique(e, axis=0, return_counts=True)[1].max() <= 2
+        assert _strip_is_manifold(f) == ref
+        seen.add(bool(ref))
+    assert seen == {True, False}
