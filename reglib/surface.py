@@ -95,12 +95,8 @@ def _as_contour(c, name: str) -> np.ndarray:
     return p
 
 
-def _signed_area_xy(p: np.ndarray) -> float:
-    return _polygon_area(p)
-
-
 def _ccw(idx: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    return idx if _signed_area_xy(pts[idx]) >= 0 else idx[::-1]
+    return idx if _polygon_area(pts[idx]) >= 0 else idx[::-1]
 
 
 def _tri_cost(p, q, r, quality: Quality) -> np.ndarray:
@@ -612,7 +608,7 @@ def tileable_contours(slices) -> list[list[np.ndarray]]:
         p = np.asarray(c, dtype=np.float64)
         return bool(p.ndim == 2 and p.shape[1] == 3 and len(p) >= 3
                     and np.all(np.isfinite(p))
-                    and abs(_signed_area_xy(p)) >= MIN_CONTOUR_AREA_MM2)
+                    and abs(_polygon_area(p)) >= MIN_CONTOUR_AREA_MM2)
 
     return [cs for cs in ([np.asarray(c, dtype=np.float64) for c in s if ok(c)]
                           for s in slices) if cs]
