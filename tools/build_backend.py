@@ -1,0 +1,52 @@
+"""The project's build backend: setuptools', and at an editable install the numba kernels
+compiled into their on-disk cache (``tools/precompile.py``).
+
+``pip install -e .`` builds through this module (``[build-system]`` of pyproject.toml), so
+that the first ``testbed run`` of a fresh checkout finds its compiled kernels in
+``__pycache__`` instead of spending about 40 s of CPU compiling them. The editable build asks
+for numpy, scipy and numba in pip's build environment, the kernels' only imports. Other builds
+(``pip install .``, wheels, sdists) are setuptools' own: there the code is copied into
+site-packages and numba compiles and caches it there at first use.
+
+``TESTBED_PRECOMPILE=0`` skips the step. It never fails an install: a kernel it could not
+compile is compiled at its first use, as without it, and a line on stderr says which.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from setuptools import build_meta as _setuptools
+from setuptools.build_meta import *  # noqa: F403 - the backend's other hooks unchanged
+
+KERNEL_REQUIRES = ["numpy>=1.26", "scipy>=1.11", "numba>=0.60"]
+PRECOMPILE = Path(__file__).resolve().parent / "precompile.py"
+
+
+def get_requires_for_build_editable(config_settings=None):
+    return _setuptools.get_requires_for_build_editable(config_settings) + KERNEL_REQUIRES
+
+
+def build_editable(wheel_directory, config_settings=None, metadata_directory=None):
+    name = _setuptools.build_editable(wheel_directory, config_settings, metadata_directory)
+    if os.environ.get("TESTBED_PRECOMPILE", "1") != "0":
+        _precompile()
+    return name
+
+
+def _precompile() -> None:
+    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+    try:
+        done = subprocess.run([sys.executable, str(PRECOMPILE)], env=env, timeout=1200,
+                              capture_output=True, text=True)
+    except (OSError, subprocess.SubprocessError) as exc:
+        print(f"warning: numba kernels not precompiled ({exc}); they compile at first use",
+              file=sys.stderr)
+        return
+    sys.stderr.write(done.stderr)
+    if done.returncode != 0:
+        print("warning: some numba kernels were not precompiled (above); they compile at "
+              "first use", file=sys.stderr)
