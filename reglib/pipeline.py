@@ -69,6 +69,14 @@ TPS_SMOOTHING = 0.01
 MAX_VALIDATION_MM = 1.0
 #: fewer validation markers than this: the calibration cannot be checked and fails
 MIN_VALIDATION_MARKERS = 3
+#: the verdict's limit on the pose's uncertainty along its least constrained motion (mm of RMS
+#: displacement of the surfaces for the across-contour distances to change by their median,
+#: ``match_quality``'s ``weak_motion_mm``). Measured on the simulated clinic (36 runs over
+#: seven view set-ups, 2026-11-25): the mTRE was 0.13-0.28 times this figure on average per
+#: set-up (four views 2.5-3.5 mm, mTRE 0.3-1.2; three views, or four closer together, 6-8 mm;
+#: one view per end of the femur 8-13 mm, mTRE up to 4 mm). 8 mm is where the expected
+#: mTRE reaches about 2 mm, the capture-range study's limit of a successful registration.
+MAX_WEAK_MOTION_MM = 8.0
 #: the coarse stage of the "coarse-fine" strategy: keyword options of register over the
 #: estimate's registration options
 COARSE_STAGE = {"residual": "line", "max_iterations": 25}
@@ -97,7 +105,9 @@ class EstimateOptions:
     1), or None; ``min_views``: fewer usable views than this and the estimate is refused;
     ``accept_min_views``: fewer than this and it is not accepted;
     ``accept_max_median_mm`` and ``accept_min_inlier_fraction``: the verdict's limits on the
-    final matches (median point-to-path distance, share of matches kept).
+    final matches (median point-to-path distance, share of matches kept);
+    ``accept_max_weak_motion_mm``: its limit on how loosely the matches hold the pose
+    (``weak_motion_mm`` of :func:`match_quality`; inf: not checked).
     """
 
     tps_smoothing: float = TPS_SMOOTHING
@@ -115,6 +125,7 @@ class EstimateOptions:
     accept_min_views: int = 2
     accept_max_median_mm: float = 1.0
     accept_min_inlier_fraction: float = 0.5
+    accept_max_weak_motion_mm: float = MAX_WEAK_MOTION_MM
 
     def __post_init__(self):
         for name in ("tps_smoothing", "simplify_tol_mm"):
@@ -122,7 +133,7 @@ class EstimateOptions:
             if not (isinstance(v, int | float) and np.isfinite(v) and v >= 0):
                 raise ValueError(f"EstimateOptions.{name}: expected a finite number >= 0, "
                                  f"got {v!r}")
-        for name in ("max_validation_mm", "accept_max_median_mm"):
+        for name in ("max_validation_mm", "accept_max_median_mm", "accept_max_weak_motion_mm"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and v > 0):
                 raise ValueError(f"EstimateOptions.{name}: expected a number > 0, got {v!r}")
@@ -466,20 +477,32 @@ def match_quality(res) -> dict:
     within 1 mm; ``inlier_fraction``: share the solver kept; per view, the largest median
     distance (``max_view_median_mm``) and the smallest inlier fraction
     (``min_view_inlier_fraction``): a pose that fits some views and not others shows there.
+    ``pose_sensitivity``: the weakest of the registration's :attr:`sensitivity` (RMS change
+    of the across-contour distances per mm of RMS displacement of the surfaces, along their
+    least constrained motion); ``weak_motion_mm``: the median distance over it, i.e. how far
+    the surfaces can move (RMS) along that motion for the distances to change by their
+    median: the pose's uncertainty along its weakest direction, in mm of the bone.
     """
     r = np.abs(np.asarray(res.residuals, dtype=np.float64))
     vi = np.asarray(res.view_index)
     w = np.asarray(res.weights, dtype=np.float64)
     if r.size == 0:
         nan = float("nan")
-        return {"median_residual_mm": nan, "p90_residual_mm": nan, "near_fraction": 0.0,
+        return {"median_residual_mm": nan, "pose_sensitivity": nan, "weak_motion_mm": nan,
+                "p90_residual_mm": nan, "near_fraction": 0.0,
                 "inlier_fraction": 0.0, "max_view_median_mm": nan,
                 "min_view_inlier_fraction": 0.0}
     views = np.unique(vi) if vi.size == r.size else np.array([0])
     if vi.size != r.size:
         vi = np.zeros(r.size, dtype=np.int64)
+    sens = np.asarray(getattr(res, "sensitivity", ()), dtype=np.float64)
+    s_min = float(sens[0]) if sens.size else float("nan")
+    med = float(np.median(r))
     return {
-        "median_residual_mm": float(np.median(r)),
+        "median_residual_mm": med,
+        "pose_sensitivity": s_min,
+        "weak_motion_mm": (med / s_min if s_min > 0 else float("inf")) if sens.size
+        else float("nan"),
         "p90_residual_mm": float(np.percentile(r, 90)),
         "near_fraction": float(np.mean(r < 1.0)),
         "inlier_fraction": float(np.mean(w > 0)) if w.size == r.size else 0.0,
@@ -508,7 +531,17 @@ def verdict(converged: bool, quality: dict, failed: str, options: EstimateOption
     if quality.get("inlier_fraction", 0.0) < options.accept_min_inlier_fraction:
         reasons.append(f"inlier fraction {quality.get('inlier_fraction', 0.0):.2f} < "
                        f"{options.accept_min_inlier_fraction:g}")
+    weak = quality.get("weak_motion_mm", float("nan"))
+    if not weak <= options.accept_max_weak_motion_mm and not np.isnan(weak):
+        reasons.append(WEAK_GEOMETRY + f": the bone can move {weak:.1f} mm (RMS) along its least "
+                       "constrained motion for the contour distances to change by their median "
+                       f"(limit {options.accept_max_weak_motion_mm:g} mm); add a view, or "
+                       "views further apart")
     return reasons
+
+
+#: the start of the verdict's objection to a loosely held pose (restarts cannot mend it)
+WEAK_GEOMETRY = "the views leave the pose loosely determined"
 
 
 def restart_poses(start: RigidTransform, pivot_robot, angle_deg: float, n: int) -> list:
@@ -545,9 +578,12 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
     Estimate. ``accepted`` holds only when the loop converged, at least
     ``options.accept_min_views`` views were used (failed views are left out and named in
     ``warnings``), the median final point-to-path distance is at most
-    ``accept_max_median_mm`` and the solver kept at least ``accept_min_inlier_fraction`` of
-    the matches; otherwise ``message`` says why. When the first result is not accepted, up
-    to ``options.restarts`` turned starts are tried and the best verdict is returned.
+    ``accept_max_median_mm``, the solver kept at least ``accept_min_inlier_fraction`` of
+    the matches and the matches hold the pose within ``accept_max_weak_motion_mm`` along its
+    least constrained motion (two views, one per end of a long bone, do not: the bone can
+    slide along their beams); otherwise ``message`` says why. When the first result is not
+    accepted, up to ``options.restarts`` turned starts are tried and the best verdict is
+    returned (not when the only objection is the loosely held pose: no start mends that).
     """
     from reglib.register import register
 
@@ -604,7 +640,8 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
 
     res, quality, reasons = run(start)
     restarts = 0
-    if reasons and options.restarts:
+    # another start cannot mend a pose the views leave loosely determined
+    if reasons and options.restarts and not all(r.startswith(WEAK_GEOMETRY) for r in reasons):
         # not accepted: the start may lie outside the basin; try starts turned about the
         # fixed point (or the surfaces' centre) and keep the best verdict
         pivot = (start.apply(np.asarray(options.fixed_point_ct, dtype=np.float64))

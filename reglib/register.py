@@ -132,6 +132,13 @@ class RegistrationResult:
     view_index : (M,) int64, the view of each match.
     inlier_fraction_per_view : (V,) float64.
     time_s : float, total wall time.
+    sensitivity : (6,) float64 (3, about a fixed point), ascending, unitless: how strongly
+        the final matches hold the pose (:func:`pose_sensitivity`); ``sensitivity[0]``, the
+        weakest, is the RMS change of the across-contour distances per mm of RMS
+        displacement of the surfaces along their least constrained motion. Empty when the
+        loop did not solve.
+    weakest_motion : (6,) float64, that motion (rotation rad, translation mm about the
+        surfaces' centre or the fixed point; scaled to 1 mm RMS displacement).
     """
 
     ct2robot: RigidTransform
@@ -144,6 +151,8 @@ class RegistrationResult:
     view_index: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     inlier_fraction_per_view: np.ndarray = field(default_factory=lambda: np.zeros(0))
     time_s: float = 0.0
+    sensitivity: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    weakest_motion: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def __bool__(self) -> bool:
         return bool(self.converged)
@@ -186,6 +195,76 @@ def match_view(surfaces, view: View, ct2robot: RigidTransform, *, closest: str =
     pts = cp.p[rows, sel]
     tangents = cset.tangents(cp.segment[rows, sel], pts)
     return pts, tangents, cset, owner
+
+
+# --------------------------------------------------------------------------- conditioning
+def pose_sensitivity(points, normals, weights, targets, *, centre=None, fixed_point=None):
+    """How strongly matched points hold a rigid pose: generalised eigenvalues of the matches'
+    information against the targets' displacement.
+
+    A small motion of the bone, rotation ``w`` (rad) and translation ``v`` (mm) about
+    ``centre``, moves a matched point ``p`` across its contour by ``n . (w x (p - c) + v)``
+    (``n`` the unit normal of the match: across the contour, perpendicular to its X-ray path)
+    and a target ``q`` by ``w x (q - c) + v``. With ``F`` the weighted mean of the first
+    quadratic form over the matches and ``M`` the mean of the second over the targets, the
+    square roots of the eigenvalues of ``F x = lambda M x`` are the RMS change of the
+    across-contour distances per mm of RMS displacement of the targets, for each principal
+    motion. The smallest one near 0 means the matches leave that motion of the bone free
+    (e.g. two views, one per end of a long bone, hardly see the bone slide along either
+    beam).
+
+    Parameters
+    ----------
+    points, normals : (N, 3) mm and unit vectors, the matched points and their normals, in
+        one frame.
+    weights : (N,) >= 0 (0: left out).
+    targets : (Q, 3) mm, points whose displacement counts (e.g. the surfaces' vertices).
+    centre : (3,) mm, the motions' centre (default: the targets' mean); only a choice of
+        coordinates, the eigenvalues do not depend on it.
+    fixed_point : (3,) mm or None: only rotations about it are free (3 values).
+
+    Returns
+    -------
+    ``(s, motion)``: ``s`` (6,) or (3,) ascending, unitless; ``motion`` (6,) the weakest
+    principal motion (rotation rad then translation mm; zero translation with a fixed
+    point), scaled to 1 mm RMS displacement of the targets.
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    w = np.asarray(weights, dtype=np.float64).reshape(-1)
+    q = np.asarray(targets, dtype=np.float64).reshape(-1, 3)
+    if not (len(p) == len(n) == len(w)) or len(q) == 0:
+        raise ValueError("pose_sensitivity: points, normals and weights must have one row per "
+                         "match, and targets at least one point")
+    rot_only = fixed_point is not None
+    c = (np.asarray(fixed_point, dtype=np.float64) if rot_only
+         else q.mean(axis=0) if centre is None else np.asarray(centre, dtype=np.float64))
+    keep = (w > 0) & np.all(np.isfinite(p), axis=1) & np.all(np.isfinite(n), axis=1)
+    k = 3 if rot_only else 6
+    if w[keep].sum() <= 0:
+        return np.zeros(k), np.zeros(6)
+    J = np.hstack([np.cross(p[keep] - c, n[keep]), n[keep]])[:, :k]
+    F = (J * w[keep, None]).T @ J / w[keep].sum()
+    # M = mean over targets of G^T G, G = [-skew(q - c) | I]: in closed form from the
+    # targets' second moments
+    d = q - c
+    S = d.T @ d / len(d)
+    m = d.mean(axis=0)
+    skew_m = np.array([[0.0, -m[2], m[1]], [m[2], 0.0, -m[0]], [-m[1], m[0], 0.0]])
+    M = np.zeros((6, 6))
+    M[:3, :3] = np.trace(S) * np.eye(3) - S
+    M[:3, 3:] = skew_m
+    M[3:, :3] = skew_m.T
+    M[3:, 3:] = np.eye(3)
+    M = M[:k, :k]
+    # F x = lambda M x with M symmetric positive definite: through M's Cholesky factor
+    L = np.linalg.cholesky(M)
+    Li = np.linalg.inv(L)
+    lam, y = np.linalg.eigh(Li @ F @ Li.T)
+    x = Li.T @ y[:, 0]
+    motion = np.zeros(6)
+    motion[:k] = x / np.sqrt(x @ M @ x)
+    return np.sqrt(np.clip(lam, 0.0, None)), motion
 
 
 # --------------------------------------------------------------------------- the loop
@@ -443,12 +522,13 @@ def register(surfaces, views, initial: RigidTransform, *,
             pts.append(p_ct)
             tans.append(e_ct)
         p_ct = np.vstack(pts)
+        # across the contour, perpendicular to the path: the direction of the "normal"
+        # residual, and of the matches' hold on the pose (pose_sensitivity)
+        across = np.cross(d_r, T.apply_vectors(np.vstack(tans)))
+        nn = np.linalg.norm(across, axis=1, keepdims=True)
+        across = across / np.where(nn > 0, nn, 1.0)
         if residual == "normal" or fixed_robot is not None:
-            normals = None
-            if residual == "normal":
-                normals = np.cross(d_r, T.apply_vectors(np.vstack(tans)))
-                nn = np.linalg.norm(normals, axis=1, keepdims=True)
-                normals = normals / np.where(nn > 0, nn, 1.0)
+            normals = across if residual == "normal" else None
             try:
                 inc = solve_pose(T.apply(p_ct), o_r, d_r, method=method, normals=normals,
                                  fixed_point=fixed_robot, tukey_a=tukey_a,
@@ -483,7 +563,7 @@ def register(surfaces, views, initial: RigidTransform, *,
         rms = float(np.sqrt(np.mean(dist[inl] ** 2))) if inl.any() else float("inf")
         history.append(IterationRecord(it, rms, float(np.median(dist)), step_mm, step_deg, frac,
                                        len(dist), time.perf_counter() - t0))
-        last = (dist, w, p_ct)
+        last = (dist, w, p_ct, np.vstack(tans))
         poses.append(T_new)
         T = T_new
         moved_mm, moved_deg = _motion(T, initial, corners)
@@ -540,7 +620,7 @@ def register(surfaces, views, initial: RigidTransform, *,
     else:
         reason = (f"no convergence after {max_iterations} iterations (last step "
                   f"{history[-1].step_mm:.3g} mm)")
-    dist, w, p_ct = last
+    dist, w, p_ct, tans_ct = last
     if converged:
         # cheirality: the registered surface points the solve kept must lie in front of
         # their view's centre of perspective (a mirror pose puts them behind the source)
@@ -554,8 +634,14 @@ def register(surfaces, views, initial: RigidTransform, *,
                       f"centre of perspective of view(s) {', '.join(names)} (a mirror or "
                       f"runaway pose; the loop had stopped with: {reason})")
     per_view = np.array([float(np.mean(w[view_index == i] > 0)) for i in range(len(views))])
+    across = np.cross(d_r, T.apply_vectors(tans_ct))
+    across /= np.maximum(np.linalg.norm(across, axis=1, keepdims=True), 1e-300)
+    sens, weakest = pose_sensitivity(T.apply(p_ct), across, w,
+                                     T.apply(np.vstack([s.vertices for s in tops])),
+                                     fixed_point=fixed_robot)
     return RegistrationResult(
         ct2robot=T, converged=converged, reason=reason, iterations=it, history=tuple(history),
         residuals=dist, weights=w, view_index=view_index.astype(np.int64),
         inlier_fraction_per_view=per_view, time_s=time.perf_counter() - t_start,
+        sensitivity=sens, weakest_motion=weakest,
     )

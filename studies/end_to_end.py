@@ -195,6 +195,9 @@ def run_case(scene, *, seed: int, progress: bool = False):
                          f"{est.quality.get('iterations', 0)} iterations"),
                         ("verdict", "accepted" if est.accepted
                          else f"NOT accepted: {est.message}"),
+                        ("weakest motion", f"{est.quality.get('weak_motion_mm', np.nan):.1f} mm "
+                         "of the bone for the contour distances to change by their median "
+                         f"(accepted up to {case.options.accept_max_weak_motion_mm:g} mm)"),
                         *(("warning", w) for w in est.warnings),
                         ("acquisition (sweeps)", f"{acq:.1f} s, dose {dose:.1f} mrem")],
     }
@@ -271,7 +274,9 @@ def registration_rows(case: Case, starts: dict, *, oracle=(), fixed_pin=None,
                       progress: bool = False, reference=None, method_name: str | None = None,
                       strategy=None, restarts=None, **registration) -> list[dict]:
     """Register from every start; long-format rows (``pin_error`` per pin, ``mtre``,
-    ``start_mtre``, ``converged``, ``accepted``, ``iterations``, ``time``) with a ``start``
+    ``start_mtre``, ``converged``, ``accepted``, ``iterations``, ``weak_motion_mm`` (the
+    method's own uncertainty along its weakest direction, ``reglib.pipeline.match_quality``),
+    ``time``) with a ``start``
     column; with a ``reference`` pose (e.g. :func:`studies.scoring.pin_reference`) also
     ``pin_error_vs_reference`` per pin: the error as the paper measured it. ``method_name``:
     the registration method's name, put in a ``method`` column (e.g. ``"paper"`` with the
@@ -306,6 +311,8 @@ def registration_rows(case: Case, starts: dict, *, oracle=(), fixed_pin=None,
             {**base, "metric": "accepted", "value": float(est.accepted), "unit": ""},
             {**base, "metric": "iterations", "value": float(est.quality.get("iterations", 0)),
              "unit": ""},
+            {**base, "metric": "weak_motion_mm",
+             "value": float(est.quality.get("weak_motion_mm", np.nan)), "unit": "mm"},
             {**base, "metric": "time", "value": dt, "unit": "s"},
         ]
     return rows

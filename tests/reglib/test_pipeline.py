@@ -76,6 +76,14 @@ def test_verdict_objections():
                                               opts, 4))
     assert any("inlier" in r for r in verdict(True, {**good, "inlier_fraction": 0.1}, "",
                                               opts, 4))
+    # the pose loosely held by the views: refused, and not when the figure is unknown
+    loose = verdict(True, {**good, "weak_motion_mm": 11.0}, "", opts, 2)
+    assert len(loose) == 1 and "loosely determined" in loose[0] and "11.0 mm" in loose[0]
+    assert verdict(True, {**good, "weak_motion_mm": 3.0}, "", opts, 4) == []
+    assert verdict(True, {**good, "weak_motion_mm": float("nan")}, "", opts, 4) == []
+    assert verdict(True, {**good, "weak_motion_mm": float("inf")}, "", opts, 4)
+    lax = EstimateOptions(accept_max_weak_motion_mm=float("inf"))
+    assert verdict(True, {**good, "weak_motion_mm": 50.0}, "", lax, 2) == []
 
 
 def test_restart_poses_turn_about_the_pivot():

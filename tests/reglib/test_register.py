@@ -369,3 +369,83 @@ def test_limit_cycles_of_period_two_to_four_are_detected_and_nothing_else():
     assert _limit_cycle(drift, corners, 0.1, (2, 3, 4)) == 0
     three = [base[k % 3] for k in range(9)]
     assert _limit_cycle(three, corners, 0.1, (2,)) == 0            # "linear": period 2 only
+
+
+# --------------------------------------------------------------------------- conditioning
+def _skew_rows(d):
+    z = np.zeros(len(d))
+    return np.stack([np.stack([z, -d[:, 2], d[:, 1]], 1), np.stack([d[:, 2], z, -d[:, 0]], 1),
+                     np.stack([-d[:, 1], d[:, 0], z], 1)], 1)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_pose_sensitivity_matches_a_brute_force_reference(seed):
+    """The closed-form information matrices and Cholesky reduction against per-point
+    Jacobians and scipy's generalised symmetric eigensolver, with and without a fixed point."""
+    from scipy.linalg import eigh
+
+    from reglib.register import pose_sensitivity
+
+    rng = np.random.default_rng(seed)
+    p = rng.normal(size=(60, 3)) * [40, 30, 200] + [800, 0, 200]
+    n = rng.normal(size=(60, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    w = rng.uniform(0, 1, 60) * (rng.uniform(size=60) > 0.2)
+    q = rng.normal(size=(300, 3)) * [30, 30, 180] + [790, 5, 210]
+    for fixed in (None, q[7]):
+        c = q.mean(axis=0) if fixed is None else fixed
+        k = 6 if fixed is None else 3
+        J = np.hstack([np.cross(p - c, n), n])[:, :k]  # d(n . (w x (p - c) + v)) / d(w, v)
+        F = np.einsum("i,ij,ik->jk", w, J, J) / w.sum()
+        G = np.concatenate([-_skew_rows(q - c), np.broadcast_to(np.eye(3), (len(q), 3, 3))],
+                           axis=2)[:, :, :k]
+        M = np.einsum("qij,qik->jk", G, G) / len(q)
+        ref = np.sqrt(np.clip(eigh(F, M, eigvals_only=True), 0, None))
+        s, motion = pose_sensitivity(p, n, w, q, fixed_point=fixed)
+        assert s.shape == (k,)
+        assert np.allclose(s, ref, rtol=1e-8, atol=1e-10)
+        x = motion[:k]
+        disp = G @ x                                        # (Q, 3) displacements, mm
+        assert np.sqrt(np.mean(np.sum(disp ** 2, axis=1))) == pytest.approx(1.0)
+        assert np.sqrt(x @ F @ x) == pytest.approx(s[0], rel=1e-6)
+        if fixed is not None:
+            assert np.all(motion[3:] == 0)
+
+
+def test_pose_sensitivity_leaves_unconstrained_motions_free():
+    """Matches whose normals all point along z hold only z, and the turns about x and y."""
+    from reglib.register import pose_sensitivity
+
+    rng = np.random.default_rng(3)
+    p = rng.uniform(-50, 50, size=(200, 3))
+    n = np.tile([0.0, 0.0, 1.0], (200, 1))
+    s, motion = pose_sensitivity(p, n, np.ones(200), rng.uniform(-50, 50, size=(500, 3)))
+    assert np.all(s[:3] < 1e-6) and np.all(s[3:] > 0.1)
+    assert abs(motion[5]) < 1e-6 and abs(motion[0]) < 1e-6 and abs(motion[1]) < 1e-6
+
+
+def _paths_near(view, surface, true, mm=3.0):
+    """The view's paths that pass within ``mm`` of the surface (at the true pose)."""
+    q = true.apply(surface.vertices)
+    rel = q[None, :, :] - view.origins[:, None, :]
+    d = view.directions[:, None, :]
+    dist = np.linalg.norm(rel - np.sum(rel * d, axis=2, keepdims=True) * d, axis=2).min(axis=1)
+    keep = dist < mm
+    return View(view.center, view.origins[keep], view.directions[keep],
+                None if view.external is None else view.external[keep], view.name)
+
+
+def test_two_views_one_per_end_hold_the_pose_looser_than_four(world):
+    """Each view restricted to the paths of one surface (as a 9-inch field sees one end of a
+    450 mm femur): with one view per surface the weakest motion is far less constrained."""
+    tops, views, true = world
+    own = {"proximal_ap": 0, "proximal_oblique": 0, "distal_ap": 1, "distal_oblique": 1}
+    cut = {k: _paths_near(v, tops[own[k]], true) for k, v in views.items()}
+    four = register(tops, list(cut.values()), true)
+    two = register(tops, [cut["proximal_ap"], cut["distal_oblique"]], true)
+    assert four.converged and two.converged
+    assert four.sensitivity.shape == two.sensitivity.shape == (6,)
+    assert four.sensitivity[0] > 0.15
+    assert two.sensitivity[0] < 0.5 * four.sensitivity[0]
+    fixed = register(tops, list(cut.values()), true, fixed_point_ct=PINS_CT[0])
+    assert fixed.sensitivity.shape == (3,) and np.all(fixed.weakest_motion[3:] == 0)
