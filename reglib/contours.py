@@ -600,6 +600,10 @@ def contours_from_ct(
     snake_options = {"polarity": "bright_inside", "search_px": 5.0, "normal_sigma": 1.0,
                      "neighbour_edges": True, **snake_options}
     keys = np.array(sorted(int(k) for k in clicks_xy))
+    outside = [int(k) for k in keys if not 0 <= k < vol.shape[0]]
+    if outside:
+        raise ValueError(f"clicks on slice(s) {outside[:5]} outside the volume "
+                         f"(0..{vol.shape[0] - 1})")
     out = []
     for k in slice_indices:
         k = int(k)

@@ -47,12 +47,30 @@ __all__ = [
 
 
 # --------------------------------------------------------------------------- input checks
+def _one_line(exc: Exception) -> str:
+    return str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__
+
+
+#: no coordinate of a scene in millimetres comes near this (1000 km); beyond it the linear
+#: algebra overflows (1e300 made an eigensolver fail instead of a clear error)
+MAX_COORDINATE_MM = 1e9
+
+
 def as_points(points, name: str = "points", *, min_count: int = 0) -> np.ndarray:
     """Return ``points`` as a C-contiguous float64 ``(N, 3)`` array, or raise ``ValueError``.
 
     The message names the argument (``name``) and says what was expected.
     """
-    arr = np.asarray(points, dtype=np.float64)
+    try:
+        raw = np.asarray(points)
+        if raw.dtype.kind == "c":
+            raise ValueError(f"{name}: complex values; expected real coordinates")
+        arr = np.asarray(raw, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        if str(exc).startswith(name):
+            raise
+        raise ValueError(f"{name}: expected an (N, 3) array of numbers, got "
+                         f"{type(points).__name__} ({_one_line(exc)})") from None
     if arr.ndim == 1 and arr.shape[0] == 3:
         arr = arr[None, :]
     if arr.ndim != 2 or arr.shape[1] != 3:
@@ -62,6 +80,9 @@ def as_points(points, name: str = "points", *, min_count: int = 0) -> np.ndarray
     if not np.all(np.isfinite(arr)):
         bad = np.flatnonzero(~np.all(np.isfinite(arr), axis=1))
         raise ValueError(f"{name}: contains NaN or inf (rows {bad[:10].tolist()})")
+    if arr.size and np.max(np.abs(arr)) > MAX_COORDINATE_MM:
+        raise ValueError(f"{name}: coordinates up to {np.max(np.abs(arr)):.3g}; expected "
+                         f"millimetres of a scene (|x| <= {MAX_COORDINATE_MM:g})")
     return np.ascontiguousarray(arr)
 
 

@@ -152,9 +152,35 @@ class EstimateOptions:
         if self.surface_quality not in ("area", "compactness"):
             raise ValueError("EstimateOptions.surface_quality: expected 'area' or "
                              f"'compactness', got {self.surface_quality!r}")
-        if not isinstance(self.registration, Mapping):
-            raise ValueError("EstimateOptions.registration: expected a mapping of keyword "
-                             f"options of reglib.register.register, got {self.registration!r}")
+        for name in ("registration", "coarse"):
+            _check_register_options(f"EstimateOptions.{name}", getattr(self, name))
+
+
+def _check_register_options(label: str, opts) -> None:
+    """``opts`` holds only keyword options of :func:`reglib.register.register`, and those
+    with a fixed set of values (``method``, ``residual``, ...) hold one of them: a typo is
+    refused when the options are made, not after the stages before registration."""
+    import inspect
+    import typing
+
+    from reglib.register import register
+
+    if not isinstance(opts, Mapping):
+        raise ValueError(f"{label}: expected a mapping of keyword options of "
+                         f"reglib.register.register, got {opts!r}")
+    params = inspect.signature(register).parameters
+    keywords = {k for k, p in params.items() if p.kind is inspect.Parameter.KEYWORD_ONLY}
+    unknown = sorted(set(opts) - keywords)
+    if unknown:
+        raise ValueError(f"{label}: unknown option(s) {unknown} of reglib.register.register "
+                         f"(it takes {sorted(keywords)})")
+    hints = typing.get_type_hints(register)
+    for key, value in opts.items():
+        if typing.get_origin(hints.get(key)) is typing.Literal:
+            allowed = typing.get_args(hints[key])
+            if value not in allowed:
+                raise ValueError(f"{label}[{key!r}]: expected one of {list(allowed)}, got "
+                                 f"{value!r}")
 
 
 # --------------------------------------------------------------------------- stage results
@@ -253,7 +279,7 @@ def _part(observation, group: str) -> Mapping:
         g = observation.get(group)
     if not isinstance(g, Mapping):
         raise ValueError(f"observation: expected a mapping '{group}' (e.g. "
-                         "testbed.dataset.load(case)[0]), got {type(g).__name__}")
+                         f"testbed.dataset.load(case)[0]), got {type(g).__name__}")
     return g
 
 
@@ -371,16 +397,44 @@ def xray_contours(view: str, image, clicks: Mapping) -> ViewContours:
     """
     from reglib.xray_contours import field_of_view_mask, prepare_xray, xray_contour
 
-    img = np.asarray(image, dtype=np.float64)
-    xy = np.asarray(clicks["clicks_xy"], dtype=np.float64).reshape(-1, 2)
-    tr = np.asarray(clicks["trace"], dtype=np.int64).reshape(-1)
-    ext = np.asarray(clicks["external"], dtype=bool).reshape(-1)
-    closed = np.asarray(clicks["closed"], dtype=bool).reshape(-1)
-    mask = field_of_view_mask(img)
+    def failed(why: str) -> ViewContours:
+        return ViewContours(view, np.zeros((0, 2)), np.zeros(0, bool), (f"view {view}: {why}",))
+
     try:
+        img = np.asarray(image, dtype=np.float64)
+    except (TypeError, ValueError):
+        return failed(f"xray_{view}: not a numeric image ({type(image).__name__})")
+    if img.ndim != 2 or min(img.shape) < 16:
+        return failed(f"xray_{view}: expected an (H, W) grey-level frame, got shape "
+                      f"{img.shape}")
+    if not np.all(np.isfinite(img)):
+        return failed(f"xray_{view}: the frame holds NaN or inf")
+    name = f"xray_clicks_{view}"
+    try:
+        xy = np.asarray(clicks["clicks_xy"], dtype=np.float64).reshape(-1, 2)
+        tr = np.asarray(clicks["trace"], dtype=np.int64).reshape(-1)
+        ext = np.asarray(clicks["external"], dtype=bool).reshape(-1)
+        closed = np.asarray(clicks["closed"], dtype=bool).reshape(-1)
+    except KeyError as exc:
+        raise ValueError(f"observation: {name} lacks {exc}") from None
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"observation: {name}: {exc}") from None
+    if len(tr) != len(xy):
+        raise ValueError(f"observation: {name}: clicks_xy has {len(xy)} clicks but trace "
+                         f"{len(tr)}; one trace index per click is expected")
+    if len(closed) != len(ext):
+        raise ValueError(f"observation: {name}: external has {len(ext)} traces but closed "
+                         f"{len(closed)}")
+    if len(tr) and (tr.min() < 0 or tr.max() >= len(ext)):
+        raise ValueError(f"observation: {name}: trace indices must lie in 0..{len(ext) - 1} "
+                         f"(external lists {len(ext)} traces), got {tr.min()}..{tr.max()}")
+    if not np.all(np.isfinite(xy)):
+        raise ValueError(f"observation: {name}: clicks_xy holds NaN or inf")
+    try:
+        mask = field_of_view_mask(img)
         filled = prepare_xray(img, fov_mask=mask)
     except ValueError as exc:      # no field of view: no trace can be followed
-        return ViewContours(view, np.zeros((0, 2)), np.zeros(0, bool), (f"view {view}: {exc}",))
+        return failed(str(exc))
     pts, flags, problems = [], [], []
     for t in range(len(ext)):
         try:
@@ -446,7 +500,8 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
             failed[v] = cal.message
             continue
         if len(con.xy) == 0:
-            failed[v] = "no bone contour could be traced on the X-ray frame"
+            failed[v] = ("no bone contour could be traced on the X-ray frame"
+                         + (f" ({'; '.join(con.problems)[:300]})" if con.problems else ""))
             continue
         o, d = cal.calibration.paths(con.xy)
         views.append(View(center=cal.calibration.center_of_perspective(), origins=o,
@@ -457,10 +512,16 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
 def _as_transform(initial) -> RigidTransform:
     if isinstance(initial, RigidTransform):
         return initial
-    m = np.asarray(initial, dtype=np.float64)
-    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
-        raise ValueError(f"initial: expected a RigidTransform or a finite (4, 4) ct2robot "
-                         f"matrix, got shape {m.shape}")
+    try:
+        m = np.asarray(initial, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"initial: expected a RigidTransform or a (4, 4) ct2robot matrix, "
+                         f"got {type(initial).__name__}") from None
+    if m.shape != (4, 4):
+        raise ValueError(f"initial: expected a RigidTransform or a (4, 4) ct2robot matrix, "
+                         f"got shape {m.shape}")
+    if not np.all(np.isfinite(m)):
+        raise ValueError("initial: the (4, 4) ct2robot matrix holds NaN or inf")
     R = m[:3, :3]
     if (not np.allclose(m[3], [0, 0, 0, 1]) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6)
             or np.linalg.det(R) < 0):

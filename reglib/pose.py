@@ -651,7 +651,11 @@ def _solve_ransac(p, o, d, R0, t0, *, threshold, max_trials, confidence, rng,
     n = len(p)
     scale = _scale_of(p)
     thr = threshold if threshold is not None else 0.02 * scale
-    rng = np.random.default_rng(rng)
+    try:
+        rng = np.random.default_rng(rng)
+    except (TypeError, ValueError):
+        raise ValueError(f"rng: expected a seed (int >= 0) or a numpy Generator, got "
+                         f"{rng!r}") from None
     samples = _ransac_samples(rng, n, max_trials)
     kernel = _ransac_kernel(backend)
     loop = kernel.hypotheses if kernel is not None else _ransac_hypotheses_numpy
@@ -721,15 +725,28 @@ def _solve_irls(points, origins, directions, *, normals=None, fixed_point=None,
     dof = 3 if fixed_point is not None else 6
     need = 2 if fixed_point is not None else 3
     if normals is not None:
-        nrm = np.asarray(normals, dtype=np.float64)
+        nrm = as_points(normals, "normals")
         if nrm.shape != x.shape:
             raise ValueError(f"normals {nrm.shape} must have the shape of points {x.shape}")
+        off = np.abs(np.linalg.norm(nrm, axis=1) - 1.0) > 1e-6
+        if np.any(off):
+            raise ValueError(f"normals: rows {np.flatnonzero(off)[:10].tolist()} are not unit "
+                             "vectors (zero, or not normalised)")
+        slant = np.abs(np.einsum("ij,ij->i", nrm, d)) > 1e-6
+        if np.any(slant):
+            raise ValueError(f"normals: rows {np.flatnonzero(slant)[:10].tolist()} are not "
+                             "orthogonal to their line's direction")
         need = dof
     if len(x) < need:
         raise ValueError(f"at least {need} point-line pairs are needed with "
                          f"{'normals' if normals is not None else 'a fixed point'}, "
                          f"got {len(x)}")
-    f = None if fixed_point is None else np.asarray(fixed_point, dtype=np.float64).reshape(3)
+    f = None
+    if fixed_point is not None:
+        f = as_points(fixed_point, "fixed_point")
+        if f.shape != (1, 3):
+            raise ValueError(f"fixed_point: expected one (3,) point, got shape {f.shape}")
+        f = f[0]
     kernel = _numba_kernel() if backend in ("auto", "numba") else None
     if backend == "numba" and kernel is None:
         raise ValueError("backend 'numba' asked for but numba is not installed")

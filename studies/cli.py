@@ -264,10 +264,10 @@ def cmd_scenes(args) -> int:
 
     for p in sorted(scenes_dir().glob("*.toml")):
         try:
-            meta = tomllib.loads(p.read_text()).get("scene", {})
-            desc = str(meta.get("description", ""))
-        except (OSError, tomllib.TOMLDecodeError) as exc:
-            desc = f"(unreadable: {exc})"
+            meta = tomllib.loads(p.read_bytes().decode("utf-8-sig")).get("scene", {})
+            desc = str(meta.get("description", "")) if isinstance(meta, dict) else ""
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+            desc = f"(unreadable: {_one_line(str(exc))})"
         print(f"{p.stem:22s} {desc}")
     return 0
 
@@ -377,6 +377,7 @@ def main(argv=None) -> int:
 
         single_threaded_kernels()   # and OpenCV's threads off (studies/threads.py)
         if argv is None and args.command in FREEZING_COMMANDS:
+            _quiet_pybullet()       # imported by the freeze: without its banner on stderr
             freeze_work_modules()   # a process that does the work and exits (threads.py)
         return int(args.func(args) or 0)
     except UsageError as exc:

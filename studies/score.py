@@ -21,6 +21,7 @@ reglib's method ``accepted`` and ``converged``) and ``OUT/report.md``.
 from __future__ import annotations
 
 import importlib
+import json
 import time
 from pathlib import Path
 
@@ -46,8 +47,9 @@ def load_method(spec: str):
         sys.path.insert(0, str(Path.cwd()))
     try:
         mod = importlib.import_module(mod_name)
-    except ImportError as exc:
-        raise ValueError(f"--method {spec!r}: cannot import module {mod_name!r} ({exc})") from None
+    except (Exception, SystemExit) as exc:  # noqa: BLE001 - any failure of the user's module
+        raise ValueError(f"--method {spec!r}: cannot import module {mod_name!r} "
+                         f"({type(exc).__name__}: {exc})") from None
     fn = getattr(mod, fn_name, None)
     if not callable(fn):
         raise ValueError(f"--method {spec!r}: module {mod_name!r} has no function {fn_name!r}")
@@ -144,10 +146,24 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
                     progress=progress)
     from testbed.dataset import load
 
-    _, truth0 = load(cases[0])
-    scene = parse_scene(truth0.meta.get("truth", truth0.meta)["scene"], source=str(cases[0]))
+    # the report's scene: from the first case that can be read (a broken case is a failed
+    # trial, reported below, and must not lose the others' results)
+    scene, problems = None, []
+    for c in cases:
+        try:
+            _, truth0 = load(c)
+            scene = parse_scene(truth0.meta.get("truth", truth0.meta)["scene"], source=str(c))
+            break
+        except (OSError, ValueError, KeyError) as exc:
+            problems.append(f"{c.name}: {exc}")
+    if scene is None:
+        raise ValueError(f"{dataset}: no case can be read ({'; '.join(problems)[:300]})")
+    try:
+        seed = int(json.loads((dataset / "dataset.json").read_text()).get("seed", 0))
+    except (OSError, ValueError, TypeError, AttributeError):
+        seed = 0
     ctx = StudyContext(name=f"score {method}", out=out, scene_path=dataset, scene=scene,
-                       seed=0, workers=workers, scheduler=scheduler)
+                       seed=seed, workers=workers, scheduler=scheduler)
     pe = df[df.metric == "pin_error"]
     if not pe.empty:
         t = pe.groupby("pin")["value"].agg(["mean", "median", "max"]).reset_index()

@@ -36,6 +36,11 @@ from testbed.spec import NonNegative, Positive, Spec, Vec2
 __all__ = ["CTScan", "CTSpec", "sample_hu_reference", "scan", "slice_schedule"]
 
 
+#: a slice spacing or thickness (mm): clinical scanners reconstruct 0.1-20 mm; outside that a
+#: scene is a typo (1e-6 mm asked for 67 million slices)
+Spacing = Annotated[float, Field(ge=0.1, le=20.0)]
+
+
 class CTSpec(Spec):
     """``[ct]``: the CT scanner and its slice schedule.
 
@@ -56,21 +61,21 @@ class CTSpec(Spec):
     """
 
     pixel_mm: Annotated[float, Field(ge=0.3, le=2.0)] = 0.8
-    fov_mm: Positive | None = None
+    fov_mm: Annotated[float, Field(ge=50.0, le=700.0)] | None = None
     schedule: Literal["clinical", "uniform", "explicit"] = "clinical"
-    fine_spacing_mm: Positive = 1.0
+    fine_spacing_mm: Spacing = 1.0
     fine_half_width_mm: NonNegative = 15.0
-    coarse_spacing_mm: Positive = 6.0
+    coarse_spacing_mm: Spacing = 6.0
     distal_height_mm: Positive = 100.0
     proximal_depth_mm: Positive = 120.0
     distal_range_mm: Vec2 | None = None
     proximal_range_mm: Vec2 | None = None
-    uniform_spacing_mm: Positive = 2.0
+    uniform_spacing_mm: Spacing = 2.0
     uniform_range_mm: Vec2 | None = None
     slice_z_mm: tuple[float, ...] = ()
-    slice_thickness_mm: Positive | None = None
-    max_slice_thickness_mm: Positive = 10.0
-    subslice_mm: Positive = 0.5
+    slice_thickness_mm: Spacing | None = None
+    max_slice_thickness_mm: Spacing = 10.0
+    subslice_mm: Annotated[float, Field(ge=0.05, le=5.0)] = 0.5
     supersample: Annotated[int, Field(ge=1, le=8)] = 3
     noise_hu: NonNegative = 15.0
     metal_streaks: bool = True

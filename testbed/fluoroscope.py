@@ -47,7 +47,7 @@ from dataclasses import dataclass, field, replace
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 from scipy.spatial.transform import Rotation
 
 from reglib.geometry import RigidTransform
@@ -213,6 +213,17 @@ class ViewSpec(Spec):
     name: str = "view"
     region: Literal["proximal", "distal"] = "proximal"
     isocenter_mm: Vec3 = (0.0, 0.0, 0.0)
+
+    @field_validator("name")
+    @classmethod
+    def _a_file_name(cls, v: str) -> str:
+        # a view's name names dataset entries and files (xray_<name>.png): nothing a file
+        # system or a dataset key would change
+        if not (0 < len(v) <= 64 and v[0].isascii() and v[0].isalnum()
+                and all(c.isascii() and (c.isalnum() or c in "_.-") for c in v)):
+            raise ValueError("a view name is 1-64 ASCII letters, digits, '_', '.' or '-', "
+                             "starting with a letter or digit")
+        return v
     orbital_deg: Annotated[float, Field(ge=-180, le=180)] = 0.0
     angular_deg: Annotated[float, Field(ge=-180, le=180)] = 0.0
     roll_deg: Annotated[float, Field(ge=-180, le=180)] = 0.0

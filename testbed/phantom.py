@@ -34,7 +34,7 @@ import trimesh
 from pydantic import Field, model_validator
 
 from testbed.bodies import Body
-from testbed.spec import NonNegative, Positive, Spec, Vec3
+from testbed.spec import Positive, Spec, Vec3
 
 __all__ = ["Phantom", "PhantomSpec", "PIN_NAMES", "make_phantom"]
 
@@ -74,7 +74,9 @@ class PhantomSpec(Spec):
     pin_diameter_mm: Annotated[float, Field(gt=0, le=8)] = 4.0
     pin_length_mm: Annotated[float, Field(gt=0, le=20)] = 8.0
     segments: Annotated[int, Field(ge=16, le=256)] = 64
-    shape_variation: NonNegative = 0.0
+    shape_variation: Annotated[float, Field(ge=0, le=3)] = 0.0
+    """Population standard deviations per dimension (0-3; beyond 3 the drawn femur is no
+    femur: negative radii)."""
     shape_seed: Annotated[int, Field(ge=0)] = 0
     mesh_path: str | None = None
     mesh_pins_mm: dict[str, Vec3] | None = None
@@ -354,7 +356,11 @@ def _check_closed(mesh: trimesh.Trimesh, what: str) -> None:
 def _user_phantom(spec: PhantomSpec) -> Phantom:
     path = Path(spec.mesh_path)
     if not path.is_file():
-        raise ValueError(f"phantom.mesh_path: no such file {str(path)!r}")
+        what = ("is a folder" if path.is_dir() else
+                "is not a regular file (a device, pipe or socket)" if path.exists() else
+                "no such file")
+        raise ValueError(f"phantom.mesh_path: {str(path)!r} {what}; expected a mesh file "
+                         "(STL, PLY, OBJ, ...)")
     try:
         mesh = trimesh.load_mesh(path, process=True)
     except Exception as exc:  # trimesh raises many kinds on unreadable files

@@ -150,6 +150,14 @@ class Scene(Spec):
             raise ValueError("scene.kind is 'synthetic' but there is no [synthetic] table")
         if self.scene.kind == "operating_room" and not self.views:
             raise ValueError("scene.kind is 'operating_room' but no [[views]] are given")
+        first: dict[str, int] = {}
+        for i, v in enumerate(self.views):
+            key = v.name.lower()  # file names differ in case only on some file systems
+            if key in first:
+                raise ValueError(f"views[{i}].name {v.name!r} repeats views[{first[key]}].name "
+                                 f"{self.views[first[key]].name!r}: view names must be unique "
+                                 "(ignoring case)")
+            first[key] = i
         return self
 
 
@@ -179,6 +187,8 @@ def _describe(err: dict) -> str:
     msg = err.get("msg", "invalid value")
     if msg.startswith("Value error, "):
         msg = msg[len("Value error, "):]
+    if not err.get("loc"):  # a check across fields: its message names them; the input is
+        return msg          # the whole file
     return f"{msg}; got {shown} ({type(got).__name__})"
 
 
@@ -213,7 +223,7 @@ def load_scene(path):
     """Read and validate a scene file (TOML). Raises :class:`SceneError` naming the file."""
     path = Path(path)
     try:
-        text = path.read_bytes().decode("utf-8")
+        text = path.read_bytes().decode("utf-8-sig")  # a BOM from some editors is fine
     except FileNotFoundError:
         raise SceneError(f"{path}: scene file not found") from None
     except (OSError, UnicodeDecodeError) as exc:
@@ -255,8 +265,11 @@ def find_scene(name_or_path: str | os.PathLike | None) -> Path:
     p = Path(text)
     if p.is_file():
         return p
-    if p.exists():
+    if p.is_dir():
         raise SceneError(f"{text}: is a folder, not a scene file")
+    if p.exists():
+        raise SceneError(f"{text}: is not a regular file (a device, pipe or socket), not a "
+                         "scene file")
     bare = len(p.parts) == 1 and not any(sep in text for sep in ("/", os.sep))
     if not bare:
         raise SceneError(f"{text}: no such scene file")

@@ -70,6 +70,12 @@ def test_the_replacement_helper_puts_the_field_in_its_table(tmp_path):
     ("scene", "seed = -1", "scene.seed", "greater than or equal to 0"),
     ("registration", "start_rotation_deg = 1e9", "registration.start_rotation_deg",
      "less than or equal to 90"),
+    # sizes that asked for terabytes of CT or never finished (held-out bad inputs)
+    ("ct", "fine_spacing_mm = 1e-6", "ct.fine_spacing_mm", "greater than or equal to 0.1"),
+    ("ct", "fov_mm = 1e6", "ct.fov_mm", "less than or equal to 700"),
+    ("ct", "subslice_mm = 1e-6", "ct.subslice_mm", "greater than or equal to 0.05"),
+    # a femur of negative radii
+    ("phantom", "shape_variation = 100.0", "phantom.shape_variation", "less than or equal to 3"),
 ])
 def test_bad_scene_values_exit_2_naming_file_and_field(tmp_path, capsys, section, assignment,
                                                         field, expect):
@@ -149,6 +155,51 @@ def test_a_scene_the_robot_cannot_reach_fails_before_the_work(tmp_path, capsys, 
     if out.exists():  # no case written, no figure drawn
         assert not list_cases(out)
         assert not list(out.glob("*.png"))
+
+
+@pytest.mark.parametrize("name, other, expect", [
+    ("proximal ap", None, "a view name is"),          # a space: not a file name
+    ("../../escape", None, "a view name is"),         # a path
+    ("Proximal_AP", "proximal_ap", "repeats views[0].name"),   # equal but for case
+])
+def test_view_names_are_file_names_and_unique(tmp_path, capsys, name, other, expect):
+    """A view's name names files and dataset entries: one that a file system or a dataset
+    key would change, or one that repeats another's, is refused at load (before, two views
+    were silently merged in a dataset, or a run failed after the simulation)."""
+    text = EXP2.replace('name = "proximal_oblique"', f'name = "{name}"', 1)
+    if other:
+        assert f'name = "{other}"' in text
+    f = tmp_path / "views.toml"
+    f.write_text(text)
+    png = tmp_path / "r.png"
+    assert main(["render", str(f), "--out", str(png)]) == 2
+    line = _error_line(capsys)
+    assert str(f) in line and expect in line, line
+    assert "views[1].name" in line
+    assert not png.exists()
+
+
+def test_a_scene_file_with_a_byte_order_mark_loads(tmp_path):
+    f = tmp_path / "bom.toml"
+    f.write_bytes(b"\xef\xbb\xbf" + EXP2.encode())
+    assert load_scene(f).scene.name == "experiment2"
+
+
+@pytest.mark.parametrize("command", ["run", "generate", "score"])
+def test_an_error_of_a_working_command_is_exactly_one_line(tmp_path, command):
+    """run, generate and score freeze their imports (pybullet among them) before the work:
+    its banner must not make a second line on standard error."""
+    exe = shutil.which("testbed")
+    cmd = [exe] if exe else [sys.executable, "-m", "studies.cli"]
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[scene\n")
+    args = {"run": ["run", str(bad)],
+            "generate": ["generate", str(bad), "--cases", "1", "--out", str(tmp_path / "d")],
+            "score": ["score", str(tmp_path / "nothing"), "--out", str(tmp_path / "s")]}
+    res = subprocess.run(cmd + args[command], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 2
+    lines = res.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].strip(), res.stderr
 
 
 def test_an_error_of_the_console_script_is_exactly_one_line(tmp_path):

@@ -1,5 +1,7 @@
 """reglib.pipeline: the one call's stages, its options and its refusals (no simulator)."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -114,3 +116,41 @@ def test_xray_contours_trace_a_bright_disk_edge_and_name_bad_traces():
     r = np.hypot(con.xy[:, 0] - 80, con.xy[:, 1] - 60)
     assert np.median(np.abs(r - 25)) < 1.5  # an unblurred step edge between two pixels
     assert len(con.problems) == 1 and "trace 1" in con.problems[0]
+
+    # what the clicks and the frame must be: a wrong one is named, never a bare numpy error
+    def bad(**kw):
+        return {**arrays, **kw}
+
+    for kw, match in ((dict(clicks_xy=arrays["clicks_xy"][:5]),
+                       "clicks_xy has 5 clicks but trace 8"),
+                      (dict(trace=arrays["trace"] + 50), r"trace indices must lie in 0\.\.1"),
+                      (dict(clicks_xy=np.full((8, 2), np.nan)), "clicks_xy holds NaN"),
+                      (dict(closed=np.array([False])), "external has 2 traces but closed 1")):
+        with pytest.raises(ValueError, match="xray_clicks_v: " + match):
+            xray_contours("v", img.astype(np.uint8), bad(**kw))
+    for frame, match in ((np.zeros((0, 0)), r"shape \(0, 0\)"),
+                         (np.repeat(img[..., None], 3, axis=2), r"shape \(120, 160, 3\)"),
+                         (np.full((H, W), np.nan), "NaN or inf")):
+        con = xray_contours("v", frame, arrays)
+        assert len(con.xy) == 0 and "xray_v" in con.problems[0] and re.search(
+            match, con.problems[0]), con.problems
+
+
+def test_initial_and_observation_errors_say_what_is_wrong():
+    obs = {"meta": {"views": ["v"]}, "images": {}, "arrays": {}, "volumes": {}}
+    for bad, match in (("identity", "got str"), (np.full((4, 4), np.nan), "NaN or inf"),
+                       (np.eye(3), r"shape \(3, 3\)")):
+        with pytest.raises(ValueError, match="initial: .*" + match):
+            estimate(obs, bad)
+    with pytest.raises(ValueError, match="got NoneType"):
+        estimate(None, np.eye(4))
+
+
+def test_registration_options_are_checked_when_made():
+    with pytest.raises(ValueError, match=r"unknown option\(s\) \['bogus_key'\]"):
+        EstimateOptions(registration={"bogus_key": 1})
+    with pytest.raises(ValueError, match=r"registration\['method'\]: expected one of"):
+        EstimateOptions(registration={"method": "nope"})
+    with pytest.raises(ValueError, match=r"coarse\['residual'\]"):
+        EstimateOptions(coarse={"residual": "plane"})
+    EstimateOptions(registration={"method": "lm", "residual": "line", "max_iterations": 5})

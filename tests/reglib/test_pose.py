@@ -147,6 +147,11 @@ def test_failure_is_reported_not_silent():
         (lambda p, o, d: (p, o, np.where(np.arange(30)[:, None] == 3, 0.0, d)), "zero-length"),
         (lambda p, o, d: (p, o, 2 * d), "unit vectors"),
         (lambda p, o, d: (np.outer(np.linspace(0, 1, 30), [1.0, 2, 3]), o * 0, d), "collinear"),
+        (lambda p, o, d: (p + 0j, o, d), "points: complex"),
+        (lambda p, o, d: (p * 1e300, o, d), "points: coordinates up to"),
+        (lambda p, o, d: ([list(r) for r in p[:-1]] + [[1.0, 2.0]], o, d),
+         "points: expected an"),
+        (lambda p, o, d: (p.astype(str).astype(object) + "x", o, d), "points: expected an"),
     ],
 )
 @pytest.mark.parametrize("method", METHODS)
@@ -424,3 +429,25 @@ def test_compiled_irls_matches_the_numpy_reference(seed):
         r = solve_pose(pts, o, d, "linear", normals=same, backend=backend,
                        cheirality=False, check=False)
         assert not r.converged and "undetermined" in r.message, backend
+
+
+def test_normals_and_fixed_point_are_checked():
+    """The IRLS path's own inputs: each bad one named, not a bare numpy error or a
+    misleading unconverged result."""
+    c = _case(0, n_points=30)
+    n = np.cross(c.directions, [1.0, 0.0, 0.0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    ok = solve_pose(c.points, c.origins, c.directions, normals=n)
+    assert ok.R.shape == (3, 3)
+    for bad, match in ((np.where(np.arange(30)[:, None] == 1, np.nan, n), "normals: contains"),
+                       (np.zeros_like(n), "normals: rows .* not unit"),
+                       (c.directions, "not orthogonal")):
+        with pytest.raises(ValueError, match=match):
+            solve_pose(c.points, c.origins, c.directions, normals=bad)
+    for fp, match in (([np.nan, 0.0, 0.0], "fixed_point: contains"),
+                      ([1.0, 2.0], r"fixed_point: expected an \(N, 3\)"),
+                      (np.zeros((2, 3)), "fixed_point: expected one")):
+        with pytest.raises(ValueError, match=match):
+            solve_pose(c.points, c.origins, c.directions, fixed_point=fp)
+    with pytest.raises(ValueError, match="rng: expected a seed"):
+        solve_pose(c.points, c.origins, c.directions, "ransac", rng="abc")

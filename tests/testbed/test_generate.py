@@ -274,6 +274,36 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path):
     assert "(4, 4)" in (tmp_path / "s3" / "report.md").read_text()
     with pytest.raises(ValueError, match="cannot import module"):
         score_dataset(tmp_path / "ds", tmp_path / "s4", method="no_such_mod:fn")
+    # a module that fails at import in another way is named too, as --method
+    (tmp_path / "brokenmod.py").write_text("raise RuntimeError('boom')\n")
+    sys.path.insert(0, str(tmp_path))
+    try:
+        with pytest.raises(ValueError, match=r"--method 'brokenmod:f'.*RuntimeError: boom"):
+            score_dataset(tmp_path / "ds", tmp_path / "s5", method="brokenmod:f")
+    finally:
+        sys.path.remove(str(tmp_path))
+
+    # a broken first case costs only itself: the second is scored and the report written
+    import hashlib
+    import shutil
+
+    ds2 = tmp_path / "ds2"
+    shutil.copytree(tmp_path / "ds", ds2)
+    shutil.copytree(ds2 / "case_0000", ds2 / "case_0001")
+    index = json.loads((ds2 / "dataset.json").read_text())
+    index["cases"].append("case_0001")
+    index["case_json_sha256"]["case_0001"] = hashlib.sha256(
+        (ds2 / "case_0001" / "case.json").read_bytes()).hexdigest()
+    (ds2 / "dataset.json").write_text(json.dumps(index))
+    victim = sorted((ds2 / "case_0000").rglob("*.npz"))[0]
+    victim.write_bytes(victim.read_bytes()[:100])
+    score_dataset(ds2, tmp_path / "s6", progress=False)
+    df6 = pd.read_csv(tmp_path / "s6" / "results.csv")
+    assert df6[df6.metric == "pin_error"]["value"].tolist() == pytest.approx(
+        list(from_disk.values()), abs=1e-12)
+    report = (tmp_path / "s6" / "report.md").read_text()
+    assert "Failed cases" in report and victim.name in report
+    assert f"seed: {index['seed']}" in report
 
 
 def test_generate_refuses_to_mix_datasets_and_wrong_scenes(tmp_path):
