@@ -5,25 +5,32 @@ from __future__ import annotations
 
 import pytest
 
+from reglib.pipeline import MAX_WEAK_MOTION_MM
 from studies.end_to_end import run_case
 from testbed.scene import find_scene, load_scene
 
 
 @pytest.mark.slow
-def test_one_view_per_end_of_the_femur_is_refused_and_was_wrong():
-    """Clinic experiment2 with only proximal_ap and distal_oblique: the registration fits the
-    contours as well as with four views (median distance ~0.5 mm) but the bone can slide
-    along the beams; the verdict refuses it, and the truth confirms it was several mm off.
-    With all four views the same case is accepted and within 1 mm."""
+@pytest.mark.parametrize("pair", [("proximal_ap", "distal_oblique"),
+                                  ("proximal_oblique", "distal_ap")])
+def test_one_view_per_end_of_the_femur_is_refused_and_was_wrong(pair):
+    """Clinic experiment2 with one view per end of the femur: the registration fits the
+    contours as well as with four views (median distance ~0.4-0.55 mm) but the bone can slide
+    along the beams; the verdict refuses it, and the truth confirms it was several mm off
+    (3.7 and 4.3 mm; the second pair was accepted under a first limit of 8 mm, at 7.8)."""
     scene = load_scene(find_scene("experiment2"))
-    two = scene.model_copy(update={"views": tuple(
-        v for v in scene.views if v.name in ("proximal_ap", "distal_oblique"))})
+    two = scene.model_copy(update={"views": tuple(v for v in scene.views if v.name in pair)})
     res, _, _, est = run_case(two, seed=scene.scene.seed)
     assert est.converged and not est.accepted
     assert "loosely determined" in est.message
-    assert est.quality["weak_motion_mm"] > 8.0
+    assert est.quality["weak_motion_mm"] > MAX_WEAK_MOTION_MM
     assert res["mtre_mm"] > 2.0                 # the truth: it was right to refuse
     assert est.quality["restarts"] == 0         # no restart can mend the geometry
-    res4, _, _, est4 = run_case(scene, seed=scene.scene.seed)
-    assert est4.accepted and res4["mtre_mm"] < 1.0
-    assert est4.quality["weak_motion_mm"] < 5.0
+
+
+@pytest.mark.slow
+def test_the_four_views_of_the_clinic_are_accepted_within_1_mm():
+    scene = load_scene(find_scene("experiment2"))
+    res, _, _, est = run_case(scene, seed=scene.scene.seed)
+    assert est.accepted and res["mtre_mm"] < 1.0
+    assert est.quality["weak_motion_mm"] < 0.6 * MAX_WEAK_MOTION_MM
