@@ -728,10 +728,13 @@ def _solve_irls(points, origins, directions, *, normals=None, fixed_point=None,
         nrm = as_points(normals, "normals")
         if nrm.shape != x.shape:
             raise ValueError(f"normals {nrm.shape} must have the shape of points {x.shape}")
-        off = np.abs(np.linalg.norm(nrm, axis=1) - 1.0) > 1e-6
+        norms = np.linalg.norm(nrm, axis=1)
+        off = (np.abs(norms - 1.0) > 1e-6) & (norms > 0)
         if np.any(off):
             raise ValueError(f"normals: rows {np.flatnonzero(off)[:10].tolist()} are not unit "
-                             "vectors (zero, or not normalised)")
+                             "vectors (normalise them; an all-zero row is ignored)")
+        if not np.any(norms > 0):
+            raise ValueError("normals: every row is zero; nothing constrains the pose")
         slant = np.abs(np.einsum("ij,ij->i", nrm, d)) > 1e-6
         if np.any(slant):
             raise ValueError(f"normals: rows {np.flatnonzero(slant)[:10].tolist()} are not "

@@ -258,7 +258,10 @@ def pose_sensitivity(points, normals, weights, targets, *, centre=None, fixed_po
     M[3:, 3:] = np.eye(3)
     M = M[:k, :k]
     # F x = lambda M x with M symmetric positive definite: through M's Cholesky factor
-    L = np.linalg.cholesky(M)
+    try:
+        L = np.linalg.cholesky(M)
+    except np.linalg.LinAlgError:  # the targets do not span the motions (collinear)
+        return np.full(k, np.nan), np.zeros(6)
     Li = np.linalg.inv(L)
     lam, y = np.linalg.eigh(Li @ F @ Li.T)
     x = Li.T @ y[:, 0]

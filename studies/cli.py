@@ -169,7 +169,7 @@ def cmd_run(args) -> int:
                           progress=sys.stderr.isatty() and not args.json)
     error = result.pop("write_error", None)
     if args.json:
-        print(json.dumps(result, indent=2, default=float))
+        print(json.dumps(_finite_or_null(result), indent=2, default=float))
     else:
         print(format_result(result))
     if error:
@@ -270,6 +270,19 @@ def cmd_scenes(args) -> int:
             desc = f"(unreadable: {_one_line(str(exc))})"
         print(f"{p.stem:22s} {desc}")
     return 0
+
+
+def _finite_or_null(obj):
+    """``obj`` with every non-finite float (NaN, inf) as None: strict JSON has neither."""
+    import math
+
+    if isinstance(obj, dict):
+        return {k: _finite_or_null(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite_or_null(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
 
 
 def _version() -> str:

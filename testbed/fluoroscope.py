@@ -219,10 +219,10 @@ class ViewSpec(Spec):
     def _a_file_name(cls, v: str) -> str:
         # a view's name names dataset entries and files (xray_<name>.png): nothing a file
         # system or a dataset key would change
-        if not (0 < len(v) <= 64 and v[0].isascii() and v[0].isalnum()
+        if not (v and (v[0].isascii() and (v[0].isalnum() or v[0] == "_"))
                 and all(c.isascii() and (c.isalnum() or c in "_.-") for c in v)):
-            raise ValueError("a view name is 1-64 ASCII letters, digits, '_', '.' or '-', "
-                             "starting with a letter or digit")
+            raise ValueError("a view name is ASCII letters, digits, '_', '.' or '-', "
+                             "starting with a letter, a digit or '_'")
         return v
     orbital_deg: Annotated[float, Field(ge=-180, le=180)] = 0.0
     angular_deg: Annotated[float, Field(ge=-180, le=180)] = 0.0

@@ -380,3 +380,16 @@ def test_bench_quick_prints_every_workload_with_value_unit_goal_reference():
         assert row["unit"] and row["goal"] is not None, key
     assert 1.0 < result["scaling_2_workers"]["value"] < 2.5
     assert result["run_cpu_s"]["value"] > result["run_cpu_s"]["reference"]  # above imports
+
+
+def test_json_output_has_no_nan_or_infinity():
+    """Strict JSON has neither: a non-finite figure (e.g. weak_motion_mm of a pose without
+    inliers) is written as null."""
+    import json as _json
+
+    from studies.cli import _finite_or_null
+
+    out = _json.dumps(_finite_or_null({"a": float("inf"), "b": [1.0, float("nan")],
+                                       "c": {"d": -float("inf"), "e": 2}}))
+    assert _json.loads(out) == {"a": None, "b": [1.0, None], "c": {"d": None, "e": 2}}
+    assert "Infinity" not in out and "NaN" not in out

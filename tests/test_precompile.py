@@ -55,8 +55,7 @@ def test_a_malformed_manifest_line_is_named(tmp_path):
         precompile.read_manifest(path)
 
 
-def test_a_stale_line_is_a_failure_not_an_exception(tmp_path, monkeypatch):
-    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
+def test_a_stale_line_is_a_failure_not_an_exception():
     loaded, compiled, failures, _ = precompile.compile_module(
         "reglib._pose_numba", {"no_such_kernel": ["(float64,)"],
                                "perp_basis": ["(NoSuchType,)"]})
@@ -84,3 +83,26 @@ def test_after_precompiling_the_main_job_compiles_nothing(tmp_path):
     saved = [line for line in out.splitlines() if "index saved" in line]
     assert not saved, "compiled at the run (add to the manifest with --record):\n" + "\n".join(
         saved)
+
+
+def test_an_sdist_carries_the_build_backend(tmp_path):
+    """pyproject.toml names tools/build_backend.py as the backend: an sdist without it could
+    not be built into a wheel (MANIFEST.in includes the folder)."""
+    import tarfile
+
+    files = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard"],
+                           cwd=ROOT, capture_output=True, text=True, check=True).stdout.split()
+    src = tmp_path / "src"
+    for f in files:
+        if (ROOT / f).is_file():
+            (src / f).parent.mkdir(parents=True, exist_ok=True)
+            (src / f).write_bytes((ROOT / f).read_bytes())
+    done = subprocess.run([sys.executable, "-c", "from setuptools import build_meta; "
+                           "print(build_meta.build_sdist('dist'))"], cwd=src,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    name = done.stdout.strip().splitlines()[-1]
+    with tarfile.open(src / "dist" / name) as tar:
+        members = {m.split("/", 1)[1] for m in tar.getnames() if "/" in m}
+    assert {"tools/build_backend.py", "tools/precompile.py", "tools/numba_signatures.txt",
+            "pyproject.toml"} <= members

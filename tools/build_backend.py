@@ -6,7 +6,8 @@ that the first ``testbed run`` of a fresh checkout finds its compiled kernels in
 ``__pycache__`` instead of spending about 40 s of CPU compiling them. The editable build asks
 for numpy, scipy and numba in pip's build environment, the kernels' only imports. Other builds
 (``pip install .``, wheels, sdists) are setuptools' own: there the code is copied into
-site-packages and numba compiles and caches it there at first use.
+site-packages and numba compiles and caches it there at first use. An sdist carries this
+folder (MANIFEST.in), since its pyproject.toml names this backend.
 
 ``TESTBED_PRECOMPILE=0`` skips the step. It never fails an install: a kernel it could not
 compile is compiled at its first use, as without it, and a line on stderr says which.
@@ -26,13 +27,18 @@ KERNEL_REQUIRES = ["numpy>=1.26", "scipy>=1.11", "numba>=0.60"]
 PRECOMPILE = Path(__file__).resolve().parent / "precompile.py"
 
 
+def _wanted() -> bool:
+    return os.environ.get("TESTBED_PRECOMPILE", "1") != "0"
+
+
 def get_requires_for_build_editable(config_settings=None):
-    return _setuptools.get_requires_for_build_editable(config_settings) + KERNEL_REQUIRES
+    extra = KERNEL_REQUIRES if _wanted() else []
+    return _setuptools.get_requires_for_build_editable(config_settings) + extra
 
 
 def build_editable(wheel_directory, config_settings=None, metadata_directory=None):
     name = _setuptools.build_editable(wheel_directory, config_settings, metadata_directory)
-    if os.environ.get("TESTBED_PRECOMPILE", "1") != "0":
+    if _wanted():
         _precompile()
     return name
 

@@ -440,7 +440,7 @@ def test_normals_and_fixed_point_are_checked():
     ok = solve_pose(c.points, c.origins, c.directions, normals=n)
     assert ok.R.shape == (3, 3)
     for bad, match in ((np.where(np.arange(30)[:, None] == 1, np.nan, n), "normals: contains"),
-                       (np.zeros_like(n), "normals: rows .* not unit"),
+                       (2 * n, "normals: rows .* not unit"),
                        (c.directions, "not orthogonal")):
         with pytest.raises(ValueError, match=match):
             solve_pose(c.points, c.origins, c.directions, normals=bad)
@@ -449,5 +449,12 @@ def test_normals_and_fixed_point_are_checked():
                       (np.zeros((2, 3)), "fixed_point: expected one")):
         with pytest.raises(ValueError, match=match):
             solve_pose(c.points, c.origins, c.directions, fixed_point=fp)
+    # an all-zero row (a degenerate contour tangent) is ignored, not an error
+    n0 = n.copy()
+    n0[3] = 0.0
+    assert np.allclose(solve_pose(c.points, c.origins, c.directions, normals=n0).R, ok.R,
+                       atol=1e-3)
+    with pytest.raises(ValueError, match="every row is zero"):
+        solve_pose(c.points, c.origins, c.directions, normals=np.zeros_like(n))
     with pytest.raises(ValueError, match="rng: expected a seed"):
         solve_pose(c.points, c.origins, c.directions, "ransac", rng="abc")
