@@ -1,0 +1,48 @@
+"""The view-setups study: subsets of a scene's views, the verdict scored against the truth."""
+
+from __future__ import annotations
+
+import pandas as pd
+import pytest
+
+from studies.view_setups import confusion, setups
+
+
+def test_setups_are_all_views_each_left_out_and_one_per_region():
+    views = {"pa": "proximal", "po": "proximal", "da": "distal", "do": "distal"}
+    s = setups(views)
+    assert s["all"] == ("pa", "po", "da", "do")
+    assert s["without po"] == ("pa", "da", "do")
+    pairs = {k: v for k, v in s.items() if " + " in k}
+    assert set(pairs.values()) == {("da", "pa"), ("da", "po"), ("do", "pa"), ("do", "po")}
+    assert len(s) == 1 + 4 + 4
+    assert list(setups(views, quick=True)) == ["all", "without pa", "da + pa"]
+    # two views, one per region: nothing to leave out, and the pair is the whole set
+    assert list(setups({"p": "proximal", "d": "distal"})) == ["all"]
+
+
+def test_confusion_counts():
+    wide = pd.DataFrame({"accepted": [1, 1, 0, 0, 1], "mtre": [0.5, 2.5, 1.0, 3.0, 1.99]})
+    assert confusion(wide) == {"true accepts": 2, "false accepts": 1, "false refusals": 1,
+                               "true refusals": 1}
+
+
+@pytest.mark.slow
+def test_quick_study_refuses_one_view_per_end_and_accepts_all_views(tmp_path):
+    """Clinic experiment2, one case: all four views accepted within 1 mm; one view per end
+    refused, and the truth says it was more than 2 mm off (~12 s)."""
+    from studies.cli import main
+
+    assert main(["study", "view-setups", "--quick", "--out", str(tmp_path)]) == 0
+    df = pd.read_csv(tmp_path / "results.csv")
+    wide = df[df.metric.isin(["mtre", "accepted", "weak_motion_mm"])].pivot_table(
+        index="setup", columns="metric", values="value")
+    assert wide.loc["all", "accepted"] == 1 and wide.loc["all", "mtre"] < 1.0
+    pair = [s for s in wide.index if " + " in s]
+    assert len(pair) == 1
+    assert wide.loc[pair[0], "accepted"] == 0 and wide.loc[pair[0], "mtre"] > 2.0
+    assert wide.loc[pair[0], "weak_motion_mm"] > 2 * wide.loc["all", "weak_motion_mm"]
+    counts = df[df.trial == -1].set_index("metric")["value"]
+    assert counts["false_accepts"] == 0 and counts.sum() == 3
+    report = (tmp_path / "report.md").read_text()
+    assert "false accepts" in report and (tmp_path / "view_setups.png").is_file()
