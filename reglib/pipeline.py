@@ -37,6 +37,7 @@ starts of one case, or with some inputs replaced (the judge's oracles).
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -163,27 +164,35 @@ def _check_register_options(label: str, opts) -> None:
     """``opts`` holds only keyword options of :func:`reglib.register.register`, and those
     with a fixed set of values (``method``, ``residual``, ...) hold one of them: a typo is
     refused when the options are made, not after the stages before registration."""
+    if not isinstance(opts, Mapping):
+        raise ValueError(f"{label}: expected a mapping of keyword options of "
+                         f"reglib.register.register, got {opts!r}")
+    keywords, choices = _register_keywords()
+    unknown = sorted(set(opts) - set(keywords))
+    if unknown:
+        raise ValueError(f"{label}: unknown option(s) {unknown} of reglib.register.register "
+                         f"(it takes {sorted(keywords)})")
+    for key, value in opts.items():
+        if key in choices and value not in choices[key]:
+            raise ValueError(f"{label}[{key!r}]: expected one of {list(choices[key])}, got "
+                             f"{value!r}")
+
+
+@functools.cache
+def _register_keywords() -> tuple[frozenset, dict]:
+    """``register``'s keyword options, and the allowed values of those typed ``Literal``
+    (read once: every EstimateOptions is checked against them)."""
     import inspect
     import typing
 
     from reglib.register import register
 
-    if not isinstance(opts, Mapping):
-        raise ValueError(f"{label}: expected a mapping of keyword options of "
-                         f"reglib.register.register, got {opts!r}")
     params = inspect.signature(register).parameters
-    keywords = {k for k, p in params.items() if p.kind is inspect.Parameter.KEYWORD_ONLY}
-    unknown = sorted(set(opts) - keywords)
-    if unknown:
-        raise ValueError(f"{label}: unknown option(s) {unknown} of reglib.register.register "
-                         f"(it takes {sorted(keywords)})")
+    keywords = frozenset(k for k, p in params.items() if p.kind is inspect.Parameter.KEYWORD_ONLY)
     hints = typing.get_type_hints(register)
-    for key, value in opts.items():
-        if typing.get_origin(hints.get(key)) is typing.Literal:
-            allowed = typing.get_args(hints[key])
-            if value not in allowed:
-                raise ValueError(f"{label}[{key!r}]: expected one of {list(allowed)}, got "
-                                 f"{value!r}")
+    choices = {k: typing.get_args(h) for k, h in hints.items()
+               if k in keywords and typing.get_origin(h) is typing.Literal}
+    return keywords, choices
 
 
 # --------------------------------------------------------------------------- stage results

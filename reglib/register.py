@@ -271,6 +271,15 @@ def pose_sensitivity(points, normals, weights, targets, *, centre=None, fixed_po
 
 
 # --------------------------------------------------------------------------- the loop
+def _across(directions, tangents) -> np.ndarray:
+    """Unit vectors across the contour and perpendicular to the path (``d x t``), one per
+    match: the direction of the "normal" residual and of a match's hold on the pose. A zero
+    tangent gives a zero row (solve_pose ignores it)."""
+    n = np.cross(directions, tangents)
+    nn = np.linalg.norm(n, axis=1, keepdims=True)
+    return n / np.where(nn > 0, nn, 1.0)
+
+
 def _corners(surfaces) -> np.ndarray:
     v = np.vstack([s.vertices for s in surfaces])
     lo, hi = v.min(axis=0), v.max(axis=0)
@@ -525,13 +534,9 @@ def register(surfaces, views, initial: RigidTransform, *,
             pts.append(p_ct)
             tans.append(e_ct)
         p_ct = np.vstack(pts)
-        # across the contour, perpendicular to the path: the direction of the "normal"
-        # residual, and of the matches' hold on the pose (pose_sensitivity)
-        across = np.cross(d_r, T.apply_vectors(np.vstack(tans)))
-        nn = np.linalg.norm(across, axis=1, keepdims=True)
-        across = across / np.where(nn > 0, nn, 1.0)
+        tans_ct = np.vstack(tans)
         if residual == "normal" or fixed_robot is not None:
-            normals = across if residual == "normal" else None
+            normals = _across(d_r, T.apply_vectors(tans_ct)) if residual == "normal" else None
             try:
                 inc = solve_pose(T.apply(p_ct), o_r, d_r, method=method, normals=normals,
                                  fixed_point=fixed_robot, tukey_a=tukey_a,
@@ -566,7 +571,7 @@ def register(surfaces, views, initial: RigidTransform, *,
         rms = float(np.sqrt(np.mean(dist[inl] ** 2))) if inl.any() else float("inf")
         history.append(IterationRecord(it, rms, float(np.median(dist)), step_mm, step_deg, frac,
                                        len(dist), time.perf_counter() - t0))
-        last = (dist, w, p_ct, np.vstack(tans))
+        last = (dist, w, p_ct, tans_ct)
         poses.append(T_new)
         T = T_new
         moved_mm, moved_deg = _motion(T, initial, corners)
@@ -637,9 +642,7 @@ def register(surfaces, views, initial: RigidTransform, *,
                       f"centre of perspective of view(s) {', '.join(names)} (a mirror or "
                       f"runaway pose; the loop had stopped with: {reason})")
     per_view = np.array([float(np.mean(w[view_index == i] > 0)) for i in range(len(views))])
-    across = np.cross(d_r, T.apply_vectors(tans_ct))
-    across /= np.maximum(np.linalg.norm(across, axis=1, keepdims=True), 1e-300)
-    sens, weakest = pose_sensitivity(T.apply(p_ct), across, w,
+    sens, weakest = pose_sensitivity(T.apply(p_ct), _across(d_r, T.apply_vectors(tans_ct)), w,
                                      T.apply(np.vstack([s.vertices for s in tops])),
                                      fixed_point=fixed_robot)
     return RegistrationResult(

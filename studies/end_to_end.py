@@ -275,10 +275,10 @@ def registration_rows(case: Case, starts: dict, *, oracle=(), fixed_pin=None,
                       strategy=None, restarts=None, **registration) -> list[dict]:
     """Register from every start; long-format rows (``pin_error`` per pin, ``mtre``,
     ``start_mtre``, ``converged``, ``accepted``, ``iterations``, ``weak_motion_mm`` (the
-    method's own uncertainty along its weakest direction, ``reglib.pipeline.match_quality``),
-    ``time``) with a ``start``
-    column; with a ``reference`` pose (e.g. :func:`studies.scoring.pin_reference`) also
-    ``pin_error_vs_reference`` per pin: the error as the paper measured it. ``method_name``:
+    method's own uncertainty along its weakest motion, ``reglib.pipeline.match_quality``),
+    ``time``) with a ``start`` column; with a ``reference`` pose (e.g.
+    :func:`studies.scoring.pin_reference`) also ``pin_error_vs_reference`` per pin: the
+    error as the paper measured it. ``method_name``:
     the registration method's name, put in a ``method`` column (e.g. ``"paper"`` with the
     options of :data:`PAPER_METHOD`); ``strategy``, ``restarts``, ``registration``: as for
     :func:`register_case`."""
