@@ -425,6 +425,26 @@ def _lost(trial: Trial, why: str) -> TrialResult:
                              f"alone ({why})")
 
 
+#: seconds to wait, once a worker died, for the pool to fail the trials still in flight
+POOL_SETTLE_S = 30.0
+
+
+def _collect(done, running: dict, record, suspects: list) -> bool:
+    """Record the finished futures ``done`` (removed from ``running``); those the pool's
+    breaking failed become ``suspects``. True if any did."""
+    broken = False
+    for fut in done:
+        t = running.pop(fut)
+        try:
+            res = fut.result()
+        except BrokenProcessPool:
+            suspects.append(t)
+            broken = True
+            continue
+        record(t, res)
+    return broken
+
+
 def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str,
               retries: int = 2) -> None:
     """Process pool with at most ``workers`` trials in flight, so that when a worker dies
@@ -458,21 +478,23 @@ def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str,
         running: dict[cf.Future, Trial] = {}
         try:
             while queue or running:
+                broken = False
                 while queue and len(running) < workers:
                     t = queue.pop()
-                    running[ex.submit(execute_trial, trial_fn, t)] = t
-                done, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
-                broken = False
-                for fut in done:
-                    t = running.pop(fut)
                     try:
-                        res = fut.result()
-                    except BrokenProcessPool:
-                        suspects.append(t)
+                        running[ex.submit(execute_trial, trial_fn, t)] = t
+                    except BrokenProcessPool:  # a worker died since the last wait
+                        queue.append(t)  # never started: back in line, not a suspect
                         broken = True
-                        continue
-                    record(t, res)
+                        break
+                if not broken:
+                    done, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
+                    broken = _collect(done, running, record, suspects)
                 if broken:
+                    # a broken pool fails every trial still in flight at once; those that
+                    # finished before it broke keep their results, the others are suspects
+                    done, _ = cf.wait(running, timeout=POOL_SETTLE_S)
+                    _collect(done, running, record, suspects)
                     suspects.extend(running.values())
                     suspects.sort(key=lambda tr: tr.index)
                     running.clear()

@@ -206,6 +206,35 @@ def test_lost_workers_are_retried_a_bounded_number_of_times(tmp_path, retries, d
                                   check_exact=True, check_dtype=False)
 
 
+def test_a_pool_that_breaks_between_two_submissions_loses_nothing(tmp_path, monkeypatch):
+    # a worker may die after the last wait and before the next submit, which then raises
+    # BrokenProcessPool itself (it crashed a whole study): the unsubmitted trial goes back in
+    # line, the trials that finished keep their results, and every row is as expected
+    import concurrent.futures as cf
+    from concurrent.futures.process import BrokenProcessPool
+
+    import studies.runner as runner
+
+    calls = {"n": 0}
+
+    class BreaksOnce(cf.ProcessPoolExecutor):
+        def submit(self, fn, /, *args, **kwargs):
+            calls["n"] += 1
+            if calls["n"] == 3:
+                raise BrokenProcessPool("a worker died between two submissions (simulated)")
+            return super().submit(fn, *args, **kwargs)
+
+    monkeypatch.setattr(runner.cf, "ProcessPoolExecutor", BreaksOnce)
+    params = _params(5, sleep_s=0.01)
+    df = run_trials(toy_trial, make_trials("points-lines", 8, params), out_dir=tmp_path / "s",
+                    workers=2, progress=False)
+    assert calls["n"] >= 6  # the refused submission was made again
+    assert "failed" not in set(df.metric)
+    exp = expected_rows(8, params)
+    pd.testing.assert_frame_equal(df.reset_index(drop=True)[exp.columns.tolist()], exp,
+                                  check_exact=True, check_dtype=False)
+
+
 class _KilledWorker(Exception):
     pass
 
