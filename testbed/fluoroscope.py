@@ -207,7 +207,11 @@ class ViewSpec(Spec):
     ``orbital_deg`` rotation about the robot x axis, ``angular_deg`` about the robot y axis,
     ``roll_deg`` of the image about the beam (see the module docstring for the order);
     ``source_to_isocenter_mm`` (650) distance from the source to the isocenter, less than the
-    fluoroscope's ``sid_mm``.
+    fluoroscope's ``sid_mm``; ``c_side_deg`` where the C's arc stands off the beam, as an
+    angle in the image plane from the carm's ``+x`` towards ``+y`` (0, the default: ``+x``,
+    which with zero rotations is the robot's ``+x``, the side of the table opposite the
+    robot: a mobile C-arm rolled in from the side of the table; 270 puts the C along
+    ``-y``, along the table). It changes only what the workspace check sees.
     """
 
     name: str = "view"
@@ -228,6 +232,7 @@ class ViewSpec(Spec):
     angular_deg: Annotated[float, Field(ge=-180, le=180)] = 0.0
     roll_deg: Annotated[float, Field(ge=-180, le=180)] = 0.0
     source_to_isocenter_mm: Positive = 650.0
+    c_side_deg: Annotated[float, Field(ge=-360, le=360)] = 0.0
 
 
 # --------------------------------------------------------------------------- distortion
@@ -480,7 +485,9 @@ class CArm:
     ``sid_mm``: the input plane is ``z_carm = sid_mm``; ``pixel_mm``: pixel spacing at the
     input plane; ``principal_px`` (x, y): where the beam axis meets the image;
     ``fov_radius_mm``: radius of the circular field of view at the input plane;
-    ``distortion``: the intensifier's distortion, or None (an ideal pinhole camera).
+    ``distortion``: the intensifier's distortion, or None (an ideal pinhole camera);
+    ``c_side_deg``: the side of the beam the C's arc stands on (deg in the image plane from
+    the carm's ``+x`` towards ``+y``; used by the workspace check only).
     """
 
     carm2robot: RigidTransform
@@ -492,6 +499,7 @@ class CArm:
     fov_radius_mm: float = 114.3
     distortion: Distortion | None = None
     name: str = "view"
+    c_side_deg: float = 0.0
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -713,6 +721,7 @@ def make_carm(fluoro: FluoroscopeSpec, view: ViewSpec, *, distortion: bool | Non
         fov_radius_mm=0.5 * float(fluoro.fov_diameter_mm),
         distortion=dist,
         name=view.name,
+        c_side_deg=float(view.c_side_deg),
     )
 
 

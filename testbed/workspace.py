@@ -177,7 +177,7 @@ class Workspace:
                  c_depth_mm: float = 700.0, name: str = "carm") -> None:
         """The C-arm of a view: the source housing (a cylinder behind the source), the
         intensifier (a cylinder from the input plane on), and the C (three boxes joining them
-        round the side of the carm's -y axis)."""
+        round the side given by ``carm.c_side_deg``: the carm's ``+x`` by default)."""
         R, src, sid = carm.carm2robot.R, carm.source_robot, carm.sid_mm
         ax = carm.axis_robot
         ii_r = carm.fov_radius_mm + 40.0
@@ -185,15 +185,17 @@ class Workspace:
         self.add_cylinder(f"{name}_source", housing_radius_mm, 200.0, pose, kind="carm")
         pose = RigidTransform(R, src + (sid + 100.0) * ax)
         self.add_cylinder(f"{name}_intensifier", ii_r, 200.0, pose, kind="carm")
-        y = -R[:, 1]
+        a = np.radians(carm.c_side_deg)
+        y = np.cos(a) * R[:, 0] + np.sin(a) * R[:, 1]   # from the beam towards the arc
+        Rc = np.column_stack([np.cross(y, ax), y, ax])   # the C's frame: y to the arc, z beam
         t = 40.0
         arm_len = c_depth_mm
         for label, depth in (("c_low", -220.0), ("c_high", sid + 200.0)):
             centre = src + depth * ax + y * arm_len / 2
             self.add_box(f"{name}_{label}", (t, arm_len / 2, t),
-                         RigidTransform(R, centre), kind="carm")
+                         RigidTransform(Rc, centre), kind="carm")
         centre = src + (sid / 2) * ax + y * arm_len
-        self.add_box(f"{name}_c_arc", (t, t, (sid + 420.0) / 2), RigidTransform(R, centre),
+        self.add_box(f"{name}_c_arc", (t, t, (sid + 420.0) / 2), RigidTransform(Rc, centre),
                      kind="carm")
 
     def remove(self, prefix: str) -> None:

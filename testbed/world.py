@@ -43,23 +43,50 @@ class World:
         return {k: self.ct2robot.apply(v) for k, v in self.phantom.pins.items()}
 
 
-def table_bodies(patient_bodies) -> list[Body]:
-    """Foam block and table top under the outermost patient meshes (robot frame, z up)."""
+TABLE_LENGTH_MM = 2000.0
+"""An OR table top is about 2 m long and 0.5 m wide [memory: operating-table specifications,
+e.g. 2050 x 540 mm for common general-surgery tables]: fixed, whatever the femur's length."""
+TABLE_WIDTH_MM = 500.0
+TABLE_BEYOND_DISTAL_MM = 600.0
+"""Table beyond the distal end of the limb (the lower leg and foot: knee height is about
+0.28 of stature [memory: Drillis & Contini 1966 segment proportions], 490 mm at 1.75 m)."""
+
+
+def table_bodies(patient_bodies, proximal_robot=(0.0, -1.0, 0.0)) -> list[Body]:
+    """Foam block under the outermost patient meshes and the OR table top under it (robot
+    frame, z up).
+
+    ``proximal_robot`` (3,): the femur's proximal direction in the robot frame (the ct
+    frame's +z); the table's long axis is its horizontal part (the robot's y if the femur
+    stands upright). The foam is the limb's size; the table is :data:`TABLE_LENGTH_MM` long
+    whatever the limb's, ending :data:`TABLE_BEYOND_DISTAL_MM` beyond its distal end, the
+    rest of a patient's body lying on the proximal part.
+    """
     outer = [b.mesh for b in patient_bodies if b.mesh is not None and b.inside is None]
     if not outer:
         return []
-    lo = np.min([m.bounds[0] for m in outer], axis=0)
-    hi = np.max([m.bounds[1] for m in outer], axis=0)
-    centre = 0.5 * (lo + hi)
-    length_y = (hi[1] - lo[1]) + 200.0
-    foam = trimesh.creation.box(
-        extents=(hi[0] - lo[0] + 40.0, length_y, FOAM_THICKNESS_MM),
-        transform=trimesh.transformations.translation_matrix(
-            (centre[0], centre[1], lo[2] - 0.5 * FOAM_THICKNESS_MM - 0.5)))
-    table = trimesh.creation.box(
-        extents=(500.0, length_y + 200.0, TABLE_THICKNESS_MM),
-        transform=trimesh.transformations.translation_matrix(
-            (centre[0], centre[1], lo[2] - FOAM_THICKNESS_MM - 0.5 * TABLE_THICKNESS_MM - 1.0)))
+    along = np.array([proximal_robot[0], proximal_robot[1], 0.0], dtype=float)
+    if np.linalg.norm(along) < 1e-6:
+        along = np.array([0.0, -1.0, 0.0])
+    along /= np.linalg.norm(along)
+    across = np.cross((0.0, 0.0, 1.0), along)
+    R = np.column_stack([across, along, (0.0, 0.0, 1.0)])   # box frame -> robot
+    v = np.vstack([m.vertices for m in outer]) @ R          # (across, along, up)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    mid = 0.5 * (lo + hi)
+
+    def box(extents, centre_box):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, R @ np.asarray(centre_box, dtype=float)
+        return trimesh.creation.box(extents=extents, transform=T)
+
+    foam_z = lo[2] - 0.5 * FOAM_THICKNESS_MM - 0.5
+    foam = box((hi[0] - lo[0] + 40.0, hi[1] - lo[1] + 200.0, FOAM_THICKNESS_MM),
+               (mid[0], mid[1], foam_z))
+    table_start = lo[1] - TABLE_BEYOND_DISTAL_MM   # along the proximal direction
+    table = box((TABLE_WIDTH_MM, TABLE_LENGTH_MM, TABLE_THICKNESS_MM),
+                (mid[0], table_start + 0.5 * TABLE_LENGTH_MM,
+                 lo[2] - FOAM_THICKNESS_MM - 0.5 * TABLE_THICKNESS_MM - 1.0))
     return [Body("foam", "foam", foam), Body("table", "table", table)]
 
 
@@ -72,7 +99,8 @@ def build_world(scene, rng=None) -> World:
     phantom = make_phantom(scene.phantom, rng)
     ct2robot = scene.patient.ct2robot()
     patient = [b.transformed(ct2robot) for b in phantom.bodies()]
-    table = table_bodies(patient) if scene.patient.on_table else []
+    table = (table_bodies(patient, proximal_robot=ct2robot.R[:, 2])
+             if scene.patient.on_table else [])
     return World(phantom, ct2robot, patient, table, list(scene_instruments(scene)))
 
 

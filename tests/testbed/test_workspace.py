@@ -1,6 +1,7 @@
 """Only physically possible acquisitions: every view and sweep pose is checked against the
 robot, the C-arm, the table, the patient and the instruments before any simulation."""
 
+import numpy as np
 import pytest
 
 from testbed.scene import find_scene, load_scene, parse_scene
@@ -64,3 +65,45 @@ def test_run_on_a_colliding_scene_exits_2_with_one_line(tmp_path, capsys):
     err = [ln for ln in capsys.readouterr().err.splitlines() if "pybullet" not in ln]
     assert len(err) == 1
     assert "view proximal_oblique, sweep pose" in err[0] and "collides with" in err[0]
+
+
+def test_the_table_is_an_or_table_whatever_the_femur():
+    # a 2 m table top along the femur, 600 mm beyond the knee end, the rest under a body
+    from testbed.world import TABLE_BEYOND_DISTAL_MM, TABLE_LENGTH_MM
+
+    for length, turn in ((380.0, 0.0), (560.0, 0.0), (450.0, 30.0)):
+        d = load_scene(find_scene("experiment2")).model_dump(mode="json")
+        d["phantom"]["length_mm"] = length
+        d["patient"]["rotation_deg"] = [90.0, 0.0, turn]
+        scene, world = case_world(parse_scene(d), 0)
+        table = {b.name: b.mesh for b in world.table}["table"]
+        proximal = world.ct2robot.R[:, 2]
+        along = proximal[:2] / np.linalg.norm(proximal[:2])
+        t = table.vertices[:, :2] @ along
+        assert t.max() - t.min() == pytest.approx(TABLE_LENGTH_MM, abs=1e-6)
+        limb = np.vstack([b.mesh.vertices for b in world.patient_bodies
+                          if b.mesh is not None and b.inside is None])
+        s = limb[:, :2] @ along
+        assert s.min() - t.min() == pytest.approx(TABLE_BEYOND_DISTAL_MM, abs=1e-6)
+        assert t.max() > s.max() + 500.0   # the torso's part of the table
+        assert table.bounds[1, 2] < limb[:, 2].min()
+
+
+@pytest.mark.parametrize("phantom", [{"length_mm": 520.0},
+                                     {"shape_variation": 3.0, "shape_seed": 3},
+                                     {"side": "left", "thigh_radius_mm": 150.0}])
+def test_the_shipped_views_stay_feasible_for_other_femurs(phantom):
+    # a long femur made the table longer and the C, coming along the table, hit it
+    d = load_scene(find_scene("experiment2")).model_dump(mode="json")
+    d["phantom"].update(phantom)
+    scene, world = case_world(parse_scene(d), 0)
+    reports = check_scene_workspace(scene, world)
+    assert all(r.ok for r in reports), [r.summary() for r in reports]
+
+
+def test_a_c_arm_rolled_in_along_the_table_hits_it():
+    # the C's arc along the femur (c_side_deg 270: the carm's -y) stands over the table
+    scene, world = case_world(_turned(view=2, c_side_deg=270.0), 0)
+    with pytest.raises(WorkspaceError) as err:
+        require_feasible(scene, world)
+    assert "view distal_ap: the C-arm's carm_c_arc collides with table" in str(err.value)
