@@ -62,9 +62,21 @@ def _out_folder(path: Path, option: str = "--out") -> Path:
     except OSError as exc:
         raise UsageError(f"{option} {path}: cannot create the folder ({exc.strerror or exc})"
                          ) from None
-    if not os.access(path, os.W_OK | os.X_OK):
+    if not os.access(path, os.W_OK | os.X_OK) or not _can_write_in(path):
         raise UsageError(f"{option} {path}: the folder is not writable")
     return path
+
+
+def _can_write_in(folder: Path) -> bool:
+    """True if a file can be made in ``folder`` (tried: os.access answers yes to root on
+    /proc or a read-only mount)."""
+    import tempfile
+
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            return True
+    except OSError:
+        return False
 
 
 def _creatable_folder(path: Path, option: str = "--out") -> Path:
@@ -74,7 +86,7 @@ def _creatable_folder(path: Path, option: str = "--out") -> Path:
     if path.exists():
         if not path.is_dir():
             raise UsageError(f"{option} {path}: exists and is not a folder")
-        if not os.access(path, os.W_OK | os.X_OK):
+        if not os.access(path, os.W_OK | os.X_OK) or not _can_write_in(path):
             raise UsageError(f"{option} {path}: the folder is not writable")
         return path
     anc = path.absolute().parent
@@ -82,7 +94,7 @@ def _creatable_folder(path: Path, option: str = "--out") -> Path:
         anc = anc.parent
     if not anc.is_dir():
         raise UsageError(f"{option} {path}: cannot create the folder ({anc} is a file)")
-    if not os.access(anc, os.W_OK | os.X_OK):
+    if not os.access(anc, os.W_OK | os.X_OK) or not _can_write_in(anc):
         raise UsageError(f"{option} {path}: cannot create the folder ({anc} is not writable)")
     return path
 
@@ -94,7 +106,12 @@ def _out_file(path: Path, suffix: str, option: str = "--out") -> Path:
         raise UsageError(f"{option} {path}: is a folder, expected a {suffix} file name")
     if path.suffix.lower() != suffix:
         raise UsageError(f"{option} {path}: expected a {suffix} file name")
-    _out_folder(path.parent if str(path.parent) else Path("."), option)
+    folder = path.parent if str(path.parent) else Path(".")
+    try:
+        _out_folder(folder, option)
+    except UsageError as exc:  # name the file asked for, then what is wrong with its folder
+        raise UsageError(f"{option} {path}: cannot write there ({folder}: "
+                         f"{str(exc).split(': ', 1)[1]})") from None
     return path
 
 

@@ -27,6 +27,9 @@ from testbed.scene import find_scene
 ROOT = Path(__file__).resolve().parents[1]
 
 
+_LINUX = pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux's /proc")
+
+
 def _run(capsys, *argv):
     code = main([str(a) for a in argv])
     cap = capsys.readouterr()
@@ -67,6 +70,12 @@ def _one_error_line(err: str) -> str:
      "not both"),
     (["frobnicate"], "invalid choice"),
     ([], "a command is needed"),
+    # /proc: os.access says writable to root, but nothing can be made there; refused before
+    # the render or the simulation, not after
+    pytest.param(["render", "experiment2", "--out", "/proc/testbed-x.png"],
+                 "(/proc: the folder is not writable)", marks=_LINUX),
+    pytest.param(["generate", "experiment2", "--out", "/proc/testbed-d"],
+                 "(/proc is not writable)", marks=_LINUX),
 ])
 def test_bad_command_lines_exit_2_with_one_line(tmp_path, capsys, argv, expect):
     (tmp_path / "afile").write_text("not a folder")
