@@ -77,7 +77,8 @@ PRIMARY = "default"
 QUALITY_ROWS = (("median_residual_mm", "mm"), ("p90_residual_mm", "mm"), ("near_fraction", ""),
                 ("inlier_fraction", ""), ("max_view_median_mm", "mm"),
                 ("min_view_inlier_fraction", ""), ("iterations", ""),
-                ("pose_sensitivity", ""), ("weak_motion_mm", "mm"))
+                ("pose_sensitivity", ""), ("weak_motion_mm", "mm"),
+                ("worst_view_fit", ""))
 DEFAULT_SIZE = {"cases": 6, "starts_per_bin": 3, "others_per_bin": 1}
 QUICK_SIZE = {"cases": 2, "starts_per_bin": 1, "others_per_bin": 1}
 QUICK_BINS_MM = (0.0, 10.0, 20.0, 30.0)

@@ -135,6 +135,17 @@ def register_case(case: Case, start, *, oracle=(), fixed_pin=None, strategy=None
     return est, pin_errors(est.ct2robot, case.ct2robot, case.pins_ct)
 
 
+def _fit_line(est, options) -> str:
+    """The worst view's fit in words (``reglib.pipeline.view_fit``)."""
+    from reglib.pipeline import VIEW_FIT_MM
+
+    fit, k = est.quality.get("worst_view_fit", np.nan), est.quality.get("worst_view", -1)
+    views = est.stages.views if est.stages is not None else []
+    name = views[k].name if 0 <= k < len(views) else "?"
+    return (f"{fit:.0%} of {name}'s X-ray paths within {VIEW_FIT_MM:g} mm of the surfaces' "
+            f"apparent contours (accepted from {options.accept_min_view_fit:.0%})")
+
+
 # --------------------------------------------------------------------------- the main job
 def run_case(scene, *, seed: int, progress: bool = False):
     """``testbed run`` on an operating-room scene: one case, one perturbed start.
@@ -198,6 +209,7 @@ def run_case(scene, *, seed: int, progress: bool = False):
                         ("weakest motion", f"{est.quality.get('weak_motion_mm', np.nan):.1f} mm "
                          "of the bone for the contour distances to change by their median "
                          f"(accepted up to {case.options.accept_max_weak_motion_mm:g} mm)"),
+                        ("worst view fit", _fit_line(est, case.options)),
                         *(("warning", w) for w in est.warnings),
                         ("acquisition (sweeps)", f"{acq:.1f} s, dose {dose:.1f} mrem")],
     }
@@ -313,6 +325,8 @@ def registration_rows(case: Case, starts: dict, *, oracle=(), fixed_pin=None,
              "unit": ""},
             {**base, "metric": "weak_motion_mm",
              "value": float(est.quality.get("weak_motion_mm", np.nan)), "unit": "mm"},
+            {**base, "metric": "worst_view_fit",
+             "value": float(est.quality.get("worst_view_fit", np.nan)), "unit": ""},
             {**base, "metric": "time", "value": dt, "unit": "s"},
         ]
     return rows

@@ -83,6 +83,8 @@ def trial(tr) -> list[dict]:
             {**base, "metric": "converged", "value": float(est.converged), "unit": ""},
             {**base, "metric": "weak_motion_mm",
              "value": float(est.quality.get("weak_motion_mm", np.nan)), "unit": "mm"},
+            {**base, "metric": "worst_view_fit",
+             "value": float(est.quality.get("worst_view_fit", np.nan)), "unit": ""},
             {**base, "metric": "views", "value": float(len(stages.views)), "unit": "count"},
         ]
     return rows

@@ -84,6 +84,16 @@ def test_verdict_objections():
     assert verdict(True, {**good, "weak_motion_mm": 3.0}, "", opts, 4) == []
     assert verdict(True, {**good, "weak_motion_mm": float("nan")}, "", opts, 4) == []
     assert verdict(True, {**good, "weak_motion_mm": float("inf")}, "", opts, 4)
+    # one view that does not fit while the whole median passes: refused, the view named
+    misfit = {**good, "worst_view_fit": 0.04, "worst_view": 1}
+    one = verdict(True, misfit, "", opts, 4, ["ap", "oblique", "d_ap", "d_obl"])
+    assert len(one) == 1 and "view oblique does not fit" in one[0] and "4% of its" in one[0]
+    assert verdict(True, {**misfit, "worst_view_fit": 0.45}, "", opts, 4) == []
+    assert "a view does not fit" in verdict(True, misfit, "", opts, 4)[0]
+    assert verdict(True, misfit, "", EstimateOptions(accept_min_view_fit=0.0), 4) == []
+    assert verdict(True, {**good, "worst_view_fit": float("nan")}, "", opts, 4) == []
+    with pytest.raises(ValueError, match="accept_min_view_fit"):
+        EstimateOptions(accept_min_view_fit=1.5)
     lax = EstimateOptions(accept_max_weak_motion_mm=float("inf"))
     assert verdict(True, {**good, "weak_motion_mm": 50.0}, "", lax, 2) == []
 

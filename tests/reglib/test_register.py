@@ -449,3 +449,30 @@ def test_two_views_one_per_end_hold_the_pose_looser_than_four(world):
     assert two.sensitivity[0] < 0.5 * four.sensitivity[0]
     fixed = register(tops, list(cut.values()), true, fixed_point_ct=PINS_CT[0])
     assert fixed.sensitivity.shape == (3,) and np.all(fixed.weakest_motion[3:] == 0)
+
+
+def test_view_fit_measures_each_view_against_the_nearest_apparent_contour(world):
+    from reglib.pipeline import view_fit
+
+    tops, views, true = world
+    vs = list(views.values())
+    fit, k = view_fit(tops, vs, true)
+    assert fit > 0.95 and 0 <= k < len(vs)          # exact paths at the true pose
+    # a view whose paths pass 30 mm beside the bone (aimed elsewhere) is the worst, by far
+    moved = View(center=vs[2].center + [0, 30.0, 0], origins=vs[2].origins + [0, 30.0, 0],
+                 directions=vs[2].directions, name=vs[2].name)
+    fit, k = view_fit(tops, [vs[0], vs[1], moved, vs[3]], true)
+    assert k == 2 and fit < 0.1
+    # the share is that of the view's paths within 2 mm of the closest contour point (brute
+    # force over every apparent-contour segment, reglib.closest's reference)
+    from reglib.closest import ContourSet, closest_points
+
+    for shift in (0.5, 1.5, 2.5):
+        near = View(center=vs[1].center + [shift, 0, 0], origins=vs[1].origins + [shift, 0, 0],
+                    directions=vs[1].directions, name=vs[1].name)
+        fit, _ = view_fit(tops, [near], true)
+        robot2ct = true.inverse()
+        cset, _ = ContourSet.from_surfaces(tops, robot2ct.apply(near.center))
+        o, d = robot2ct.apply_lines(near.origins, near.directions)
+        ref = closest_points(cset, o, d, method="reference")
+        assert fit == pytest.approx(float(np.mean(ref.distance.min(axis=1) <= 2.0)), abs=1e-12)

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import pytest
 
-from reglib.pipeline import MAX_WEAK_MOTION_MM
+from reglib.pipeline import MAX_WEAK_MOTION_MM, MIN_VIEW_FIT
 from studies.end_to_end import run_case
-from testbed.scene import find_scene, load_scene
+from testbed.scene import find_scene, load_scene, parse_scene
 
 
 @pytest.mark.slow
@@ -34,3 +34,20 @@ def test_the_four_views_of_the_clinic_are_accepted_within_1_mm():
     res, _, _, est = run_case(scene, seed=scene.scene.seed)
     assert est.accepted and res["mtre_mm"] < 1.0
     assert est.quality["weak_motion_mm"] < 0.6 * MAX_WEAK_MOTION_MM
+
+
+@pytest.mark.slow
+def test_a_view_that_misses_the_anatomy_of_its_ct_surface_is_refused_and_was_wrong():
+    """Clinic experiment2 with a femur drawn far from the mean (shape_variation 3, seed 5:
+    about 600 mm, its head beyond the proximal views, which show only the shaft): the whole
+    median distance passed (0.72 mm) and the pose was accepted 7.7 mm off (a pin 17.9 mm);
+    no path of the proximal views passes within 2 mm of the surfaces' apparent contours. The
+    per-view fit refuses it and names the view."""
+    d = load_scene(find_scene("experiment2")).model_dump(mode="json")
+    d["phantom"].update(shape_variation=3.0, shape_seed=5)
+    scene = parse_scene(d)
+    res, _, _, est = run_case(scene, seed=scene.scene.seed)
+    assert not est.accepted
+    assert "view proximal_ap does not fit" in est.message
+    assert est.quality["worst_view_fit"] < MIN_VIEW_FIT
+    assert res["mtre_mm"] > 2.0                 # the truth: it was right to refuse
