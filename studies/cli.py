@@ -256,8 +256,13 @@ def cmd_render(args) -> int:
     import cv2
 
     from testbed.fluoroscope import render_view
+    from testbed.simulate import case_world
 
-    frame = render_view(scene, args.view, seed=args.seed)
+    # the world of `testbed run` with the same seed: with [phantom] shape_variation > 0 the
+    # femur is drawn from shape_seed and the case's seed, as every study case draws its own
+    seed = scene.scene.seed if args.seed is None else args.seed
+    _, world = case_world(scene, seed)
+    frame = render_view(scene, args.view, seed=seed, bodies=world.bodies)
     if not cv2.imwrite(str(out), frame.image_u8):
         raise UsageError(f"--out {out}: could not write the image")
     print(f"wrote {out}")
@@ -363,7 +368,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--view", type=_int_at_least(0, "--view"), default=0,
                    help="view index (0-based)")
     d.add_argument("--out", required=True, type=Path, help="a .png file")
-    d.add_argument("--seed", type=seed, default=None)
+    d.add_argument("--seed", type=seed, default=None,
+                   help="the case seed (default: the scene's); the world of testbed run "
+                   "--seed with the same value, its femur included")
     d.set_defaults(func=cmd_render)
 
     b = sub.add_parser("bench", help="measure every performance target")

@@ -46,7 +46,10 @@ class PhantomSpec(Spec):
 
     Dimensions (mm, deg) default to an adult femur; ``shape_variation`` (0: the mean femur,
     1: about one population standard deviation per dimension) draws a plausible femur from
-    ``shape_seed``.
+    ``shape_seed`` mixed with the case's seed (``testbed.simulate``): every case of a study
+    has its own femur, ``testbed run --seed S`` simulates the femur of case seed S and
+    ``testbed render --seed S`` shows that one. The drawn dimensions stay within the bounds
+    of their fields.
     """
 
     side: Literal["left", "right"] = "right"
@@ -179,6 +182,20 @@ class _Dims:
     aldfa: float = 90.0
 
 
+def _field_bounds(name: str) -> tuple[float, float]:
+    """(lower, upper) of a numeric PhantomSpec field (from its pydantic constraints)."""
+    lo, hi = -np.inf, np.inf
+    for m in PhantomSpec.model_fields[name].metadata:
+        lo = getattr(m, "ge", None) if getattr(m, "ge", None) is not None else lo
+        hi = getattr(m, "le", None) if getattr(m, "le", None) is not None else hi
+    return float(lo), float(hi)
+
+
+_BOUNDS = {k: _field_bounds(k) for k in (
+    "length_mm", "head_radius_mm", "neck_length_mm", "neck_radius_mm", "shaft_diameter_mm",
+    "cortical_thickness_mm", "condyle_width_mm", "notch_width_mm", "condyle_depth_mm")}
+
+
 def _resolve(spec: PhantomSpec) -> _Dims:
     v = float(spec.shape_variation)
     rng = np.random.default_rng(spec.shape_seed)
@@ -186,20 +203,25 @@ def _resolve(spec: PhantomSpec) -> _Dims:
     z = np.clip(rng.standard_normal(13), -2.5, 2.5) * v
     s_len = 1 + 0.05 * z[0]
     s_wid = 1 + 0.06 * z[1]
+    def within(name, value, scale=1.0):  # a drawn dimension stays within its field's bounds
+        lo, hi = _BOUNDS[name]
+        return float(np.clip(value, scale * lo, scale * hi))
+
     return _Dims(
-        L=spec.length_mm * s_len,
-        head_r=spec.head_radius_mm * s_wid * (1 + 0.04 * z[2]),
-        neck_len=spec.neck_length_mm * s_wid * (1 + 0.06 * z[3]),
-        neck_r=spec.neck_radius_mm * s_wid * (1 + 0.05 * z[4]),
+        L=within("length_mm", spec.length_mm * s_len),
+        head_r=within("head_radius_mm", spec.head_radius_mm * s_wid * (1 + 0.04 * z[2])),
+        neck_len=within("neck_length_mm", spec.neck_length_mm * s_wid * (1 + 0.06 * z[3])),
+        neck_r=within("neck_radius_mm", spec.neck_radius_mm * s_wid * (1 + 0.05 * z[4])),
         nsa=np.clip(spec.neck_shaft_angle_deg + 4.5 * z[5], 112, 145),
         antev=np.clip(spec.anteversion_deg + 6.0 * z[6], -5, 35),
-        shaft_r=spec.shaft_diameter_mm / 2 * s_wid * (1 + 0.05 * z[7]),
-        cortex=spec.cortical_thickness_mm * (1 + 0.08 * z[8]),
+        shaft_r=within("shaft_diameter_mm", spec.shaft_diameter_mm / 2 * s_wid
+                       * (1 + 0.05 * z[7]), 0.5),
+        cortex=within("cortical_thickness_mm", spec.cortical_thickness_mm * (1 + 0.08 * z[8])),
         end_cortex=spec.end_cortex_mm,
         bow=max(0.0, spec.shaft_bow_mm * (1 + 0.3 * z[9])),
-        condyle_w=spec.condyle_width_mm * s_wid * (1 + 0.04 * z[10]),
-        notch_w=spec.notch_width_mm * s_wid * (1 + 0.08 * z[11]),
-        condyle_d=spec.condyle_depth_mm * s_wid,
+        condyle_w=within("condyle_width_mm", spec.condyle_width_mm * s_wid * (1 + 0.04 * z[10])),
+        notch_w=within("notch_width_mm", spec.notch_width_mm * s_wid * (1 + 0.08 * z[11])),
+        condyle_d=within("condyle_depth_mm", spec.condyle_depth_mm * s_wid),
         n=int(spec.segments),
         aldfa=float(np.clip(spec.distal_joint_angle_deg + 2.0 * z[12], 75.0, 90.0)),
     )
@@ -408,7 +430,8 @@ def make_phantom(spec: PhantomSpec | None = None, rng=None) -> Phantom:
     ----------
     spec : the ``[phantom]`` section (default: the mean right femur).
     rng : unused by the procedural femur, whose variation is drawn from ``spec.shape_seed``
-        so that a scene file fixes the patient; accepted for a uniform signature.
+        (the simulator sets it per case, see :class:`PhantomSpec`) so that the spec fixes the
+        patient; accepted for a uniform signature.
 
     Returns
     -------

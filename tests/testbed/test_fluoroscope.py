@@ -239,3 +239,32 @@ def test_render_command_writes_the_frame_of_a_scene(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no [[views]]" in err[0]
     assert not (tmp_path / "x.png").exists() and not (tmp_path / "y.png").exists()
+
+
+@pytest.mark.slow
+def test_render_command_shows_the_femur_that_run_simulates(tmp_path):
+    # with shape_variation the simulator draws each case's femur from shape_seed and the
+    # case's seed: `testbed render --seed S` must show the world of `testbed run --seed S`
+    import cv2
+
+    from studies.cli import main
+    from testbed.fluoroscope import render_view
+    from testbed.scene import find_scene, load_scene
+    from testbed.simulate import case_world
+
+    text = find_scene("experiment2").read_text()
+    assert text.count('side = "right"') == 1
+    path = tmp_path / "varied.toml"
+    path.write_text(text.replace('side = "right"',
+                                 'side = "right"\nshape_variation = 2.0\nshape_seed = 4'))
+    scene = load_scene(path)
+    assert scene.phantom.shape_variation == 2.0
+    out = tmp_path / "v.png"
+    assert main(["render", str(path), "--view", "0", "--out", str(out), "--seed", "3"]) == 0
+    img = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
+    case_scene, world = case_world(scene, 3)
+    assert case_scene.phantom.shape_seed != scene.phantom.shape_seed
+    run_frame = render_view(scene, 0, seed=3, bodies=world.bodies)
+    assert np.array_equal(img, run_frame.image_u8)
+    as_written = render_view(scene, 0, seed=3)   # the phantom as written: another femur
+    assert not np.array_equal(run_frame.bone_mask, as_written.bone_mask)
