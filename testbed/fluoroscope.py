@@ -210,8 +210,10 @@ class ViewSpec(Spec):
     fluoroscope's ``sid_mm``; ``c_side_deg`` where the C's arc stands off the beam, as an
     angle in the image plane from the carm's ``+x`` towards ``+y`` (0, the default: ``+x``,
     which with zero rotations is the robot's ``+x``, the side of the table opposite the
-    robot: a mobile C-arm rolled in from the side of the table; 270 puts the C along
-    ``-y``, along the table). It changes only what the workspace check sees.
+    robot: a mobile C-arm rolled in from the side of the table; 90 or 270 put the C along
+    the table, where it meets the table top unless the view lies beyond the table's end, and
+    the workspace check refuses it; 180 puts it on the robot's side). It changes only what
+    the workspace check sees.
     """
 
     name: str = "view"

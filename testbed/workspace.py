@@ -327,6 +327,28 @@ def _first_problem(scene, report: WorkspaceReport, poses) -> str:
 
 
 _PLANES = {-1: "reference", 0: "near", 1: "far", 2: "validation"}
+_VIEW = "move the view (views[].isocenter_mm, orbital_deg, angular_deg, c_side_deg)"
+_SWEEP = ("move the rod's planes ([robot.sweep] near_fraction, validation_fraction, "
+          "far_fraction: fractions of the source-intensifier distance)")
+
+
+def _remedy(report: WorkspaceReport) -> str:
+    """What to change for the first problem of ``report``, by the bodies involved."""
+    if report.carm_contacts:
+        return _VIEW
+    for p in report.poses:
+        if p.unreachable:
+            return f"{_VIEW} within the robot's reach, or change [robot]"
+        if p.contacts:
+            c = min(p.contacts, key=lambda c: c.distance_mm)
+            other = c.b if c.a.startswith(("robot", "rod")) else c.a
+            if other.startswith("carm_intensifier"):
+                return f"{_SWEEP} further from the intensifier, or {_VIEW}"
+            if other.startswith("carm"):
+                return f"{_VIEW}, or {_SWEEP}"
+            return (f"{_SWEEP}, or move the {other} ([[instruments]] or [patient]), or "
+                    f"{_VIEW}")
+    return _VIEW
 
 
 def _clip(text: str, limit: int = 200) -> str:
@@ -350,7 +372,6 @@ def require_feasible(scene, world) -> list[WorkspaceReport]:
     reports = check_scene_workspace(scene, world)
     for r in reports:
         if not r.ok:
-            raise WorkspaceError(_first_problem(scene, r, None) + "; move the view "
-                                 "(views[].isocenter_mm, orbital_deg, angular_deg) or set "
-                                 "[workspace] check = false")
+            raise WorkspaceError(_first_problem(scene, r, None) + "; " + _remedy(r)
+                                 + ", or set [workspace] check = false")
     return reports
