@@ -316,7 +316,10 @@ def identify_row(xy_px, bead_positions_mm, *, tolerance: float = 0.15,
     if K < min_matched:
         raise ValueError(f"identify_row: {K} blobs; at least {min_matched} are needed")
     if K > 3 * n:
-        raise ValueError(f"identify_row: {K} blobs for a rod of {n} beads; too many to match")
+        raise ValueError(f"identify_row: {K} blobs for a rod of {n} beads; too many to match "
+                         "(something besides the rod changed between the two frames: e.g. "
+                         "an instrument moved, or a bright region such as air beside the limb "
+                         "saturates the video while the tube output changed)")
     c = xy.mean(axis=0)
     u = np.linalg.svd(xy - c)[2][0]
     t = (xy - c) @ u
