@@ -652,7 +652,7 @@ def verdict(converged: bool, quality: dict, failed: str, options: EstimateOption
     if fit < options.accept_min_view_fit and n_views > 1:
         k = quality.get("worst_view", -1)
         name = (f"view {view_names[k]}" if 0 <= k < len(view_names) else "a view")
-        reasons.append(f"{name} does not fit: {fit:.0%} of its X-ray paths pass within "
+        reasons.append(f"{name} does not fit: {fit:.1%} of its X-ray paths pass within "
                        f"{VIEW_FIT_MM:g} mm of the surfaces' apparent contours (at least "
                        f"{options.accept_min_view_fit:.0%} needed; it may not show the anatomy "
                        "its region's CT surface covers)")
