@@ -74,6 +74,16 @@ class PhantomSpec(Spec):
     (the phantom before this field)."""
     thigh_radius_mm: Annotated[float, Field(ge=50, le=200)] = 85.0
     knee_radius_mm: Annotated[float, Field(ge=45, le=120)] = 60.0
+    leg_mm: Annotated[float, Field(ge=0, le=600)] = 250.0
+    """Soft tissue of the lower leg beyond the thigh's knee end (mm along the femur, knee's
+    radius): a patient's leg goes on past the knee, so a distal view never sees air there
+    (0: the thigh ends 40 mm past the condyles, a bare limb)."""
+    hip_mm: Annotated[float, Field(ge=0, le=600)] = 250.0
+    """Soft tissue of the hip and pelvis beyond the thigh's hip end (mm along the femur,
+    thigh's radius; the pelvic bones are not modelled): the body goes on past the femoral
+    head, so a proximal view of a short femur never sees air there (0: the thigh ends 30 mm
+    past the head). Without it, the air beside a limb that ends inside a view saturates the
+    video, and the sweep frames' differences fail (a review: 18-81 blobs for 8 beads)."""
     pin_diameter_mm: Annotated[float, Field(gt=0, le=8)] = 4.0
     pin_length_mm: Annotated[float, Field(gt=0, le=20)] = 8.0
     segments: Annotated[int, Field(ge=16, le=256)] = 64
@@ -364,6 +374,11 @@ def _soft_tissue(bounds_lo, bounds_hi, spec: PhantomSpec, g: dict | None, n: int
         rb = 0.9 * ra
         rings = [_ring((x, 0.0, z), ex, ey, a, b, n)
                  for x, z, a, b in zip(cx, zs, ra, rb, strict=True)]
+    # the lower leg and the hip go on beyond the thigh's ends, as wide as its end rings
+    if spec.leg_mm > 0:
+        rings.insert(0, rings[0] - [0.0, 0.0, spec.leg_mm])
+    if spec.hip_mm > 0:
+        rings.append(rings[-1] + [0.0, 0.0, spec.hip_mm])
     return mf.Manifold.batch_boolean(_loft(rings), mf.OpType.Add)
 
 

@@ -48,8 +48,9 @@ TABLE_LENGTH_MM = 2000.0
 e.g. 2050 x 540 mm for common general-surgery tables]: fixed, whatever the femur's length."""
 TABLE_WIDTH_MM = 500.0
 TABLE_BEYOND_DISTAL_MM = 600.0
-"""Table beyond the distal end of the limb (the lower leg and foot: knee height is about
-0.28 of stature [memory: Drillis & Contini 1966 segment proportions], 490 mm at 1.75 m)."""
+"""Table beyond the knee (the femur's distal end): the lower leg and foot (knee height is
+about 0.28 of stature [memory: Drillis & Contini 1966 segment proportions], 490 mm at
+1.75 m)."""
 
 
 def table_bodies(patient_bodies, proximal_robot=(0.0, -1.0, 0.0)) -> list[Body]:
@@ -59,12 +60,13 @@ def table_bodies(patient_bodies, proximal_robot=(0.0, -1.0, 0.0)) -> list[Body]:
     ``proximal_robot`` (3,): the femur's proximal direction in the robot frame (the ct
     frame's +z); the table's long axis is its horizontal part (the robot's y if the femur
     stands upright). The foam is the limb's size; the table is :data:`TABLE_LENGTH_MM` long
-    whatever the limb's, ending :data:`TABLE_BEYOND_DISTAL_MM` beyond its distal end, the
-    rest of a patient's body lying on the proximal part.
+    whatever the limb's, ending :data:`TABLE_BEYOND_DISTAL_MM` beyond the knee (the femur's
+    distal end), the rest of a patient's body lying on the proximal part.
     """
     outer = [b.mesh for b in patient_bodies if b.mesh is not None and b.inside is None]
     if not outer:
         return []
+    bone = [b.mesh for b in patient_bodies if b.name == "femur" and b.mesh is not None]
     along = np.array([proximal_robot[0], proximal_robot[1], 0.0], dtype=float)
     if np.linalg.norm(along) < 1e-6:
         along = np.array([0.0, -1.0, 0.0])
@@ -83,7 +85,9 @@ def table_bodies(patient_bodies, proximal_robot=(0.0, -1.0, 0.0)) -> list[Body]:
     foam_z = lo[2] - 0.5 * FOAM_THICKNESS_MM - 0.5
     foam = box((hi[0] - lo[0] + 40.0, hi[1] - lo[1] + 200.0, FOAM_THICKNESS_MM),
                (mid[0], mid[1], foam_z))
-    table_start = lo[1] - TABLE_BEYOND_DISTAL_MM   # along the proximal direction
+    # from the knee (the femur's distal end; the limb's without a femur body)
+    knee = (np.vstack([m.vertices for m in bone]) @ R)[:, 1].min() if bone else lo[1]
+    table_start = knee - TABLE_BEYOND_DISTAL_MM   # along the proximal direction
     table = box((TABLE_WIDTH_MM, TABLE_LENGTH_MM, TABLE_THICKNESS_MM),
                 (mid[0], table_start + 0.5 * TABLE_LENGTH_MM,
                  lo[2] - FOAM_THICKNESS_MM - 0.5 * TABLE_THICKNESS_MM - 1.0))

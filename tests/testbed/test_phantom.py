@@ -180,3 +180,36 @@ def test_the_knee_joint_line_is_tilted_by_the_distal_femoral_angle(side):
         assert ph.pins["distal_2"][2] - ph.pins["distal_1"][2] == pytest.approx(drop, abs=1e-9)
         n_low = len(ph.femur.section([0, 0, 1], [0, 0, 3.0]).discrete)
         assert n_low == (1 if angle < 90 else 2)
+
+
+def test_the_leg_and_the_hip_go_on_beyond_the_thigh():
+    # a patient's limb does not end 40 mm past the condyles nor 30 mm past the head
+    bare = make_phantom(PhantomSpec(leg_mm=0.0, hip_mm=0.0))
+    body = make_phantom(PhantomSpec(leg_mm=250.0, hip_mm=180.0))
+    lo0, hi0 = bare.soft_tissue.bounds
+    lo1, hi1 = body.soft_tissue.bounds
+    assert lo1[2] == pytest.approx(lo0[2] - 250.0, abs=1e-6)
+    assert hi1[2] == pytest.approx(hi0[2] + 180.0, abs=1e-6)
+    assert _closed(body.soft_tissue) and body.soft_tissue.contains(body.femur.vertices).all()
+    # the thigh itself is the same: the added parts lie beyond its ends
+    z = bare.femur.vertices[:, 2]
+    probe = np.array([[x, y, zz] for zz in np.linspace(z.min(), z.max(), 9)
+                      for x, y in ((0, 0), (60, 0), (0, 55), (-70, 10))], dtype=float)
+    assert np.array_equal(bare.soft_tissue.contains(probe), body.soft_tissue.contains(probe))
+
+
+@pytest.mark.slow
+def test_a_short_femur_under_the_shipped_views_calibrates_every_view():
+    # a 360 mm femur under experiment2's proximal views: without the hip beyond the thigh the
+    # air past its end saturated the video, and both proximal sweeps failed ("too many blobs")
+    from reglib.pipeline import prepare
+    from testbed.scene import find_scene, load_scene, parse_scene
+    from testbed.simulate import simulate
+
+    d = load_scene(find_scene("experiment2")).model_dump(mode="json")
+    d["phantom"]["length_mm"] = 360.0
+    scene = parse_scene(d)
+    sim = simulate(scene, scene.scene.seed)
+    stages = prepare(sim.observation)
+    assert not stages.failed, stages.failed
+    assert len(stages.views) == 4
