@@ -45,7 +45,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from reglib.geometry import RigidTransform
+from reglib.geometry import RigidTransform, point_line_distances
 from reglib.surface import SURFACE_SIMPLIFY_TOL_MM
 
 __all__ = [
@@ -620,8 +620,7 @@ def view_fit(surfaces, views, ct2robot: RigidTransform,
         if pts is None or len(pts) == 0:
             share = 0.0
         else:
-            rel = ct2robot.apply(pts) - view.origins
-            dist = np.linalg.norm(np.cross(rel, view.directions), axis=1)
+            dist = point_line_distances(ct2robot.apply(pts), view.origins, view.directions)
             share = float(np.mean(dist <= within_mm))
         if not share >= worst:
             worst, at = share, k

@@ -33,7 +33,7 @@ import numpy as np
 
 from reglib.apparent import SurfaceTopology, prepare_surface
 from reglib.closest import ContourSet, closest_points, select_contours
-from reglib.geometry import RigidTransform, as_lines
+from reglib.geometry import RigidTransform, as_lines, skew
 from reglib.pose import _check_options as _check_pose_options
 from reglib.pose import solve_pose
 
@@ -250,7 +250,7 @@ def pose_sensitivity(points, normals, weights, targets, *, centre=None, fixed_po
     d = q - c
     S = d.T @ d / len(d)
     m = d.mean(axis=0)
-    skew_m = np.array([[0.0, -m[2], m[1]], [m[2], 0.0, -m[0]], [-m[1], m[0], 0.0]])
+    skew_m = skew(m)
     M = np.zeros((6, 6))
     M[:3, :3] = np.trace(S) * np.eye(3) - S
     M[:3, 3:] = skew_m

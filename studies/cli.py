@@ -52,24 +52,31 @@ def _int_at_least(lo: int, what: str):
     return parse
 
 
-def _out_folder(path: Path, option: str = "--out") -> Path:
-    """An output folder: created if missing; refused when it is a file or cannot be written."""
-    path = Path(path)
+def _folder_problem(path: Path) -> str | None:
+    """Why ``path`` cannot be used as an output folder (it is made if missing), or None."""
     if path.exists() and not path.is_dir():
-        raise UsageError(f"{option} {path}: exists and is not a folder")
+        return "exists and is not a folder"
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise UsageError(f"{option} {path}: cannot create the folder ({exc.strerror or exc})"
-                         ) from None
-    if not os.access(path, os.W_OK | os.X_OK) or not _can_write_in(path):
-        raise UsageError(f"{option} {path}: the folder is not writable")
+        return f"cannot create the folder ({exc.strerror or exc})"
+    if not _can_write_in(path):
+        return "the folder is not writable"
+    return None
+
+
+def _out_folder(path: Path, option: str = "--out") -> Path:
+    """An output folder: created if missing; refused when it is a file or cannot be written."""
+    path = Path(path)
+    problem = _folder_problem(path)
+    if problem:
+        raise UsageError(f"{option} {path}: {problem}")
     return path
 
 
 def _can_write_in(folder: Path) -> bool:
-    """True if a file can be made in ``folder`` (tried: os.access answers yes to root on
-    /proc or a read-only mount)."""
+    """True if a file can be made in ``folder``: tried, as os.access answers yes to root on
+    /proc or a read-only mount."""
     import tempfile
 
     try:
@@ -86,7 +93,7 @@ def _creatable_folder(path: Path, option: str = "--out") -> Path:
     if path.exists():
         if not path.is_dir():
             raise UsageError(f"{option} {path}: exists and is not a folder")
-        if not os.access(path, os.W_OK | os.X_OK) or not _can_write_in(path):
+        if not _can_write_in(path):
             raise UsageError(f"{option} {path}: the folder is not writable")
         return path
     anc = path.absolute().parent
@@ -94,7 +101,7 @@ def _creatable_folder(path: Path, option: str = "--out") -> Path:
         anc = anc.parent
     if not anc.is_dir():
         raise UsageError(f"{option} {path}: cannot create the folder ({anc} is a file)")
-    if not os.access(anc, os.W_OK | os.X_OK) or not _can_write_in(anc):
+    if not _can_write_in(anc):
         raise UsageError(f"{option} {path}: cannot create the folder ({anc} is not writable)")
     return path
 
@@ -107,11 +114,9 @@ def _out_file(path: Path, suffix: str, option: str = "--out") -> Path:
     if path.suffix.lower() != suffix:
         raise UsageError(f"{option} {path}: expected a {suffix} file name")
     folder = path.parent if str(path.parent) else Path(".")
-    try:
-        _out_folder(folder, option)
-    except UsageError as exc:  # name the file asked for, then what is wrong with its folder
-        raise UsageError(f"{option} {path}: cannot write there ({folder}: "
-                         f"{str(exc).split(': ', 1)[1]})") from None
+    problem = _folder_problem(folder)
+    if problem:  # the file asked for, then what is wrong with its folder
+        raise UsageError(f"{option} {path}: cannot write there ({folder}: {problem})")
     return path
 
 
