@@ -30,9 +30,89 @@ def _line_segment_distance(ox, oy, oz, dx, dy, dz, ax, ay, az, bx, by, bz):
     return np.sqrt(rx * rx + ry * ry + rz * rz)
 
 
+@njit(cache=True, inline="always")
+def _closest_row(ox, oy, oz, dx, dy, dz, starts, ends, block_a, block_b, block_eps,
+                 block_seg0, contour_block0, sb_a, sb_b, sb_eps, contour_sb0, ratio, within,
+                 sphere_c, sphere_r, warm, dist_row, seg_row):
+    """:func:`closest_segments` for one line, into ``dist_row`` and ``seg_row`` (C,).
+
+    ``warm`` (C,): per contour a segment measured first (-1: none), e.g. the previous
+    line's; its distance bounds the contour's blocks from the start. Ties go to the lowest
+    segment index, as without it, so a warm start changes nothing but the work: a block
+    holding the contour's nearest segment is never skipped (its lower bound is at most that
+    distance), and a contour left with an upper bound is one beyond the line's threshold,
+    which the caller drops either way. The blocks are grouped ``ratio`` at a time under
+    superblocks (``sb_*``, :func:`block_capsules` with ``ratio`` times the block size; their
+    first superblock per contour ``contour_sb0``), tested first with the same bound."""
+    nc = contour_block0.shape[0] - 1
+    nearest = np.inf
+    for c in range(nc):
+        best = np.inf
+        best_j = -1
+        if within >= 0.0:
+            t = within if within > nearest else nearest
+            wx = sphere_c[c, 0] - ox
+            wy = sphere_c[c, 1] - oy
+            wz = sphere_c[c, 2] - oz
+            wd = wx * dx + wy * dy + wz * dz
+            px, py, pz = wx - wd * dx, wy - wd * dy, wz - wd * dz
+            bound = t + 1e-7 * (1.0 + t) + sphere_r[c]
+            if px * px + py * py + pz * pz > bound * bound:
+                dist_row[c] = np.inf             # not computed
+                seg_row[c] = -1
+                continue
+        w = warm[c]
+        if w >= 0:
+            best = _line_segment_distance(
+                ox, oy, oz, dx, dy, dz, starts[w, 0], starts[w, 1], starts[w, 2],
+                ends[w, 0], ends[w, 1], ends[w, 2])
+            best_j = w
+        t = within if within > nearest else nearest
+        for m in range(contour_sb0[c], contour_sb0[c + 1]):
+            limit = best
+            if within >= 0.0 and t < limit:
+                limit = t
+            if _beyond(ox, oy, oz, dx, dy, dz, sb_a[m, 0], sb_a[m, 1], sb_a[m, 2],
+                       sb_b[m, 0], sb_b[m, 1], sb_b[m, 2], sb_eps[m], limit):
+                continue
+            k0 = contour_block0[c] + (m - contour_sb0[c]) * ratio
+            k1 = min(k0 + ratio, contour_block0[c + 1])
+            for k in range(k0, k1):
+                limit = best
+                if within >= 0.0 and t < limit:
+                    limit = t
+                if _beyond(ox, oy, oz, dx, dy, dz, block_a[k, 0], block_a[k, 1],
+                           block_a[k, 2], block_b[k, 0], block_b[k, 1], block_b[k, 2],
+                           block_eps[k], limit):
+                    continue
+                for j in range(block_seg0[k], block_seg0[k + 1]):
+                    r = _line_segment_distance(
+                        ox, oy, oz, dx, dy, dz, starts[j, 0], starts[j, 1], starts[j, 2],
+                        ends[j, 0], ends[j, 1], ends[j, 2])
+                    if r < best or (r == best and j < best_j):
+                        best = r
+                        best_j = j
+        dist_row[c] = best
+        seg_row[c] = best_j
+        if best < nearest:
+            nearest = best
+
+
+@njit(cache=True, inline="always")
+def _beyond(ox, oy, oz, dx, dy, dz, ax, ay, az, bx, by, bz, eps, limit):
+    """Whether the capsule of axis ``[a, b]`` and radius ``eps`` lies farther than
+    ``limit`` (plus a relative 1e-7) from the line: ``distance - eps > limit``, compared in
+    squares (no square root; both sides are >= 0)."""
+    s, px, py, pz, qx, qy, qz = _across(ox, oy, oz, dx, dy, dz, ax, ay, az, bx, by, bz)
+    rx, ry, rz = px + s * qx, py + s * qy, pz + s * qz
+    bound = limit + 1e-7 * (1.0 + limit) + eps
+    return rx * rx + ry * ry + rz * rz > bound * bound
+
+
 @njit(cache=True)
 def closest_segments(o, d, starts, ends, block_a, block_b, block_eps, block_seg0,
-                     contour_block0, within, sphere_c, sphere_r):
+                     contour_block0, sb_a, sb_b, sb_eps, contour_sb0, ratio, within, sphere_c,
+                     sphere_r, warm_start=True):
     """Per (line, contour): the distance and index of the closest segment.
 
     Parameters
@@ -43,10 +123,15 @@ def closest_segments(o, d, starts, ends, block_a, block_b, block_eps, block_seg0
     block_seg0 : (K + 1,) the blocks' first segments (block k owns ``block_seg0[k]`` to
         ``block_seg0[k + 1]``).
     contour_block0 : (C + 1,) the contours' first blocks.
+    sb_a, sb_b, sb_eps, contour_sb0, ratio : superblocks of ``ratio`` blocks each, tested
+        before their blocks (:func:`block_capsules` with ``ratio`` times the block size).
     within : threshold of the line (mm), or a negative number for none.
     sphere_c, sphere_r : (C, 3), (C,) a sphere around each contour (:func:`contour_spheres`):
         with ``within``, a contour whose sphere lies beyond the line's threshold is skipped
         in one test instead of one per block.
+    warm_start : measure first, per contour, the segment the previous line found (lines
+        that follow each other along a contour meet it at nearby segments): the same result,
+        less work (:func:`_closest_row`).
 
     Returns ``dist (N, C)`` (inf where not computed) and ``seg (N, C)`` (-1 there). With
     ``within >= 0`` the values are exact for every contour whose distance is at most
@@ -56,46 +141,56 @@ def closest_segments(o, d, starts, ends, block_a, block_b, block_eps, block_seg0
     nc = contour_block0.shape[0] - 1
     dist = np.full((n, nc), np.inf)
     seg = np.full((n, nc), -1, dtype=np.int64)
+    warm = np.full(nc, -1, dtype=np.int64)
     for i in range(n):
-        ox, oy, oz = o[i, 0], o[i, 1], o[i, 2]
-        dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
-        nearest = np.inf
-        for c in range(nc):
-            best = np.inf
-            best_j = -1
-            if within >= 0.0:
-                t = within if within > nearest else nearest
-                wx = sphere_c[c, 0] - ox
-                wy = sphere_c[c, 1] - oy
-                wz = sphere_c[c, 2] - oz
-                wd = wx * dx + wy * dy + wz * dz
-                px, py, pz = wx - wd * dx, wy - wd * dy, wz - wd * dz
-                lower = np.sqrt(px * px + py * py + pz * pz) - sphere_r[c]
-                if lower > t + 1e-7 * (1.0 + t):
-                    continue                     # dist stays inf, seg -1
-            for k in range(contour_block0[c], contour_block0[c + 1]):
-                limit = best
-                if within >= 0.0:
-                    t = within if within > nearest else nearest
-                    if t < limit:
-                        limit = t
-                lower = _line_segment_distance(
-                    ox, oy, oz, dx, dy, dz, block_a[k, 0], block_a[k, 1], block_a[k, 2],
-                    block_b[k, 0], block_b[k, 1], block_b[k, 2]) - block_eps[k]
-                if lower > limit + 1e-7 * (1.0 + limit):
-                    continue
-                for j in range(block_seg0[k], block_seg0[k + 1]):
-                    r = _line_segment_distance(
-                        ox, oy, oz, dx, dy, dz, starts[j, 0], starts[j, 1], starts[j, 2],
-                        ends[j, 0], ends[j, 1], ends[j, 2])
-                    if r < best:
-                        best = r
-                        best_j = j
-            dist[i, c] = best
-            seg[i, c] = best_j
-            if best < nearest:
-                nearest = best
+        _closest_row(o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2], starts, ends,
+                     block_a, block_b, block_eps, block_seg0, contour_block0, sb_a, sb_b,
+                     sb_eps, contour_sb0, ratio, within, sphere_c, sphere_r, warm, dist[i],
+                     seg[i])
+        if warm_start:
+            warm[:] = seg[i]
     return dist, seg
+
+
+@njit(cache=True, inline="always")
+def _pair(ox, oy, oz, dx, dy, dz, starts, ends, j):
+    """The exact closest points of the line and segment ``j``: ``(dist, p0, p1, p2, q0, q1,
+    q2)``, the arithmetic of ``reglib.closest._exact``."""
+    ax, ay, az = starts[j, 0], starts[j, 1], starts[j, 2]
+    bx, by, bz = ends[j, 0], ends[j, 1], ends[j, 2]
+    s = _across(ox, oy, oz, dx, dy, dz, ax, ay, az, bx, by, bz)[0]
+    p0, p1, p2 = ax + s * (bx - ax), ay + s * (by - ay), az + s * (bz - az)
+    t = (p0 - ox) * dx + (p1 - oy) * dy + (p2 - oz) * dz
+    q0, q1, q2 = ox + t * dx, oy + t * dy, oz + t * dz
+    r0, r1, r2 = p0 - q0, p1 - q1, p2 - q2
+    return np.sqrt(r0 ** 2 + r1 ** 2 + r2 ** 2), p0, p1, p2, q0, q1, q2
+
+
+@njit(cache=True, inline="always")
+def _tangent(unit, starts, ends, seg_contour, offsets, closed, g, p0, p1, p2):
+    """The oriented contour direction at the point ``(p0, p1, p2)`` of segment ``g >= 0``
+    (:meth:`reglib.closest.ContourSet.tangents`, one entry)."""
+    c = seg_contour[g]
+    lo, hi = offsets[c], offsets[c + 1] - 1
+    prv = g - 1 if g > lo else (hi if closed[c] else -1)
+    nxt = g + 1 if g < hi else (lo if closed[c] else -1)
+    ds = (p0 - starts[g, 0]) ** 2 + (p1 - starts[g, 1]) ** 2 + (p2 - starts[g, 2]) ** 2
+    de = (p0 - ends[g, 0]) ** 2 + (p1 - ends[g, 1]) ** 2 + (p2 - ends[g, 2]) ** 2
+    at_start = np.sqrt(ds) <= 1e-9
+    at_end = np.sqrt(de) <= 1e-9
+    tx, ty, tz = unit[g, 0], unit[g, 1], unit[g, 2]
+    if at_start and prv >= 0:
+        tx += unit[prv, 0]
+        ty += unit[prv, 1]
+        tz += unit[prv, 2]
+    elif at_end and not at_start and nxt >= 0:
+        tx += unit[nxt, 0]
+        ty += unit[nxt, 1]
+        tz += unit[nxt, 2]
+    tn = np.sqrt(tx * tx + ty * ty + tz * tz)
+    if tn > 1e-12:
+        return tx / tn, ty / tn, tz / tn
+    return unit[g, 0], unit[g, 1], unit[g, 2]
 
 
 @njit(cache=True)
@@ -110,32 +205,86 @@ def tangents(unit, starts, ends, seg_contour, offsets, closed, seg, p):
         if g < 0:
             out[k, 0] = out[k, 1] = out[k, 2] = np.nan
             continue
-        c = seg_contour[g]
-        lo, hi = offsets[c], offsets[c + 1] - 1
-        prv = g - 1 if g > lo else (hi if closed[c] else -1)
-        nxt = g + 1 if g < hi else (lo if closed[c] else -1)
-        ds = 0.0
-        de = 0.0
-        for j in range(3):
-            ds += (p[k, j] - starts[g, j]) ** 2
-            de += (p[k, j] - ends[g, j]) ** 2
-        at_start = np.sqrt(ds) <= 1e-9
-        at_end = np.sqrt(de) <= 1e-9
-        tx, ty, tz = unit[g, 0], unit[g, 1], unit[g, 2]
-        if at_start and prv >= 0:
-            tx += unit[prv, 0]
-            ty += unit[prv, 1]
-            tz += unit[prv, 2]
-        elif at_end and not at_start and nxt >= 0:
-            tx += unit[nxt, 0]
-            ty += unit[nxt, 1]
-            tz += unit[nxt, 2]
-        tn = np.sqrt(tx * tx + ty * ty + tz * tz)
-        if tn > 1e-12:
-            out[k, 0], out[k, 1], out[k, 2] = tx / tn, ty / tn, tz / tn
-        else:
-            out[k, 0], out[k, 1], out[k, 2] = unit[g, 0], unit[g, 1], unit[g, 2]
+        out[k, 0], out[k, 1], out[k, 2] = _tangent(unit, starts, ends, seg_contour, offsets,
+                                                   closed, g, p[k, 0], p[k, 1], p[k, 2])
     return out
+
+
+@njit(cache=True)
+def match_lines(o, d, starts, ends, unit, seg_contour, offsets, closed, block_a, block_b,
+                block_eps, block_seg0, contour_block0, sb_a, sb_b, sb_eps, contour_sb0, ratio,
+                within, sphere_c, sphere_r, external, max_stab):
+    """Steps A and B of one view in one pass per line, compiled: :func:`closest_segments`
+    (warm-started), :func:`exact_pairs`, then :func:`reglib.closest.select_contours` (an
+    external line takes the farthest contour it stabs within ``max_stab`` mm, else and for
+    the other lines the closest) and the tangent there. The numpy chain of those steps is
+    the reference, compared in tests.
+
+    Returns ``sel (N,)`` contour index, ``seg (N,)`` segment (-1: none), ``p (N, 3)`` the
+    selected closest point (NaN: none) and ``tangent (N, 3)`` (NaN: none)."""
+    n = o.shape[0]
+    nc = contour_block0.shape[0] - 1
+    sel = np.zeros(n, dtype=np.int64)
+    seg_out = np.full(n, -1, dtype=np.int64)
+    p_out = np.full((n, 3), np.nan)
+    t_out = np.full((n, 3), np.nan)
+    dist_row = np.empty(nc)
+    seg_row = np.full(nc, -1, dtype=np.int64)
+    warm = np.full(nc, -1, dtype=np.int64)
+    exd = np.empty(nc)
+    pr = np.empty((nc, 3))
+    qr = np.empty((nc, 3))
+    for i in range(n):
+        ox, oy, oz = o[i, 0], o[i, 1], o[i, 2]
+        dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
+        _closest_row(ox, oy, oz, dx, dy, dz, starts, ends, block_a, block_b, block_eps,
+                     block_seg0, contour_block0, sb_a, sb_b, sb_eps, contour_sb0, ratio,
+                     within, sphere_c, sphere_r, warm, dist_row, seg_row)
+        lim = np.inf
+        if within >= 0.0:
+            nearest = np.inf
+            for c in range(nc):
+                nearest = min(nearest, dist_row[c])
+            thr = max(within, nearest)
+            lim = thr + 1e-7 * (1.0 + thr)
+        for c in range(nc):
+            j = seg_row[c]
+            warm[c] = j
+            if j < 0 or dist_row[c] > lim:
+                exd[c] = np.inf
+                seg_row[c] = -1
+                continue
+            exd[c], p0, p1, p2, q0, q1, q2 = _pair(ox, oy, oz, dx, dy, dz, starts, ends, j)
+            pr[c, 0], pr[c, 1], pr[c, 2] = p0, p1, p2
+            qr[c, 0], qr[c, 1], qr[c, 2] = q0, q1, q2
+        chosen = 0                                   # the closest: first minimum
+        for c in range(1, nc):
+            if exd[c] < exd[chosen]:
+                chosen = c
+        if external[i]:
+            far = -1
+            for c in range(nc):
+                g = seg_row[c]
+                if g < 0 or not exd[c] <= max_stab:
+                    continue
+                ex, ey, ez = _tangent(unit, starts, ends, seg_contour, offsets, closed, g,
+                                      pr[c, 0], pr[c, 1], pr[c, 2])
+                cx, cy, cz = ey * dz - ez * dy, ez * dx - ex * dz, ex * dy - ey * dx
+                det = ((qr[c, 0] - pr[c, 0]) * cx + (qr[c, 1] - pr[c, 1]) * cy
+                       + (qr[c, 2] - pr[c, 2]) * cz)
+                if det > 0.0 and (far < 0 or exd[c] > exd[far]):
+                    far = c
+            if far >= 0:
+                chosen = far
+        sel[i] = chosen
+        g = seg_row[chosen]
+        if g >= 0:
+            seg_out[i] = g
+            p_out[i, 0], p_out[i, 1], p_out[i, 2] = pr[chosen, 0], pr[chosen, 1], pr[chosen, 2]
+            t_out[i, 0], t_out[i, 1], t_out[i, 2] = _tangent(
+                unit, starts, ends, seg_contour, offsets, closed, g, pr[chosen, 0],
+                pr[chosen, 1], pr[chosen, 2])
+    return sel, seg_out, p_out, t_out
 
 
 @njit(cache=True)
@@ -243,14 +392,8 @@ def exact_pairs(o, d, starts, ends, dist_in, seg, within):
             if dist_in[i, c] > lim:
                 seg[i, c] = -1
                 continue
-            ax, ay, az = starts[j, 0], starts[j, 1], starts[j, 2]
-            bx, by, bz = ends[j, 0], ends[j, 1], ends[j, 2]
-            s = _across(ox, oy, oz, dx, dy, dz, ax, ay, az, bx, by, bz)[0]
-            p0, p1, p2 = ax + s * (bx - ax), ay + s * (by - ay), az + s * (bz - az)
-            t = (p0 - ox) * dx + (p1 - oy) * dy + (p2 - oz) * dz
-            q0, q1, q2 = ox + t * dx, oy + t * dy, oz + t * dz
-            r0, r1, r2 = p0 - q0, p1 - q1, p2 - q2
-            dist[i, c] = np.sqrt(r0 ** 2 + r1 ** 2 + r2 ** 2)
+            dist[i, c], p0, p1, p2, q0, q1, q2 = _pair(ox, oy, oz, dx, dy, dz, starts, ends,
+                                                       j)
             p[i, c, 0], p[i, c, 1], p[i, c, 2] = p0, p1, p2
             q[i, c, 0], q[i, c, 1], q[i, c, 2] = q0, q1, q2
     return dist, p, q

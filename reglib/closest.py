@@ -407,27 +407,31 @@ def _block_capsules(contours: ContourSet, size: int):
 #: segments per block of the compiled method (measured: 8 fastest of 4-32 on the
 #: registration's apparent contours)
 COMPILED_BLOCK = 8
+#: blocks per superblock of the compiled method
+COMPILED_SUPER = 8
+
+
+def _compiled_capsules(contours: ContourSet):
+    """The compiled method's blocks and superblocks, and a sphere per contour."""
+    from reglib._closest_numba import block_capsules, contour_spheres
+
+    path = np.ascontiguousarray(contours.path)
+    offsets = np.ascontiguousarray(contours.offsets)
+    a, b, eps, seg0, cb0 = block_capsules(path, offsets, COMPILED_BLOCK)
+    sa, sb, seps, _, sb0 = block_capsules(path, offsets, COMPILED_BLOCK * COMPILED_SUPER)
+    return (a, b, eps, seg0, cb0, sa, sb, seps, sb0, COMPILED_SUPER), contour_spheres(path,
+                                                                                     offsets)
 
 
 def _closest_compiled(contours: ContourSet, o, d, within=None) -> ClosestPoints:
     """The capsule pruning compiled (:mod:`reglib._closest_numba`), one loop per line."""
-    from reglib._closest_numba import (
-        block_capsules,
-        closest_segments,
-        contour_spheres,
-        exact_pairs,
-    )
+    from reglib._closest_numba import closest_segments, exact_pairs
 
-    a, b, eps, seg0, cb0 = block_capsules(np.ascontiguousarray(contours.path),
-                                          np.ascontiguousarray(contours.offsets),
-                                          COMPILED_BLOCK)
+    blocks, spheres = _compiled_capsules(contours)
     dist, seg = closest_segments(np.ascontiguousarray(o), np.ascontiguousarray(d),
                                  np.ascontiguousarray(contours.starts),
-                                 np.ascontiguousarray(contours.ends), np.ascontiguousarray(a),
-                                 np.ascontiguousarray(b), np.ascontiguousarray(eps), seg0, cb0,
-                                 -1.0 if within is None else float(within),
-                                 *contour_spheres(np.ascontiguousarray(contours.path),
-                                                  np.ascontiguousarray(contours.offsets)))
+                                 np.ascontiguousarray(contours.ends), *blocks,
+                                 -1.0 if within is None else float(within), *spheres)
     # beyond the line's threshold: not computed, as "blocks" says; the rest exactly
     dist, p, q = exact_pairs(np.ascontiguousarray(o), np.ascontiguousarray(d),
                              np.ascontiguousarray(contours.starts),
@@ -747,3 +751,38 @@ def select_contours(cp: ClosestPoints, contours: ContourSet, directions, externa
     far = np.argmax(np.where(st, cp.distance, -np.inf), axis=1)
     use_far = ext & st.any(axis=1)
     return np.where(use_far, far, closest).astype(np.int64)
+
+
+def match_contours(contours: ContourSet, origins, directions, external=None, *,
+                   within_mm: float | None = None, max_stab_distance_mm: float = np.inf):
+    """Steps A and B in one compiled pass (:func:`reglib._closest_numba.match_lines`): for
+    each line the contour :func:`select_contours` takes and the closest point and tangent
+    there. Equal to :func:`closest_points` (``method="compiled"``, ``within_mm``), then
+    :func:`select_contours` and :meth:`ContourSet.tangents` at the selected points (the
+    reference, compared in tests), without the ``(N, C)`` tables.
+
+    Parameters as in those functions (``within_mm`` as in :func:`closest_points`; None for
+    no threshold). Returns ``(sel (N,), segment (N,), points (N, 3), tangents (N, 3))``:
+    contour index (-1 with no contour), segment (-1: none), mm and unit vectors (NaN where
+    no segment was found).
+    """
+    from reglib._closest_numba import match_lines
+
+    o, d = _check(contours, origins, directions)
+    n = len(o)
+    ext = np.ones(n, dtype=bool) if external is None else np.asarray(external, dtype=bool)
+    if ext.shape != (n,):
+        raise ValueError(f"external: expected shape ({n},), got {ext.shape}")
+    if within_mm is not None and not within_mm >= 0:
+        raise ValueError(f"within_mm: expected a distance >= 0 mm, got {within_mm}")
+    if contours.n_contours == 0 or n == 0:
+        return (np.full(n, -1, dtype=np.int64), np.full(n, -1, dtype=np.int64),
+                np.full((n, 3), np.nan), np.full((n, 3), np.nan))
+    blocks, spheres = _compiled_capsules(contours)
+    return match_lines(np.ascontiguousarray(o), np.ascontiguousarray(d),
+                       np.ascontiguousarray(contours.starts), np.ascontiguousarray(contours.ends),
+                       contours._unit, contours.segment_contour,
+                       np.ascontiguousarray(contours.offsets),
+                       np.ascontiguousarray(contours.closed), *blocks,
+                       -1.0 if within_mm is None else float(within_mm), *spheres,
+                       np.ascontiguousarray(ext), float(max_stab_distance_mm))

@@ -7,7 +7,13 @@ import pytest
 import trimesh
 
 from reglib.apparent import apparent_contours, prepare_surface
-from reglib.closest import ContourSet, closest_points, select_contours, stabbing
+from reglib.closest import (
+    ContourSet,
+    closest_points,
+    match_contours,
+    select_contours,
+    stabbing,
+)
 
 
 def random_case(rng, n_lines=120, n_contours=5):
@@ -268,3 +274,49 @@ def test_compiled_exact_pairs_equal_the_numpy_exact_points():
         np.testing.assert_allclose(p[li, ci], rp, rtol=0, atol=1e-12)
         np.testing.assert_allclose(q[li, ci], rq, rtol=0, atol=1e-12)
         assert np.all(np.isinf(dist[want < 0])) and np.all(np.isnan(p[want < 0]))
+
+
+def _steps_a_b(cs, o, d, ext, within, max_stab, method):
+    """The numpy chain match_contours fuses: Step A, Step B, the tangent at the choice."""
+    cp = closest_points(cs, o, d, method=method,
+                        within_mm=within if method in ("blocks", "compiled") else None)
+    sel = select_contours(cp, cs, d, ext, max_stab_distance_mm=max_stab)
+    rows = np.arange(len(sel))
+    return sel, cp.p[rows, sel], cs.tangents(cp.segment[rows, sel], cp.p[rows, sel])
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_match_contours_equals_steps_a_and_b(seed):
+    """The fused, warm-started, compiled Steps A and B (the registration's path) against
+    the chain they replace: identical to the unfused compiled search; against the brute
+    force, the same closest points and tangents (1e-9) and the same choices wherever the
+    choice is not a tie."""
+    rng = np.random.default_rng(40 + seed)
+    for _ in range(4):
+        cs, o, d = random_case(rng, n_lines=150, n_contours=int(rng.integers(1, 9)))
+        ext = rng.random(len(o)) < 0.7
+        max_stab = float(rng.choice([5.0, 15.0, np.inf]))
+        # as the registration asks: Step A exact where Step B looks
+        within = max_stab if np.isfinite(max_stab) else None
+        sel, seg, pts, tg = match_contours(cs, o, d, ext, within_mm=within,
+                                           max_stab_distance_mm=max_stab)
+        s1, p1, t1 = _steps_a_b(cs, o, d, ext, within, max_stab, "compiled")
+        assert np.array_equal(sel, s1)
+        assert np.array_equal(pts, p1, equal_nan=True)
+        assert np.array_equal(tg, t1, equal_nan=True)
+        assert np.all(cs.segment_contour[seg] == sel)
+        s0, p0, t0 = _steps_a_b(cs, o, d, ext, within, max_stab, "reference")
+        same = s0 == sel
+        assert same.mean() > 0.99
+        np.testing.assert_allclose(pts[same], p0[same], atol=1e-9, rtol=0)
+        np.testing.assert_allclose(tg[same], t0[same], atol=1e-9, rtol=0)
+    # no threshold, no external line, one line, no contour
+    cs, o, d = random_case(rng)
+    sel, _, pts, _ = match_contours(cs, o, d, np.zeros(len(o), dtype=bool))
+    cp = closest_points(cs, o, d, method="reference")
+    assert np.array_equal(sel, np.argmin(cp.distance, axis=1))
+    assert match_contours(cs, o[:1], d[:1])[0].shape == (1,)
+    empty = match_contours(ContourSet.from_polylines([], []), o, d)
+    assert np.all(empty[0] == -1) and np.all(np.isnan(empty[2]))
+    with pytest.raises(ValueError, match="external"):
+        match_contours(cs, o, d, np.ones(3, dtype=bool))
