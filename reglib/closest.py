@@ -766,8 +766,6 @@ def match_contours(contours: ContourSet, origins, directions, external=None, *,
     contour index (-1 with no contour), segment (-1: none), mm and unit vectors (NaN where
     no segment was found).
     """
-    from reglib._closest_numba import match_lines
-
     o, d = _check(contours, origins, directions)
     n = len(o)
     ext = np.ones(n, dtype=bool) if external is None else np.asarray(external, dtype=bool)
@@ -775,6 +773,16 @@ def match_contours(contours: ContourSet, origins, directions, external=None, *,
         raise ValueError(f"external: expected shape ({n},), got {ext.shape}")
     if within_mm is not None and not within_mm >= 0:
         raise ValueError(f"within_mm: expected a distance >= 0 mm, got {within_mm}")
+    return _match_contours(contours, o, d, ext, within_mm, max_stab_distance_mm)
+
+
+def _match_contours(contours: ContourSet, o, d, ext, within_mm, max_stab_distance_mm):
+    """:func:`match_contours` on checked input: ``o, d`` (N, 3) float64 lines with unit
+    directions, ``ext`` (N,) bool (the registration loop's lines, checked once by its
+    views and moved rigidly)."""
+    from reglib._closest_numba import match_lines
+
+    n = len(o)
     if contours.n_contours == 0 or n == 0:
         return (np.full(n, -1, dtype=np.int64), np.full(n, -1, dtype=np.int64),
                 np.full((n, 3), np.nan), np.full((n, 3), np.nan))

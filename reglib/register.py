@@ -32,7 +32,7 @@ from typing import Literal
 import numpy as np
 
 from reglib.apparent import SurfaceTopology, prepare_surface
-from reglib.closest import ContourSet, closest_points, match_contours, select_contours
+from reglib.closest import ContourSet, _match_contours, closest_points, select_contours
 from reglib.geometry import RigidTransform, as_lines, skew
 from reglib.pose import _check_options as _check_pose_options
 from reglib.pose import solve_pose
@@ -190,8 +190,9 @@ def match_view(surfaces, view: View, ct2robot: RigidTransform, *, closest: str =
         within = None if not np.isfinite(within) else within
     ext = view.external if selection == "paper" else np.zeros(view.n_paths, dtype=bool)
     if closest == "compiled":  # Steps A and B in one compiled pass; the rest: the reference
-        _, _, pts, tangents = match_contours(cset, o_ct, d_ct, ext, within_mm=within,
-                                             max_stab_distance_mm=max_stab_distance_mm)
+        # the view's lines were checked when it was made, and a rigid motion keeps them so
+        _, _, pts, tangents = _match_contours(cset, o_ct, d_ct, ext, within,
+                                              float(max_stab_distance_mm))
         return pts, tangents, cset, owner
     cp = closest_points(cset, o_ct, d_ct, method=closest, within_mm=within)
     sel = select_contours(cp, cset, d_ct, ext, max_stab_distance_mm=max_stab_distance_mm)
