@@ -26,6 +26,7 @@ mapped to 3-D (the fit is linear in the values and reproduces affine functions).
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,6 +39,7 @@ __all__ = [
     "ThinPlateSpline",
     "Calibration",
     "calibrate",
+    "summarise_problems",
     "tps_fit_svd",
     "tps_evaluate",
     "tps_kernel",
@@ -104,6 +106,30 @@ class Calibration:
         return closest_point_to_lines(o, d)
 
 
+def summarise_problems(problems, limit: int = 8) -> str:
+    """The problems met while finding a view's markers, one entry per kind: messages that
+    differ only in their numbers (the frame, blob counts) are merged, each number shown as
+    its range over them, with how many there were (``"8 x view v, near plane, frame 1-8:
+    row dropped (identify_row: 43-81 blobs ...)"``). At most ``limit`` kinds, then how many
+    more; "no problems were recorded" for none."""
+    groups: dict[tuple, list] = {}
+    for msg in problems:
+        parts = re.split(r"(\d+(?:\.\d+)?)", str(msg))
+        groups.setdefault(tuple(parts[0::2]), []).append(parts[1::2])
+    out = []
+    for text, numbers in list(groups.items())[:limit]:
+        pieces = [text[0]]
+        for k, rest in enumerate(text[1:]):
+            vals = [v[k] for v in numbers]
+            lo, hi = min(vals, key=float), max(vals, key=float)
+            pieces.append((lo if lo == hi else f"{lo}-{hi}") + rest)
+        out.append((f"{len(numbers)} x " if len(numbers) > 1 else "") + "".join(pieces))
+    more = len(groups) - limit
+    if more > 0:
+        out.append(f"and {more} other kind(s) of problem")
+    return "; ".join(out) or "no problems were recorded"
+
+
 def calibrate(markers: Markers, *, smoothing: float = 0.01, min_markers: int = 12,
               min_rows: int = 3) -> Calibration:
     """Two-plane TPS calibration of one view from its identified markers.
@@ -118,7 +144,7 @@ def calibrate(markers: Markers, *, smoothing: float = 0.01, min_markers: int = 1
         m = markers.plane == p
         n_rows = len(np.unique(markers.frame[m]))
         if m.sum() < min_markers or n_rows < min_rows:
-            detail = "; ".join(markers.problems[:8]) or "no problems were recorded"
+            detail = summarise_problems(markers.problems)
             raise ValueError(
                 f"view {markers.view}: {PLANE_NAMES[p]} plane has {int(m.sum())} markers in "
                 f"{n_rows} rows (need {min_markers} in {min_rows}); cannot calibrate. "

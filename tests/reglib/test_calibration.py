@@ -9,6 +9,7 @@ from reglib.calibration import (
     Calibration,
     ThinPlateSpline,
     calibrate,
+    summarise_problems,
     tps_evaluate,
     tps_fit_svd,
 )
@@ -289,6 +290,23 @@ def test_calibrate_names_view_and_plane_when_too_few_markers():
                   m.robot[keep], ["view lateral, far plane, frame 9: row dropped"])
     with pytest.raises(ValueError, match=r"view lateral: far plane has 16 markers in 2 rows"):
         calibrate(few)
+    # the same problem in many frames is said once, with the range of its numbers
+    many = [f"view lateral, far plane, frame {f}: row dropped (identify_row: {b} blobs for a "
+            f"rod of 8 beads; too many to match; {b} blobs found)"
+            for f, b in zip(range(9, 21), [81, 65, 76, 76, 67, 72, 56, 70, 54, 50, 56, 43])]
+    few = Markers("lateral", m.frame[keep], m.plane[keep], m.bead[keep], m.xy_px[keep],
+                  m.robot[keep], many + ["view lateral, far plane, frame 4: beads [0, 3] not "
+                                         "found (outside the field or hidden)"])
+    with pytest.raises(ValueError) as err:
+        calibrate(few)
+    msg = str(err.value)
+    assert ("Problems: 12 x view lateral, far plane, frame 9-20: row dropped (identify_row: "
+            "43-81 blobs for a rod of 8 beads; too many to match; 43-81 blobs found); view "
+            "lateral, far plane, frame 4: beads [0, 3] not found") in msg
+    assert msg.count("row dropped") == 1
+    assert summarise_problems([f"kind {chr(97 + k)}" for k in range(12)], limit=3).endswith(
+        "and 9 other kind(s) of problem")
+    assert summarise_problems([]) == "no problems were recorded"
     # the same with enough rows left calibrates from the rest
     keep = ~((m.plane == 1) & (m.frame == 12))
     ok = Markers("lateral", m.frame[keep], m.plane[keep], m.bead[keep], m.xy_px[keep],
