@@ -628,12 +628,13 @@ def view_fit(surfaces, views, ct2robot: RigidTransform,
 
 
 def verdict(converged: bool, quality: dict, failed: str, options: EstimateOptions,
-            n_views: int, view_names=()) -> list:
+            n_views: int, view_names=(), failed_views=()) -> list:
     """The objections to a registration (empty: accepted), from what a clinic has.
 
     A failed view is no objection by itself (it is left out and named in the estimate's
     ``warnings``) as long as ``options.accept_min_views`` views remain. ``view_names``:
-    the registered views' names, to name the worst one."""
+    the registered views' names, to name the worst one; ``failed_views``: the names of the
+    views left out, named when the remaining ones hold the pose too loosely."""
     reasons = []
     if not converged:
         reasons.append(f"registration did not converge ({quality.get('reason', '')})")
@@ -660,7 +661,10 @@ def verdict(converged: bool, quality: dict, failed: str, options: EstimateOption
         reasons.append(WEAK_GEOMETRY + f": the bone can move {weak:.1f} mm (RMS) along its least "
                        "constrained motion for the contour distances to change by their median "
                        f"(limit {options.accept_max_weak_motion_mm:g} mm); add a view, or "
-                       "views further apart")
+                       "views further apart"
+                       + (f" ({len(failed_views)} of the {n_views + len(failed_views)} views "
+                          f"were left out: {', '.join(map(str, failed_views))}; see the "
+                          "warnings)" if len(failed_views) else ""))
     return reasons
 
 
@@ -747,7 +751,7 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
              **match_quality(res), "iterations": int(res.iterations), "reason": res.reason}
         q["worst_view_fit"], q["worst_view"] = view_fit(surfaces, stages.views, res.ct2robot)
         return res, q, verdict(res.converged, q, failed, options, len(stages.views),
-                               [v.name for v in stages.views])
+                               [v.name for v in stages.views], list(stages.failed))
 
     def best(tries):  # fewer objections, then the smaller median distance
         return min(tries, key=lambda t: (len(t[2]),

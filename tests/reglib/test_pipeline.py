@@ -80,6 +80,10 @@ def test_verdict_objections():
                                               opts, 4))
     # the pose loosely held by the views: refused, and not when the figure is unknown
     loose = verdict(True, {**good, "weak_motion_mm": 11.0}, "", opts, 2)
+    assert "left out" not in loose[0]
+    assert verdict(True, {**good, "weak_motion_mm": 11.0}, "", opts, 2, ["d_ap", "d_obl"],
+                   ["ap", "oblique"])[0].endswith(
+        "(2 of the 4 views were left out: ap, oblique; see the warnings)")
     assert len(loose) == 1 and "loosely determined" in loose[0] and "11.0 mm" in loose[0]
     assert verdict(True, {**good, "weak_motion_mm": 3.0}, "", opts, 4) == []
     assert verdict(True, {**good, "weak_motion_mm": float("nan")}, "", opts, 4) == []
