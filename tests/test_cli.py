@@ -387,7 +387,10 @@ def test_bench_quick_prints_every_workload_with_value_unit_goal_reference():
         assert {"value", "unit", "goal", "reference"} <= set(row), key
         assert row["value"] is not None and np.isfinite(row["value"]) and row["value"] > 0, key
         assert row["unit"] and row["goal"] is not None, key
-    assert 1.0 < result["scaling_2_workers"]["value"] < 2.5
+    # against a pure-numpy task's scaling measured in the same run (another job on the
+    # machine lowers both): workers that ran one after the other would give about 1x
+    scaling = result["scaling_2_workers"]
+    assert 0.7 * scaling["reference"] < scaling["value"] < 2.5, scaling
     assert result["run_cpu_s"]["value"] > result["run_cpu_s"]["reference"]  # above imports
 
 
