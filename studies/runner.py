@@ -117,6 +117,10 @@ class Trial:
         Its spawn key: ``SeedSequence(entropy, spawn_key=spawn_key)`` is the trial's seed.
     params : dict
         Scalar parameters (str, int, float, bool, None); each becomes a column of the results.
+    fingerprint : str
+        A digest of what the trial reads besides its parameters (the scene's content, a
+        dataset's files, a method's source: :func:`fingerprint`), part of its ``key``: a
+        trial stored from other contents under the same path is not taken for this one.
     """
 
     index: int
@@ -124,6 +128,7 @@ class Trial:
     entropy: int
     spawn_key: tuple[int, ...] = ()
     params: Mapping[str, Any] = field(default_factory=dict)
+    fingerprint: str = ""
 
     def __post_init__(self):
         if isinstance(self.index, bool) or not isinstance(self.index, numbers.Integral) \
@@ -149,12 +154,14 @@ class Trial:
 
     @classmethod
     def from_seed_sequence(cls, index: int, scene: str, seed: np.random.SeedSequence,
-                           params: Mapping[str, Any] | None = None) -> Trial:
+                           params: Mapping[str, Any] | None = None, fingerprint: str = ""
+                           ) -> Trial:
         """A trial whose seed is ``seed`` (a child of ``SeedSequence(study_seed).spawn``)."""
         if seed.n_children_spawned:
             raise ValueError(f"Trial {index}: its SeedSequence has already spawned children; "
                              "pass a fresh child of SeedSequence(study_seed).spawn(n)")
-        return cls(index, scene, int(seed.entropy), tuple(seed.spawn_key), dict(params or {}))
+        return cls(index, scene, int(seed.entropy), tuple(seed.spawn_key), dict(params or {}),
+                   str(fingerprint))
 
     @property
     def seed_sequence(self) -> np.random.SeedSequence:
@@ -167,13 +174,35 @@ class Trial:
 
     @property
     def key(self) -> str:
-        """A stable identity (sha1 of index, scene, seed and params) used by the database."""
-        blob = json.dumps([self.index, self.scene, self.entropy, list(self.spawn_key),
-                           self.params], sort_keys=True, allow_nan=True)
+        """A stable identity (sha1 of index, scene, seed, params and fingerprint) used by the
+        database; without a fingerprint, the key of the versions before it."""
+        parts = [self.index, self.scene, self.entropy, list(self.spawn_key), self.params]
+        if self.fingerprint:
+            parts.append(self.fingerprint)
+        blob = json.dumps(parts, sort_keys=True, allow_nan=True)
         return hashlib.sha1(blob.encode()).hexdigest()
 
 
-def make_trials(scene: str, study_seed: int, params: Sequence[Mapping[str, Any]]) -> list[Trial]:
+def fingerprint(*, texts=(), files=()) -> str:
+    """sha256 (hex) of ``texts`` (str) and the bytes of ``files`` (paths; a missing one
+    counts by its name): what a trial reads that its parameters do not say."""
+    h = hashlib.sha256()
+    for t in texts:
+        h.update(str(t).encode())
+        h.update(b"\0")
+    for f in files:
+        h.update(str(f).encode())
+        try:
+            with open(f, "rb") as fh:
+                for chunk in iter(lambda: fh.read(1 << 20), b""):
+                    h.update(chunk)
+        except OSError:
+            h.update(b"missing")
+    return h.hexdigest()
+
+
+def make_trials(scene: str, study_seed: int, params: Sequence[Mapping[str, Any]], *,
+                fingerprint: str = "") -> list[Trial]:
     """One trial per entry of ``params``; trial ``i`` gets child ``i`` of
     ``SeedSequence(study_seed).spawn(len(params))``.
 
@@ -185,12 +214,14 @@ def make_trials(scene: str, study_seed: int, params: Sequence[Mapping[str, Any]]
         The study's seed (>= 0).
     params : sequence of dict
         The parameters of each trial (scalars).
+    fingerprint : str
+        :attr:`Trial.fingerprint` of every trial.
     """
     if isinstance(study_seed, bool) or not isinstance(study_seed, numbers.Integral) \
             or study_seed < 0:
         raise ValueError(f"make_trials: study_seed must be an int >= 0, got {study_seed!r}")
     children = np.random.SeedSequence(int(study_seed)).spawn(len(params))
-    return [Trial.from_seed_sequence(i, scene, s, p)
+    return [Trial.from_seed_sequence(i, scene, s, p, fingerprint)
             for i, (s, p) in enumerate(zip(children, params, strict=True))]
 
 
@@ -713,6 +744,19 @@ def run_trials(
     return df
 
 
+def scene_fingerprint(scene) -> str:
+    """:func:`fingerprint` of a resolved scene (its every field, defaults included) and of
+    the files it names (a phantom mesh, a robot URDF): a study rerun into the same folder
+    after the scene file, or a file it reads, changed runs its trials again."""
+    if scene is None or not hasattr(scene, "model_dump"):
+        return ""
+    files = [p for p in (getattr(getattr(scene, "phantom", None), "mesh_path", None),
+                         getattr(getattr(scene, "robot", None), "urdf", None))
+             if p and p != "builtin"]
+    return fingerprint(texts=[json.dumps(scene.model_dump(mode="json"), sort_keys=True)],
+                       files=files)
+
+
 def run_study_trials(ctx, trial_fn: Callable[[Trial], list[dict]],
                      params: Sequence[Mapping[str, Any]], *, scheduler=None,
                      progress: bool = True, **kwargs) -> pd.DataFrame:
@@ -730,7 +774,8 @@ def run_study_trials(ctx, trial_fn: Callable[[Trial], list[dict]],
     params : sequence of dict
         One dict of scalar parameters per trial.
     """
-    trials = make_trials(str(ctx.scene_path), int(ctx.seed), params)
+    trials = make_trials(str(ctx.scene_path), int(ctx.seed), params,
+                         fingerprint=scene_fingerprint(ctx.scene))
     if scheduler is None:
         scheduler = getattr(ctx, "scheduler", None)
     kwargs.setdefault("retries", getattr(ctx, "retries", 2))

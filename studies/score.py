@@ -21,6 +21,7 @@ reglib's method ``accepted`` and ``converged``) and ``OUT/report.md``.
 from __future__ import annotations
 
 import importlib
+import inspect
 import json
 import time
 from pathlib import Path
@@ -127,7 +128,7 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
     """Score ``method`` on every case of ``dataset``; writes ``out/results.csv`` and
     ``out/report.md``; returns ``out``. Rerunning into the same ``out`` resumes."""
     from studies.common import StudyContext, finish_study, markdown_table
-    from studies.runner import make_trials, run_trials
+    from studies.runner import fingerprint, make_trials, run_trials
     from testbed.dataset import list_cases
     from testbed.scene import parse_scene
 
@@ -138,10 +139,19 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
     if not cases:
         raise ValueError(f"{dataset}: holds no case (case_*/case.json); make one with "
                          "testbed generate")
-    load_method(method)  # refuse a bad --method before any work
+    fn = load_method(method)  # refuse a bad --method before any work
     out = Path(out)
     params = [{"case": c.name, "method": method} for c in cases]
-    trials = make_trials(str(dataset.resolve()), 0, params)
+    # what the scores read besides the names: the dataset's files that say what each case
+    # is, and the method's source (a dataset regenerated, or a method edited, under the same
+    # names is scored again, not taken from trials.sqlite)
+    try:
+        source = inspect.getsourcefile(fn) if fn is not None else None
+    except TypeError:  # a compiled callable: its name alone
+        source = None
+    trials = make_trials(str(dataset.resolve()), 0, params, fingerprint=fingerprint(
+        files=[dataset / "dataset.json", *(c / "case.json" for c in cases),
+               *([source] if source else [])]))
     df = run_trials(trial, trials, out_dir=out, workers=workers, scheduler=scheduler,
                     progress=progress)
     from testbed.dataset import load

@@ -4,6 +4,8 @@ Also the summaries of studies.report, on the runner's results (failures included
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import signal
 import sqlite3
@@ -92,6 +94,32 @@ def test_trial_seed_is_the_spawned_child_and_rebuilds_exactly():
     # the key changes with the seed and the parameters
     assert make_trials("points-lines", 1235, [{}])[0].key != trials[0].key
     assert make_trials("points-lines", 1234, [{"a": 1}])[0].key != trials[0].key
+    # and with the fingerprint of what the trial reads; without one, the key is the one
+    # trials stored before fingerprints had (their folders resume as they did)
+    assert make_trials("points-lines", 1234, [{}], fingerprint="x")[0].key != trials[0].key
+    t = trials[0]
+    legacy = json.dumps([t.index, t.scene, t.entropy, list(t.spawn_key), t.params],
+                        sort_keys=True, allow_nan=True)
+    assert t.key == hashlib.sha1(legacy.encode()).hexdigest()
+
+
+def test_scene_fingerprint_follows_the_scene_and_the_files_it_reads(tmp_path):
+    """A study rerun into its folder after its scene changed must not take the stored trials
+    for its own: the fingerprint follows every resolved field and a named file's bytes."""
+    from studies.runner import fingerprint, scene_fingerprint
+    from testbed.scene import find_scene, load_scene
+
+    scene = load_scene(find_scene("experiment2"))
+    same = load_scene(find_scene("experiment2"))
+    assert scene_fingerprint(scene) == scene_fingerprint(same)
+    moved = scene.model_copy(update={"scene": scene.scene.model_copy(update={"seed": 1})})
+    assert scene_fingerprint(moved) != scene_fingerprint(scene)
+    f = tmp_path / "a.txt"
+    f.write_text("one")
+    before = fingerprint(files=[f])
+    f.write_text("two")
+    assert fingerprint(files=[f]) != before
+    assert fingerprint(files=[tmp_path / "none"]) != fingerprint(files=[f])
 
 
 @pytest.mark.slow

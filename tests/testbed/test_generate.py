@@ -271,6 +271,19 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path):
     assert df2[df2.metric == "mtre"]["value"].item() == pytest.approx(result["start_mtre_mm"])
     df3 = pd.read_csv(tmp_path / "s3" / "results.csv")
     assert list(df3.metric) == ["failed"]
+    # the same names, another method's source: scored again, not taken from trials.sqlite
+    (tmp_path / "mymethods.py").write_text(
+        "import numpy as np\n"
+        "def stay(observation, initial):\n"
+        "    return np.eye(3)\n")
+    sys.modules.pop("mymethods", None)
+    sys.path.insert(0, str(tmp_path))
+    try:
+        score_dataset(tmp_path / "ds", tmp_path / "s2", method="mymethods:stay", progress=False)
+    finally:
+        sys.path.remove(str(tmp_path))
+        sys.modules.pop("mymethods", None)
+    assert list(pd.read_csv(tmp_path / "s2" / "results.csv").metric) == ["failed"]
     assert "(4, 4)" in (tmp_path / "s3" / "report.md").read_text()
     with pytest.raises(ValueError, match="cannot import module"):
         score_dataset(tmp_path / "ds", tmp_path / "s4", method="no_such_mod:fn")
