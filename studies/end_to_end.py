@@ -82,7 +82,7 @@ def estimate_options(scene, **registration):
                tukey_a=spec.tukey_a, selection=spec.selection,
                max_stab_distance_mm=spec.max_stab_distance_mm)
     reg.update(registration)
-    return EstimateOptions(registration=reg)
+    return EstimateOptions(registration=reg, strategy=spec.strategy)
 
 
 def prepare_case(scene, seed, *, index: int = 0, sweeps: bool = True,

@@ -113,11 +113,17 @@ class RegistrationSpec(Spec):
     angle about a seeded random axis through the pins' centroid (through ``fixed_pin`` if
     set). ``fixed_pin``: a pin located in both CT and robot (the paper's experiment 1); only
     the rotation about it is optimised. ``residual``, ``tukey_a``, ``selection``,
-    ``max_stab_distance_mm``: as ``reglib.register.register``. The default residual is the
-    paper's point-to-path distance ("line"): on experiment2 it brought all 11 Table II starts
-    to < 0.3 mm at every pin, where "normal" (faster when it works) stalled on 2 of them.
+    ``max_stab_distance_mm``: as ``reglib.register.register``. ``strategy``: as
+    ``reglib.EstimateOptions.strategy``. With "coarse-fine" (the default) the loop runs
+    twice, first with the point-to-path residual ("line") and ``method``, then with the
+    across-contour residual ("normal") and the robust solver ("linear" if ``method`` is
+    "linear"): ``residual`` is then not used, and setting it is refused (use ``strategy =
+    "single"`` to run the loop once with the given ``residual`` and ``method``). The
+    single strategy's default residual is the paper's "line": on experiment2 it brought all
+    11 Table II starts to < 0.3 mm at every pin, where "normal" stalled on 2 of them.
     """
 
+    strategy: Literal["coarse-fine", "single"] = "coarse-fine"
     method: Literal["lm", "linear", "robust", "ransac"] = "robust"
     start_rotation_deg: Annotated[float, Field(ge=0, le=90)] = 5.0
     max_iterations: Annotated[int, Field(ge=1, le=10_000)] = 50
@@ -126,6 +132,15 @@ class RegistrationSpec(Spec):
     tukey_a: Annotated[float, Field(gt=0)] = 4.685
     selection: Literal["paper", "closest"] = "paper"
     max_stab_distance_mm: Annotated[float, Field(gt=0)] = 10.0
+
+    @model_validator(mode="after")
+    def _residual_needs_single(self):
+        if self.strategy == "coarse-fine" and "residual" in self.model_fields_set:
+            raise ValueError(
+                f"residual = {self.residual!r} is not used by strategy 'coarse-fine' (it runs "
+                "'line', then 'normal'); set strategy = \"single\" to register with one "
+                "residual, or leave residual out")
+        return self
 
 
 class Scene(Spec):

@@ -90,6 +90,29 @@ def test_specific_errors_name_file_and_field(tmp_path, section, key, value, expe
     assert str(f) in msg and f"{section}.{key}" in msg and expect in msg, msg
 
 
+def test_a_residual_the_strategy_does_not_use_is_refused(tmp_path):
+    """[registration] residual is refused under the coarse-fine strategy (it runs 'line' then
+    'normal' whatever the key says: a held-out review found the key had no effect), and
+    used with strategy = "single", which reaches the estimate's options."""
+    from studies.end_to_end import estimate_options
+
+    data = {k: dict(v) for k, v in VALID.items()}
+    data["registration"] = {"residual": "normal"}
+    f = tmp_path / "scene.toml"
+    f.write_text(_dump(data))
+    with pytest.raises(SceneError, match=r"scene.toml.*registration.*residual = 'normal' is "
+                                         r"not used by strategy 'coarse-fine'"):
+        load_scene(f)
+    data["registration"]["strategy"] = "single"
+    f.write_text(_dump(data))
+    opts = estimate_options(load_scene(f))
+    assert opts.strategy == "single" and opts.registration["residual"] == "normal"
+    del data["registration"]["residual"]
+    data["registration"]["strategy"] = "coarse-fine"
+    f.write_text(_dump(data))
+    assert estimate_options(load_scene(f)).strategy == "coarse-fine"
+
+
 def test_missing_synthetic_table(tmp_path):
     f = tmp_path / "scene.toml"
     f.write_text(_dump({"scene": {"kind": "synthetic"}}))
