@@ -219,7 +219,24 @@ def cmd_study(args) -> int:
     run_study(args.name, out, scene=args.scene, seed=args.seed, quick=args.quick,
               workers=args.workers, scheduler=args.scheduler, retries=args.retries)
     print(f"wrote {out / 'results.csv'} and {out / 'report.md'}")
-    return 0
+    return _failed_trials(out)
+
+
+def _failed_trials(out: Path) -> int:
+    """After a study or a score: 1 with a line on stderr when trials failed (an exception:
+    its message is in report.md), else 0. The results of the others are written."""
+    import pandas as pd
+
+    try:
+        df = pd.read_csv(out / "results.csv", usecols=["trial", "metric"])
+    except (OSError, ValueError):
+        return 0
+    failed = df.loc[df.metric == "failed", "trial"].nunique()
+    if not failed:
+        return 0
+    print(f"{PROG}: {failed} of {df.trial.nunique()} trial(s) failed (the error of each is in "
+          f"{out / 'report.md'}; the others' results are written)", file=sys.stderr)
+    return 1
 
 
 def cmd_generate(args) -> int:
@@ -238,7 +255,7 @@ def cmd_generate(args) -> int:
 
 def cmd_score(args) -> int:
     _quiet_pybullet()
-    from studies.score import load_method, score_dataset
+    from studies.score import load_method, missing_cases, score_dataset
 
     dataset = Path(args.dataset)
     if not dataset.is_dir():
@@ -252,7 +269,15 @@ def cmd_score(args) -> int:
     score_dataset(dataset, out, method=args.method, workers=args.workers,
                   scheduler=args.scheduler, progress=sys.stderr.isatty())
     print(f"wrote {out / 'results.csv'} and {out / 'report.md'}")
-    return 0
+    status = _failed_trials(out)
+    missing = missing_cases(dataset)
+    if missing:
+        print(f"{PROG}: {dataset}/dataset.json lists {len(missing)} case(s) the folder does "
+              f"not hold ({', '.join(missing[:5])}{', ...' if len(missing) > 5 else ''}): not "
+              "scored; testbed generate with the same scene, seed and --out completes the "
+              "dataset", file=sys.stderr)
+        status = 1
+    return status
 
 
 def cmd_render(args) -> int:

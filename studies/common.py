@@ -117,7 +117,13 @@ def finish_study(ctx: StudyContext, df: pd.DataFrame) -> None:
         f"- rows in results.csv: {len(df)}",
         "",
     ]
-    for heading, body in ctx.sections:
+    sections = list(ctx.sections)
+    failures = df.attrs.get("failures", {})
+    if failures and not any("fail" in h.lower() for h, _ in sections):
+        # a study that does not report its failed trials itself: each one's error, here
+        sections.append(("Failed trials", "\n".join(f"- trial {k}: {v}"
+                                                     for k, v in sorted(failures.items()))))
+    for heading, body in sections:
         parts += [f"## {heading}", "", body, ""]
     if ctx.figures:
         parts += ["## Figures", ""]

@@ -293,7 +293,8 @@ def execute_trial(trial_fn: Callable[[Trial], list[dict]], trial: Trial) -> Tria
     t0 = time.perf_counter()
     try:
         rows = _check_rows(trial_fn(trial), trial)
-    except Exception as exc:  # a failing trial is recorded, not fatal
+    except (Exception, SystemExit) as exc:  # a failing trial is recorded, not fatal (also a
+        # user's method that calls sys.exit: it must not end the study without its results)
         return TrialResult(trial.key, trial.index, "failed", (),
                            error=f"{type(exc).__name__}: {exc}",
                            traceback=traceback.format_exc(),

@@ -123,6 +123,19 @@ def trial(tr) -> list[dict]:
     return score_case(Path(tr.scene) / tr.params["case"], tr.params["method"])
 
 
+def missing_cases(dataset) -> list[str]:
+    """The cases ``dataset.json`` lists that the folder does not hold (a ``testbed
+    generate`` interrupted before it wrote them, or a case folder removed), in order."""
+    from testbed.dataset import INDEX_FILE, list_cases
+
+    try:
+        listed = json.loads((Path(dataset) / INDEX_FILE).read_text()).get("cases", [])
+    except (OSError, ValueError, AttributeError):
+        return []
+    have = {c.name for c in list_cases(dataset)}
+    return [str(c) for c in listed if str(c) not in have]
+
+
 def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 1,
                   scheduler=None, progress: bool = True) -> Path:
     """Score ``method`` on every case of ``dataset``; writes ``out/results.csv`` and
@@ -184,6 +197,12 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
     failures = df.attrs.get("failures", {})
     if failures:
         ctx.report("Failed cases", "\n".join(f"- trial {k}: {v}" for k, v in failures.items()))
+    missing = missing_cases(dataset)
+    if missing:
+        ctx.report("Missing cases", f"`dataset.json` lists {len(missing)} case(s) that the "
+                   f"folder does not hold, not scored: {', '.join(missing[:20])}"
+                   + (", ..." if len(missing) > 20 else "")
+                   + " (`testbed generate` with the same scene, seed and --out completes it)")
     finish_study(ctx, df if len(df) else pd.DataFrame(columns=["trial", "metric", "value",
                                                                "unit"]))
     return out

@@ -443,3 +443,27 @@ def test_report_summaries_count_failed_trials(tmp_path):
 
     png = plot_metric(df, "mtre", "noise", tmp_path / "mtre.png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def _exits(trial):
+    if trial.index == 1:
+        raise SystemExit(3)          # a user's method that calls sys.exit
+    return [{"metric": "mtre", "value": 1.0, "unit": "mm"}]
+
+
+def test_a_trial_that_exits_is_a_failed_trial_and_the_command_says_so(tmp_path, capsys):
+    """SystemExit in a trial is recorded as its failure (it used to end `testbed score` with
+    its status and no results); the command then exits 1 with one line on stderr saying how
+    many trials failed, after writing the others' results."""
+    from studies.cli import _failed_trials
+
+    df = run_trials(_exits, make_trials("points-lines", 3, [{}] * 3), out_dir=tmp_path,
+                    workers=1, progress=False)
+    failed = df[df.metric == "failed"]
+    assert list(failed.trial) == [1]
+    assert "SystemExit: 3" in read_failures(tmp_path).error.item()
+    df.to_csv(tmp_path / "results.csv", index=False)
+    assert _failed_trials(tmp_path) == 1
+    assert "1 of 3 trial(s) failed" in capsys.readouterr().err
+    df[df.metric != "failed"].to_csv(tmp_path / "results.csv", index=False)
+    assert _failed_trials(tmp_path) == 0

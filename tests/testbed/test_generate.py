@@ -284,6 +284,14 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path):
         sys.path.remove(str(tmp_path))
         sys.modules.pop("mymethods", None)
     assert list(pd.read_csv(tmp_path / "s2" / "results.csv").metric) == ["failed"]
+    # a case the index lists but the folder lacks (an interrupted generate) is named
+    from studies.score import missing_cases
+
+    assert missing_cases(tmp_path / "ds") == []
+    index = json.loads((tmp_path / "ds" / "dataset.json").read_text())
+    index["cases"].append("case_0001")
+    (tmp_path / "ds" / "dataset.json").write_text(json.dumps(index))
+    assert missing_cases(tmp_path / "ds") == ["case_0001"]
     assert "(4, 4)" in (tmp_path / "s3" / "report.md").read_text()
     with pytest.raises(ValueError, match="cannot import module"):
         score_dataset(tmp_path / "ds", tmp_path / "s4", method="no_such_mod:fn")
