@@ -185,6 +185,13 @@ def _names_scene_file(exc: Exception, msg: str) -> str:
 def cmd_run(args) -> int:
     path, scene = _scene(args.scene)
     out = _out_folder(args.out) if args.out is not None else None
+    if out is None and scene.scene.kind == "synthetic":
+        # the synthetic job writes its two studies: to runs/<name> unless --out says where
+        out = Path("runs") / scene.scene.name
+        problem = _folder_problem(out)
+        if problem:
+            raise UsageError(f"{path}: a synthetic scene's run writes its studies to {out} "
+                             f"when no --out is given: {problem}; give --out DIR")
     from studies.main_job import format_result, run_main_job
 
     result = run_main_job(scene, scene_path=path, seed=args.seed, out=out,
@@ -314,6 +321,9 @@ def cmd_scenes(args) -> int:
     _quiet_pybullet()
     from testbed.scene import scenes_dir
 
+    if not scenes_dir().is_dir():
+        raise UsageError(f"the folder of named scenes {scenes_dir()} does not exist (is "
+                         "TESTBED_SCENES set to a missing folder?)")
     for p in sorted(scenes_dir().glob("*.toml")):
         try:
             meta = tomllib.loads(p.read_bytes().decode("utf-8-sig")).get("scene", {})
@@ -423,6 +433,29 @@ SINGLE_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREAD
 FREEZING_COMMANDS = ("run", "generate", "score")
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the process is, so that it cleans up as after Ctrl-C (a
+    generate's half-written case folder is removed; a study's finished trials are kept)."""
+
+
+def _terminate_as_interrupt() -> None:
+    """SIGTERM raises :class:`Terminated` in the main thread (a kill, a batch system's time
+    limit): by default Python dies at once and left a generate's temporary case folder."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return
+
+    def handler(signum, frame):
+        raise Terminated()
+
+    try:
+        signal.signal(signal.SIGTERM, handler)
+    except (ValueError, OSError):  # not settable here: the default stays
+        pass
+
+
 def main(argv=None) -> int:
     global _scene_path
     _scene_path = None
@@ -432,6 +465,7 @@ def main(argv=None) -> int:
     for var in SINGLE_THREAD_VARS:
         os.environ.setdefault(var, "1")
     debug = bool(os.environ.get("TESTBED_DEBUG"))
+    _terminate_as_interrupt()
     try:
         args = build_parser().parse_args(argv)
         if args.version:
@@ -448,11 +482,13 @@ def main(argv=None) -> int:
             freeze_work_modules()   # a process that does the work and exits (threads.py)
         return int(args.func(args) or 0)
     except UsageError as exc:
-        print(_one_line(str(exc)), file=sys.stderr)
+        msg = _one_line(str(exc))
+        print(msg if msg.startswith(PROG) else f"{PROG}: {msg}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        print(f"{PROG}: {'terminated' if isinstance(exc, Terminated) else 'interrupted'}",
+              file=sys.stderr)
+        return 143 if isinstance(exc, Terminated) else 130
     except OSError as exc:  # the disk or the file system, during the work
         if debug:
             raise

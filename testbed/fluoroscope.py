@@ -229,6 +229,8 @@ class ViewSpec(Spec):
                 and all(c.isascii() and (c.isalnum() or c in "_.-") for c in v)):
             raise ValueError("a view name is ASCII letters, digits, '_', '.' or '-', "
                              "starting with a letter, a digit or '_'")
+        if len(v) > 64:  # file names such as a dataset's images/sweep_<name>/ stay short
+            raise ValueError(f"a view name has at most 64 characters, got {len(v)}")
         return v
     orbital_deg: Annotated[float, Field(ge=-180, le=180)] = 0.0
     angular_deg: Annotated[float, Field(ge=-180, le=180)] = 0.0

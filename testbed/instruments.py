@@ -27,6 +27,11 @@ from testbed.spec import Spec, Vec3
 __all__ = ["InstrumentSpec", "instrument_mesh", "make_instrument", "scene_instruments"]
 
 
+#: names of the bodies the world builds itself (testbed.world): an instrument cannot take them
+RESERVED_NAMES = frozenset({"soft_tissue", "femur", "cancellous", "canal", "pin_proximal",
+                            "pin_distal_1", "pin_distal_2", "foam", "table"})
+
+
 class InstrumentSpec(Spec):
     """``[[instruments]]``: one OR instrument (robot frame).
 
@@ -45,6 +50,16 @@ class InstrumentSpec(Spec):
     @classmethod
     def _known_material(cls, v: str) -> str:
         material(v)  # ValueError naming the unknown material and the known ones
+        return v
+
+    @field_validator("name")
+    @classmethod
+    def _not_reserved(cls, v: str) -> str:
+        if v in RESERVED_NAMES:
+            raise ValueError(f"{v!r} names one of the world's own bodies "
+                             f"({', '.join(sorted(RESERVED_NAMES))}); choose another name")
+        if not v.strip() or len(v) > 64:
+            raise ValueError("an instrument's name has 1 to 64 characters, not all spaces")
         return v
 
     def instrument2robot(self) -> RigidTransform:

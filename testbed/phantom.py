@@ -100,9 +100,16 @@ class PhantomSpec(Spec):
         if self.notch_width_mm >= self.condyle_width_mm / 2:
             raise ValueError("notch_width_mm must be below half of condyle_width_mm")
         if self.mesh_pins_mm is not None:
+            if self.mesh_path is None:
+                raise ValueError("mesh_pins_mm is given without mesh_path: the pins of a user "
+                                 "mesh need the mesh (the procedural femur places its own)")
             missing = set(PIN_NAMES) - set(self.mesh_pins_mm)
             if missing:
                 raise ValueError(f"mesh_pins_mm lacks the pins {sorted(missing)}")
+            extra = set(self.mesh_pins_mm) - set(PIN_NAMES)
+            if extra:
+                raise ValueError(f"mesh_pins_mm: unknown pin(s) {sorted(extra)}; the pins are "
+                                 f"{list(PIN_NAMES)}")
         return self
 
 

@@ -101,6 +101,13 @@ class RodSpec(Spec):
             raise ValueError("bead_spacings_mm: every gap must exceed 3 bead diameters")
         if self.bead_diameter_mm >= self.diameter_mm:
             raise ValueError("bead_diameter_mm must be smaller than the rod diameter_mm")
+        from testbed.materials import material
+
+        for key in ("material", "bead_material", "tip_material"):
+            try:
+                material(getattr(self, key))
+            except ValueError as exc:
+                raise ValueError(f"{key}: {exc}") from None
         return self
 
     def bead_positions_mm(self) -> np.ndarray:
@@ -441,7 +448,23 @@ class Robot:
         path = os.path.join(self._dir.name, fname)
         with open(path, "w") as f:
             f.write(text)
-        return pybullet.loadURDF(path, useFixedBase=True, physicsClientId=self.client)
+        if self.spec.urdf == "builtin":
+            return pybullet.loadURDF(path, useFixedBase=True, physicsClientId=self.client)
+        # a user's URDF: Bullet prints its parser's errors and warnings on the C stdout,
+        # where they would spoil a --json output; they go to stderr instead
+        import sys
+
+        sys.stdout.flush()
+        saved = os.dup(1)
+        try:
+            os.dup2(2, 1)
+            return pybullet.loadURDF(path, useFixedBase=True, physicsClientId=self.client)
+        except pybullet.error as exc:
+            raise ValueError(f"robot.urdf: {self.spec.urdf!r} cannot be loaded as a URDF "
+                             f"(pybullet: {exc}; its parser's messages are above)") from None
+        finally:
+            os.dup2(saved, 1)
+            os.close(saved)
 
     def close(self) -> None:
         if not self._closed:

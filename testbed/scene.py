@@ -57,13 +57,33 @@ __all__ = [
 ]
 
 
+#: the longest scene, view or instrument name (names become file and folder names)
+NAME_MAX = 64
+
+
+def check_file_name(name: str, what: str) -> None:
+    """``ValueError`` unless ``name`` can be one file or folder name: no path separator,
+    not ``.`` or ``..``, no control character."""
+    if ("/" in name or "\\" in name or name in (".", "..") or name != name.strip()
+            or any(ord(ch) < 32 for ch in name)):
+        raise ValueError(f"{what} {name!r}: it names files and folders, so it must be one "
+                         "plain name (no '/' or '\\', not '.' or '..', no leading or trailing "
+                         "space, no control character)")
+
+
 class SceneMeta(Spec):
     """``[scene]``: what the scene is."""
 
-    name: str = "unnamed"
+    name: Annotated[str, Field(min_length=1, max_length=NAME_MAX)] = "unnamed"
+    """Names the default output folder (``runs/<name>``): no path in it."""
     description: str = ""
     kind: Literal["synthetic", "operating_room"] = "operating_room"
     seed: Annotated[int, Field(ge=0)] = 0
+
+    @model_validator(mode="after")
+    def _plain_name(self):
+        check_file_name(self.name, "name")
+        return self
 
 
 class SyntheticSpec(Spec):
@@ -248,7 +268,14 @@ def load_scene(path):
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"{path}: not valid TOML: {exc}") from None
-    return parse_scene(data, source=str(path))
+    except RecursionError:
+        raise SceneError(f"{path}: tables or arrays nested too deeply to read; a scene nests "
+                         "a few levels") from None
+    try:
+        return parse_scene(data, source=str(path))
+    except RecursionError:
+        raise SceneError(f"{path}: tables or arrays nested too deeply; a scene nests a few "
+                         "levels") from None
 
 
 def scenes_dir() -> Path:
@@ -281,16 +308,25 @@ def find_scene(name_or_path: str | os.PathLike | None) -> Path:
     p = Path(text)
     if p.is_file():
         return p
+    bare = len(p.parts) == 1 and not any(sep in text for sep in ("/", os.sep))
     if p.is_dir():
+        # a bare name that is also a folder here (e.g. an earlier run's --out experiment2)
+        # is the named scene; a path to a folder is an error
+        named = scenes_dir() / (p.name if p.suffix == ".toml" else p.name + ".toml")
+        if bare and named.is_file():
+            return named
         raise SceneError(f"{text}: is a folder, not a scene file")
     if p.exists():
         raise SceneError(f"{text}: is not a regular file (a device, pipe or socket), not a "
                          "scene file")
-    bare = len(p.parts) == 1 and not any(sep in text for sep in ("/", os.sep))
     if not bare:
         raise SceneError(f"{text}: no such scene file")
     cand = scenes_dir() / (p.name if p.suffix == ".toml" else p.name + ".toml")
     if cand.is_file():
         return cand
+    if not scenes_dir().is_dir():
+        raise SceneError(f"{text}: no such scene file, and the folder of named scenes "
+                         f"{scenes_dir()} does not exist (TESTBED_SCENES="
+                         f"{os.environ.get('TESTBED_SCENES', '')!r})")
     known = sorted(x.stem for x in scenes_dir().glob("*.toml"))
     raise SceneError(f"{text}: no such scene file or named scene (known: {', '.join(known)})")

@@ -2,6 +2,7 @@
 and the field (hypothesis generates wrong types, unknown keys, missing and out-of-range
 values), never another exception."""
 
+import re
 import tomllib
 from pathlib import Path
 
@@ -162,3 +163,59 @@ def test_parse_scene_rejects_non_table():
 def test_unreadable_file(tmp_path):
     with pytest.raises(SceneError, match="not found"):
         load_scene(Path(tmp_path) / "nope.toml")
+
+
+@pytest.mark.parametrize("edit, expect", [
+    # a scene name names the default output folder runs/<name>: never a path
+    ("name = '/tmp/escaped'", "one plain name"),
+    ("name = '../up'", "one plain name"),
+    ("name = '..'", "one plain name"),
+    ("name = ''", "at least 1 character"),
+    # view names name dataset files: short
+    ("views = 'long'", "at most 64 characters"),
+    # an instrument cannot take a name of the world's own bodies
+    ("instrument = 'table'", "world's own bodies"),
+    # pins of a user mesh without the mesh; an unknown pin
+    ("mesh_pins = 'no mesh'", "without mesh_path"),
+    # the rod's materials are checked at load, as an instrument's are
+    ("rod = 'unobtainium'", "unknown material 'unobtainium'"),
+])
+def test_names_and_references_are_refused_at_load(tmp_path, edit, expect):
+    """Each of these passed the load before and failed later (a path outside runs/, a
+    'File name too long' after the simulation, an unhashable spec, a material error without
+    its field) or silently (an instrument named like the table)."""
+    text = (scenes_dir() / "experiment2.toml").read_text()
+    if edit.startswith("name"):
+        text = text.replace('name = "experiment2"', edit.replace("'", '"'), 1)
+    elif edit.startswith("views"):
+        text = text.replace('name = "proximal_ap"', f'name = "{"v" * 65}"', 1)
+    elif edit.startswith("instrument"):
+        text += '\n[[instruments]]\nname = "table"\nkind = "clamp"\n'
+    elif edit.startswith("mesh_pins"):
+        text = text.replace('side = "right"', 'side = "right"\nmesh_pins_mm = {proximal = '
+                            '[0.0, 0.0, 1.0], distal_1 = [0.0, 1.0, 0.0], distal_2 = '
+                            '[1.0, 0.0, 0.0]}', 1)
+    else:
+        text = text.replace("[robot.sweep]", '[robot.rod]\nmaterial = "unobtainium"\n\n'
+                            "[robot.sweep]", 1)
+    f = tmp_path / "scene.toml"
+    f.write_text(text)
+    with pytest.raises(SceneError, match=re.escape(expect)) as exc:
+        load_scene(f)
+    assert str(f) in str(exc.value)
+
+
+def test_deeply_nested_file_is_a_scene_error(tmp_path):
+    f = tmp_path / "deep.toml"
+    f.write_text("x = " + "[" * 5000 + "]" * 5000 + "\n")
+    with pytest.raises(SceneError, match="nested too deeply"):
+        load_scene(f)
+
+
+def test_a_folder_named_like_a_scene_does_not_hide_it(tmp_path, monkeypatch):
+    """`--out experiment2` from an earlier run leaves a folder of the scene's name here."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "experiment2").mkdir()
+    assert find_scene("experiment2") == scenes_dir() / "experiment2.toml"
+    with pytest.raises(SceneError, match="is a folder"):
+        find_scene("./experiment2")
