@@ -640,7 +640,9 @@ def verdict(converged: bool, quality: dict, failed: str, options: EstimateOption
         reasons.append(f"registration did not converge ({quality.get('reason', '')})")
     if n_views < options.accept_min_views:
         reasons.append(f"only {n_views} usable view(s), need {options.accept_min_views} to "
-                       "accept" + (f" ({failed})" if failed else ""))
+                       "accept" + (f" (left out: {', '.join(map(str, failed_views))}; why: "
+                                   "the warnings)" if len(failed_views)
+                                   else f" ({failed})" if failed else ""))
     med = quality.get("median_residual_mm", float("nan"))
     if not np.isfinite(med) or med > options.accept_max_median_mm:
         reasons.append(f"median point-to-path distance {med:.2f} mm > "
@@ -692,6 +694,11 @@ def restart_poses(start: RigidTransform, pivot_robot, angle_deg: float, n: int) 
     return out
 
 
+def _left_out(stages) -> tuple:
+    """The estimate's warnings: each view left out, and why."""
+    return tuple(f"view {k} left out: {m}" for k, m in stages.failed.items())
+
+
 def estimate(observation, initial, *, options: EstimateOptions | None = None,
              stages: Stages | None = None) -> Estimate:
     """Register the CT to the robot from an observation: the one call.
@@ -728,9 +735,10 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
     failed = "; ".join(f"view {k}: {m}" for k, m in stages.failed.items())
     if len(stages.views) < options.min_views:
         msg = (f"only {len(stages.views)} usable view(s), need {options.min_views}"
-               + (f" ({failed})" if failed else ""))
+               + (f" (left out: {', '.join(map(str, stages.failed))}; why: the warnings)"
+                  if stages.failed else ""))
         return Estimate(start, False, False, {"views_used": len(stages.views)}, msg, None,
-                        stages, timings)
+                        stages, timings, _left_out(stages))
     from reglib.apparent import prepare_surface
 
     bad, surfaces = [], []
@@ -741,7 +749,8 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
             bad.append(f"CT surface {region!r}: {exc}")
     if bad:
         return Estimate(start, False, False, {"views_used": len(stages.views)},
-                        "cannot register: " + "; ".join(bad), None, stages, timings)
+                        "cannot register: " + "; ".join(bad), None, stages, timings,
+                        _left_out(stages))
     t0 = time.perf_counter()
     reg_opts = dict(options.registration)
     if options.fixed_point_ct is not None:
@@ -791,6 +800,6 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
         res, quality, reasons = best(tries)
     quality["restarts"] = restarts
     timings["registration"] = time.perf_counter() - t0
-    warnings = tuple(f"view {k} left out: {m}" for k, m in stages.failed.items())
+    warnings = _left_out(stages)
     return Estimate(res.ct2robot, not reasons, bool(res.converged), quality, "; ".join(reasons),
                     res, stages, timings, warnings)

@@ -39,7 +39,11 @@ def _one_line(msg: str) -> str:
 
 
 # --------------------------------------------------------------------------- argument types
-def _int_at_least(lo: int, what: str):
+#: testbed generate's largest --cases (a case is about 60 MB and 10 s: 10,000 is 600 GB)
+MAX_CASES = 10_000
+
+
+def _int_at_least(lo: int, what: str, at_most: int | None = None):
     def parse(text):
         try:
             v = int(text)
@@ -48,6 +52,10 @@ def _int_at_least(lo: int, what: str):
                                              f"{text!r}") from None
         if v < lo:
             raise argparse.ArgumentTypeError(f"expected an integer >= {lo} for {what}, got {v}")
+        if at_most is not None and v > at_most:
+            raise argparse.ArgumentTypeError(
+                f"expected at most {at_most} for {what}, got {v} (a case is about 60 MB of "
+                "disk and 10 s of CPU; split the work over several --out folders)")
         return v
     return parse
 
@@ -388,7 +396,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     g = sub.add_parser("generate", help="write a synthetic dataset")
     g.add_argument("scene", nargs="?", default=None)
-    g.add_argument("--cases", type=_int_at_least(1, "--cases"), default=1)
+    g.add_argument("--cases", type=_int_at_least(1, "--cases", at_most=MAX_CASES), default=1)
     g.add_argument("--out", required=True, type=Path)
     g.add_argument("--seed", type=seed, default=None)
     g.set_defaults(func=cmd_generate)

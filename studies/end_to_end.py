@@ -183,6 +183,7 @@ def run_case(scene, *, seed: int, progress: bool = False):
         "warnings": list(est.warnings),
         "quality": est.quality,
         "reason": est.quality.get("reason", est.message),
+        "registered": est.registration is not None,
         "iterations": int(est.quality.get("iterations", 0)),
         "views": [{"name": v,
                    "contour_pixels": int(len(case.stages.contours[v].xy)),
@@ -203,13 +204,17 @@ def run_case(scene, *, seed: int, progress: bool = False):
         "extra_lines": [("workspace", meta.get("workspace", "")),
                         ("start mTRE (mm)", f"{np.mean(list(start_err.values())):.2f}"),
                         ("registration", f"{est.quality.get('reason', est.message)} after "
-                         f"{est.quality.get('iterations', 0)} iterations"),
+                         f"{est.quality.get('iterations', 0)} iterations"
+                         if est.registration is not None else
+                         "not run (the pins' error is the start's; see the verdict)"),
                         ("verdict", "accepted" if est.accepted
                          else f"NOT accepted: {est.message}"),
-                        ("weakest motion", f"{est.quality.get('weak_motion_mm', np.nan):.1f} mm "
-                         "of the bone for the contour distances to change by their median "
-                         f"(accepted up to {case.options.accept_max_weak_motion_mm:g} mm)"),
-                        ("worst view fit", _fit_line(est, case.options)),
+                        *((("weakest motion", f"{est.quality.get('weak_motion_mm', np.nan):.1f} "
+                            "mm of the bone for the contour distances to change by their "
+                            f"median (accepted up to {case.options.accept_max_weak_motion_mm:g}"
+                            " mm)"),
+                           ("worst view fit", _fit_line(est, case.options)))
+                          if est.registration is not None else ()),
                         *(("warning", w) for w in est.warnings),
                         ("acquisition (sweeps)", f"{acq:.1f} s, dose {dose:.1f} mrem")],
     }

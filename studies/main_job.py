@@ -111,7 +111,8 @@ def format_result(result: dict) -> str:
         for k, v in result["outputs"].items():
             lines.append(f"{k}: {v}/report.md")
     else:
-        lines.append("error at the pins after registration:")
+        lines.append("error at the pins after registration:" if result.get("registered", True)
+                     else "error at the pins at the start (no registration was run):")
         for pin, e in result["pins"].items():
             lines.append(f"  {pin:10s} {e:7.3f} mm")
         lines.append(f"mTRE {result['mtre_mm']:.3f} mm; converged: {result['converged']}; "

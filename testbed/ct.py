@@ -85,6 +85,9 @@ class CTSpec(Spec):
     def _check(self):
         if self.schedule == "explicit" and len(self.slice_z_mm) == 0:
             raise ValueError("schedule 'explicit' needs slice_z_mm (a list of slice positions)")
+        if self.schedule != "explicit" and len(self.slice_z_mm):
+            raise ValueError(f"slice_z_mm is only used by schedule 'explicit' (this scene's is "
+                             f"{self.schedule!r}): set schedule = \"explicit\" or leave it out")
         for name in ("distal_range_mm", "proximal_range_mm", "uniform_range_mm"):
             r = getattr(self, name)
             if r is not None and not r[0] < r[1]:

@@ -395,6 +395,9 @@ def write_case(case_dir, case: Mapping[str, Any], *, truth: Iterable[str] = (),
 
     case_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{case_dir.name}.", dir=case_dir.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)   # a case folder as mkdir makes it (mkdtemp's is 0700)
     try:
         for sub in ("volumes", "arrays", "meshes", "images"):
             (tmp / sub).mkdir()

@@ -146,7 +146,7 @@ class FluoroscopeSpec(Spec):
     noise: bool = True
     photons_per_pixel: Annotated[float, Field(ge=1.0, le=1e7)] = 5000.0
     glare_fraction: Annotated[float, Field(ge=0, lt=1)] = 0.12
-    glare_sigma_px: Positive = 30.0
+    glare_sigma_px: Annotated[float, Field(gt=0, le=500)] = 30.0
     vignetting: Annotated[float, Field(ge=0, lt=1)] = 0.25
     display_range: Positive = 6.0
     black_u8: Annotated[int, Field(ge=0, le=255)] = 8

@@ -46,6 +46,7 @@ def _one_error_line(err: str) -> str:
 @pytest.mark.parametrize("argv, expect", [
     (["generate", "experiment2", "--cases", "0", "--out", "{tmp}/d"], "--cases"),
     (["generate", "experiment2", "--cases", "-1", "--out", "{tmp}/d"], "--cases"),
+    (["generate", "experiment2", "--cases", "3000000", "--out", "{tmp}/d"], "at most 10000"),
     (["generate", "experiment2", "--out", "{tmp}/afile"], "not a folder"),
     (["generate", "points-lines", "--out", "{tmp}/pl"], "operating_room"),
     (["generate", "experiment2", "--out", "{tmp}/afile/d"], "is a file"),

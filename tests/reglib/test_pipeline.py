@@ -57,7 +57,8 @@ def test_no_usable_view_is_refused_with_the_reason():
     obs = {"meta": {"views": ["v"]}, "images": {}, "arrays": {}, "volumes": {}}
     est = estimate(obs, np.eye(4), stages=_stages_with_no_view())
     assert not est.accepted and not est.converged
-    assert "0 usable view" in est.message and "calibration failed" in est.message
+    assert "0 usable view" in est.message and "left out: v" in est.message
+    assert est.warnings == ("view v left out: calibration failed",)   # the reason, once
     assert np.array_equal(est.as_matrix(), np.eye(4))
 
 

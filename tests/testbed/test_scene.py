@@ -179,6 +179,8 @@ def test_unreadable_file(tmp_path):
     ("mesh_pins = 'no mesh'", "without mesh_path"),
     # the rod's materials are checked at load, as an instrument's are
     ("rod = 'unobtainium'", "unknown material 'unobtainium'"),
+    # slice positions that the clinical schedule would ignore
+    ("ct = slices", "only used by schedule 'explicit'"),
 ])
 def test_names_and_references_are_refused_at_load(tmp_path, edit, expect):
     """Each of these passed the load before and failed later (a path outside runs/, a
@@ -191,6 +193,8 @@ def test_names_and_references_are_refused_at_load(tmp_path, edit, expect):
         text = text.replace('name = "proximal_ap"', f'name = "{"v" * 65}"', 1)
     elif edit.startswith("instrument"):
         text += '\n[[instruments]]\nname = "table"\nkind = "clamp"\n'
+    elif edit.startswith("ct"):
+        text += "\n[ct]\nslice_z_mm = [100.0, 200.0]\n"
     elif edit.startswith("mesh_pins"):
         text = text.replace('side = "right"', 'side = "right"\nmesh_pins_mm = {proximal = '
                             '[0.0, 0.0, 1.0], distal_1 = [0.0, 1.0, 0.0], distal_2 = '
