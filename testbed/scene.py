@@ -96,13 +96,15 @@ class SyntheticSpec(Spec):
     of the points. Lengths are in units of the unit cube (the paper's set-up is unitless).
     """
 
-    n_points: Annotated[int, Field(ge=3, le=100_000)] = 20
+    n_points: Annotated[int, Field(ge=4, le=100_000)] = 20
+    """At least 4: the synthetic job runs every solver, and the robust ones need 4."""
     center_of_perspective: Vec3 = (-2.0, -2.0, -2.0)
     rotation_deg: Annotated[float, Field(ge=0, le=179)] = 30.0
     translation_norm: Annotated[float, Field(ge=0)] = 1.0
     noise_std: Annotated[float, Field(ge=0)] = 0.0
     outlier_fraction: Annotated[float, Field(ge=0, le=1)] = 0.0
-    landmarks: tuple[Vec3, ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    landmarks: Annotated[tuple[Vec3, ...], Field(min_length=1)] = (
+        (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
     success_threshold: Pos = 0.1
 
 

@@ -72,7 +72,8 @@ def test_syntax_error_names_file(tmp_path):
     "section, key, value, expect",
     [
         ("synthetic", "n_points", "20", "valid integer"),
-        ("synthetic", "n_points", 2, "greater than or equal to 3"),
+        ("synthetic", "n_points", 3, "greater than or equal to 4"),
+        ("synthetic", "landmarks", [], "at least 1 item"),
         ("synthetic", "noise_std", -0.1, "greater than or equal to 0"),
         ("synthetic", "center_of_perspective", [1.0, 2.0], "too few items"),
         ("synthetic", "nosie_std", 0.1, "unknown key"),
