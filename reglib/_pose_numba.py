@@ -90,15 +90,10 @@ def _trust_step(C, g, r):
 def _normal_equations(P, Nb, res, w, m0, m1, m2):
     """The weighted normal equations ``(C (6, 6), g (6,))`` of the linearised point-line
     residuals about the centroid ``m``: per point and basis vector ``n`` the row
-    ``[2 n x (P - m), n]``, accumulated in scalars (the 21 entries of the upper triangle and
-    the 6 of ``g``, each summed over the points in order)."""
-    c00 = c01 = c02 = c03 = c04 = c05 = 0.0
-    c11 = c12 = c13 = c14 = c15 = 0.0
-    c22 = c23 = c24 = c25 = 0.0
-    c33 = c34 = c35 = 0.0
-    c44 = c45 = 0.0
-    c55 = 0.0
-    g0 = g1 = g2 = g3 = g4 = g5 = 0.0
+    ``[2 n x (P - m), n]`` (the upper triangle summed, then mirrored)."""
+    C = np.zeros((6, 6))
+    g = np.zeros(6)
+    row = np.empty(6)
     for i in range(P.shape[0]):
         wi = w[i]
         if wi == 0.0:
@@ -110,55 +105,21 @@ def _normal_equations(P, Nb, res, w, m0, m1, m2):
             nx = Nb[k, i, 0]
             ny = Nb[k, i, 1]
             nz = Nb[k, i, 2]
-            r0 = 2.0 * (ny * pz - nz * py)
-            r1 = 2.0 * (nz * px - nx * pz)
-            r2 = 2.0 * (nx * py - ny * px)
+            row[0] = 2.0 * (ny * pz - nz * py)
+            row[1] = 2.0 * (nz * px - nx * pz)
+            row[2] = 2.0 * (nx * py - ny * px)
+            row[3] = nx
+            row[4] = ny
+            row[5] = nz
             rk = wi * res[k, i]
-            g0 += r0 * rk
-            g1 += r1 * rk
-            g2 += r2 * rk
-            g3 += nx * rk
-            g4 += ny * rk
-            g5 += nz * rk
-            wa = wi * r0
-            c00 += wa * r0
-            c01 += wa * r1
-            c02 += wa * r2
-            c03 += wa * nx
-            c04 += wa * ny
-            c05 += wa * nz
-            wa = wi * r1
-            c11 += wa * r1
-            c12 += wa * r2
-            c13 += wa * nx
-            c14 += wa * ny
-            c15 += wa * nz
-            wa = wi * r2
-            c22 += wa * r2
-            c23 += wa * nx
-            c24 += wa * ny
-            c25 += wa * nz
-            wa = wi * nx
-            c33 += wa * nx
-            c34 += wa * ny
-            c35 += wa * nz
-            wa = wi * ny
-            c44 += wa * ny
-            c45 += wa * nz
-            wa = wi * nz
-            c55 += wa * nz
-    C = np.empty((6, 6))
-    C[0, 0], C[0, 1], C[0, 2], C[0, 3], C[0, 4], C[0, 5] = c00, c01, c02, c03, c04, c05
-    C[1, 1], C[1, 2], C[1, 3], C[1, 4], C[1, 5] = c11, c12, c13, c14, c15
-    C[2, 2], C[2, 3], C[2, 4], C[2, 5] = c22, c23, c24, c25
-    C[3, 3], C[3, 4], C[3, 5] = c33, c34, c35
-    C[4, 4], C[4, 5] = c44, c45
-    C[5, 5] = c55
+            for aa in range(6):
+                g[aa] += row[aa] * rk
+                wa = wi * row[aa]
+                for bb in range(aa, 6):
+                    C[aa, bb] += wa * row[bb]
     for aa in range(6):
         for bb in range(aa):
             C[aa, bb] = C[bb, aa]
-    g = np.empty(6)
-    g[0], g[1], g[2], g[3], g[4], g[5] = g0, g1, g2, g3, g4, g5
     return C, g
 
 
