@@ -271,10 +271,14 @@ def cmd_generate(args) -> int:
 def cmd_score(args) -> int:
     _quiet_pybullet()
     from studies.score import load_method, missing_cases, score_dataset
+    from testbed.dataset import list_cases
 
     dataset = Path(args.dataset)
     if not dataset.is_dir():
         raise UsageError(f"{dataset}: no such dataset folder")
+    if not list_cases(dataset):     # before --out is made
+        raise UsageError(f"{dataset}: holds no case (case_*/case.json); make one with "
+                         f"{PROG} generate")
     try:
         load_method(args.method)
     except ValueError as exc:

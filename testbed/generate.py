@@ -175,11 +175,13 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
                           ("generator_version", "generator version"),
                           ("format_version", "format version")):
             if old.get(key) != summary[key]:
+                held = [f"{key} {old.get(key)!r}"] + [
+                    f"{k} {old.get(f)!r}" for k, f in (("scene", "scene_name"), ("seed", "seed"))
+                    if f != key]
                 raise ValueError(
-                    f"--out {out}: holds a dataset of another {what} ({key} "
-                    f"{old.get(key)!r}, scene {old.get('scene_name')!r}, seed "
-                    f"{old.get('seed')!r}); this run has {summary[key]!r}: choose another "
-                    "folder (cases of different scenes or seeds are never mixed)")
+                    f"--out {out}: holds a dataset of another {what} ({', '.join(held)}); "
+                    f"this run has {key} {summary[key]!r}: choose another folder (cases of "
+                    "different scenes or seeds are never mixed)")
     elif out.is_dir() and any(out.iterdir()):
         raise ValueError(f"--out {out}: the folder is not empty and holds no dataset.json; "
                          "choose a new or empty folder")

@@ -346,8 +346,12 @@ def _remedy(report: WorkspaceReport) -> str:
                 return f"{_SWEEP} further from the intensifier, or {_VIEW}"
             if other.startswith("carm"):
                 return f"{_VIEW}, or {_SWEEP}"
-            return (f"{_SWEEP}, or move the {other} ([[instruments]] or [patient]), or "
-                    f"{_VIEW}")
+            base = other.split("[")[0]
+            where = ("[patient] position_mm: the patient and the table" if base in (
+                "table", "foam", "soft_tissue", "femur", "cancellous", "canal")
+                or base.startswith(("pin_", "leg", "hip", "table"))
+                else "its [[instruments]] position_mm")
+            return f"{_SWEEP}, or move the {other} ({where}), or {_VIEW}"
     return _VIEW
 
 

@@ -341,8 +341,9 @@ def test_generate_refuses_to_mix_datasets_and_wrong_scenes(tmp_path):
 
     index["format_version"] = FORMAT_VERSION
     (out / "dataset.json").write_text(json.dumps(index))
-    with pytest.raises(ValueError, match="another seed"):
+    with pytest.raises(ValueError, match="another seed") as err:
         generate_command(scene, scene_path="x", cases=1, out=out, seed=4, progress=False)
+    assert str(err.value).count("seed 3") == 1 and "this run has seed 4" in str(err.value)
     other = parse_scene({**SMALL, "phantom": {"shape_variation": 0.5, "segments": 32}})
     with pytest.raises(ValueError, match="another scene"):
         generate_command(other, scene_path="x", cases=1, out=out, seed=3, progress=False)
