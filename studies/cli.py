@@ -276,15 +276,15 @@ def cmd_score(args) -> int:
     dataset = Path(args.dataset)
     if not dataset.is_dir():
         raise UsageError(f"{dataset}: no such dataset folder")
-    if not list_cases(dataset):     # before --out is made
-        raise UsageError(f"{dataset}: holds no case (case_*/case.json); make one with "
-                         f"{PROG} generate")
     try:
         load_method(args.method)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    out = _out_folder(args.out)
     _check_scheduler(args, "score")
+    if not list_cases(dataset):     # before --out is made
+        raise UsageError(f"{dataset}: holds no case (case_*/case.json); make one with "
+                         f"{PROG} generate")
+    out = _out_folder(args.out)
     score_dataset(dataset, out, method=args.method, workers=args.workers,
                   scheduler=args.scheduler, progress=sys.stderr.isatty())
     print(f"wrote {out / 'results.csv'} and {out / 'report.md'}")
