@@ -77,9 +77,9 @@ class CTSpec(Spec):
     max_slice_thickness_mm: Spacing = 10.0
     subslice_mm: Annotated[float, Field(ge=0.05, le=5.0)] = 0.5
     supersample: Annotated[int, Field(ge=1, le=8)] = 3
-    noise_hu: NonNegative = 15.0
+    noise_hu: Annotated[float, Field(ge=0.0, le=2000.0)] = 15.0
     metal_streaks: bool = True
-    streak_hu: NonNegative = 300.0
+    streak_hu: Annotated[float, Field(ge=0.0, le=5000.0)] = 300.0
 
     @model_validator(mode="after")
     def _check(self):

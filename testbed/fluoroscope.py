@@ -83,6 +83,10 @@ IDEAL_FLUOROSCOPE = dict(focal_spot_mm=0.0, mtf50_lp_per_mm=0.0, scatter_to_prim
 """Field values of the ideal profile (docs/error-model.md): the clinic sources off."""
 
 
+#: a component of the magnetic field at the intensifier (uT)
+_Field_uT = Annotated[float, Field(ge=-200.0, le=200.0)]
+
+
 class FluoroscopeSpec(Spec):
     """``[fluoroscope]``: the C-arm and its image intensifier (defaults: a 9-inch mobile C-arm).
 
@@ -130,17 +134,20 @@ class FluoroscopeSpec(Spec):
     view, its drift.
     """
 
-    sid_mm: Positive = 1000.0
-    fov_diameter_mm: Positive = 228.6
+    sid_mm: Annotated[float, Field(ge=300.0, le=2000.0)] = 1000.0
+    """Source to intensifier (mm): C-arms have about 900-1200."""
+    fov_diameter_mm: Annotated[float, Field(ge=100.0, le=450.0)] = 228.6
+    """Field of view at the input plane (mm): intensifiers of 4 to 16 inches, 102-406 mm."""
     width_px: Annotated[int, Field(ge=8, le=4096)] = 640
     height_px: Annotated[int, Field(ge=8, le=4096)] = 480
-    pixel_mm: Positive = 0.5
+    pixel_mm: Annotated[float, Field(ge=0.05, le=5.0)] = 0.5
     principal_offset_px: Vec2 = (0.0, 0.0)
     distortion: bool = True
     pincushion_k1: Annotated[float, Field(ge=-0.2, le=0.2)] = 0.02
     pincushion_k2: Annotated[float, Field(ge=-0.2, le=0.2)] = 0.005
     distortion_center_px: Vec2 = (4.0, -3.0)
-    earth_field_uT: Vec3 = (0.0, 20.0, -44.0)
+    earth_field_uT: tuple[_Field_uT, _Field_uT, _Field_uT] = (0.0, 20.0, -44.0)
+    """The magnetic field at the intensifier (uT per axis; the Earth's is 25-65 uT)."""
     s_rotation_deg_per_uT: Annotated[float, Field(ge=-1, le=1)] = 0.03
     s_shift_mm_per_uT: Annotated[float, Field(ge=-1, le=1)] = 0.04
     noise: bool = True

@@ -35,7 +35,7 @@ import numpy as np
 from pydantic import Field
 
 from reglib.geometry import arc_length
-from testbed.spec import NonNegative, Positive, Spec
+from testbed.spec import NonNegative, Spec
 
 __all__ = [
     "OperatorSpec",
@@ -66,14 +66,14 @@ class OperatorSpec(Spec):
     """
 
     ct_clicks: Annotated[int, Field(ge=3, le=200)] = 10
-    ct_click_noise_px: NonNegative = 1.5
+    ct_click_noise_px: Annotated[float, Field(ge=0.0, le=50.0)] = 1.5
     ct_reclick_every_mm: NonNegative = 10.0
     ct_bone_threshold_hu: Annotated[float, Field(ge=-500.0, le=3000.0)] = 400.0
-    ct_min_section_mm2: Positive = 20.0
+    ct_min_section_mm2: Annotated[float, Field(gt=0.0, le=1000.0)] = 20.0
     xray_clicks: Annotated[int, Field(ge=2, le=200)] = 8
-    xray_click_noise_px: NonNegative = 2.0
-    xray_edge_margin_px: NonNegative = 6.0
-    instrument_margin_px: NonNegative = 4.0
+    xray_click_noise_px: Annotated[float, Field(ge=0.0, le=50.0)] = 2.0
+    xray_edge_margin_px: Annotated[float, Field(ge=0.0, le=200.0)] = 6.0
+    instrument_margin_px: Annotated[float, Field(ge=0.0, le=200.0)] = 4.0
     xray_min_trace_px: Annotated[int, Field(ge=5, le=100_000)] = 40
 
 

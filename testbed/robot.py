@@ -205,8 +205,8 @@ class RobotSpec(Spec):
     pitch_drop_mm: Positive = 60.0
     elbow_limit_deg: Annotated[float, Field(gt=0, le=180)] = 160.0
     pitch_limit_deg: Annotated[float, Field(gt=0, le=180)] = 120.0
-    encoder_noise_deg: NonNegative = 0.0005
-    encoder_noise_mm: NonNegative = 0.002
+    encoder_noise_deg: Annotated[float, Field(ge=0.0, le=1.0)] = 0.0005
+    encoder_noise_mm: Annotated[float, Field(ge=0.0, le=5.0)] = 0.002
     kinematic_offset_mm: NonNegative = 0.075
     """Kinematic-parameter errors, translation of each joint origin (mm, sigma per axis):
     the robot's absolute accuracy; docs/error-model.md "robot absolute accuracy".

@@ -79,6 +79,11 @@ def test_syntax_error_names_file(tmp_path):
         ("synthetic", "nosie_std", 0.1, "unknown key"),
         ("scene", "kind", "hospital", "synthetic"),
         ("ct", "pixel_mm", "0.8", "valid number"),
+        # physically absurd values, refused at load (they failed later naming another field)
+        ("fluoroscope", "fov_diameter_mm", 5.0, "greater than or equal to 100"),
+        ("fluoroscope", "earth_field_uT", [0.0, 1e8, -44.0], "less than or equal to 200"),
+        ("robot", "encoder_noise_deg", 1e8, "less than or equal to 1"),
+        ("operator", "ct_click_noise_px", 1e6, "less than or equal to 50"),
     ],
 )
 def test_specific_errors_name_file_and_field(tmp_path, section, key, value, expect):
