@@ -46,14 +46,15 @@ SERIAL_STUDIES = {"table1": "it times pose solves, and parallel workers would sh
 
 
 def run_study(name: str, out: Path, *, scene=None, seed=None, quick=False, workers=1,
-              scheduler=None, retries: int = 2) -> Path:
+              scheduler=None, retries: int = 2, progress: bool = True) -> Path:
     """Run study ``name`` into folder ``out``; returns ``out``.
 
     ``workers``: processes for the trials; ``scheduler``: a Dask scheduler address (or
     Client / cluster) to run them on instead; ``retries``: how many more times a trial whose
-    worker was lost is run. Rerunning into the same ``out`` resumes. Raises ``ValueError``
-    before any work for an unknown study, a scene of another kind than the study's default
-    scene (e.g. an operating room for ``fig9``), or workers asked of a serial study.
+    worker was lost is run; ``progress``: a bar of the trials on stderr. Rerunning into the
+    same ``out`` resumes. Raises ``ValueError`` before any work for an unknown study, a
+    scene of another kind than the study's default scene (e.g. an operating room for
+    ``fig9``), or workers asked of a serial study.
     """
     from studies.common import finish_study, start_study
     from testbed.scene import find_scene, load_scene
@@ -75,6 +76,7 @@ def run_study(name: str, out: Path, *, scene=None, seed=None, quick=False, worke
     ctx = start_study(name, out, scene=scene or mod.DEFAULT_SCENE, seed=seed, quick=quick,
                       workers=workers, scheduler=scheduler)
     ctx.retries = int(retries)
+    ctx.progress = bool(progress)
     df = mod.run(ctx)
     finish_study(ctx, df)
     return out

@@ -232,7 +232,8 @@ def cmd_study(args) -> int:
     out = _out_folder(args.out)
     _check_scheduler(args, "study")
     run_study(args.name, out, scene=args.scene, seed=args.seed, quick=args.quick,
-              workers=args.workers, scheduler=args.scheduler, retries=args.retries)
+              workers=args.workers, scheduler=args.scheduler, retries=args.retries,
+              progress=sys.stderr.isatty())
     print(f"wrote {out / 'results.csv'} and {out / 'report.md'}")
     return _failed_trials(out)
 
@@ -445,6 +446,22 @@ SINGLE_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREAD
 FREEZING_COMMANDS = ("run", "generate", "score")
 
 
+def _check_environment() -> None:
+    """Thread counts given in the environment must be positive integers (numba refused
+    NUMBA_NUM_THREADS=0 inside a view's processing, and the message blamed the view)."""
+    for var in ("NUMBA_NUM_THREADS", *SINGLE_THREAD_VARS):
+        val = os.environ.get(var)
+        if val is None:
+            continue
+        try:
+            ok = int(val) >= 1
+        except ValueError:
+            ok = False
+        if not ok:
+            raise UsageError(f"environment: {var}={val!r}; expected a whole number of threads "
+                             ">= 1 (or leave it unset)")
+
+
 class Terminated(KeyboardInterrupt):
     """SIGTERM, raised where the process is, so that it cleans up as after Ctrl-C (a
     generate's half-written case folder is removed; a study's finished trials are kept)."""
@@ -479,6 +496,7 @@ def main(argv=None) -> int:
     debug = bool(os.environ.get("TESTBED_DEBUG"))
     _terminate_as_interrupt()
     try:
+        _check_environment()
         args = build_parser().parse_args(argv)
         if args.version:
             print(f"{PROG} {_version()}")

@@ -760,7 +760,7 @@ def scene_fingerprint(scene) -> str:
 
 def run_study_trials(ctx, trial_fn: Callable[[Trial], list[dict]],
                      params: Sequence[Mapping[str, Any]], *, scheduler=None,
-                     progress: bool = True, **kwargs) -> pd.DataFrame:
+                     progress: bool | None = None, **kwargs) -> pd.DataFrame:
     """:func:`run_trials` for a study: trials on ``ctx.scene_path`` seeded from ``ctx.seed``
     (trial ``i`` = child ``i`` of ``SeedSequence(ctx.seed)``, as ``ctx.seeds``), stored in
     ``ctx.out``, on ``ctx.workers`` workers or on ``scheduler`` (default:
@@ -780,5 +780,7 @@ def run_study_trials(ctx, trial_fn: Callable[[Trial], list[dict]],
     if scheduler is None:
         scheduler = getattr(ctx, "scheduler", None)
     kwargs.setdefault("retries", getattr(ctx, "retries", 2))
+    if progress is None:  # the study's choice (testbed study: only on a terminal)
+        progress = bool(getattr(ctx, "progress", True))
     return run_trials(trial_fn, trials, out_dir=ctx.out, workers=int(ctx.workers),
                       scheduler=scheduler, progress=progress, **kwargs)

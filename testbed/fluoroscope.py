@@ -203,6 +203,12 @@ class FluoroscopeSpec(Spec):
                 f"fov_diameter_mm / pixel_mm = {2 * radius_px:.1f} px: the field of view must "
                 "span at least 8 pixels"
             )
+        size = max(self.width_px, self.height_px)
+        for name in ("principal_offset_px", "distortion_center_px"):
+            v = getattr(self, name)
+            if max(abs(v[0]), abs(v[1])) > size:
+                raise ValueError(f"{name} = {tuple(v)}: at most the image's size ({size} px) "
+                                 "from the image centre")
         return self
 
 

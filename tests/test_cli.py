@@ -406,3 +406,22 @@ def test_json_output_has_no_nan_or_infinity():
                                        "c": {"d": -float("inf"), "e": 2}}))
     assert _json.loads(out) == {"a": None, "b": [1.0, None], "c": {"d": None, "e": 2}}
     assert "Infinity" not in out and "NaN" not in out
+
+
+def test_a_bad_thread_count_in_the_environment_is_named(monkeypatch, capsys):
+    """NUMBA_NUM_THREADS=0 failed inside a view's processing with a message naming the view."""
+    from studies.cli import main
+
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "0")
+    assert main(["scenes"]) == 2
+    assert "NUMBA_NUM_THREADS='0'" in capsys.readouterr().err
+
+
+def test_principal_offset_beyond_the_image_is_refused_at_load(tmp_path):
+    from testbed.scene import SceneError, find_scene, load_scene
+
+    text = find_scene("experiment2").read_text().replace(
+        "oversample = 1", "oversample = 1\nprincipal_offset_px = [1e6, 0.0]", 1)
+    (tmp_path / "s.toml").write_text(text)
+    with pytest.raises(SceneError, match=r"principal_offset_px = \(1000000.0, 0.0\): at most"):
+        load_scene(tmp_path / "s.toml")
