@@ -229,6 +229,11 @@ def cmd_study(args) -> int:
                          f"{', '.join(known)}")
     if args.out is None:
         raise UsageError(f"{PROG} study: --out DIR is required")
+    global _scene_path
+    if args.scene is not None:  # a refusal of the scene after loading names its file
+        from testbed.scene import find_scene
+
+        _scene_path = find_scene(args.scene)
     out = _out_folder(args.out)
     _check_scheduler(args, "study")
     run_study(args.name, out, scene=args.scene, seed=args.seed, quick=args.quick,
