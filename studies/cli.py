@@ -290,6 +290,9 @@ def cmd_score(args) -> int:
     if not list_cases(dataset):     # before --out is made
         raise UsageError(f"{dataset}: holds no case (case_*/case.json); make one with "
                          f"{PROG} generate")
+    if Path(args.out).resolve().is_relative_to(dataset.resolve()):
+        raise UsageError(f"--out {args.out}: inside the dataset {dataset}; the scores go to a "
+                         "folder of their own (the dataset stays as generate wrote it)")
     out = _out_folder(args.out)
     score_dataset(dataset, out, method=args.method, workers=args.workers,
                   scheduler=args.scheduler, progress=sys.stderr.isatty())

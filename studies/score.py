@@ -66,9 +66,12 @@ def _as_pose(value, spec: str):
     except (TypeError, ValueError):
         raise ValueError(f"method {spec}: returned {type(value).__name__}, expected a (4, 4) "
                          "ct2robot array") from None
-    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
-        raise ValueError(f"method {spec}: returned shape {m.shape} (or non-finite values), "
-                         "expected a finite (4, 4) ct2robot array")
+    if m.shape != (4, 4):
+        raise ValueError(f"method {spec}: returned shape {m.shape}, expected a (4, 4) ct2robot "
+                         "array")
+    if not np.all(np.isfinite(m)):
+        raise ValueError(f"method {spec}: returned a (4, 4) array with NaN or inf values, "
+                         "expected a finite ct2robot")
     R = m[:3, :3]
     if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0 \
             or not np.allclose(m[3], [0, 0, 0, 1]):

@@ -460,6 +460,7 @@ class Robot:
             os.dup2(2, 1)
             return pybullet.loadURDF(path, useFixedBase=True, physicsClientId=self.client)
         except pybullet.error as exc:
+            os.write(2, b"\n")   # Bullet's messages end without one
             raise ValueError(f"robot.urdf: {self.spec.urdf!r} cannot be loaded as a URDF "
                              f"(pybullet: {exc}; its parser's messages are above)") from None
         finally:

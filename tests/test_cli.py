@@ -425,3 +425,13 @@ def test_principal_offset_beyond_the_image_is_refused_at_load(tmp_path):
     (tmp_path / "s.toml").write_text(text)
     with pytest.raises(SceneError, match=r"principal_offset_px = \(1000000.0, 0.0\): at most"):
         load_scene(tmp_path / "s.toml")
+
+
+def test_score_out_inside_the_dataset_is_refused(tmp_path, capsys):
+    ds = tmp_path / "ds"
+    (ds / "case_0000").mkdir(parents=True)
+    (ds / "case_0000" / "case.json").write_text("{}")
+    for out in (ds, ds / "case_0000", ds / "scores"):
+        assert main(["score", str(ds), "--out", str(out)]) == 2
+        assert "inside the dataset" in capsys.readouterr().err
+    assert not (ds / "scores").exists()
