@@ -147,6 +147,23 @@ def _fit_line(est, options) -> str:
 
 
 # --------------------------------------------------------------------------- the main job
+def _region_label_warnings(scene) -> list[str]:
+    """A view labelled with the other region (testbed run does not use the label; the
+    studies that do refuse it): one warning, or none."""
+    from studies.capture_range import _region_centres, check_view_regions
+    from testbed.phantom import make_phantom
+    from testbed.spec import SceneError
+
+    T = scene.patient.ct2robot()
+    try:
+        check_view_regions(scene, {k: T.apply(c) for k, c in
+                                   _region_centres(make_phantom(scene.phantom)).items()})
+    except SceneError as exc:
+        return [f"{exc} (this run does not use the label; capture-range and view-setups "
+                "refuse it)"]
+    return []
+
+
 def run_case(scene, *, seed: int, progress: bool = False):
     """``testbed run`` on an operating-room scene: one case, one perturbed start.
 
@@ -167,6 +184,7 @@ def run_case(scene, *, seed: int, progress: bool = False):
     timings["registration"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_all
     meta = case.sim.truth.meta
+    label_warnings = _region_label_warnings(case.sim.scene)
     acq = float(sum(meta["sweep_time_s"].values()))
     dose = float(sum(meta["dose_mrem"].values()))
     result = {
@@ -215,7 +233,7 @@ def run_case(scene, *, seed: int, progress: bool = False):
                             " mm)"),
                            ("worst view fit", _fit_line(est, case.options)))
                           if est.registration is not None else ()),
-                        *(("warning", w) for w in est.warnings),
+                        *(("warning", w) for w in (*est.warnings, *label_warnings)),
                         ("acquisition (sweeps)", f"{acq:.1f} s, dose {dose:.1f} mrem")],
     }
     return result, case, start, est
