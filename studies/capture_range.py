@@ -44,6 +44,8 @@ import time
 import numpy as np
 import pandas as pd
 
+from studies.common import check_view_regions, region_centres
+
 TITLE = "capture range: registration success rate vs initial mTRE (0-30 mm), per pose method"
 #: the issue's conditions: the ideal profile's magnitudes (the method's capture range, not
 #: the clinic's noise); any operating-room scene can be given with --scene
@@ -108,37 +110,6 @@ def _bounds(field: str) -> tuple[float, float]:
     return float(lo), float(hi)
 
 
-def _region_centres(phantom) -> dict[str, np.ndarray]:
-    """ct-frame centres of the anatomy a radiographer aims each region's views at."""
-    lm = phantom.landmarks
-    prox = np.mean([lm["head_center"], lm["lesser_trochanter"], lm["greater_trochanter"]],
-                   axis=0)
-    dist = np.mean([lm["medial_condyle"], lm["lateral_condyle"]], axis=0)
-    return {"proximal": prox, "distal": dist}
-
-
-def check_view_regions(scene, centres_robot) -> None:
-    """``SceneError`` naming ``views[i].region`` when a view's isocentre lies nearer the
-    other region's anatomy (``centres_robot``: region -> (3,) mm, robot frame) than its own:
-    the studies that follow a view's region (re-aiming it at another femur, grouping views
-    by region) would otherwise move or count it with the wrong end of the bone."""
-    for i, v in enumerate(scene.views):
-        own = centres_robot.get(v.region)
-        if own is None:
-            continue
-        iso = np.asarray(v.isocenter_mm, dtype=np.float64)
-        d_own = float(np.linalg.norm(iso - own))
-        for other, c in centres_robot.items():
-            d_other = float(np.linalg.norm(iso - c))
-            if other != v.region and d_other < d_own:
-                from testbed.spec import SceneError
-
-                raise SceneError(
-                    f"views[{i}].region: view {v.name!r} is labelled {v.region!r} but its "
-                    f"isocentre lies {d_other:.0f} mm from the {other} anatomy and {d_own:.0f} "
-                    f"mm from the {v.region} one; label it {other!r} or move it")
-
-
 def random_femur(base, rng):
     """A ``PhantomSpec`` of ``base`` with a random side and every shape parameter drawn over
     its documented range, rejecting implausible femurs (the phantom cannot be built, or the
@@ -197,10 +168,10 @@ def case_scene(scene, rng, *, jitter_deg: float = JITTER_DEG):
     from testbed.phantom import make_phantom
 
     ct2robot = scene.patient.ct2robot()
-    old = _region_centres(make_phantom(scene.phantom))
+    old = region_centres(make_phantom(scene.phantom))
     check_view_regions(scene, {k: ct2robot.apply(c) for k, c in old.items()})
     spec, ph = random_femur(scene.phantom, rng)
-    new = _region_centres(ph)
+    new = region_centres(ph)
     views = []
     # the other side is the mirror image across the femur's long axis (robot y): the
     # obliques turn the other way about it

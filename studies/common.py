@@ -131,3 +131,42 @@ def finish_study(ctx: StudyContext, df: pd.DataFrame) -> None:
             parts += [f"![{cap}]({fn})", "", f"*{cap}*", ""]
     parts += ["## Resolved scene", "", "```json", resolved, "```", ""]
     (ctx.out / "report.md").write_text("\n".join(parts))
+
+
+def region_centres(phantom) -> dict[str, np.ndarray]:
+    """ct-frame centres of the anatomy a radiographer aims each region's views at: the
+    femoral head and the trochanters; the condyles."""
+    lm = phantom.landmarks
+    prox = np.mean([lm["head_center"], lm["lesser_trochanter"], lm["greater_trochanter"]],
+                   axis=0)
+    dist = np.mean([lm["medial_condyle"], lm["lateral_condyle"]], axis=0)
+    return {"proximal": prox, "distal": dist}
+
+
+def check_view_regions(scene, centres_robot=None) -> None:
+    """``SceneError`` naming ``views[i].region`` when a view's isocentre lies nearer the
+    other region's anatomy than its own: the studies that follow a view's region
+    (re-aiming it at another femur, grouping views by region) would otherwise move or count
+    it with the wrong end of the bone. ``centres_robot``: region -> (3,) mm in the robot
+    frame (default: those of the scene's femur where its patient lies)."""
+    from testbed.spec import SceneError
+
+    if centres_robot is None:
+        from testbed.phantom import make_phantom
+
+        T = scene.patient.ct2robot()
+        centres_robot = {k: T.apply(c) for k, c in
+                         region_centres(make_phantom(scene.phantom)).items()}
+    for i, v in enumerate(scene.views):
+        own = centres_robot.get(v.region)
+        if own is None:
+            continue
+        iso = np.asarray(v.isocenter_mm, dtype=np.float64)
+        d_own = float(np.linalg.norm(iso - own))
+        for other, c in centres_robot.items():
+            d_other = float(np.linalg.norm(iso - c))
+            if other != v.region and d_other < d_own:
+                raise SceneError(
+                    f"views[{i}].region: view {v.name!r} is labelled {v.region!r} but its "
+                    f"isocentre lies {d_other:.0f} mm from the {other} anatomy and {d_own:.0f} "
+                    f"mm from the {v.region} one; label it {other!r} or move it")

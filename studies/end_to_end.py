@@ -150,14 +150,11 @@ def _fit_line(est, options) -> str:
 def _region_label_warnings(scene) -> list[str]:
     """A view labelled with the other region (testbed run does not use the label; the
     studies that do refuse it): one warning, or none."""
-    from studies.capture_range import _region_centres, check_view_regions
-    from testbed.phantom import make_phantom
+    from studies.common import check_view_regions
     from testbed.spec import SceneError
 
-    T = scene.patient.ct2robot()
     try:
-        check_view_regions(scene, {k: T.apply(c) for k, c in
-                                   _region_centres(make_phantom(scene.phantom)).items()})
+        check_view_regions(scene)
     except SceneError as exc:
         return [f"{exc} (this run does not use the label; capture-range and view-setups "
                 "refuse it)"]

@@ -7,20 +7,17 @@ def test_a_view_labelled_with_the_other_region_is_refused():
     """Studies that re-aim or group views by region refuse a view whose isocentre lies at the
     other end of the femur (a review labelled proximal_ap 'distal': capture-range moved it by
     the condyles' shift)."""
-    from studies.capture_range import _region_centres, check_view_regions
-    from testbed.phantom import make_phantom
+    from studies.common import check_view_regions
     from testbed.scene import find_scene, load_scene
     from testbed.spec import SceneError
 
     scene = load_scene(find_scene("experiment2"))
-    T = scene.patient.ct2robot()
-    centres = {k: T.apply(c) for k, c in _region_centres(make_phantom(scene.phantom)).items()}
-    check_view_regions(scene, centres)                  # the shipped labels are right
+    check_view_regions(scene)                           # the shipped labels are right
     views = list(scene.views)
     views[0] = views[0].model_copy(update={"region": "distal"})
     with pytest.raises(SceneError, match=r"views\[0\]\.region: view 'proximal_ap' is "
                                          r"labelled 'distal'"):
-        check_view_regions(scene.model_copy(update={"views": tuple(views)}), centres)
+        check_view_regions(scene.model_copy(update={"views": tuple(views)}))
 
 
 def test_testbed_run_warns_of_a_mislabelled_view():
