@@ -99,15 +99,12 @@ MAX_SHAPE_DRAWS = 50
 
 
 def _bounds(field: str) -> tuple[float, float]:
-    from testbed.phantom import PhantomSpec
+    from testbed.phantom import field_bounds
 
-    lo = hi = None
-    for m in PhantomSpec.model_fields[field].metadata:
-        lo = getattr(m, "ge", lo)
-        hi = getattr(m, "le", hi)
-    if lo is None or hi is None:
+    lo, hi = field_bounds(field)
+    if not (np.isfinite(lo) and np.isfinite(hi)):
         raise ValueError(f"PhantomSpec.{field} has no documented range")
-    return float(lo), float(hi)
+    return lo, hi
 
 
 def random_femur(base, rng):

@@ -143,20 +143,22 @@ def region_centres(phantom) -> dict[str, np.ndarray]:
     return {"proximal": prox, "distal": dist}
 
 
-def check_view_regions(scene, centres_robot=None) -> None:
+def check_view_regions(scene, centres_robot=None, *, phantom=None) -> None:
     """``SceneError`` naming ``views[i].region`` when a view's isocentre lies nearer the
     other region's anatomy than its own: the studies that follow a view's region
     (re-aiming it at another femur, grouping views by region) would otherwise move or count
     it with the wrong end of the bone. ``centres_robot``: region -> (3,) mm in the robot
-    frame (default: those of the scene's femur where its patient lies)."""
+    frame (default: those of ``phantom``, else of the scene's femur, where its patient
+    lies)."""
     from testbed.spec import SceneError
 
     if centres_robot is None:
-        from testbed.phantom import make_phantom
+        if phantom is None:
+            from testbed.phantom import make_phantom
 
+            phantom = make_phantom(scene.phantom)
         T = scene.patient.ct2robot()
-        centres_robot = {k: T.apply(c) for k, c in
-                         region_centres(make_phantom(scene.phantom)).items()}
+        centres_robot = {k: T.apply(c) for k, c in region_centres(phantom).items()}
     for i, v in enumerate(scene.views):
         own = centres_robot.get(v.region)
         if own is None:

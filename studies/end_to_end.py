@@ -147,14 +147,15 @@ def _fit_line(est, options) -> str:
 
 
 # --------------------------------------------------------------------------- the main job
-def _region_label_warnings(scene) -> list[str]:
+def _region_label_warnings(scene, phantom=None) -> list[str]:
     """A view labelled with the other region (testbed run does not use the label; the
-    studies that do refuse it): one warning, or none."""
+    studies that do refuse it): one warning, or none. ``phantom``: the case's, already
+    built (a user mesh would be read again otherwise)."""
     from studies.common import check_view_regions
     from testbed.spec import SceneError
 
     try:
-        check_view_regions(scene)
+        check_view_regions(scene, phantom=phantom)
     except SceneError as exc:
         return [f"{exc} (this run does not use the label; capture-range and view-setups "
                 "refuse it)"]
@@ -181,7 +182,7 @@ def run_case(scene, *, seed: int, progress: bool = False):
     timings["registration"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_all
     meta = case.sim.truth.meta
-    label_warnings = _region_label_warnings(case.sim.scene)
+    label_warnings = _region_label_warnings(case.sim.scene, case.sim.world.phantom)
     acq = float(sum(meta["sweep_time_s"].values()))
     dose = float(sum(meta["dose_mrem"].values()))
     result = {

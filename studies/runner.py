@@ -751,11 +751,12 @@ def scene_fingerprint(scene) -> str:
     after the scene file, or a file it reads, changed runs its trials again."""
     if scene is None or not hasattr(scene, "model_dump"):
         return ""
+    from testbed.generate import scene_digest  # the digest a dataset records of its scene
+
     files = [p for p in (getattr(getattr(scene, "phantom", None), "mesh_path", None),
                          getattr(getattr(scene, "robot", None), "urdf", None))
              if p and p != "builtin"]
-    return fingerprint(texts=[json.dumps(scene.model_dump(mode="json"), sort_keys=True)],
-                       files=files)
+    return fingerprint(texts=[scene_digest(scene)], files=files)
 
 
 def run_study_trials(ctx, trial_fn: Callable[[Trial], list[dict]],

@@ -56,7 +56,7 @@ from testbed.bodies import Body
 from testbed.detector import form_image
 from testbed.materials import material
 from testbed.raycast import FanRays, RayScene, attenuation_weights, body_path_lengths
-from testbed.spec import Positive, Spec, Vec2, Vec3
+from testbed.spec import NAME_MAX, Positive, Spec, Vec2, Vec3
 
 __all__ = [
     "IDEAL_FLUOROSCOPE",
@@ -242,8 +242,8 @@ class ViewSpec(Spec):
                 and all(c.isascii() and (c.isalnum() or c in "_.-") for c in v)):
             raise ValueError("a view name is ASCII letters, digits, '_', '.' or '-', "
                              "starting with a letter, a digit or '_'")
-        if len(v) > 64:  # file names such as a dataset's images/sweep_<name>/ stay short
-            raise ValueError(f"a view name has at most 64 characters, got {len(v)}")
+        if len(v) > NAME_MAX:  # file names such as a dataset's images/sweep_<name>/
+            raise ValueError(f"a view name has at most {NAME_MAX} characters, got {len(v)}")
         return v
     orbital_deg: Annotated[float, Field(ge=-180, le=180)] = 0.0
     angular_deg: Annotated[float, Field(ge=-180, le=180)] = 0.0

@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 from reglib.geometry import RigidTransform
 from testbed.bodies import Body
 from testbed.materials import material
-from testbed.spec import Spec, Vec3
+from testbed.spec import NAME_MAX, Spec, Vec3
 
 __all__ = ["InstrumentSpec", "instrument_mesh", "make_instrument", "scene_instruments"]
 
@@ -58,8 +58,9 @@ class InstrumentSpec(Spec):
         if v in RESERVED_NAMES:
             raise ValueError(f"{v!r} names one of the world's own bodies "
                              f"({', '.join(sorted(RESERVED_NAMES))}); choose another name")
-        if not v.strip() or len(v) > 64:
-            raise ValueError("an instrument's name has 1 to 64 characters, not all spaces")
+        if not v.strip() or len(v) > NAME_MAX:
+            raise ValueError(f"an instrument's name has 1 to {NAME_MAX} characters, not all "
+                             "spaces")
         return v
 
     def instrument2robot(self) -> RigidTransform:

@@ -199,8 +199,9 @@ class _Dims:
     aldfa: float = 90.0
 
 
-def _field_bounds(name: str) -> tuple[float, float]:
-    """(lower, upper) of a numeric PhantomSpec field (from its pydantic constraints)."""
+def field_bounds(name: str) -> tuple[float, float]:
+    """(lower, upper) of a numeric PhantomSpec field (from its pydantic constraints; -inf /
+    inf where it has none)."""
     lo, hi = -np.inf, np.inf
     for m in PhantomSpec.model_fields[name].metadata:
         lo = getattr(m, "ge", None) if getattr(m, "ge", None) is not None else lo
@@ -208,7 +209,7 @@ def _field_bounds(name: str) -> tuple[float, float]:
     return float(lo), float(hi)
 
 
-_BOUNDS = {k: _field_bounds(k) for k in (
+_BOUNDS = {k: field_bounds(k) for k in (
     "length_mm", "head_radius_mm", "neck_length_mm", "neck_radius_mm", "shaft_diameter_mm",
     "cortical_thickness_mm", "condyle_width_mm", "notch_width_mm", "condyle_depth_mm")}
 

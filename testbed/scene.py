@@ -39,8 +39,8 @@ from testbed.instruments import InstrumentSpec
 from testbed.operator import OperatorSpec
 from testbed.phantom import PhantomSpec
 from testbed.robot import RobotSpec
+from testbed.spec import NAME_MAX, SceneError, Spec, Vec3
 from testbed.spec import Positive as Pos
-from testbed.spec import SceneError, Spec, Vec3
 from testbed.workspace import WorkspaceSpec
 
 __all__ = [
@@ -55,10 +55,6 @@ __all__ = [
     "parse_scene",
     "scenes_dir",
 ]
-
-
-#: the longest scene, view or instrument name (names become file and folder names)
-NAME_MAX = 64
 
 
 def check_file_name(name: str, what: str) -> None:

@@ -58,5 +58,8 @@ class Spec(BaseModel):
 
 Vec2 = tuple[float, float]
 Vec3 = tuple[float, float, float]
+
+#: the longest scene, view or instrument name (names become file and folder names)
+NAME_MAX = 64
 Positive = Annotated[float, Field(gt=0)]
 NonNegative = Annotated[float, Field(ge=0)]
