@@ -78,8 +78,106 @@ def band(g1, g2, mask, n):
 
 
 @njit(cache=True)
+def _select(v, n, k):
+    """The ``k``-th smallest of ``v[:n]`` (Hoare's quickselect, in place, middle pivot)."""
+    lo = 0
+    hi = n - 1
+    while lo < hi:
+        pivot = v[(lo + hi) // 2]
+        i = lo
+        j = hi
+        while i <= j:
+            while v[i] < pivot:
+                i += 1
+            while v[j] > pivot:
+                j -= 1
+            if i <= j:
+                t = v[i]
+                v[i] = v[j]
+                v[j] = t
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    return v[k]
+
+
+@njit(cache=True)
+def _median_of(v, n):
+    """``np.median(v[:n])`` (the two middle values' mean for an even ``n``); reorders ``v``."""
+    k = n // 2
+    hi = _select(v, n, k)
+    if n % 2:
+        return hi
+    lo = v[0]
+    for j in range(1, k):     # after the selection v[:k] holds the k smallest
+        lo = max(lo, v[j])
+    return 0.5 * (lo + hi)
+
+
+@njit(cache=True)
+def tile_noise(g1, g2, mask, tile, step, min_count, start_step, clip, passes, scale):
+    """The noise of ``g1 - g2`` per ``tile`` x ``tile`` block (blocks from the top-left
+    corner, the last ones cut by the edge), from its values in ``mask`` on every
+    ``step``-th row and column of the block, in row-major order: the median and 1.4826
+    times the median absolute deviation of every ``start_step``-th of them, then
+    ``passes`` times the mean and standard deviation of the values within ``clip``
+    deviations of the centre, times ``scale``; NaN for a block with fewer than
+    ``min_count`` values. Returns ``(rows of blocks, columns of blocks)`` float64 (the
+    reference: :func:`reglib.markers._clipped_std`)."""
+    H, W = g1.shape
+    ny = (H + tile - 1) // tile
+    nx = (W + tile - 1) // tile
+    out = np.full((ny, nx), np.nan)
+    buf = np.empty(tile * tile)
+    sub = np.empty(tile * tile)
+    for by in range(ny):
+        for bx in range(nx):
+            m = 0
+            for r in range(by * tile, min((by + 1) * tile, H), step):
+                for c in range(bx * tile, min((bx + 1) * tile, W), step):
+                    if mask[r, c]:
+                        buf[m] = np.float64(g1[r, c]) - np.float64(g2[r, c])
+                        m += 1
+            if m < min_count:
+                continue
+            k = 0
+            for j in range(0, m, start_step):
+                sub[k] = buf[j]
+                k += 1
+            mean = _median_of(sub, k)
+            for j in range(k):
+                sub[j] = abs(sub[j] - mean)
+            sd = 1.4826 * _median_of(sub, k)
+            for _ in range(passes):
+                lo = mean - clip * sd
+                hi = mean + clip * sd
+                n = 0
+                s1 = 0.0
+                for j in range(m):
+                    if buf[j] >= lo and buf[j] <= hi:
+                        s1 += buf[j]
+                        n += 1
+                if n == 0:
+                    break
+                mean = s1 / n
+                s2 = 0.0
+                for j in range(m):
+                    if buf[j] >= lo and buf[j] <= hi:
+                        s2 += (buf[j] - mean) ** 2
+                sd = np.sqrt(s2 / n)
+            out[by, bx] = scale * sd
+    return out
+
+
+@njit(cache=True)
 def above_region_thresholds(regions, n_regions, ds, base, rel):
-    """The pixels of a labelled region above ``max(base, rel * the region's peak of ds)``."""
+    """The pixels of a labelled region above ``max(base, rel * the region's peak of ds)``
+    (``base`` (H, W), per pixel)."""
     H, W = ds.shape
     peak = np.zeros(n_regions + 1)
     for r in range(H):
@@ -92,7 +190,7 @@ def above_region_thresholds(regions, n_regions, ds, base, rel):
         for c in range(W):
             k = regions[r, c]
             if k > 0:
-                t = max(base, rel * peak[k])
+                t = max(base[r, c], rel * peak[k])
                 out[r, c] = ds[r, c] > t
     return out
 

@@ -51,6 +51,18 @@ PLANE_CODES = {v: k for k, v in PLANE_NAMES.items()}
 #: in the image, and a background wider than a bead and narrower than the rod's band
 BLOB_SIGMA_PX = 1.0
 BACKGROUND_SIGMA_PX = 4.0
+#: the noise is measured per block of this size (px): a patient frame's quanta, hence the
+#: noise of its log difference, vary several-fold over the field (bone against air beside
+#: the limb), and one figure for the field lets the noisiest part through as blobs
+NOISE_TILE_PX = 32
+#: ...on every second row and column of the block (the band-pass's noise is correlated over
+#: about a blob's width: a quarter of the pixels lose little), as a standard deviation
+#: clipped at 3 of them, 2 times (a bead or an edge in the block does not count), from a
+#: start robust to a third of the block being signal (the median absolute deviation of every
+#: 4th value), scaled to a Gaussian's (a unit normal cut at +-3 has a deviation of 0.9866)
+NOISE_STEP_PX = 2
+NOISE_START_STEP = 4
+NOISE_CLIP, NOISE_PASSES, NOISE_SCALE = 3.0, 2, 1.0 / 0.9866
 
 
 # --------------------------------------------------------------------------- detection
@@ -106,9 +118,62 @@ def _gaussian(img, sigma_px: float, reference: bool) -> np.ndarray:
                             sigmaX=sigma_px, sigmaY=sigma_px, borderType=cv2.BORDER_REFLECT)
 
 
+def _clipped_std(x: np.ndarray) -> float:
+    """The reference of the compiled block noise (``reglib._markers_numba.tile_noise``): a
+    start from the median and the median absolute deviation of every
+    :data:`NOISE_START_STEP`-th value of ``x``, then :data:`NOISE_PASSES` times the mean and
+    standard deviation of the values within :data:`NOISE_CLIP` deviations of the centre,
+    times :data:`NOISE_SCALE`."""
+    start = x[::NOISE_START_STEP]
+    mean = np.median(start)
+    sd = 1.4826 * np.median(np.abs(start - mean))
+    for _ in range(NOISE_PASSES):
+        keep = (x >= mean - NOISE_CLIP * sd) & (x <= mean + NOISE_CLIP * sd)
+        if not keep.any():
+            break
+        mean = x[keep].mean()
+        sd = np.sqrt(((x[keep] - mean) ** 2).mean())
+    return float(NOISE_SCALE * sd)
+
+
+def _noise_map(g1, g2, inside, field_noise: float, mode: str, reference: bool) -> np.ndarray:
+    """(H, W) the noise of the band-pass ``g1 - g2`` at each pixel: the clipped standard
+    deviation (:func:`_clipped_std`) of its block of :data:`NOISE_TILE_PX` px within
+    ``inside``, on every :data:`NOISE_STEP_PX`-th row and column; a block with less than a
+    quarter of those pixels inside takes the field's figure ``field_noise``; each pixel gets
+    the largest figure of its block and the 8 around it. ``mode="field"``: ``field_noise``
+    everywhere."""
+    H, W = g1.shape
+    T, S = NOISE_TILE_PX, NOISE_STEP_PX
+    min_count = (T // S) ** 2 // 4
+    if mode == "field":
+        return np.full((H, W), field_noise)
+    if reference:
+        v = np.asarray(g1, dtype=np.float64) - np.asarray(g2, dtype=np.float64)
+        ny, nx = -(-H // T), -(-W // T)
+        tiles = np.full((ny, nx), np.nan)
+        for by in range(ny):
+            for bx in range(nx):
+                sl = (slice(by * T, (by + 1) * T, S), slice(bx * T, (bx + 1) * T, S))
+                x = v[sl][inside[sl]]
+                if len(x) >= min_count:
+                    tiles[by, bx] = _clipped_std(x)
+    else:
+        from reglib import _markers_numba as mk
+
+        tiles = mk.tile_noise(g1, g2, inside, T, S, min_count, NOISE_START_STEP, NOISE_CLIP,
+                              NOISE_PASSES, NOISE_SCALE)
+    tiles = np.where(np.isfinite(tiles), tiles, field_noise)
+    # the largest of the block and its 8 neighbours: a block across the edge of the limb
+    # measures its quiet part (the clipping takes the noisy part for outliers), and the
+    # noisy pixels next to it would pass as blobs
+    tiles = ndimage.maximum_filter(tiles, size=3, mode="nearest")
+    return np.repeat(np.repeat(tiles, T, axis=0), T, axis=1)[:H, :W]
+
+
 def detect_markers(previous, current, *, polarity: str = "dark", response: str = "log",
-                   rel_threshold: float = 0.35,
-                   n_sigma: float = 6.0, min_area_px: int = 4, max_area_px: int = 2000,
+                   rel_threshold: float = 0.35, noise_mode: str = "block",
+                   n_sigma: float = 4.5, min_area_px: int = 4, max_area_px: int = 2000,
                    max_elongation: float = 2.0, centroid_floor: float = 0.25,
                    mask=None, reference: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Blobs that appeared in ``current`` and not in ``previous`` (the rod's new beads).
@@ -119,8 +184,8 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
     intensities, as from a logarithmic video amplifier, and are differenced as they are,
     with ``"linear"`` their logarithm is taken); blobs are the connected regions of the
     smoothed ``d`` above ``rel_threshold`` times the peak of the region (above the noise,
-    ``n_sigma`` robust standard deviations) they lie in, and above half ``rel_threshold``
-    times the frame's peak. Each centroid is the
+    ``n_sigma`` robust standard deviations of the noise where it lies) they lie in, and
+    above half ``rel_threshold`` times the frame's peak. Each centroid is the
     mean over a disc about the blob weighted by ``d`` above a floor (the median of a ring
     around the disc, the background, plus ``centroid_floor`` times the blob's height above
     it: this drops the rod's faint band under the bead), iterated with the disc re-centred.
@@ -129,6 +194,11 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
     ----------
     previous, current : (H, W) images (any dtype; intensities, larger = more X-rays).
     polarity : "dark" (markers absorb: darker in ``current``) or "bright".
+    noise_mode : "block" (the noise measured per block of the field, :func:`_noise_map`:
+        behind bone, beside the limb in air and under a steel instrument the quanta and so
+        the noise differ several-fold) or "field" (one robust figure for the whole field,
+        the detector before 2026-11-25: a patient turned under the C-arm filled the noisy
+        part with blobs, 56-83 for a rod of 8 beads).
     mask : (H, W) bool, optional; where to look (e.g. the intensifier's circular field).
         A blob whose centroid window reaches outside it is dropped (cut by the field's edge,
         its centroid would be biased).
@@ -152,6 +222,8 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
         raise ValueError(f"polarity: expected 'dark' or 'bright', got {polarity!r}")
     if response not in ("log", "linear"):
         raise ValueError(f"response: expected 'log' or 'linear', got {response!r}")
+    if noise_mode not in ("block", "field"):
+        raise ValueError(f"noise_mode: expected 'block' or 'field', got {noise_mode!r}")
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
         if mask.shape != a.shape:
@@ -179,7 +251,8 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
         d, d32, n_in = mk.centred_difference(a, b, inside, -1 if polarity == "bright" else 1,
                                              top)
         g1 = _gaussian(d32, BLOB_SIGMA_PX, False)
-        ds, dsi, peak = mk.band(g1, _gaussian(d32, BACKGROUND_SIGMA_PX, False), inside, n_in)
+        g2 = _gaussian(d32, BACKGROUND_SIGMA_PX, False)
+        ds, dsi, peak = mk.band(g1, g2, inside, n_in)
         noise = 1.4826 * _median(np.abs(dsi - _median(dsi, False)), False)
     else:
         d = _log_image(a, response) - _log_image(b, response)
@@ -196,7 +269,8 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
         # broad steel tip fade, bead-sized blobs stay, so that a strong tip or a blurred frame
         # does not lift the threshold above the beads
         g1 = _gaussian(d, BLOB_SIGMA_PX, reference)
-        ds = g1 - _gaussian(d, BACKGROUND_SIGMA_PX, reference)
+        g2 = _gaussian(d, BACKGROUND_SIGMA_PX, reference)
+        ds = g1 - g2
         dsi = ds[inside] if inside.any() else ds.ravel()  # the noise of the field, not the black
         noise = 1.4826 * _median(np.abs(dsi - _median(dsi, reference)), reference)
         # ...of attenuation that was added: the positive rim the band-pass leaves around a bead
@@ -208,10 +282,11 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
     # relative threshold per region: each connected region above the noise gets
     # rel_threshold times its own peak (a bright newcomer elsewhere, e.g. an instrument
     # moved into the field, does not raise the threshold for the beads)
-    low = max(n_sigma * noise, 0.02 * peak)
+    noise_px = _noise_map(g1, g2, inside, noise, noise_mode, reference)
+    low = np.maximum(n_sigma * noise_px, 0.02 * peak)
     regions, n_regions = _label(ds > low, reference)
     # never below half the global relative threshold: noise specks are regions of their own
-    base = max(low, 0.5 * rel_threshold * peak)
+    base = np.maximum(low, 0.5 * rel_threshold * peak)
     if reference:
         region_peak = np.zeros(n_regions + 1)
         region_peak[1:] = ndimage.maximum(ds, regions, np.arange(1, n_regions + 1))
