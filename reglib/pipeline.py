@@ -93,6 +93,15 @@ MAX_WEAK_MOTION_MM = 6.0
 #: had a median of 4.5 mm.
 MIN_VIEW_FIT = 0.25
 VIEW_FIT_MM = 2.0
+#: the verdict's limit on the view that shows least of the bone (``min_contour_share``: its
+#: X-ray contour paths as a share of the median over the views used). The fit of such a view
+#: says little: a held-out scene (experiment2's patient turned 15 deg under its views,
+#: 2026-11-25) left the femoral head at the edge of the proximal views, 25-58 contour points
+#: in proximal_ap against 515-541 in the distal views (shares 0.08-0.18); 7 seeds were
+#: accepted, one with its proximal pin 7.2 mm off (mTRE 3.5 mm; the weakest motion, 4.9 mm,
+#: and the worst view fit, 58 %, passed). Views that show their region: shares 0.8-1.2 on
+#: experiment1 and experiment2.
+MIN_CONTOUR_SHARE = 0.25
 #: the coarse stage of the "coarse-fine" strategy: keyword options of register over the
 #: estimate's registration options
 COARSE_STAGE = {"residual": "line", "max_iterations": 25}
@@ -126,7 +135,8 @@ class EstimateOptions:
     (``weak_motion_mm`` of :func:`match_quality`; inf: not checked);
     ``accept_min_view_fit``: its limit on the worst view's share of X-ray paths that the
     surfaces' apparent contours explain (``worst_view_fit``, :func:`view_fit`; 0: not
-    checked).
+    checked); ``accept_min_contour_share``: its limit on the view that shows least of the
+    bone (its contour paths over the median of the views'; 0: not checked).
     """
 
     tps_smoothing: float = TPS_SMOOTHING
@@ -146,6 +156,7 @@ class EstimateOptions:
     accept_min_inlier_fraction: float = 0.5
     accept_max_weak_motion_mm: float = MAX_WEAK_MOTION_MM
     accept_min_view_fit: float = MIN_VIEW_FIT
+    accept_min_contour_share: float = MIN_CONTOUR_SHARE
 
     def __post_init__(self):
         for name in ("tps_smoothing", "simplify_tol_mm"):
@@ -157,7 +168,8 @@ class EstimateOptions:
             v = getattr(self, name)
             if not (isinstance(v, int | float) and v > 0):
                 raise ValueError(f"EstimateOptions.{name}: expected a number > 0, got {v!r}")
-        for name in ("accept_min_inlier_fraction", "accept_min_view_fit"):
+        for name in ("accept_min_inlier_fraction", "accept_min_view_fit",
+                     "accept_min_contour_share"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and 0.0 <= v <= 1.0):
                 raise ValueError(f"EstimateOptions.{name}: expected a value in [0, 1], got "
@@ -658,6 +670,13 @@ def verdict(converged: bool, quality: dict, failed: str, options: EstimateOption
                        f"{VIEW_FIT_MM:g} mm of the surfaces' apparent contours (at least "
                        f"{options.accept_min_view_fit:.0%} needed; it may not show the anatomy "
                        "its region's CT surface covers)")
+    share = quality.get("min_contour_share", float("nan"))
+    if share < options.accept_min_contour_share and n_views > 1:
+        k = quality.get("least_contour_view", -1)
+        name = f"view {view_names[k]}" if 0 <= k < len(view_names) else "a view"
+        reasons.append(f"{LITTLE_BONE}: {name} has {share:.1%} of the views' median count of "
+                       f"X-ray contour paths (at least {options.accept_min_contour_share:.0%} "
+                       "needed); its region's bone may lie mostly outside its field: re-aim it")
     weak = quality.get("weak_motion_mm", float("nan"))
     if not weak <= options.accept_max_weak_motion_mm and not np.isnan(weak):
         reasons.append(WEAK_GEOMETRY + f": the bone can move {weak:.1f} mm (RMS) along its least "
@@ -672,10 +691,24 @@ def verdict(converged: bool, quality: dict, failed: str, options: EstimateOption
 
 #: the start of the verdict's objection to a loosely held pose (restarts cannot mend it)
 WEAK_GEOMETRY = "the views leave the pose loosely determined"
+#: ...and of its objection to a view that shows little of the bone (nor this one)
+LITTLE_BONE = "a view shows little of the bone"
 
 
 def _only_weak_geometry(reasons) -> bool:
-    return bool(reasons) and all(r.startswith(WEAK_GEOMETRY) for r in reasons)
+    """Every objection is one that another start cannot mend (the views' geometry)."""
+    return bool(reasons) and all(r.startswith((WEAK_GEOMETRY, LITTLE_BONE)) for r in reasons)
+
+
+def contour_share(views) -> tuple[float, int]:
+    """The view with the fewest X-ray contour paths: their count as a share of the median
+    over ``views``, and its index (nan, -1 for no view)."""
+    if not len(views):
+        return float("nan"), -1
+    counts = np.array([len(v.origins) for v in views], dtype=np.float64)
+    med = float(np.median(counts))
+    k = int(np.argmin(counts))
+    return (float(counts[k] / med) if med > 0 else 0.0), k
 
 
 def restart_poses(start: RigidTransform, pivot_robot, angle_deg: float, n: int) -> list:
@@ -759,6 +792,7 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
         q = {"views_used": len(stages.views), "views_failed": len(stages.failed),
              **match_quality(res), "iterations": int(res.iterations), "reason": res.reason}
         q["worst_view_fit"], q["worst_view"] = view_fit(surfaces, stages.views, res.ct2robot)
+        q["min_contour_share"], q["least_contour_view"] = contour_share(stages.views)
         return res, q, verdict(res.converged, q, failed, options, len(stages.views),
                                [v.name for v in stages.views], list(stages.failed))
 

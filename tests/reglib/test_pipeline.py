@@ -103,6 +103,33 @@ def test_verdict_objections():
         EstimateOptions(accept_min_view_fit=1.5)
     lax = EstimateOptions(accept_max_weak_motion_mm=float("inf"))
     assert verdict(True, {**good, "weak_motion_mm": 50.0}, "", lax, 2) == []
+    # a view that shows little of the bone: refused, named; another start cannot mend it
+    sliver = {**good, "min_contour_share": 0.18, "least_contour_view": 0}
+    few = verdict(True, sliver, "", opts, 4, ["ap", "oblique", "d_ap", "d_obl"])
+    assert len(few) == 1 and "view ap has 18.0% of the views' median" in few[0]
+    from reglib.pipeline import _only_weak_geometry
+
+    assert _only_weak_geometry(few)
+    assert verdict(True, {**sliver, "min_contour_share": 0.8}, "", opts, 4) == []
+    assert verdict(True, sliver, "", EstimateOptions(accept_min_contour_share=0.0), 4) == []
+    assert not any("little of the bone" in r for r in verdict(True, sliver, "", opts, 1, ["ap"]))
+    with pytest.raises(ValueError, match="accept_min_contour_share"):
+        EstimateOptions(accept_min_contour_share=-0.1)
+
+
+def test_contour_share_names_the_view_with_fewest_paths():
+    from reglib.pipeline import contour_share
+    from reglib.register import View
+
+    def view(n, name):
+        o = np.zeros((n, 3))
+        d = np.tile([0.0, 0.0, 1.0], (n, 1))
+        return View(center=np.zeros(3), origins=o, directions=d, name=name)
+
+    share, k = contour_share([view(500, "a"), view(58, "b"), view(530, "c"), view(110, "d")])
+    assert k == 1 and share == pytest.approx(58 / 305)
+    assert contour_share([view(400, "a"), view(420, "b")]) == (pytest.approx(400 / 410), 0)
+    assert np.isnan(contour_share([])[0])
 
 
 def test_restart_poses_turn_about_the_pivot():
