@@ -350,8 +350,8 @@ def calibrate_view(view: str, frames, arrays: Mapping, *, fov=None,
     Returns a :class:`ViewCalibration`; never raises for a calibration that cannot be made
     (``ok`` is False and ``message`` says why), only for malformed input.
     """
-    from reglib.calibration import calibrate
-    from reglib.markers import VALIDATION, SweepData, find_markers
+    from reglib.calibration import calibrate, summarise_problems
+    from reglib.markers import VALIDATION, SweepData, find_markers, identify_by_paths
 
     options = options or EstimateOptions()
     for key in ("plane", "beads_reported", "bead_positions_mm"):
@@ -370,9 +370,19 @@ def calibrate_view(view: str, frames, arrays: Mapping, *, fov=None,
     xy, pts = markers.select(VALIDATION)
     problems = tuple(markers.problems)
     if len(xy) < options.min_validation_markers:
+        # the validation row could not be identified alone (it is one row: no other row of
+        # its plane predicts it): its blobs are identified by the calibration's paths
+        done = set(markers.frame[markers.plane == VALIDATION].tolist())
+        todo = [f for f in np.flatnonzero(sweep.plane == VALIDATION) if f not in done]
+        _, _, xy2, pts2, notes = identify_by_paths(sweep, cal.distances, todo)
+        xy, pts = np.vstack([xy, xy2]), np.vstack([pts, pts2])
+        problems = problems + tuple(notes)
+    if len(xy) < options.min_validation_markers:
+        row = [p for p in problems if "validation plane" in p]
         return ViewCalibration(view, cal, ok=False, problems=problems,
                                message=f"calibration cannot be validated: {len(xy)} validation "
-                               f"markers found (need {options.min_validation_markers})")
+                               f"markers identified (need {options.min_validation_markers})"
+                               + (f": {summarise_problems(row, limit=3)}" if row else ""))
     d = cal.distances(xy, pts) if len(xy) else np.zeros(0)
     if not np.all(np.isfinite(d)):
         return ViewCalibration(view, None, d, ok=False, problems=problems,
@@ -679,13 +689,14 @@ def verdict(converged: bool, quality: dict, failed: str, options: EstimateOption
                        "needed); its region's bone may lie mostly outside its field: re-aim it")
     weak = quality.get("weak_motion_mm", float("nan"))
     if not weak <= options.accept_max_weak_motion_mm and not np.isnan(weak):
+        k = len(failed_views)
+        advice = (f"{k} of the {n_views + k} views {'was' if k == 1 else 'were'} left out "
+                  f"({', '.join(map(str, failed_views))}; why: the warnings): mend "
+                  f"{'it' if k == 1 else 'them'} first, or add a view" if k
+                  else "add a view, or views further apart")
         reasons.append(WEAK_GEOMETRY + f": the bone can move {weak:.1f} mm (RMS) along its least "
                        "constrained motion for the contour distances to change by their median "
-                       f"(limit {options.accept_max_weak_motion_mm:g} mm); add a view, or "
-                       "views further apart"
-                       + (f" ({len(failed_views)} of the {n_views + len(failed_views)} views "
-                          f"were left out: {', '.join(map(str, failed_views))}; see the "
-                          "warnings)" if len(failed_views) else ""))
+                       f"(limit {options.accept_max_weak_motion_mm:g} mm); {advice}")
     return reasons
 
 

@@ -84,7 +84,11 @@ def test_verdict_objections():
     assert "left out" not in loose[0]
     assert verdict(True, {**good, "weak_motion_mm": 11.0}, "", opts, 2, ["d_ap", "d_obl"],
                    ["ap", "oblique"])[0].endswith(
-        "(2 of the 4 views were left out: ap, oblique; see the warnings)")
+        "; 2 of the 4 views were left out (ap, oblique; why: the warnings): mend them first, "
+        "or add a view")
+    assert "; 1 of the 3 views was left out (ap; why: the warnings): mend it first" in verdict(
+        True, {**good, "weak_motion_mm": 11.0}, "", opts, 2, ["d_ap", "d_obl"], ["ap"])[0]
+    assert loose[0].endswith("; add a view, or views further apart")
     assert len(loose) == 1 and "loosely determined" in loose[0] and "11.0 mm" in loose[0]
     assert verdict(True, {**good, "weak_motion_mm": 3.0}, "", opts, 4) == []
     assert verdict(True, {**good, "weak_motion_mm": float("nan")}, "", opts, 4) == []

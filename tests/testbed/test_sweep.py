@@ -137,6 +137,45 @@ def test_a_hidden_bead_is_named_and_the_view_still_calibrates(clean_sweep):
     assert cal.distances(xy, pts).max() < 0.1
 
 
+@pytest.mark.slow
+def test_the_validation_row_identified_by_the_calibrations_paths(clean_sweep):
+    """A validation row reduced to 3 beads (too few for identify_row; the rest under steel
+    all along) is identified by the calibration's paths: the beads that the full row's
+    identification gives, at the same pixels; a calibration whose paths are 10 mm off (the
+    robot positions moved across the beam and the rod) identifies nothing rather than the
+    wrong beads."""
+    from reglib.markers import identify_by_paths
+
+    carm, sw = clean_sweep
+    full = find_markers(SweepData(**sw.for_calibration()))
+    cal = calibrate(full, min_markers=10)
+    f = int(np.flatnonzero(sw.plane == 2)[0])
+    keep = [b for b in full.bead[full.frame == f]][1:4]
+    frames = sw.frames.copy()
+    for b in set(full.bead[full.frame == f]) - set(keep):
+        x, y = np.rint(carm.project(sw.beads_true[f, b][None])[0]).astype(int)
+        frames[:, y - 6:y + 7, x - 6:x + 7] = 3
+    data = SweepData(**(sw.for_calibration() | {"frames": frames}))
+    alone = find_markers(data)
+    assert not np.any(alone.frame == f)                  # the row alone: dropped
+    frame, bead, xy, robot, notes = identify_by_paths(data, cal.distances, [f])
+    assert np.all(frame == f) and sorted(bead) == sorted(keep)
+    ref = {int(b): p for b, p in zip(full.bead[full.frame == f], full.xy_px[full.frame == f])}
+    assert max(np.linalg.norm(ref[int(b)] - p) for b, p in zip(bead, xy)) < 1e-9
+    assert np.allclose(robot, sw.beads_reported[f, bead])
+    assert "3 of 3 blob(s) identified" in notes[0]
+    assert cal.distances(xy, robot).max() < 0.1
+
+    rod = sw.beads_reported[f, -1] - sw.beads_reported[f, 0]
+    across = np.cross(carm.axis_robot, rod)
+    across *= 10.0 / np.linalg.norm(across)
+
+    def off(xy_px, pts):
+        return cal.distances(xy_px, pts + across)
+
+    assert len(identify_by_paths(data, off, [f])[1]) == 0
+
+
 def test_an_unreachable_sweep_names_the_view_and_pose():
     fl = FluoroscopeSpec(distortion=False, noise=False).ideal()
     far = ViewSpec(name="far-away", isocenter_mm=(3000.0, 0.0, 200.0))
