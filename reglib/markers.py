@@ -749,7 +749,7 @@ def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int =
         blobs[f], names[f] = xy, name
         missing = sorted(set(range(len(s))) - set(bead[ok].tolist()))
         if missing:
-            problems.append(f"{name}: beads {missing} not found (outside the field or hidden)")
+            problems.append(f"{name}: beads {missing} not found (outside the field, hidden, or too faint)")
         if (~ok).any():
             problems.append(f"{name}: {int((~ok).sum())} stray blob(s) at "
                             f"{np.round(xy[~ok], 1).tolist()} px ignored")
@@ -780,7 +780,7 @@ def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int =
             add(f, j[good], xy[good])
             missing = sorted(set(range(len(s))) - set(j[good].tolist()))
             problems[k] = (f"{name}: {int(good.sum())} blob(s) identified from the plane's other "
-                           f"rows; beads {missing} not found (outside the field or hidden)")
+                           f"rows; beads {missing} not found (outside the field, hidden, or too faint)")
 
     def cat(key, shape):
         return np.concatenate(rows[key]) if rows[key] else np.zeros(shape)
