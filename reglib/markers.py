@@ -749,7 +749,8 @@ def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int =
         blobs[f], names[f] = xy, name
         missing = sorted(set(range(len(s))) - set(bead[ok].tolist()))
         if missing:
-            problems.append(f"{name}: beads {missing} not found (outside the field, hidden, or too faint)")
+            problems.append(f"{name}: beads {missing} not found (outside the field, hidden, "
+                            "or too faint)")
         if (~ok).any():
             problems.append(f"{name}: {int((~ok).sum())} stray blob(s) at "
                             f"{np.round(xy[~ok], 1).tolist()} px ignored")
@@ -780,7 +781,8 @@ def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int =
             add(f, j[good], xy[good])
             missing = sorted(set(range(len(s))) - set(j[good].tolist()))
             problems[k] = (f"{name}: {int(good.sum())} blob(s) identified from the plane's other "
-                           f"rows; beads {missing} not found (outside the field, hidden, or too faint)")
+                           f"rows; beads {missing} not found (outside the field, hidden, or too "
+                           "faint)")
 
     def cat(key, shape):
         return np.concatenate(rows[key]) if rows[key] else np.zeros(shape)
@@ -789,8 +791,6 @@ def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int =
     return Markers(sweep.view, cat("frame", (0,)).astype(int)[order],
                    cat("plane", (0,)).astype(int)[order], cat("bead", (0,)).astype(int)[order],
                    cat("xy", (0, 2))[order], cat("robot", (0, 3))[order], problems, expected)
-
-
 
 
 def identify_by_paths(sweep: SweepData, distances, frames, *, tolerance: float = 0.3,
@@ -817,7 +817,8 @@ def identify_by_paths(sweep: SweepData, distances, frames, *, tolerance: float =
 
     Returns
     -------
-    frame (M,), bead (M,), xy_px (M, 2), robot (M, 3) mm, and one note per frame.
+    frame (M,), bead (M,), xy_px (M, 2), robot (M, 3) mm, and a note per frame it looked
+    at (none for frame 0 or a frame without robot positions).
     """
     frames_img = np.asarray(sweep.frames)
     beads = np.asarray(sweep.beads_robot, dtype=np.float64)
