@@ -766,9 +766,10 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
     the matches and the matches hold the pose within ``accept_max_weak_motion_mm`` along its
     least constrained motion (two views, one per end of a long bone, do not: the bone can
     slide along their beams), every view fits (``accept_min_view_fit``) and none shows
-    little of the bone (``accept_min_contour_share``); otherwise ``message`` says why. When the first result is not
-    accepted, up to ``options.restarts`` turned starts are tried and the best verdict is
-    returned (not when the only objection is the loosely held pose: no start mends that).
+    little of the bone (``accept_min_contour_share``); otherwise ``message`` says why.
+    When the first result is not accepted, up to ``options.restarts`` turned starts are
+    tried and the best verdict is returned (not when the only objections are the views'
+    geometry, the loosely held pose or a view showing little bone: no start mends them).
     """
     from reglib.register import register
 
