@@ -231,14 +231,21 @@ def cmd_study(args) -> int:
         raise UsageError(f"{PROG} study: --out DIR is required")
     global _scene_path
     if args.scene is not None:  # a refusal of the scene after loading names its file
-        from testbed.scene import find_scene
+        from testbed.scene import find_scene, load_scene
 
         _scene_path = find_scene(args.scene)
+        load_scene(_scene_path)   # a malformed scene is refused before --out is made
+    made = not Path(args.out).exists()
     out = _out_folder(args.out)
-    _check_scheduler(args, "study")
-    run_study(args.name, out, scene=args.scene, seed=args.seed, quick=args.quick,
-              workers=args.workers, scheduler=args.scheduler, retries=args.retries,
-              progress=sys.stderr.isatty())
+    try:
+        _check_scheduler(args, "study")
+        run_study(args.name, out, scene=args.scene, seed=args.seed, quick=args.quick,
+                  workers=args.workers, scheduler=args.scheduler, retries=args.retries,
+                  progress=sys.stderr.isatty())
+    except BaseException:
+        if made and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()   # refused before any result: leave no empty folder behind
+        raise
     print(f"wrote {out / 'results.csv'} and {out / 'report.md'}")
     return _failed_trials(out)
 

@@ -183,7 +183,11 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
         except (OSError, ValueError, KeyError) as exc:
             problems.append(f"{c.name}: {exc}")
     if scene is None:
-        raise ValueError(f"{dataset}: no case can be read ({'; '.join(problems)[:300]})")
+        gone = missing_cases(dataset)
+        raise ValueError(f"{dataset}: no case can be read ({'; '.join(problems)[:300]})"
+                         + (f"; dataset.json lists {', '.join(gone[:5])}"
+                            + (f" and {len(gone) - 5} more" if len(gone) > 5 else "")
+                            + ", which the folder lacks (renamed or removed?)" if gone else ""))
     try:
         seed = int(json.loads((dataset / "dataset.json").read_text()).get("seed", 0))
     except (OSError, ValueError, TypeError, AttributeError):

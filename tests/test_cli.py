@@ -435,3 +435,16 @@ def test_score_out_inside_the_dataset_is_refused(tmp_path, capsys):
         assert main(["score", str(ds), "--out", str(out)]) == 2
         assert "inside the dataset" in capsys.readouterr().err
     assert not (ds / "scores").exists()
+
+
+def test_study_refuses_a_malformed_scene_before_making_its_out_folder(tmp_path, capsys):
+    (tmp_path / "bad.toml").write_text('[scene]\nname = "bad"\nkind = "operating_room"\n'
+                                       "bogus = 1\n")
+    out = tmp_path / "study"
+    assert main(["study", "table2", "--scene", str(tmp_path / "bad.toml"),
+                 "--out", str(out)]) == 2
+    assert "scene.bogus" in capsys.readouterr().err
+    assert not out.exists()
+    # a refusal after the folder was made (an unknown scheduler) leaves no empty folder
+    assert main(["study", "table2", "--scheduler", "tcp://nohost:1", "--out", str(out)]) == 2
+    assert not out.exists()

@@ -326,6 +326,14 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path):
     assert "Failed cases" in report and victim.name in report
     assert f"seed: {index['seed']}" in report
 
+    # the only case renamed: the refusal names the cases the index lists and the folder lacks
+    ds3 = tmp_path / "ds3"
+    shutil.copytree(tmp_path / "ds", ds3)
+    (ds3 / "case_0000").rename(ds3 / "case_moved")
+    with pytest.raises(ValueError, match=r"no case can be read \(case_moved: .*; dataset.json "
+                       r"lists case_0000, case_0001, which the folder lacks"):
+        score_dataset(ds3, tmp_path / "s7", progress=False)
+
 
 def test_generate_refuses_to_mix_datasets_and_wrong_scenes(tmp_path):
     """Refusals come before any simulation and leave nothing behind."""
