@@ -124,7 +124,8 @@ def tile_noise(g1, g2, mask, tile, step, min_count, start_step, clip, passes, sc
     """The noise of ``g1 - g2`` per ``tile`` x ``tile`` block (blocks from the top-left
     corner, the last ones cut by the edge), from its values in ``mask`` on every
     ``step``-th row and column of the block, in row-major order: the median and 1.4826
-    times the median absolute deviation of every ``start_step``-th of them, then
+    times the median absolute deviation of every ``start_step``-th of them (their mean and
+    standard deviation if that deviation is 0), then
     ``passes`` times the mean and standard deviation of the values within ``clip``
     deviations of the centre, times ``scale``; NaN for a block with fewer than
     ``min_count`` values. Returns ``(rows of blocks, columns of blocks)`` float64 (the
@@ -153,6 +154,15 @@ def tile_noise(g1, g2, mask, tile, step, min_count, start_step, clip, passes, sc
             for j in range(k):
                 sub[j] = abs(sub[j] - mean)
             sd = 1.4826 * _median_of(sub, k)
+            if not sd > 0:   # most values equal (clipped video): the plain deviation
+                s1 = 0.0
+                for j in range(m):
+                    s1 += buf[j]
+                mean = s1 / m
+                s2 = 0.0
+                for j in range(m):
+                    s2 += (buf[j] - mean) ** 2
+                sd = np.sqrt(s2 / m)
             for _ in range(passes):
                 lo = mean - clip * sd
                 hi = mean + clip * sd

@@ -122,12 +122,15 @@ def _gaussian(img, sigma_px: float, reference: bool) -> np.ndarray:
 def _clipped_std(x: np.ndarray) -> float:
     """The reference of the compiled block noise (``reglib._markers_numba.tile_noise``): a
     start from the median and the median absolute deviation of every
-    :data:`NOISE_START_STEP`-th value of ``x``, then :data:`NOISE_PASSES` times the mean and
-    standard deviation of the values within :data:`NOISE_CLIP` deviations of the centre,
-    times :data:`NOISE_SCALE`."""
+    :data:`NOISE_START_STEP`-th value of ``x`` (their mean and standard deviation if that
+    deviation is 0: most values equal, as in clipped video), then :data:`NOISE_PASSES`
+    times the mean and standard deviation of the values within :data:`NOISE_CLIP`
+    deviations of the centre, times :data:`NOISE_SCALE`."""
     start = x[::NOISE_START_STEP]
     mean = np.median(start)
     sd = 1.4826 * np.median(np.abs(start - mean))
+    if not sd > 0:   # most values equal (clipped video): the plain deviation
+        mean, sd = x.mean(), np.sqrt(((x - x.mean()) ** 2).mean())
     for _ in range(NOISE_PASSES):
         keep = (x >= mean - NOISE_CLIP * sd) & (x <= mean + NOISE_CLIP * sd)
         if not keep.any():
@@ -148,7 +151,7 @@ def _noise_map(g1, g2, inside, field_noise: float, mode: str, reference: bool) -
     T, S = NOISE_TILE_PX, NOISE_STEP_PX
     min_count = (T // S) ** 2 // 4
     if mode == "field":
-        return np.full((H, W), field_noise)
+        return np.full((H, W), field_noise, dtype=np.float64)
     if reference:
         v = np.asarray(g1, dtype=np.float64) - np.asarray(g2, dtype=np.float64)
         ny, nx = -(-H // T), -(-W // T)
@@ -164,11 +167,13 @@ def _noise_map(g1, g2, inside, field_noise: float, mode: str, reference: bool) -
 
         tiles = mk.tile_noise(g1, g2, inside, T, S, min_count, NOISE_START_STEP, NOISE_CLIP,
                               NOISE_PASSES, NOISE_SCALE)
-    tiles = np.where(np.isfinite(tiles), tiles, field_noise)
-    # the largest of the block and its 8 neighbours: a block across the edge of the limb
+    # the largest of the block and its 8 neighbours (blocks without a figure, outside the
+    # field or beyond the frame, do not count): a block across the edge of the limb
     # measures its quiet part (the clipping takes the noisy part for outliers), and the
     # noisy pixels next to it would pass as blobs
-    tiles = ndimage.maximum_filter(tiles, size=3, mode="nearest")
+    tiles = ndimage.maximum_filter(np.where(np.isfinite(tiles), tiles, -np.inf), size=3,
+                                   mode="constant", cval=-np.inf)
+    tiles = np.where(np.isfinite(tiles), tiles, field_noise)
     return np.repeat(np.repeat(tiles, T, axis=0), T, axis=1)[:H, :W]
 
 
@@ -197,9 +202,9 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
     polarity : "dark" (markers absorb: darker in ``current``) or "bright".
     noise_mode : "block" (the noise measured per block of the field, :func:`_noise_map`:
         behind bone, beside the limb in air and under a steel instrument the quanta and so
-        the noise differ several-fold) or "field" (one robust figure for the whole field,
-        the detector before 2026-11-25: a patient turned under the C-arm filled the noisy
-        part with blobs, 56-83 for a rod of 8 beads).
+        the noise differ several-fold) or "field" (one robust figure for the whole field;
+        with ``n_sigma=6.0``, the detector before 2026-11-25: a patient turned under the
+        C-arm filled the noisy part with blobs, 34-84 per frame for a rod of 8 beads).
     mask : (H, W) bool, optional; where to look (e.g. the intensifier's circular field).
         A blob whose centroid window reaches outside it is dropped (cut by the field's edge,
         its centroid would be biased).
@@ -236,7 +241,9 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
         rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
         if len(rows):
             m = int(4.0 * BACKGROUND_SIGMA_PX + 0.5) + 1
-            y_off, x_off = max(rows[0] - m, 0), max(cols[0] - m, 0)
+            # ...its corner on the noise blocks' grid, so that the blocks are the frame's
+            y_off = max(rows[0] - m, 0) // NOISE_TILE_PX * NOISE_TILE_PX
+            x_off = max(cols[0] - m, 0) // NOISE_TILE_PX * NOISE_TILE_PX
             y_end, x_end = min(rows[-1] + m + 1, a.shape[0]), min(cols[-1] + m + 1, a.shape[1])
             a, b = a[y_off:y_end, x_off:x_end], b[y_off:y_end, x_off:x_end]
             mask = mask[y_off:y_end, x_off:x_end]
@@ -794,19 +801,25 @@ def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int =
 
 
 def identify_by_paths(sweep: SweepData, distances, frames, *, tolerance: float = 0.3,
-                      polarity: str = "dark", **detect_kw):
+                      min_matched: int = 4, on_row_px: float = 3.0, polarity: str = "dark",
+                      **detect_kw):
     """The beads of some frames of a sweep identified by a calibration's X-ray paths, for a
-    row that its blobs alone cannot identify (fewer than :func:`identify_row` needs, or two
-    assignments that fit about equally; the validation plane has a single row, so no other
-    row of its plane can predict it).
+    row that its blobs alone cannot identify (two assignments that fit about equally; the
+    validation plane has a single row, so no other row of its plane can predict it).
 
     Each blob that appeared in a frame (:func:`detect_markers` against the frame before)
     is the bead whose robot-reported position lies nearest its X-ray path, when nearer than
     ``tolerance`` times the rod's smallest bead gap (mm); one blob per bead, the nearest.
-    With the default 0.3 of the default rod's 12 mm, 3.6 mm: a calibration off by less
-    than that is still measured (and failed above its validation limit), one off by more
-    finds no bead, unless its error lies within that of a bead gap along the rod (then
-    the blobs take the neighbouring beads, and their distances show the remainder).
+    With the default 0.3 of the default rod's 12 mm, 3.6 mm. A row is used only with the
+    evidence :func:`identify_row` asks for, ``min_matched`` beads, and when no other blob
+    lies on it (within ``on_row_px`` of the line through its identified blobs): a blob on
+    the row that matches no bead is a bead the calibration misplaces by more than the
+    tolerance (e.g. at one end of the field), and leaving it out would validate the
+    calibration on the beads it already agrees with. A calibration off by less than the
+    tolerance is measured (and failed above its validation limit); one off by more than
+    the tolerance everywhere finds no bead, unless its error lies within that of a bead
+    gap along the rod (then the blobs take the neighbouring beads, and their distances
+    show the remainder).
 
     Parameters
     ----------
@@ -818,26 +831,31 @@ def identify_by_paths(sweep: SweepData, distances, frames, *, tolerance: float =
     Returns
     -------
     frame (M,), bead (M,), xy_px (M, 2), robot (M, 3) mm, and a note per frame it looked
-    at (none for frame 0 or a frame without robot positions).
+    at (none for frame 0).
     """
     frames_img = np.asarray(sweep.frames)
     beads = np.asarray(sweep.beads_robot, dtype=np.float64)
-    s = np.asarray(sweep.bead_positions_mm, dtype=np.float64)
+    s = np.sort(np.asarray(sweep.bead_positions_mm, dtype=np.float64))
     limit = tolerance * float(np.min(np.diff(s))) if len(s) > 1 else np.inf
     out_f, out_b, out_xy, notes = [], [], [], []
     for f in frames:
         f = int(f)
+        if f < 1:
+            continue
         plane_name = PLANE_NAMES.get(int(sweep.plane[f]), sweep.plane[f])
         name = f"view {sweep.view}, {plane_name} plane, frame {f}"
-        if f < 1 or not np.all(np.isfinite(beads[f])):
+        have = np.flatnonzero(np.all(np.isfinite(beads[f]), axis=1))
+        if not len(have):
+            notes.append(f"{name}: robot positions missing; row not identified by the "
+                         "calibration's paths")
             continue
         xy, _ = detect_markers(frames_img[f - 1], frames_img[f], polarity=polarity,
                                mask=sweep.mask, **detect_kw)
-        if not len(xy):
+        K, n = len(xy), len(have)
+        if K == 0:
             notes.append(f"{name}: no blobs to identify by the calibration's paths")
             continue
-        K, n = len(xy), len(s)
-        d = distances(np.repeat(xy, n, axis=0), np.tile(beads[f], (K, 1))).reshape(K, n)
+        d = distances(np.repeat(xy, n, axis=0), np.tile(beads[f][have], (K, 1))).reshape(K, n)
         d = np.where(np.isfinite(d), d, np.inf)
         best = np.argmin(d, axis=1)
         near = d[np.arange(K), best] < limit
@@ -846,11 +864,24 @@ def identify_by_paths(sweep: SweepData, distances, frames, *, tolerance: float =
             k = np.flatnonzero(near & (best == b))
             kept.append(int(k[np.argmin(d[k, b])]))
         kept = np.array(sorted(kept, key=lambda k: best[k]), dtype=np.int64)
+        head = (f"{name}: {len(kept)} of {K} blob(s) identify beads by the calibration's X-ray "
+                f"paths (within {limit:.1f} mm)")
+        if len(kept) < min_matched:
+            notes.append(f"{head}, {min_matched} needed; row dropped")
+            continue
+        # the line through the identified blobs: a blob on it that matches no bead
+        c = xy[kept].mean(axis=0)
+        u = np.linalg.svd(xy[kept] - c)[2][0]
+        rest = np.setdiff1d(np.arange(K), kept)
+        across = np.abs((xy[rest] - c) @ np.array([-u[1], u[0]]))
+        if np.any(across <= on_row_px):
+            notes.append(f"{head}; {int(np.sum(across <= on_row_px))} other blob(s) on the row "
+                         "match no bead (the calibration may misplace them); row dropped")
+            continue
         out_f.append(np.full(len(kept), f))
-        out_b.append(best[kept])
+        out_b.append(have[best[kept]])
         out_xy.append(xy[kept])
-        notes.append(f"{name}: {len(kept)} of {K} blob(s) identified by the calibration's "
-                     f"X-ray paths (within {limit:.1f} mm of a bead)")
+        notes.append(head)
     if not out_f:
         return (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, 2)),
                 np.zeros((0, 3)), notes)

@@ -156,6 +156,13 @@ def test_block_noise_compiled_equals_its_reference():
     flat[rng.random(flat.shape) < 0.02] += 40.0
     est = _noise_map(flat, np.zeros_like(flat), np.ones(flat.shape, bool), 1.0, "block", False)
     assert 1.0 < np.median(est) / 2.0 < 1.1
+    # most values equal (clipped video beside the limb): not a zero noise
+    tied = rng.normal(0, 1.0, (64, 64))
+    tied[rng.random(tied.shape) < 0.6] = 0.0
+    tied = tied.astype(np.float32)
+    args = (tied, np.zeros_like(tied), np.ones(tied.shape, bool), 9.0, "block")
+    assert 0.3 < _noise_map(*args, False).min() and np.allclose(_noise_map(*args, False),
+                                                                 _noise_map(*args, True))
     for frac in (0.1, 0.25, 0.4):
         block = rng.normal(0, 1.5, (32, 32))
         k = int(round(np.sqrt(frac) * 32))
@@ -167,7 +174,7 @@ def test_block_noise_compiled_equals_its_reference():
 
 
 def test_detect_markers_judges_each_part_of_the_field_by_its_own_noise():
-    """A frame whose lower half gets 8x the video noise of the upper (soft tissue against air
+    """A frame whose lower half gets 10x the video noise of the upper (soft tissue against air
     beside the limb at few quanta; the patient turned under the C-arm), faint beads in the
     quiet half: with one noise figure for the whole field the noisy half fills with blobs
     and the row cannot be identified; with the noise measured per block only the beads are
@@ -179,10 +186,10 @@ def test_detect_markers_judges_each_part_of_the_field_by_its_own_noise():
     centres = start + (BEADS * 1.4)[:, None] * u
     prev = _bead_image([], contrast=15.0).astype(float)
     cur = _bead_image(centres, rod=(start, u, 6.0), contrast=15.0).astype(float)
-    sigma = np.where(np.arange(shape[0])[:, None] < 120, 0.5, 4.0) * np.ones(shape)
+    sigma = np.where(np.arange(shape[0])[:, None] < 120, 0.5, 5.0) * np.ones(shape)
     prev = np.clip(np.rint(prev + rng.normal(size=shape) * sigma), 0, 255).astype(np.uint8)
     cur = np.clip(np.rint(cur + rng.normal(size=shape) * sigma), 0, 255).astype(np.uint8)
-    one, _ = detect_markers(prev, cur, noise_mode="field")
+    one, _ = detect_markers(prev, cur, noise_mode="field", n_sigma=6.0)   # the old rule
     assert len(one) > 3 * len(centres)
     with pytest.raises(ValueError, match="too many"):
         identify_row(one, BEADS)
@@ -193,6 +200,25 @@ def test_detect_markers_judges_each_part_of_the_field_by_its_own_noise():
         assert np.all(d.min(axis=1) < 0.15)
         bead, _ = identify_row(xy, BEADS)
         np.testing.assert_array_equal(np.sort(bead), np.arange(len(BEADS)))
+    # the fast path's crop keeps the frame's blocks: the same thresholds as the reference
+    # (a field whose edges lie off the 32-px blocks)
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]]
+    mask = np.hypot(xx - 170, yy - 113) < 111
+    import reglib.markers as markers_module
+
+    maps = []
+    noise_map = markers_module._noise_map
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(markers_module, "_noise_map", lambda *a: maps.append(noise_map(*a))
+                   or maps[-1])
+        fast = detect_markers(prev, cur, mask=mask)
+        ref = detect_markers(prev, cur, mask=mask, reference=True)
+    assert fast[0].shape == ref[0].shape and np.abs(fast[0] - ref[0]).max() < 1e-6
+    small, whole = maps    # the fast path's map on its crop: equal to the whole frame's there
+    h, w = small.shape
+    assert any(np.allclose(small[mask[y:y + h, x:x + w]], whole[y:y + h, x:x + w][
+        mask[y:y + h, x:x + w]], rtol=1e-5) for y in range(shape[0] - h + 1)
+        for x in range(shape[1] - w + 1))
 
 
 def test_fast_labels_equal_ndimage_labels():

@@ -139,41 +139,56 @@ def test_a_hidden_bead_is_named_and_the_view_still_calibrates(clean_sweep):
 
 @pytest.mark.slow
 def test_the_validation_row_identified_by_the_calibrations_paths(clean_sweep):
-    """A validation row reduced to 3 beads (too few for identify_row; the rest under steel
-    all along) is identified by the calibration's paths: the beads that the full row's
-    identification gives, at the same pixels; a calibration whose paths are 10 mm off (the
-    robot positions moved across the beam and the rod) identifies nothing rather than the
-    wrong beads."""
+    """The validation row identified by the calibration's paths: with 5 of its beads
+    visible (the rest under steel all along), the beads that the full row's identification
+    gives, at the same pixels; with 3, dropped (identify_row's 4 are needed); a calibration
+    off by 5 mm at one end of the row (2 of 6 beads), dropped (blobs on the row that match
+    no bead), not validated on the 4 beads it agrees with; paths 10 mm off across
+    the beam and the rod: nothing identified."""
     from reglib.markers import identify_by_paths
 
     carm, sw = clean_sweep
     full = find_markers(SweepData(**sw.for_calibration()))
     cal = calibrate(full, min_markers=10)
     f = int(np.flatnonzero(sw.plane == 2)[0])
-    keep = [b for b in full.bead[full.frame == f]][1:4]
-    frames = sw.frames.copy()
-    for b in set(full.bead[full.frame == f]) - set(keep):
-        x, y = np.rint(carm.project(sw.beads_true[f, b][None])[0]).astype(int)
-        frames[:, y - 6:y + 7, x - 6:x + 7] = 3
-    data = SweepData(**(sw.for_calibration() | {"frames": frames}))
-    alone = find_markers(data)
-    assert not np.any(alone.frame == f)                  # the row alone: dropped
-    frame, bead, xy, robot, notes = identify_by_paths(data, cal.distances, [f])
-    assert np.all(frame == f) and sorted(bead) == sorted(keep)
+    seen = sorted(full.bead[full.frame == f].tolist())
+    assert len(seen) >= 6
+
+    def hide_all_but(keep):
+        frames = sw.frames.copy()
+        for b in set(seen) - set(keep):
+            x, y = np.rint(carm.project(sw.beads_true[f, b][None])[0]).astype(int)
+            frames[:, y - 6:y + 7, x - 6:x + 7] = 3
+        return SweepData(**(sw.for_calibration() | {"frames": frames}))
+
+    five = hide_all_but(seen[:5])
+    frame, bead, xy, robot, notes = identify_by_paths(five, cal.distances, [f])
+    assert np.all(frame == f) and sorted(bead.tolist()) == seen[:5]
     ref = {int(b): p for b, p in zip(full.bead[full.frame == f], full.xy_px[full.frame == f])}
     assert max(np.linalg.norm(ref[int(b)] - p) for b, p in zip(bead, xy)) < 1e-9
     assert np.allclose(robot, sw.beads_reported[f, bead])
-    assert "3 of 3 blob(s) identified" in notes[0]
+    assert notes == [f"view {sw.view}, validation plane, frame {f}: 5 of 5 blob(s) identify "
+                     "beads by the calibration's X-ray paths (within 3.6 mm)"]
     assert cal.distances(xy, robot).max() < 0.1
+
+    three = identify_by_paths(hide_all_but(seen[:3]), cal.distances, [f])
+    assert len(three[1]) == 0 and "4 needed; row dropped" in three[4][0]
 
     rod = sw.beads_reported[f, -1] - sw.beads_reported[f, 0]
     across = np.cross(carm.axis_robot, rod)
-    across *= 10.0 / np.linalg.norm(across)
+    across /= np.linalg.norm(across)
+    split = sw.beads_reported[f, seen[3]] @ rod   # beads past the fourth: misplaced
+
+    def one_end(xy_px, pts):
+        return cal.distances(xy_px, pts + 5.0 * across * (pts @ rod > split + 1e-6)[:, None])
+
+    bad = identify_by_paths(hide_all_but(seen[:6]), one_end, [f])
+    assert len(bad[1]) == 0 and "2 other blob(s) on the row match no bead" in bad[4][0]
 
     def off(xy_px, pts):
-        return cal.distances(xy_px, pts + across)
+        return cal.distances(xy_px, pts + 10.0 * across)
 
-    assert len(identify_by_paths(data, off, [f])[1]) == 0
+    assert len(identify_by_paths(five, off, [f])[1]) == 0
 
 
 def test_an_unreachable_sweep_names_the_view_and_pose():
