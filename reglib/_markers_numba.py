@@ -78,48 +78,6 @@ def band(g1, g2, mask, n):
 
 
 @njit(cache=True)
-def _select(v, n, k):
-    """The ``k``-th smallest of ``v[:n]`` (Hoare's quickselect, in place, middle pivot)."""
-    lo = 0
-    hi = n - 1
-    while lo < hi:
-        pivot = v[(lo + hi) // 2]
-        i = lo
-        j = hi
-        while i <= j:
-            while v[i] < pivot:
-                i += 1
-            while v[j] > pivot:
-                j -= 1
-            if i <= j:
-                t = v[i]
-                v[i] = v[j]
-                v[j] = t
-                i += 1
-                j -= 1
-        if k <= j:
-            hi = j
-        elif k >= i:
-            lo = i
-        else:
-            break
-    return v[k]
-
-
-@njit(cache=True)
-def _median_of(v, n):
-    """``np.median(v[:n])`` (the two middle values' mean for an even ``n``); reorders ``v``."""
-    k = n // 2
-    hi = _select(v, n, k)
-    if n % 2:
-        return hi
-    lo = v[0]
-    for j in range(1, k):     # after the selection v[:k] holds the k smallest
-        lo = max(lo, v[j])
-    return 0.5 * (lo + hi)
-
-
-@njit(cache=True)
 def tile_noise(g1, g2, mask, tile, step, min_count, start_step, clip, passes, scale):
     """The noise of ``g1 - g2`` per ``tile`` x ``tile`` block (blocks from the top-left
     corner, the last ones cut by the edge), from its values in ``mask`` on every
@@ -150,10 +108,10 @@ def tile_noise(g1, g2, mask, tile, step, min_count, start_step, clip, passes, sc
             for j in range(0, m, start_step):
                 sub[k] = buf[j]
                 k += 1
-            mean = _median_of(sub, k)
+            mean = np.median(sub[:k])
             for j in range(k):
                 sub[j] = abs(sub[j] - mean)
-            sd = 1.4826 * _median_of(sub, k)
+            sd = 1.4826 * np.median(sub[:k])
             if not sd > 0:   # most values equal (clipped video): the plain deviation
                 s1 = 0.0
                 for j in range(m):
