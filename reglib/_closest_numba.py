@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from reglib._apparent_numba import OK, contour_chains
 from reglib.geometry import line_segment_across
 
 #: reglib.geometry's scalar line-segment geometry, compiled
@@ -397,3 +398,125 @@ def exact_pairs(o, d, starts, ends, dist_in, seg, within):
             p[i, c, 0], p[i, c, 1], p[i, c, 2] = p0, p1, p2
             q[i, c, 0], q[i, c, 1], q[i, c, 2] = q0, q1, q2
     return dist, p, q
+
+
+@njit(cache=True)
+def view_contours(normals, ndc, twin, he_origin, he_dest, vertices, face0, max_valence, c):
+    """The apparent contours of several surfaces from the centre ``c`` (3,) mm, as the
+    arrays of a :class:`reglib.closest.ContourSet`: what
+    ``ContourSet.from_surfaces`` builds (the reference, compared in tests), in one call.
+
+    The surfaces are stacked: ``normals`` (F, 3) and ``ndc`` (F,) per face, ``twin``,
+    ``he_origin``, ``he_dest`` (3F,) per half-edge, the twins local to their surface (a
+    surface's half-edge ``h`` is its row ``3 * face0[k] + h``) and the vertex ids global
+    (rows of ``vertices`` (V, 3)); surface ``k`` owns the faces ``face0[k]`` to
+    ``face0[k + 1]``.
+
+    Returns ``(starts, ends, path, offsets, closed, status)`` (``status`` as
+    :func:`reglib._apparent_numba.contour_chains`; the first surface's non-OK status stops).
+    """
+    ns = face0.shape[0] - 1
+    chains = []
+    offs = []
+    cls = []
+    paths = []
+    n_seg = 0
+    n_con = 0
+    status = OK
+    for k in range(ns):
+        f0, f1 = face0[k], face0[k + 1]
+        h0, h1 = 3 * f0, 3 * f1
+        chain, off, cl, pid, st = contour_chains(normals[f0:f1], ndc[f0:f1], twin[h0:h1],
+                                                 he_origin[h0:h1], he_dest[h0:h1],
+                                                 max_valence, c)
+        if st != OK:
+            status = st
+            break
+        chains.append(chain + h0)
+        offs.append(off)
+        cls.append(cl)
+        paths.append(pid)
+        n_seg += chain.shape[0]
+        n_con += cl.shape[0]
+    starts = np.empty((n_seg, 3))
+    ends = np.empty((n_seg, 3))
+    path = np.empty((n_seg + n_con, 3))
+    offsets = np.zeros(n_con + 1, dtype=np.int64)
+    closed = np.zeros(n_con, dtype=np.bool_)
+    s = 0
+    q = 0
+    m = 0
+    for k in range(len(chains)):
+        chain, off, cl, pid = chains[k], offs[k], cls[k], paths[k]
+        for j in range(chain.shape[0]):
+            a, b = he_origin[chain[j]], he_dest[chain[j]]
+            for x in range(3):
+                starts[s + j, x] = vertices[a, x]
+                ends[s + j, x] = vertices[b, x]
+        for j in range(pid.shape[0]):
+            for x in range(3):
+                path[q + j, x] = vertices[pid[j], x]
+        for j in range(cl.shape[0]):
+            closed[m + j] = cl[j]
+            offsets[m + j + 1] = off[j + 1] + s
+        s += chain.shape[0]
+        q += pid.shape[0]
+        m += cl.shape[0]
+    return starts, ends, path, offsets, closed, status
+
+
+@njit(cache=True)
+def segment_units(starts, ends, offsets):
+    """Per segment its unit direction (a zero-length segment: its zero vector) and its
+    contour index: ``ContourSet._unit`` and ``ContourSet.segment_contour``."""
+    n = starts.shape[0]
+    unit = np.empty((n, 3))
+    for j in range(n):
+        ex, ey, ez = ends[j, 0] - starts[j, 0], ends[j, 1] - starts[j, 1], ends[j, 2] - starts[j, 2]
+        nn = np.sqrt(ex * ex + ey * ey + ez * ez)
+        if not nn > 0.0:
+            nn = 1.0
+        unit[j, 0], unit[j, 1], unit[j, 2] = ex / nn, ey / nn, ez / nn
+    seg_contour = np.empty(n, dtype=np.int64)
+    for c in range(offsets.shape[0] - 1):
+        for j in range(offsets[c], offsets[c + 1]):
+            seg_contour[j] = c
+    return unit, seg_contour
+
+
+@njit(cache=True)
+def match_views(o, d, external, view0, centres, normals, ndc, twin, he_origin, he_dest,
+                vertices, face0, max_valence, within, max_stab, block, ratio):
+    """:func:`match_lines` for several views at once, each against the apparent contours
+    of the stacked surfaces (:func:`view_contours`) from its centre: the registration
+    loop's matching in one call, without a Python object per view or contour.
+
+    ``o, d`` (N, 3) the lines in the surfaces' frame, ``external`` (N,) bool, view ``v``
+    owning rows ``view0[v]`` to ``view0[v + 1]``; ``centres`` (V, 3) the views' centres in
+    the surfaces' frame; ``block`` and ``ratio`` the capsules' sizes (as
+    :func:`reglib.closest._compiled_capsules`). Returns ``(p (N, 3), tangent (N, 3), bad,
+    status)``: ``bad`` the first view showing no contour (-1: none) and ``status`` the
+    contour extraction's (not OK: ``bad`` is that view). The per-view chain
+    ``ContourSet.from_surfaces`` -> ``_match_contours`` is the reference, compared in
+    tests."""
+    n = o.shape[0]
+    p = np.full((n, 3), np.nan)
+    tan = np.full((n, 3), np.nan)
+    for v in range(view0.shape[0] - 1):
+        starts, ends, path, offsets, closed, st = view_contours(
+            normals, ndc, twin, he_origin, he_dest, vertices, face0, max_valence, centres[v])
+        if st != OK:
+            return p, tan, v, st
+        if closed.shape[0] == 0:
+            return p, tan, v, OK
+        unit, seg_contour = segment_units(starts, ends, offsets)
+        a, b, eps, seg0, cb0 = block_capsules(path, offsets, block)
+        sa, sb, seps, _, sb0 = block_capsules(path, offsets, block * ratio)
+        sc, sr = contour_spheres(path, offsets)
+        r0, r1 = view0[v], view0[v + 1]
+        _, _, pv, tv = match_lines(o[r0:r1], d[r0:r1], starts, ends, unit, seg_contour,
+                                   offsets, closed, a, b, eps, seg0, cb0, sa, sb, seps, sb0,
+                                   ratio, within, sc, sr, external[r0:r1], max_stab)
+        p[r0:r1] = pv
+        tan[r0:r1] = tv
+    return p, tan, -1, OK

@@ -338,23 +338,12 @@ def irls(x0, o, d, nrm, use_normals, fixed, use_fixed, robust, tukey_a, max_iter
     n = x0.shape[0]
     x = x0.copy()
     dof = 3 if use_fixed else 6
-    mean = np.zeros(3)
-    for i in range(n):
-        for k in range(3):
-            mean[k] += x[i, k]
-    mean /= n
-    ss = 0.0
-    for i in range(n):
-        for k in range(3):
-            ss += (x[i, k] - mean[k]) ** 2
-    scale = np.sqrt(ss / n)
-    if scale == 0.0:
-        scale = 1.0
+    w = np.ones(n)
+    scale = _kept_radius(x, w)
     R_tot = np.eye(3)
     t_tot = np.zeros(3)
     r = np.zeros((n, 3))
     dist = np.empty(n)
-    w = np.ones(n)
     m = np.empty(3)
     J = np.zeros((3, 6))
     for _ in range(max_iterations):
@@ -427,3 +416,58 @@ def irls(x0, o, d, nrm, use_normals, fixed, use_fixed, robust, tukey_a, max_iter
     _irls_residuals(x, o, d, nrm, use_normals, r, dist)
     _irls_weights(dist, robust, tukey_a, 1e-12 * scale, w)
     return R_tot, t_tot, dist, w, IRLS_OK
+
+
+@njit(cache=True, inline="always")
+def _kept_radius(P, weights):
+    """RMS distance of the points with ``weights > 0`` from their (plain) centroid, 1 when
+    it is 0 or no point is kept (:func:`reglib.pose._scale_of`)."""
+    k = 0
+    c = np.zeros(3)
+    for i in range(P.shape[0]):
+        if weights[i] > 0.0:
+            k += 1
+            for j in range(3):
+                c[j] += P[i, j]
+    if k == 0:
+        return 1.0
+    for j in range(3):
+        c[j] /= k
+    ss = 0.0
+    for i in range(P.shape[0]):
+        if weights[i] > 0.0:
+            for j in range(3):
+                ss += (P[i, j] - c[j]) ** 2
+    size = np.sqrt(ss / k)
+    return size if size > 0.0 else 1.0
+
+
+@njit(cache=True)
+def rank_gram(P, d, weights):
+    """``J^T J`` (6, 6) of the rank test of :func:`reglib.pose._undetermined` over the pairs
+    with ``weights > 0``: the weighted Jacobian of the point-line residuals at the points
+    ``P`` (N, 3) on the lines of directions ``d`` (N, 3), with respect to a rotation about
+    the kept points' weighted centroid (divided by their RMS radius about their plain
+    centroid, 1 when 0) and a translation. ``reglib.pose._rank_gram`` is the reference,
+    compared in tests."""
+    n = P.shape[0]
+    ws = 0.0
+    m = np.zeros(3)
+    for i in range(n):
+        if weights[i] > 0.0:
+            ws += weights[i]
+            for j in range(3):
+                m[j] += weights[i] * P[i, j]
+    if ws == 0.0:
+        return np.zeros((6, 6))
+    for j in range(3):
+        m[j] /= ws
+    size = _kept_radius(P, weights)
+    # the normal equations' rows are [2 n x (Q - m), n]: with Q = m + (P - m) / (2 size)
+    # they are the rank test's [n x (P - m) / size, n]
+    Q = np.empty((n, 3))
+    for i in range(n):
+        for j in range(3):
+            Q[i, j] = m[j] + (P[i, j] - m[j]) / (2.0 * size)
+    G, _ = _normal_equations(Q, perp_basis(d), np.zeros((2, n)), weights, m[0], m[1], m[2])
+    return G

@@ -814,6 +814,23 @@ def _solve_irls(points, origins, directions, *, normals=None, fixed_point=None,
     return RigidTransform(R_tot, t_tot), dist, w, ok, message
 
 
+def _rank_gram(P, d, weights):
+    """The rank test's Jacobian ``J`` (2, K, 6) over the K pairs with ``weights > 0`` and
+    its Gram matrix ``J^T J`` (6, 6) (see :func:`_undetermined`); the numpy reference of
+    :func:`reglib._pose_numba.rank_gram`."""
+    keep = weights > 0
+    Pk, dk, wk = P[keep], d[keep], np.sqrt(weights[keep])
+    m = (wk**2 @ Pk) / np.sum(wk**2)
+    size = _scale_of(Pk)
+    Nb = _perp_basis(dk)
+    J = np.empty((2, len(Pk), 6))
+    J[:, :, :3] = _cross(Nb, (Pk - m)[None]) / size
+    J[:, :, 3:] = Nb
+    J *= wk[None, :, None]
+    Jf = J.reshape(-1, 6)
+    return J, Jf.T @ Jf
+
+
 def _undetermined(P, o, d, weights, *, single_pairs: bool = False) -> str:
     """Why the pose is not determined by the pairs at the moved points ``P`` (N, 3), or "".
 
@@ -832,23 +849,21 @@ def _undetermined(P, o, d, weights, *, single_pairs: bool = False) -> str:
     k = int(np.count_nonzero(keep))
     if k < 3:
         return f"degenerate geometry: only {k} pairs kept, 3 at least are needed"
-    Pk, dk, wk = P[keep], d[keep], np.sqrt(weights[keep])
-    m = (wk**2 @ Pk) / np.sum(wk**2)
-    size = _scale_of(Pk)
-    Nb = _perp_basis(dk)
-    J = np.empty((2, k, 6))
-    J[:, :, :3] = _cross(Nb, (Pk - m)[None]) / size
-    J[:, :, 3:] = Nb
-    J *= wk[None, :, None]
-    Jf = J.reshape(-1, 6)
-    ev = np.linalg.eigvalsh(Jf.T @ Jf)
+    kernel = None if single_pairs else _numba_kernel()
+    if kernel is not None:   # the Gram matrix compiled, without J (reference: _rank_gram)
+        gram = kernel.rank_gram(np.ascontiguousarray(P, dtype=np.float64),
+                                np.ascontiguousarray(d, dtype=np.float64),
+                                np.ascontiguousarray(weights, dtype=np.float64))
+    else:
+        J, gram = _rank_gram(P, d, weights)
+    ev = np.linalg.eigvalsh(gram)
     if not ev[0] > 1e-12 * ev[-1]:
         rank = int(np.count_nonzero(ev > 1e-12 * ev[-1]))
         return (f"degenerate geometry: the {k} kept point-line pairs determine the pose only "
                 f"up to {6 - rank} degree(s) of freedom (rank {rank} of 6: parallel or "
                 "identical lines, collinear points, or points and lines in one plane)")
     if single_pairs:
-        G = np.linalg.solve(Jf.T @ Jf, J.reshape(-1, 6).T).reshape(6, 2, k)
+        G = np.linalg.solve(gram, J.reshape(-1, 6).T).reshape(6, 2, k)
         B = np.einsum("rkj,jsk->krs", J, G)  # (k, 2, 2): each pair's block of J C^-1 J^T
         tr, det = B[:, 0, 0] + B[:, 1, 1], B[:, 0, 0] * B[:, 1, 1] - B[:, 0, 1] * B[:, 1, 0]
         lev = 0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))

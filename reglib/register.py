@@ -297,6 +297,46 @@ def _motion(a: RigidTransform, b: RigidTransform, corners) -> tuple[float, float
     return mm, float(np.degrees((a @ b.inverse()).angle_rad))
 
 
+def _stacked(tops) -> tuple:
+    """The surfaces' edge tables stacked for :func:`reglib._closest_numba.match_views`:
+    ``(normals, normal_dot_centroid, twin (local), he_origin, he_dest (global vertex ids),
+    vertices, face0, max_valence)``."""
+    v0 = np.cumsum([0] + [len(t.vertices) for t in tops])
+    face0 = np.cumsum([0] + [len(t.normals) for t in tops]).astype(np.int64)
+    cat = np.concatenate
+    return (np.ascontiguousarray(np.vstack([t.normals for t in tops]), dtype=np.float64),
+            np.ascontiguousarray(cat([t.normal_dot_centroid for t in tops]), dtype=np.float64),
+            np.ascontiguousarray(cat([t.twin for t in tops]), dtype=np.int64),
+            np.ascontiguousarray(cat([t.he_origin + v0[k] for k, t in enumerate(tops)]),
+                                 dtype=np.int64),
+            np.ascontiguousarray(cat([t.he_dest + v0[k] for k, t in enumerate(tops)]),
+                                 dtype=np.int64),
+            np.ascontiguousarray(np.vstack([t.vertices for t in tops]), dtype=np.float64),
+            face0, int(max(t.max_valence for t in tops)))
+
+
+def _match_all(stack, views, T: RigidTransform, o_r, d_r, ext, view0, within, max_stab):
+    """Every view's matches at the pose ``T`` in one compiled call (``closest="compiled"``):
+    ``(points_ct, tangents_ct, bad)``, ``bad`` the index of the first view whose surfaces
+    show no apparent contour (None: none). The same matches as :func:`match_view` view by
+    view (the reference, compared in tests)."""
+    from reglib._apparent_numba import OK, TWICE
+    from reglib._closest_numba import match_views
+    from reglib.closest import COMPILED_BLOCK, COMPILED_SUPER
+
+    robot2ct = T.inverse()
+    centres = robot2ct.apply(np.vstack([v.center for v in views]))
+    o_ct, d_ct = robot2ct.apply_lines(o_r, d_r)
+    p, tan, bad, status = match_views(
+        np.ascontiguousarray(o_ct), np.ascontiguousarray(d_ct), ext, view0,
+        np.ascontiguousarray(centres), *stack, within, max_stab, COMPILED_BLOCK,
+        COMPILED_SUPER)
+    if status != OK:
+        raise RuntimeError("apparent_contours: linking visited an edge twice" if status == TWICE
+                           else "apparent_contours: a chain without a start did not close")
+    return p, tan, (None if bad < 0 else int(bad))
+
+
 def _as_topologies(surfaces):
     out = []
     if isinstance(surfaces, SurfaceTopology):
@@ -336,14 +376,15 @@ def _check_solver_options(method, opts):
                          "method, initial and fixed_point_ct arguments)")
 
 
-def _limit_cycle(poses, corners, tol_mm: float, periods) -> int:
+def _limit_cycle(placed, tol_mm: float, periods) -> int:
     """The smallest period ``p`` of ``periods`` such that each of the last ``p + 1`` poses
     lies within ``tol_mm`` (bounding-box motion) of the pose ``p`` iterations before it
-    (two whole cycles), else 0."""
+    (two whole cycles), else 0. ``placed``: per pose so far, the surfaces' bounding-box
+    corners it places (8, 3) mm (the motion of :func:`_motion`, from corners placed once)."""
     for p in periods:
-        if len(poses) >= 2 * p + 1 and all(
-                _motion(poses[-1 - k], poses[-1 - k - p], corners)[0] < tol_mm
-                for k in range(p + 1)):
+        if len(placed) >= 2 * p + 1 and all(
+                np.sqrt(np.max(np.sum((placed[-1 - k] - placed[-1 - k - p]) ** 2, axis=1)))
+                < tol_mm for k in range(p + 1)):
             return p
     return 0
 
@@ -518,9 +559,16 @@ def register(surfaces, views, initial: RigidTransform, *,
     # the bone); "in front" is measured from there
     c_r = np.vstack([v.center for v in views])[view_index]
     src_r = o_r + np.sum((c_r - o_r) * d_r, axis=1, keepdims=True) * d_r
+    if closest == "compiled":  # every view's Steps A and B in one compiled call
+        stack = _stacked(tops)
+        view0 = np.cumsum([0] + [v.n_paths for v in views]).astype(np.int64)
+        ext_all = (np.concatenate([v.external for v in views]) if selection == "paper"
+                   else np.zeros(len(o_r), dtype=bool))
+        within_all = 0.0 if selection == "closest" else float(max_stab_distance_mm)
+        within_all = within_all if np.isfinite(within_all) else -1.0
     T = initial
     history: list[IterationRecord] = []
-    poses: list[RigidTransform] = []
+    placed: list[np.ndarray] = []        # the corners each pose places (_limit_cycle)
     last = None
     best_median, best_at = np.inf, 0
     reason = ""
@@ -528,18 +576,26 @@ def register(surfaces, views, initial: RigidTransform, *,
     it = 0
     for it in range(1, max_iterations + 1):
         t0 = time.perf_counter()
-        pts, tans = [], []
-        for i, v in enumerate(views):
-            p_ct, e_ct, _, _ = match_view(tops, v, T, closest=closest, selection=selection,
-                                          max_stab_distance_mm=max_stab_distance_mm)
-            if p_ct is None:
-                return fail(f"view {i} ({v.name!r}): the surfaces show no apparent contour "
-                            f"from its center at iteration {it} (degenerate geometry or "
-                            "surfaces outside the view)", T=T, it=it, history=history)
-            pts.append(p_ct)
-            tans.append(e_ct)
-        p_ct = np.vstack(pts)
-        tans_ct = np.vstack(tans)
+        if closest == "compiled":
+            p_ct, tans_ct, bad = _match_all(stack, views, T, o_r, d_r, ext_all, view0,
+                                            within_all, float(max_stab_distance_mm))
+        else:
+            pts, tans, bad = [], [], None
+            for i, v in enumerate(views):
+                p_ct, e_ct, _, _ = match_view(tops, v, T, closest=closest, selection=selection,
+                                              max_stab_distance_mm=max_stab_distance_mm)
+                if p_ct is None:
+                    bad = i
+                    break
+                pts.append(p_ct)
+                tans.append(e_ct)
+            if bad is None:
+                p_ct = np.vstack(pts)
+                tans_ct = np.vstack(tans)
+        if bad is not None:
+            return fail(f"view {bad} ({views[bad].name!r}): the surfaces show no apparent "
+                        f"contour from its center at iteration {it} (degenerate geometry or "
+                        "surfaces outside the view)", T=T, it=it, history=history)
         if residual == "normal" or fixed_robot is not None:
             normals = _across(d_r, T.apply_vectors(tans_ct)) if residual == "normal" else None
             try:
@@ -559,9 +615,13 @@ def register(surfaces, views, initial: RigidTransform, *,
             try:
                 # RANSAC's hypotheses are judged by cheirality from the sources; the
                 # others' results below, from the views' centres
+                # the input checks once: the lines stay those of the views, and later
+                # iterations only move the matched points along the surfaces (a
+                # degenerate set of them fails the solve's rank test)
                 res = solve_pose(p_ct, src_r if method == "ransac" else o_r, d_r,
                                  method=method, initial=T,
-                                 **{"cheirality": method == "ransac", **opts})
+                                 **{"cheirality": method == "ransac", "check": it == 1,
+                                    **opts})
             except ValueError as err:
                 return fail(f"pose solve refused the matches at iteration {it}: {err}", T=T,
                             it=it, history=history)
@@ -577,7 +637,7 @@ def register(surfaces, views, initial: RigidTransform, *,
         history.append(IterationRecord(it, rms, float(np.median(dist)), step_mm, step_deg, frac,
                                        len(dist), time.perf_counter() - t0))
         last = (dist, w, p_ct, tans_ct)
-        poses.append(T_new)
+        placed.append(T_new.apply(corners))
         T = T_new
         moved_mm, moved_deg = _motion(T, initial, corners)
         if moved_mm > max_motion_mm or moved_deg > max_rotation_deg:
@@ -611,7 +671,7 @@ def register(surfaces, views, initial: RigidTransform, *,
         # each of the last p + 1 poses is where it was p iterations before (two whole
         # cycles). Periods 3 and 4 only for the robust solvers: plain least squares
         # ("linear") cycles with period 4 on wrong poses and stops by stale_window instead.
-        period = _limit_cycle(poses, corners, tol_stall_mm,
+        period = _limit_cycle(placed, tol_stall_mm,
                               (2,) if method == "linear" else (2, 3, 4)) \
             if stall_window > 0 else 0
         if period:

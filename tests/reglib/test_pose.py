@@ -458,3 +458,34 @@ def test_normals_and_fixed_point_are_checked():
         solve_pose(c.points, c.origins, c.directions, normals=np.zeros_like(n))
     with pytest.raises(ValueError, match="rng: expected a seed"):
         solve_pose(c.points, c.origins, c.directions, "ransac", rng="abc")
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_compiled_rank_gram_equals_the_numpy_reference(seed):
+    """The rank test's Gram matrix compiled (reglib._pose_numba.rank_gram) against the
+    numpy Jacobian's (pose._rank_gram) on random points, lines and weights (some zero,
+    directions near the x axis included), and the rank verdict it gives on degenerate
+    sets: collinear points with lines through one point, and parallel lines."""
+    from reglib import _pose_numba
+
+    rng = np.random.default_rng(seed)
+    for _ in range(5):
+        n = int(rng.integers(3, 300))
+        P = rng.normal(size=(n, 3)) * rng.uniform(1, 100) + rng.normal(size=3) * 500
+        d = rng.normal(size=(n, 3))
+        d[: n // 3, 0] += 5.0                        # |d_x| > 0.9: the other basis branch
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        w = rng.uniform(0, 1, n) * (rng.random(n) > 0.3)
+        w[:3] = 1.0
+        _, ref = pose_mod._rank_gram(P, d, w)
+        got = _pose_numba.rank_gram(P, d, w)
+        np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-10 * np.abs(ref).max())
+    line = np.outer(np.linspace(-50, 50, 20), [1.0, 2.0, 0.5]) + 300.0
+    to_origin = line / np.linalg.norm(line, axis=1, keepdims=True)
+    parallel = np.tile([0.0, 0.0, 1.0], (20, 1))
+    free = rng.normal(size=(20, 3)) * 40.0
+    for P, d in ((line, to_origin), (free, parallel)):
+        why = pose_mod._undetermined(P, None, d, np.ones(20))
+        assert "degenerate geometry" in why and "rank" in why
+    assert pose_mod._undetermined(free, None, rng.normal(size=(20, 3)) / np.sqrt(3),
+                                  np.ones(20)) == ""

@@ -91,6 +91,54 @@ def test_closest_methods_give_the_same_registration(world, closest):
     assert np.array_equal(a.weights > 0, b.weights > 0)
 
 
+@pytest.mark.parametrize("selection, max_stab", [("paper", 10.0), ("paper", np.inf),
+                                                 ("closest", 10.0)])
+def test_all_views_matched_in_one_call_equal_match_view(world, selection, max_stab):
+    """The loop's one compiled call for every view (reglib._closest_numba.match_views on the
+    stacked surfaces) against match_view view by view (its reference): the same points and
+    tangents, bitwise, at random poses near and off the truth."""
+    from reglib.register import _match_all, _stacked, match_view
+
+    tops, views, true = world
+    vs = list(views.values())
+    rng = np.random.default_rng(7)
+    o_r = np.vstack([v.origins for v in vs])
+    d_r = np.vstack([v.directions for v in vs])
+    ext = (np.concatenate([v.external for v in vs]) if selection == "paper"
+           else np.zeros(len(o_r), dtype=bool))
+    within = 0.0 if selection == "closest" else (max_stab if np.isfinite(max_stab) else -1.0)
+    view0 = np.cumsum([0] + [v.n_paths for v in vs]).astype(np.int64)
+    stack = _stacked(tops)
+    for deg, mm in ((0.0, 0.0), (2.0, 5.0), (7.0, 20.0)):
+        T = perturbed(true, deg, mm, rng)
+        p, t, bad = _match_all(stack, vs, T, o_r, d_r, ext, view0, within, max_stab)
+        assert bad is None
+        ref = [match_view(tops, v, T, selection=selection, max_stab_distance_mm=max_stab)
+               for v in vs]
+        assert np.array_equal(p, np.vstack([r[0] for r in ref]))
+        assert np.array_equal(t, np.vstack([r[1] for r in ref]))
+
+
+@pytest.mark.parametrize("closest", ["compiled", "blocks"])
+def test_a_view_that_sees_no_contour_is_named(closest):
+    """A view whose centre lies inside a closed surface sees no apparent contour: the loop
+    fails and names that view, in the compiled all-views call and in the per-view path."""
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=30.0)
+    from reglib.apparent import prepare_surface
+
+    top = prepare_surface(sphere.vertices, sphere.faces)
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(40, 3)) * 0.05 + [0.0, 0.0, 1.0]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    outside = View(center=[0.0, 0.0, -600.0], origins=np.tile([0.0, 0.0, -600.0], (40, 1)),
+                   directions=d, name="outside")
+    inside = View(center=[0.0, 0.0, 5.0], origins=np.tile([0.0, 0.0, 5.0], (40, 1)),
+                  directions=d, name="inside")
+    res = register([top], [outside, inside], RigidTransform.identity(), closest=closest)
+    assert not res.converged
+    assert "view 1 ('inside')" in res.reason and "no apparent contour" in res.reason
+
+
 def test_fixed_point_rotation_only(world):
     """Experiment 1 set-up: two views (proximal, distal) and the proximal pin known: a 7 deg
     rotation about that pin is recovered by optimising the rotation alone."""
@@ -359,16 +407,21 @@ def test_limit_cycles_of_period_two_to_four_are_detected_and_nothing_else():
 
     rng = np.random.default_rng(0)
     corners = rng.uniform(-50, 50, (8, 3))
+
+    def placed(poses):
+        return [T.apply(corners) for T in poses]
+
     base = [RigidTransform.from_rotvec(rng.normal(0, 0.002, 3), rng.normal(0, 0.3, 3))
             for _ in range(4)]
     for p in (2, 3, 4):
-        cyc = [base[k % p] for k in range(2 * p + 3)]
-        assert _limit_cycle(cyc, corners, 0.1, (2, 3, 4)) == p
-        assert _limit_cycle(cyc[: 2 * p], corners, 0.1, (p,)) == 0   # one cycle and a bit
-    drift = [RigidTransform.from_rotvec(np.zeros(3), [0.05 * k, 0.0, 0.0]) for k in range(12)]
-    assert _limit_cycle(drift, corners, 0.1, (2, 3, 4)) == 0
-    three = [base[k % 3] for k in range(9)]
-    assert _limit_cycle(three, corners, 0.1, (2,)) == 0            # "linear": period 2 only
+        cyc = placed([base[k % p] for k in range(2 * p + 3)])
+        assert _limit_cycle(cyc, 0.1, (2, 3, 4)) == p
+        assert _limit_cycle(cyc[: 2 * p], 0.1, (p,)) == 0   # one cycle and a bit
+    drift = placed([RigidTransform.from_rotvec(np.zeros(3), [0.05 * k, 0.0, 0.0])
+                    for k in range(12)])
+    assert _limit_cycle(drift, 0.1, (2, 3, 4)) == 0
+    three = placed([base[k % 3] for k in range(9)])
+    assert _limit_cycle(three, 0.1, (2,)) == 0            # "linear": period 2 only
 
 
 # --------------------------------------------------------------------------- conditioning
