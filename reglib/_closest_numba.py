@@ -34,7 +34,7 @@ def _line_segment_distance(ox, oy, oz, dx, dy, dz, ax, ay, az, bx, by, bz):
 @njit(cache=True, inline="always")
 def _closest_row(ox, oy, oz, dx, dy, dz, starts, ends, block_a, block_b, block_eps,
                  block_seg0, contour_block0, sb_a, sb_b, sb_eps, contour_sb0, ratio, within,
-                 sphere_c, sphere_r, warm, dist_row, seg_row):
+                 sphere_c, sphere_r, warm, dist_row, seg_row, near0):
     """:func:`closest_segments` for one line, into ``dist_row`` and ``seg_row`` (C,).
 
     ``warm`` (C,): per contour a segment measured first (-1: none), e.g. the previous
@@ -44,9 +44,20 @@ def _closest_row(ox, oy, oz, dx, dy, dz, starts, ends, block_a, block_b, block_e
     distance), and a contour left with an upper bound is one beyond the line's threshold,
     which the caller drops either way. The blocks are grouped ``ratio`` at a time under
     superblocks (``sb_*``, :func:`block_capsules` with ``ratio`` times the block size; their
-    first superblock per contour ``contour_sb0``), tested first with the same bound."""
+    first superblock per contour ``contour_sb0``), tested first with the same bound.
+
+    ``near0`` (-1: none): a contour whose warm segment is measured before the loop; its
+    distance bounds the line's nearest distance from above from the first contour on, so
+    that with ``within`` a far contour is skipped by its sphere even before the nearest
+    one is reached. A larger threshold than the line's own only measures more, so the
+    result is the same."""
     nc = contour_block0.shape[0] - 1
     nearest = np.inf
+    if within >= 0.0 and near0 >= 0 and warm[near0] >= 0:
+        w = warm[near0]
+        nearest = _line_segment_distance(
+            ox, oy, oz, dx, dy, dz, starts[w, 0], starts[w, 1], starts[w, 2],
+            ends[w, 0], ends[w, 1], ends[w, 2])
     for c in range(nc):
         best = np.inf
         best_j = -1
@@ -100,6 +111,16 @@ def _closest_row(ox, oy, oz, dx, dy, dz, starts, ends, block_a, block_b, block_e
 
 
 @njit(cache=True, inline="always")
+def _first_min(x):
+    """The index of the first smallest finite value of ``x`` (-1: none)."""
+    k = -1
+    for c in range(x.shape[0]):
+        if x[c] < np.inf and (k < 0 or x[c] < x[k]):
+            k = c
+    return k
+
+
+@njit(cache=True, inline="always")
 def _beyond(ox, oy, oz, dx, dy, dz, ax, ay, az, bx, by, bz, eps, limit):
     """Whether the capsule of axis ``[a, b]`` and radius ``eps`` lies farther than
     ``limit`` (plus a relative 1e-7) from the line: ``distance - eps > limit``, compared in
@@ -143,13 +164,15 @@ def closest_segments(o, d, starts, ends, block_a, block_b, block_eps, block_seg0
     dist = np.full((n, nc), np.inf)
     seg = np.full((n, nc), -1, dtype=np.int64)
     warm = np.full(nc, -1, dtype=np.int64)
+    near = -1
     for i in range(n):
         _closest_row(o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2], starts, ends,
                      block_a, block_b, block_eps, block_seg0, contour_block0, sb_a, sb_b,
                      sb_eps, contour_sb0, ratio, within, sphere_c, sphere_r, warm, dist[i],
-                     seg[i])
+                     seg[i], near if warm_start else -1)
         if warm_start:
             warm[:] = seg[i]
+            near = _first_min(dist[i])
     return dist, seg
 
 
@@ -235,12 +258,14 @@ def match_lines(o, d, starts, ends, unit, seg_contour, offsets, closed, block_a,
     exd = np.empty(nc)
     pr = np.empty((nc, 3))
     qr = np.empty((nc, 3))
+    near = -1
     for i in range(n):
         ox, oy, oz = o[i, 0], o[i, 1], o[i, 2]
         dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
         _closest_row(ox, oy, oz, dx, dy, dz, starts, ends, block_a, block_b, block_eps,
                      block_seg0, contour_block0, sb_a, sb_b, sb_eps, contour_sb0, ratio,
-                     within, sphere_c, sphere_r, warm, dist_row, seg_row)
+                     within, sphere_c, sphere_r, warm, dist_row, seg_row, near)
+        near = _first_min(dist_row)      # the next line's first guess of its nearest
         lim = np.inf
         if within >= 0.0:
             nearest = np.inf
