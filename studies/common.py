@@ -133,14 +133,33 @@ def finish_study(ctx: StudyContext, df: pd.DataFrame) -> None:
     (ctx.out / "report.md").write_text("\n".join(parts))
 
 
+#: share of a user mesh's length taken as each end's anatomy (:func:`region_centres`)
+MESH_END_SHARE = 0.2
+
+
 def region_centres(phantom) -> dict[str, np.ndarray]:
     """ct-frame centres of the anatomy a radiographer aims each region's views at: the
-    femoral head and the trochanters; the condyles."""
+    femoral head and the trochanters; the condyles. A femur given as a mesh
+    (``[phantom] mesh_path``) has no named landmarks: its ends stand for them, the centre of
+    the bounding box of the vertices within :data:`MESH_END_SHARE` of its length from its
+    top (proximal: the ct frame's z points up the femur) and from its bottom."""
     lm = phantom.landmarks
-    prox = np.mean([lm["head_center"], lm["lesser_trochanter"], lm["greater_trochanter"]],
-                   axis=0)
-    dist = np.mean([lm["medial_condyle"], lm["lateral_condyle"]], axis=0)
-    return {"proximal": prox, "distal": dist}
+    need = ("head_center", "lesser_trochanter", "greater_trochanter", "medial_condyle",
+            "lateral_condyle")
+    if all(k in lm for k in need):
+        prox = np.mean([lm["head_center"], lm["lesser_trochanter"],
+                        lm["greater_trochanter"]], axis=0)
+        dist = np.mean([lm["medial_condyle"], lm["lateral_condyle"]], axis=0)
+        return {"proximal": prox, "distal": dist}
+    v = np.asarray(phantom.femur.vertices, dtype=np.float64)
+    lo, hi = v[:, 2].min(), v[:, 2].max()
+    cut = MESH_END_SHARE * (hi - lo)
+
+    def box_centre(sel):
+        return 0.5 * (v[sel].min(axis=0) + v[sel].max(axis=0))
+
+    return {"proximal": box_centre(v[:, 2] >= hi - cut),
+            "distal": box_centre(v[:, 2] <= lo + cut)}
 
 
 def check_view_regions(scene, centres_robot=None, *, phantom=None) -> None:
