@@ -135,19 +135,24 @@ def _edge(i, j, sig, vx, vy):
 
 
 @njit(cache=True)
-def fan_chords(vx, vy, vz, faces, xs, ys, t_scale, t_max, order, start, x0, y0, h, nx, ny,
+def fan_chords(vx, vy, vz, faces, xs, ys, t_scale, t_max, start, x0, y0, h, nx, ny,
                chord, balance):
     """Accumulate one closed mesh's chords for the binned rays.
 
     ``vx, vy, vz`` (V,): the vertices' image coordinates and depths (all ``vz > 0``);
     ``faces`` (F, 3) int, outward-oriented; ``xs, ys`` (N,): the rays' image points in bin
-    order (``order``, ``start``, from :func:`bin_points` with ``x0, y0, h, nx, ny``);
-    ``t_scale`` (N,) ``= 1 / (d . a)`` and ``t_max`` (N,) mm, also in bin order. Adds to
-    ``chord`` (N,) mm and ``balance`` (N,), in the rays' own order (``order[r]``): +1 per
-    exit, -1 per entry, so 0 for every ray when the mesh's covering is consistent.
+    order (``start``, from :func:`bin_points` with ``x0, y0, h, nx, ny``); ``t_scale`` (N,)
+    ``= 1 / (d . a)`` and ``t_max`` (N,) mm, also in bin order. Adds to ``chord`` (N,) mm
+    and ``balance`` (N,), also in bin order (:func:`finish` puts them in the rays' own
+    order; written in bin order, consecutive rays of a cell are consecutive in memory: in
+    the rays' order each addition was a cache miss, 8 of a frame's 30 ms): +1 per exit, -1
+    per entry, so 0 for every ray when the mesh's covering is consistent. Returns the range
+    ``[lo, hi)`` of bin-order rays that may have been touched (what :func:`finish` reads).
     """
     x_end = x0 + nx * h
     y_end = y0 + ny * h
+    lo = xs.shape[0]
+    hi = 0
     for f in range(faces.shape[0]):
         ia, ib, ic = faces[f, 0], faces[f, 1], faces[f, 2]
         xa, ya, xb, yb, xc, yc = vx[ia], vy[ia], vx[ib], vy[ib], vx[ic], vy[ic]
@@ -199,6 +204,8 @@ def fan_chords(vx, vy, vz, faces, xs, ys, t_scale, t_max, order, start, x0, y0, 
             rx1 = min(_cell(shi, x0, h, nx), cx1)
             if rx1 < rx0:
                 continue
+            lo = min(lo, start[cy * nx + rx0])
+            hi = max(hi, start[cy * nx + rx1 + 1])
             for r in range(start[cy * nx + rx0], start[cy * nx + rx1 + 1]):
                 x = xs[r]
                 y = ys[r]
@@ -218,30 +225,33 @@ def fan_chords(vx, vy, vz, faces, xs, ys, t_scale, t_max, order, start, x0, y0, 
                 t = t_scale[r] / (v0 * wa + v1 * wb + v2 * wc)
                 if t > t_max[r]:
                     t = t_max[r]
-                i = order[r]
-                chord[i] += sig * t
-                balance[i] += sig
+                chord[r] += sig * t
+                balance[r] += sig
+    return lo, hi
 
 
 @njit(cache=True)
-def finish(chord, balance):
-    """After every triangle of a mesh: clamp the chords at 0 (rounding can leave -1e-13
-    on a ray that only grazes the mesh), return the rays whose crossings did not balance,
-    and zero ``balance`` for the next mesh."""
+def finish(chord, balance, order, out, lo, hi):
+    """After every triangle of a mesh: ``out[order[r]] = chord[r]`` clamped at 0 (rounding
+    can leave -1e-13 on a ray that only grazes the mesh) for the rays ``lo <= r < hi`` that
+    :func:`fan_chords` may have touched (``out`` holds zeros elsewhere); returns the rays
+    (their own indices, ascending) whose crossings did not balance, and zeroes ``chord``
+    and ``balance`` (bin order) for the next mesh."""
     n_bad = 0
-    for i in range(chord.shape[0]):
-        if balance[i] != 0.0:
+    for r in range(lo, hi):
+        v = chord[r]
+        out[order[r]] = v if v > 0.0 else 0.0
+        chord[r] = 0.0
+        if balance[r] != 0.0:
             n_bad += 1
-        if chord[i] < 0.0:
-            chord[i] = 0.0
     bad = np.empty(n_bad, dtype=np.int64)
     k = 0
-    for i in range(chord.shape[0]):
-        if balance[i] != 0.0:
-            bad[k] = i
+    for r in range(lo, hi):
+        if balance[r] != 0.0:
+            bad[k] = order[r]
             k += 1
-            balance[i] = 0.0
-    return bad
+            balance[r] = 0.0
+    return np.sort(bad)
 
 
 @njit(cache=True)

@@ -461,11 +461,13 @@ class FanRays:
         faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
         n = len(self.xs)
         out = np.zeros(n) if out is None else out
-        if self._balance is None:
-            self._balance = np.zeros(n)      # zeroed again by finish() after every mesh
-        fan_chords(vx, vy, z, faces, self.xs, self.ys, self.t_scale, self.t_max_sorted,
-                   self.order, self.start, *self.grid, out, self._balance)
-        bad = finish(out, self._balance)
+        if self._balance is None:            # bin order; zeroed again by finish() after
+            self._balance = np.zeros(n)      # every mesh
+            self._chord = np.zeros(n)
+        lo, hi = fan_chords(vx, vy, z, faces, self.xs, self.ys, self.t_scale,
+                            self.t_max_sorted, self.start, *self.grid, self._chord,
+                            self._balance)
+        bad = finish(self._chord, self._balance, self.order, out, lo, hi)
         if bad.size:
             o = np.broadcast_to(self.source, (bad.size, 3))
             out[bad] = mesh_chords(mesh, o, self.directions[bad], self.t_max[bad],
