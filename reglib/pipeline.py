@@ -331,7 +331,12 @@ def _view_names(observation) -> list[str]:
     views = meta.get("views")
     if not isinstance(views, list | tuple) or not views:
         raise ValueError("observation: meta['views'] must list the view names")
-    return [str(v) for v in views]
+    names = [str(v) for v in views]
+    twice = sorted({v for v in names if names.count(v) > 1})
+    if twice:   # the same frames and sweep would count twice in the registration
+        raise ValueError(f"observation: meta['views'] lists {', '.join(map(repr, twice))} "
+                         "more than once; each view must be listed once")
+    return names
 
 
 # --------------------------------------------------------------------------- stages

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -185,6 +186,11 @@ def _names_scene_file(exc: Exception, msg: str) -> str:
     if _scene_path is None or str(_scene_path) in msg:
         return msg
     if type(exc).__name__ in ("WorkspaceError", "SceneError"):
+        return f"{_scene_path}: {msg}"
+    # a ValueError that names a field of a scene section ("phantom: ...", "phantom.mesh_path:
+    # ...", "views[2] ...") is about the scene file too (a review: the file was missing)
+    if re.match(r"(phantom|robot|fluoroscope|patient|ct|operator|instruments|views|workspace"
+                r"|scene)(\.|\[|:| )", msg):
         return f"{_scene_path}: {msg}"
     return msg
 

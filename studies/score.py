@@ -80,6 +80,28 @@ def _as_pose(value, spec: str):
     return RigidTransform(R, m[:3, 3])
 
 
+def _check_truth(truth, case_dir) -> None:
+    """ValueError naming the case and the entry when the truth the score needs is missing or
+    not finite: ``transforms/ct2robot`` and the three pins of ``points/pins_ct`` (a review:
+    a case whose truth lost a pin gave a bare KeyError, one with a NaN pin a message about
+    a RigidTransform)."""
+    from testbed.phantom import PIN_NAMES
+
+    if "ct2robot" not in truth.transforms:
+        raise ValueError(f"{case_dir}: the truth lacks transforms/ct2robot")
+    pins = truth.points.get("pins_ct")
+    if not isinstance(pins, dict):
+        raise ValueError(f"{case_dir}: the truth lacks points/pins_ct")
+    for name in PIN_NAMES:
+        if name not in pins:
+            raise ValueError(f"{case_dir}: the truth's points/pins_ct lacks the pin {name!r} "
+                             f"(it holds {sorted(pins)})")
+        p = np.asarray(pins[name], dtype=np.float64)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise ValueError(f"{case_dir}: the truth's pin {name!r} (points/pins_ct) must be "
+                             f"3 finite numbers (mm), got {pins[name]!r}")
+
+
 def score_case(case_dir, method: str = DEFAULT_METHOD) -> list[dict]:
     """Rows of one case (see the module docstring)."""
     import reglib
@@ -89,6 +111,7 @@ def score_case(case_dir, method: str = DEFAULT_METHOD) -> list[dict]:
     from testbed.scene import parse_scene
 
     obs, truth = load(case_dir)
+    _check_truth(truth, case_dir)
     tmeta = truth.meta.get("truth", truth.meta)
     try:
         scene = parse_scene(tmeta["scene"], source=f"{case_dir}/case.json meta.truth.scene")

@@ -429,6 +429,12 @@ def _user_phantom(spec: PhantomSpec) -> Phantom:
             f"phantom.mesh_path: the femur in {str(path)!r} must lie along the ct frame's z "
             "axis (proximal up, the lowest point of the condyles near z = 0, mm); its extents "
             f"are x {ext[0]:.0f}, y {ext[1]:.0f}, z {ext[2]:.0f} mm")
+    lo, hi = field_bounds("length_mm")
+    if not lo <= ext[2] <= hi:
+        raise ValueError(
+            f"phantom.mesh_path: the femur in {str(path)!r} is {ext[2]:.0f} mm long along z; "
+            f"an adult femur is {lo:.0f}-{hi:.0f} mm (the range of phantom.length_mm): is the "
+            "mesh in millimetres, and is it a whole femur?")
     if spec.mesh_pins_mm is None:
         raise ValueError("phantom.mesh_pins_mm must give the pin centres (proximal, distal_1, "
                          "distal_2) for a user mesh")
@@ -492,6 +498,23 @@ def _copied(ph: Phantom) -> Phantom:
         landmarks={k: v.copy() for k, v in ph.landmarks.items()})
 
 
+def _check_soft_tissue_holds(femur: trimesh.Trimesh, soft: trimesh.Trimesh, spec, d) -> None:
+    """ValueError naming the fields when the femur reaches outside its soft tissue (a
+    thigh narrower than the bone: a held-out review's scene loaded, then failed in the
+    CT's contouring with no field named)."""
+    outside = ~soft.contains(femur.vertices)
+    if not outside.any():
+        return
+    z = femur.vertices[outside, 2]
+    raise ValueError(
+        f"phantom: the femur reaches outside the thigh's soft tissue ({int(outside.sum())} of "
+        f"{len(outside)} surface points, at z = {z.min():.0f} to {z.max():.0f} mm): "
+        f"thigh_radius_mm ({spec.thigh_radius_mm:g}) and knee_radius_mm "
+        f"({spec.knee_radius_mm:g}) must exceed the bone's half-widths (shaft "
+        f"{d.shaft_r:.0f} mm, condyles {d.condyle_w / 2:.0f} x {d.condyle_d / 2:.0f} mm, head "
+        f"{d.head_r:.0f} mm, after shape_variation)")
+
+
 def _procedural_phantom(spec: PhantomSpec) -> Phantom:
     d = _resolve(spec)
     g = _geometry(d)
@@ -513,6 +536,7 @@ def _procedural_phantom(spec: PhantomSpec) -> Phantom:
                                             for m in (femur_m, canc_m, canal_m, soft_m))
     femur = _to_trimesh(femur_m)
     soft = _to_trimesh(soft_m)
+    _check_soft_tissue_holds(femur, soft, spec, d)
     canal = _to_trimesh(canal_m)
     canc = _to_trimesh(canc_m)
     sx = -1.0 if mirror else 1.0

@@ -42,7 +42,7 @@ from scipy.spatial.transform import Rotation
 
 from reglib.geometry import RigidTransform
 from testbed.bodies import Body
-from testbed.spec import NonNegative, Positive, Spec
+from testbed.spec import Positive, Spec
 
 __all__ = [
     "JOINT_NAMES",
@@ -79,10 +79,10 @@ class RodSpec(Spec):
     tip_length_mm: Positive = 12.0
     tip_diameter_mm: Positive = 4.0
     tip_material: str = "steel"
-    bead_along_error_mm: NonNegative = 0.1
+    bead_along_error_mm: Annotated[float, Field(ge=0, le=2.0)] = 0.1
     """Bead placement error along the rod (mm, sigma per bead); docs/error-model.md "bead
     placement". Ideal: 0."""
-    bead_across_error_mm: NonNegative = 0.05
+    bead_across_error_mm: Annotated[float, Field(ge=0, le=1.0)] = 0.05
     """Bead placement error across the rod (mm, sigma per bead and axis); docs/error-model.md.
     Ideal: 0."""
     sag: bool = True
@@ -207,18 +207,23 @@ class RobotSpec(Spec):
     pitch_limit_deg: Annotated[float, Field(gt=0, le=180)] = 120.0
     encoder_noise_deg: Annotated[float, Field(ge=0.0, le=1.0)] = 0.0005
     encoder_noise_mm: Annotated[float, Field(ge=0.0, le=5.0)] = 0.002
-    kinematic_offset_mm: NonNegative = 0.075
+    kinematic_offset_mm: Annotated[float, Field(ge=0, le=5.0)] = 0.075
     """Kinematic-parameter errors, translation of each joint origin (mm, sigma per axis):
     the robot's absolute accuracy; docs/error-model.md "robot absolute accuracy".
     Ideal (today's repeatability-level robot): 0.02."""
-    kinematic_offset_deg: NonNegative = 0.0075
+    kinematic_offset_deg: Annotated[float, Field(ge=0, le=1.0)] = 0.0075
     """Kinematic-parameter errors, rotation of each joint origin (deg, sigma per axis);
     docs/error-model.md. Ideal: 0.002."""
-    rod_mount_error_mm: NonNegative = 0.1
+    rod_mount_error_mm: Annotated[float, Field(ge=0, le=5.0)] = 0.1
     """Rod mounting error after the tip calibration, translation (mm, sigma per axis);
     docs/error-model.md "rod mounting". Ideal: 0."""
-    rod_mount_error_deg: NonNegative = 0.05
-    """Rod mounting error, rotation (deg, sigma per axis); docs/error-model.md. Ideal: 0."""
+    rod_mount_error_deg: Annotated[float, Field(ge=0, le=2.0)] = 0.05
+    """Rod mounting error, rotation (deg, sigma per axis); docs/error-model.md. Ideal: 0.
+
+    The imperfections' upper bounds (kinematic offsets 5 mm / 1 deg, mounting 5 mm / 2 deg,
+    bead placement 2 mm along / 1 mm across) lie 10-70 times above the clinic defaults:
+    beyond them the rod's beads would leave the rod or the sweep poses the field, and the
+    run would fail far from the field that caused it."""
     ik_tolerance_mm: Positive = 1e-3
     rod: RodSpec = RodSpec()
     sweep: SweepSpec = SweepSpec()

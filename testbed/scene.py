@@ -253,6 +253,25 @@ def parse_scene(data: dict, *, source: str = "<scene>"):
         raise SceneError(_validation_message(source, exc)) from None
 
 
+#: (section, key) of the scene fields that name a file
+_PATH_FIELDS = (("phantom", "mesh_path"), ("robot", "urdf"))
+
+
+def _resolve_paths(data: dict, scene_path: Path) -> None:
+    """In place: a relative file named by the scene (``[phantom] mesh_path``, ``[robot]
+    urdf``) is read from the scene file's folder, as a reader of the file expects (a
+    review: it was read from the current folder, so a scene worked only when run from its
+    own folder); one that exists only from the current folder is still found there."""
+    for section, key in _PATH_FIELDS:
+        table = data.get(section)
+        value = table.get(key) if isinstance(table, dict) else None
+        if not isinstance(value, str) or value == "builtin" or Path(value).is_absolute():
+            continue
+        beside = scene_path.parent / value
+        if beside.exists() or not Path(value).exists():
+            table[key] = str(beside)
+
+
 def load_scene(path):
     """Read and validate a scene file (TOML). Raises :class:`SceneError` naming the file."""
     path = Path(path)
@@ -269,6 +288,7 @@ def load_scene(path):
     except RecursionError:
         raise SceneError(f"{path}: tables or arrays nested too deeply to read; a scene nests "
                          "a few levels") from None
+    _resolve_paths(data, path)
     try:
         return parse_scene(data, source=str(path))
     except RecursionError:

@@ -192,6 +192,11 @@ def test_initial_and_observation_errors_say_what_is_wrong():
             estimate(obs, bad)
     with pytest.raises(ValueError, match="got NoneType"):
         estimate(None, np.eye(4))
+    # a view listed twice would count its frames twice (a held-out review: used silently)
+    twice = {"meta": {"views": ["a", "b", "a"], "regions": ["distal"]}, "images": {},
+             "arrays": {}, "volumes": {}}
+    with pytest.raises(ValueError, match=r"meta\['views'\] lists 'a' more than once"):
+        estimate(twice, np.eye(4))
 
 
 def test_registration_options_are_checked_when_made():

@@ -58,3 +58,29 @@ def test_run_start_is_reproducible_from_the_case_seed():
     assert np.array_equal(a.as_matrix(), b.as_matrix())
     c = run_start(truth, scene, np.random.SeedSequence(5, spawn_key=(1,)))
     assert not np.allclose(a.as_matrix(), c.as_matrix())
+
+
+def test_a_case_whose_truth_lost_a_pin_is_named():
+    """The score's truth check (a review: a case whose truth lost a pin stopped with a bare
+    KeyError, one with a NaN pin with a message about a RigidTransform)."""
+    from types import SimpleNamespace
+
+    import numpy as np
+    import pytest
+
+    from studies.score import _check_truth
+
+    pins = {"proximal": [0.0, 0.0, 400.0], "distal_1": [-20.0, 0.0, 20.0],
+            "distal_2": [20.0, 0.0, 20.0]}
+    ok = SimpleNamespace(transforms={"ct2robot": object()}, points={"pins_ct": pins})
+    _check_truth(ok, "case_0000")
+    lost = SimpleNamespace(transforms=ok.transforms, points={"pins_ct": {
+        k: v for k, v in pins.items() if k != "distal_2"}})
+    with pytest.raises(ValueError, match=r"case_0000: .*lacks the pin 'distal_2'"):
+        _check_truth(lost, "case_0000")
+    nan = SimpleNamespace(transforms=ok.transforms, points={"pins_ct": {
+        **pins, "proximal": [np.nan, 0.0, 1.0]}})
+    with pytest.raises(ValueError, match=r"pin 'proximal' .*3 finite numbers"):
+        _check_truth(nan, "case_0000")
+    with pytest.raises(ValueError, match="lacks transforms/ct2robot"):
+        _check_truth(SimpleNamespace(transforms={}, points=ok.points), "case_0000")

@@ -145,6 +145,37 @@ def test_user_mesh(tmp_path):
     metres.export(m_path)
     with pytest.raises(ValueError, match="units must be millimetres"):
         make_phantom(PhantomSpec(mesh_path=str(m_path), mesh_pins_mm=pins))
+    # A mesh far shorter than a femur (a review: 68 mm, failed later in the CT's regions)
+    short = trimesh.creation.capsule(height=120.0, radius=15.0)
+    short.apply_translation([0, 0, 75.0])
+    short_path = tmp_path / "short.stl"
+    short.export(short_path)
+    with pytest.raises(ValueError, match=r"is 150 mm long along z; an adult femur is 300-600"):
+        make_phantom(PhantomSpec(mesh_path=str(short_path), mesh_pins_mm={
+            "proximal": (0.0, 0.0, 120.0), "distal_1": (0.0, 5.0, 30.0),
+            "distal_2": (0.0, -5.0, 30.0)}))
+
+
+def test_a_thigh_narrower_than_the_bone_is_refused_naming_the_fields():
+    """The soft tissue must hold the femur (a review's scene with a 50 mm thigh around 100 mm
+    condyles loaded, then failed in the CT's contouring with no field named)."""
+    with pytest.raises(ValueError, match=r"femur reaches outside the thigh's soft tissue .*"
+                                         r"knee_radius_mm \(45\)"):
+        make_phantom(PhantomSpec(thigh_radius_mm=50, knee_radius_mm=45, shaft_diameter_mm=40,
+                                 condyle_width_mm=100))
+    make_phantom(PhantomSpec(knee_radius_mm=60, condyle_width_mm=100))     # wide enough
+
+
+def test_robot_imperfections_have_upper_bounds():
+    """A robot 'error' of 1e6 mm loaded and then failed as 'view distal_ap: points at or
+    behind the X-ray source' (a review); the field is named at load instead."""
+    from pydantic import ValidationError
+
+    from testbed.robot import RobotSpec
+
+    for field in ("kinematic_offset_mm", "rod_mount_error_mm", "kinematic_offset_deg"):
+        with pytest.raises(ValidationError, match=field):
+            RobotSpec(**{field: 1e6})
 
 
 def test_phantoms_are_remembered_but_handed_out_as_copies():

@@ -229,3 +229,24 @@ def test_a_folder_named_like_a_scene_does_not_hide_it(tmp_path, monkeypatch):
     assert find_scene("experiment2") == scenes_dir() / "experiment2.toml"
     with pytest.raises(SceneError, match="is a folder"):
         find_scene("./experiment2")
+
+
+def test_a_relative_mesh_path_is_read_from_the_scene_files_folder(tmp_path, monkeypatch):
+    """A scene naming 'femur.stl' finds it beside itself, whatever the current folder (a
+    review: it was read from the current folder); a path that exists only from the current
+    folder is still found there."""
+    text = (scenes_dir() / "experiment2.toml").read_text()
+    text = text.replace("[phantom]\n", "[phantom]\nmesh_path = \"femur.stl\"\nmesh_pins_mm = "
+                        "{ proximal = [0, 0, 400], distal_1 = [-20, 0, 20], "
+                        "distal_2 = [20, 0, 20] }\n", 1)
+    folder = tmp_path / "scenes"
+    folder.mkdir()
+    (folder / "femur.stl").write_text("solid x\nendsolid x\n")
+    (folder / "s.toml").write_text(text)
+    elsewhere = tmp_path / "work"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    assert load_scene(folder / "s.toml").phantom.mesh_path == str(folder / "femur.stl")
+    (folder / "femur.stl").unlink()
+    (elsewhere / "femur.stl").write_text("solid x\nendsolid x\n")
+    assert load_scene(folder / "s.toml").phantom.mesh_path == "femur.stl"
