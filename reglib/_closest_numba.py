@@ -511,7 +511,7 @@ def segment_units(starts, ends, offsets):
 
 @njit(cache=True)
 def match_views(o, d, external, view0, centres, normals, ndc, twin, he_origin, he_dest,
-                vertices, face0, max_valence, within, max_stab, block, ratio):
+                vertices, face0, max_valence, within, max_stab, block, ratio, every):
     """:func:`match_lines` for several views at once, each against the apparent contours
     of the stacked surfaces (:func:`view_contours`) from its centre: the registration
     loop's matching in one call, without a Python object per view or contour.
@@ -520,20 +520,26 @@ def match_views(o, d, external, view0, centres, normals, ndc, twin, he_origin, h
     owning rows ``view0[v]`` to ``view0[v + 1]``; ``centres`` (V, 3) the views' centres in
     the surfaces' frame; ``block`` and ``ratio`` the capsules' sizes (as
     :func:`reglib.closest._compiled_capsules`). Returns ``(p (N, 3), tangent (N, 3), bad,
-    status)``: ``bad`` the first view showing no contour (-1: none) and ``status`` the
-    contour extraction's (not OK: ``bad`` is that view). The per-view chain
+    status)``: ``bad`` the first view showing no contour (-1: none; the views after it are
+    not matched unless ``every``, and its own rows stay NaN) and ``status`` the contour
+    extraction's (not OK: ``bad`` is that view). The per-view chain
     ``ContourSet.from_surfaces`` -> ``_match_contours`` is the reference, compared in
     tests."""
     n = o.shape[0]
     p = np.full((n, 3), np.nan)
     tan = np.full((n, 3), np.nan)
+    bad = -1
     for v in range(view0.shape[0] - 1):
         starts, ends, path, offsets, closed, st = view_contours(
             normals, ndc, twin, he_origin, he_dest, vertices, face0, max_valence, centres[v])
         if st != OK:
             return p, tan, v, st
         if closed.shape[0] == 0:
-            return p, tan, v, OK
+            if bad < 0:
+                bad = v
+            if not every:
+                return p, tan, v, OK
+            continue
         unit, seg_contour = segment_units(starts, ends, offsets)
         a, b, eps, seg0, cb0 = block_capsules(path, offsets, block)
         sa, sb, seps, _, sb0 = block_capsules(path, offsets, block * ratio)
@@ -544,4 +550,4 @@ def match_views(o, d, external, view0, centres, normals, ndc, twin, he_origin, h
                                    ratio, within, sc, sr, external[r0:r1], max_stab)
         p[r0:r1] = pv
         tan[r0:r1] = tv
-    return p, tan, -1, OK
+    return p, tan, bad, OK

@@ -315,11 +315,13 @@ def _stacked(tops) -> tuple:
             face0, int(max(t.max_valence for t in tops)))
 
 
-def _match_all(stack, views, T: RigidTransform, o_r, d_r, ext, view0, within, max_stab):
+def _match_all(stack, views, T: RigidTransform, o_r, d_r, ext, view0, within, max_stab, *,
+               every: bool = False):
     """Every view's matches at the pose ``T`` in one compiled call (``closest="compiled"``):
     ``(points_ct, tangents_ct, bad)``, ``bad`` the index of the first view whose surfaces
-    show no apparent contour (None: none). The same matches as :func:`match_view` view by
-    view (the reference, compared in tests)."""
+    show no apparent contour (None: none; the later views are matched only with ``every``,
+    and that view's rows are NaN). The same matches as :func:`match_view` view by view (the
+    reference, compared in tests)."""
     from reglib._apparent_numba import OK, TWICE
     from reglib._closest_numba import match_views
     from reglib.closest import COMPILED_BLOCK, COMPILED_SUPER
@@ -330,7 +332,7 @@ def _match_all(stack, views, T: RigidTransform, o_r, d_r, ext, view0, within, ma
     p, tan, bad, status = match_views(
         np.ascontiguousarray(o_ct), np.ascontiguousarray(d_ct), ext, view0,
         np.ascontiguousarray(centres), *stack, within, max_stab, COMPILED_BLOCK,
-        COMPILED_SUPER)
+        COMPILED_SUPER, every)
     if status != OK:
         raise RuntimeError("apparent_contours: linking visited an edge twice" if status == TWICE
                            else "apparent_contours: a chain without a start did not close")

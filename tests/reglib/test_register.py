@@ -137,6 +137,11 @@ def test_a_view_that_sees_no_contour_is_named(closest):
     res = register([top], [outside, inside], RigidTransform.identity(), closest=closest)
     assert not res.converged
     assert "view 1 ('inside')" in res.reason and "no apparent contour" in res.reason
+    # the verdict's view fit: that view fits nothing, wherever it stands in the list
+    from reglib.pipeline import view_fit
+
+    assert view_fit([top], [inside, outside], RigidTransform.identity()) == (0.0, 0)
+    assert view_fit([top], [outside, inside], RigidTransform.identity()) == (0.0, 1)
 
 
 def test_fixed_point_rotation_only(world):
