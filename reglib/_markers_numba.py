@@ -142,10 +142,31 @@ def tile_noise(g1, g2, mask, tile, step, min_count, start_step, clip, passes, sc
     return out
 
 
+@njit(cache=True, inline="always")
+def _low(tiles, tile, r, c, n_sigma, low_floor):
+    """The noise threshold of pixel (r, c): ``max(n_sigma * its block's figure,
+    low_floor)``, the numpy reference's ``np.maximum(n_sigma * noise_map, 0.02 * peak)``."""
+    return max(n_sigma * tiles[r // tile, c // tile], low_floor)
+
+
 @njit(cache=True)
-def above_region_thresholds(regions, n_regions, ds, base, rel):
-    """The pixels of a labelled region above ``max(base, rel * the region's peak of ds)``
-    (``base`` (H, W), per pixel)."""
+def above_noise(ds, tiles, tile, n_sigma, low_floor):
+    """``ds > low`` per pixel (uint8, for the labelling), ``low`` from the blocks' figures
+    ``tiles`` (:func:`_low`)."""
+    H, W = ds.shape
+    out = np.zeros((H, W), dtype=np.uint8)
+    for r in range(H):
+        for c in range(W):
+            if ds[r, c] > _low(tiles, tile, r, c, n_sigma, low_floor):
+                out[r, c] = 1
+    return out
+
+
+@njit(cache=True)
+def above_region_thresholds(regions, n_regions, ds, tiles, tile, n_sigma, low_floor,
+                            base_floor, rel):
+    """The pixels of a labelled region above ``max(base, rel * the region's peak of ds)``,
+    ``base = max(low, base_floor)`` per pixel (:func:`_low`)."""
     H, W = ds.shape
     peak = np.zeros(n_regions + 1)
     for r in range(H):
@@ -158,7 +179,8 @@ def above_region_thresholds(regions, n_regions, ds, base, rel):
         for c in range(W):
             k = regions[r, c]
             if k > 0:
-                t = max(base[r, c], rel * peak[k])
+                base = max(_low(tiles, tile, r, c, n_sigma, low_floor), base_floor)
+                t = max(base, rel * peak[k])
                 out[r, c] = ds[r, c] > t
     return out
 

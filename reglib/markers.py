@@ -140,21 +140,30 @@ def _clipped_std(x: np.ndarray) -> float:
     return float(NOISE_SCALE * sd)
 
 
-def _noise_map(g1, g2, inside, field_noise: float, mode: str, reference: bool) -> np.ndarray:
-    """(H, W) the noise of the band-pass ``g1 - g2`` at each pixel: the clipped standard
-    deviation (:func:`_clipped_std`) of its block of :data:`NOISE_TILE_PX` px within
-    ``inside``, on every :data:`NOISE_STEP_PX`-th row and column; a block with less than a
-    quarter of those pixels inside takes the field's figure ``field_noise``; each pixel gets
-    the largest figure of its block and the 8 around it. ``mode="field"``: ``field_noise``
-    everywhere."""
+def _noise_tiles(g1, g2, inside, field_noise, mode: str, reference: bool, ds=None
+                 ) -> np.ndarray:
+    """(ny, nx) the noise of the band-pass ``g1 - g2`` per block of :data:`NOISE_TILE_PX`
+    px (the blocks from the frame's corner, the last ones cut by its edge): the clipped
+    standard deviation (:func:`_clipped_std`) of the block's values within ``inside``, on
+    every :data:`NOISE_STEP_PX`-th row and column; then the largest figure of the block and
+    the 8 around it; a block with no figure there (less than a quarter of its sampled
+    pixels inside, nor any neighbour's) takes the field's figure ``field_noise``.
+    ``mode="field"``: ``field_noise`` everywhere.
+
+    ``field_noise``: a number, or a function that computes it (1 ms per frame: two medians
+    of the whole field), called only when a block needs it. With ``ds`` (the band-pass
+    after the rim test) given, a block without a figure whose pixels are all outside
+    ``inside`` with ``ds == 0`` does not need it (no pixel there can pass a positive
+    threshold) and gets ``inf``, which gives the same detections."""
     H, W = g1.shape
     T, S = NOISE_TILE_PX, NOISE_STEP_PX
+    ny, nx = -(-H // T), -(-W // T)
+    figure = field_noise if callable(field_noise) else (lambda: field_noise)
     min_count = (T // S) ** 2 // 4
     if mode == "field":
-        return np.full((H, W), field_noise, dtype=np.float64)
+        return np.full((ny, nx), figure(), dtype=np.float64)
     if reference:
         v = np.asarray(g1, dtype=np.float64) - np.asarray(g2, dtype=np.float64)
-        ny, nx = -(-H // T), -(-W // T)
         tiles = np.full((ny, nx), np.nan)
         for by in range(ny):
             for bx in range(nx):
@@ -173,7 +182,22 @@ def _noise_map(g1, g2, inside, field_noise: float, mode: str, reference: bool) -
     # noisy pixels next to it would pass as blobs
     tiles = ndimage.maximum_filter(np.where(np.isfinite(tiles), tiles, -np.inf), size=3,
                                    mode="constant", cval=-np.inf)
-    tiles = np.where(np.isfinite(tiles), tiles, field_noise)
+    none = ~np.isfinite(tiles)
+    if none.any():
+        need = ds is None or any(
+            inside[by * T:(by + 1) * T, bx * T:(bx + 1) * T].any()
+            or (ds[by * T:(by + 1) * T, bx * T:(bx + 1) * T] != 0).any()
+            for by, bx in zip(*np.nonzero(none), strict=True))
+        tiles[none] = figure() if need else np.inf
+    return tiles
+
+
+def _noise_map(g1, g2, inside, field_noise, mode: str, reference: bool) -> np.ndarray:
+    """(H, W) the noise of the band-pass at each pixel: its block's figure
+    (:func:`_noise_tiles`)."""
+    H, W = g1.shape
+    T = NOISE_TILE_PX
+    tiles = _noise_tiles(g1, g2, inside, field_noise, mode, reference)
     return np.repeat(np.repeat(tiles, T, axis=0), T, axis=1)[:H, :W]
 
 
@@ -261,7 +285,9 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
         g1 = _gaussian(d32, BLOB_SIGMA_PX, False)
         g2 = _gaussian(d32, BACKGROUND_SIGMA_PX, False)
         ds, dsi, peak = mk.band(g1, g2, inside, n_in)
-        noise = 1.4826 * _median(np.abs(dsi - _median(dsi, False)), False)
+
+        def noise():     # the field's figure, computed only if a block needs it
+            return 1.4826 * _median(np.abs(dsi - _median(dsi, False)), False)
     else:
         d = _log_image(a, response) - _log_image(b, response)
         if polarity == "bright":
@@ -290,21 +316,27 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
     # relative threshold per region: each connected region above the noise gets
     # rel_threshold times its own peak (a bright newcomer elsewhere, e.g. an instrument
     # moved into the field, does not raise the threshold for the beads)
-    noise_px = _noise_map(g1, g2, inside, noise, noise_mode, reference)
-    low = np.maximum(n_sigma * noise_px, 0.02 * peak)
-    regions, n_regions = _label(ds > low, reference)
     # never below half the global relative threshold: noise specks are regions of their own
-    base = np.maximum(low, 0.5 * rel_threshold * peak)
     if reference:
+        noise_px = _noise_map(g1, g2, inside, noise, noise_mode, reference)
+        low = np.maximum(n_sigma * noise_px, 0.02 * peak)
+        regions, n_regions = _label(ds > low, reference)
+        base = np.maximum(low, 0.5 * rel_threshold * peak)
         region_peak = np.zeros(n_regions + 1)
         region_peak[1:] = ndimage.maximum(ds, regions, np.arange(1, n_regions + 1))
         thr = np.maximum(base, rel_threshold * region_peak[regions])
         labels, n = ndimage.label((ds > thr) & (regions > 0))
-    else:  # ndimage.maximum sorts all labels (45 ms on a noisy frame); one compiled pass
+    else:  # the same thresholds from the blocks' figures, per pixel in compiled passes
+        # (ndimage.maximum sorts all labels: 45 ms on a noisy frame)
         from reglib import _markers_numba as mk
 
-        labels, n = _label(mk.above_region_thresholds(regions, n_regions, ds, base,
-                                                      rel_threshold), False)
+        tiles = _noise_tiles(g1, g2, inside, noise, noise_mode, False, ds=ds)
+        low_floor, base_floor = 0.02 * peak, 0.5 * rel_threshold * peak
+        regions, n_regions = _label(mk.above_noise(ds, tiles, NOISE_TILE_PX, n_sigma,
+                                                   low_floor), False)
+        labels, n = _label(mk.above_region_thresholds(regions, n_regions, ds, tiles,
+                                                      NOISE_TILE_PX, n_sigma, low_floor,
+                                                      base_floor, rel_threshold), False)
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0)
     if reference:

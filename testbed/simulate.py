@@ -336,7 +336,8 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
         if not clicks.traces:
             raise ValueError(f"views[{i}] ({vspec.name!r}): the femur's outline is nowhere "
                              "visible in the frame (outside the field or under instruments); "
-                             f"check views[{i}].isocenter_mm and its angles")
+                             f"check views[{i}].isocenter_mm and its angles, and where "
+                             "[patient] position_mm and rotation_deg put the femur")
         obs["arrays"][f"xray_clicks_{v}"] = clicks.to_arrays()
         tick(f"xray {vspec.name}", t0)
     bar.close()
