@@ -278,8 +278,9 @@ class Stages:
     topologies: dict = field(default_factory=dict, repr=False, compare=False)
 
     def topology(self, region):
-        """The :class:`reglib.apparent.SurfaceTopology` of ``surfaces[region]`` (made once
-        per vertex and face arrays; 1.6 ms per femur region, once per start before)."""
+        """The :class:`reglib.apparent.SurfaceTopology` of ``surfaces[region]``, made once
+        per pair of vertex and face arrays (1.6 ms per femur region, which every start of
+        :func:`estimate` paid before)."""
         from reglib.apparent import prepare_surface
 
         v, f = self.surfaces[region]
@@ -661,7 +662,7 @@ def view_fit(surfaces, views, ct2robot: RigidTransform,
     view's index)``; ``(nan, -1)`` without views."""
     from reglib.register import _as_topologies, _match_all, _stacked
 
-    views = [v for v in views]
+    views = list(views)
     if not views:
         return float("nan"), -1
     tops = _as_topologies(surfaces)
