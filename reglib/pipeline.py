@@ -103,6 +103,21 @@ VIEW_FIT_MM = 2.0
 #: experiment1 and experiment2, 0.61-0.66 on experiment2-ideal; a held-out review (58 runs)
 #: found 0.39-1.0 where the patient was turned at most 12 deg, moved or the views re-aimed.
 MIN_CONTOUR_SHARE = 0.25
+#: the verdict's test that the images single out one pose, when more than one start was
+#: tried (the restarts, or the fine stage from the start after it from the coarse pose): a
+#: pose is refused when another try ended farther than AMBIGUOUS_POSE_MM from it (RMS
+#: displacement of the CT surfaces' vertices) with a median point-to-path distance at most
+#: AMBIGUOUS_FIT times its own. A held-out review (2026-11-26: experiment2 with a CT of 2 mm
+#: pixels and 5/20 mm slices) found a pose accepted 8.1 mm off (pins 7.0-9.6 mm, median 0.92
+#: mm, weakest motion 5.0 mm, every figure inside its limit) after 12 restarts: 22 tries had
+#: ended 0.74 mm off with medians of 1.01-1.03 mm (just over the 1 mm limit) and 3 more
+#: 6.8-6.9 mm off at 0.95-0.96 mm; the restarts searched until a try passed, and the
+#: coarse CT's biased surface made a wrong pose fit best. 2 mm is the error of a
+#: successful registration (the weak-motion limit's scale above): two poses farther apart
+#: cannot both be one; 1.15 is a median 15 % worse, five times the spread of the medians of
+#: the tries that reached one pose (1.01-1.03 mm there).
+AMBIGUOUS_POSE_MM = 2.0
+AMBIGUOUS_FIT = 1.15
 #: the coarse stage of the "coarse-fine" strategy: keyword options of register over the
 #: estimate's registration options
 COARSE_STAGE = {"residual": "line", "max_iterations": 25}
@@ -137,7 +152,10 @@ class EstimateOptions:
     ``accept_min_view_fit``: its limit on the worst view's share of X-ray paths that the
     surfaces' apparent contours explain (``worst_view_fit``, :func:`view_fit`; 0: not
     checked); ``accept_min_contour_share``: its limit on the view that shows least of the
-    bone (its contour paths over the median of the views'; 0: not checked).
+    bone (its contour paths over the median of the views'; 0: not checked);
+    ``accept_max_alternative_mm``: when several starts were tried, how far (mm, RMS over the
+    surfaces) another try that fits about as well may end from the pose
+    (:func:`alternative_pose`; inf: not checked).
     """
 
     tps_smoothing: float = TPS_SMOOTHING
@@ -158,6 +176,7 @@ class EstimateOptions:
     accept_max_weak_motion_mm: float = MAX_WEAK_MOTION_MM
     accept_min_view_fit: float = MIN_VIEW_FIT
     accept_min_contour_share: float = MIN_CONTOUR_SHARE
+    accept_max_alternative_mm: float = AMBIGUOUS_POSE_MM
 
     def __post_init__(self):
         for name in ("tps_smoothing", "simplify_tol_mm"):
@@ -165,7 +184,8 @@ class EstimateOptions:
             if not (isinstance(v, int | float) and np.isfinite(v) and v >= 0):
                 raise ValueError(f"EstimateOptions.{name}: expected a finite number >= 0, "
                                  f"got {v!r}")
-        for name in ("max_validation_mm", "accept_max_median_mm", "accept_max_weak_motion_mm"):
+        for name in ("max_validation_mm", "accept_max_median_mm", "accept_max_weak_motion_mm",
+                     "accept_max_alternative_mm"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and v > 0):
                 raise ValueError(f"EstimateOptions.{name}: expected a number > 0, got {v!r}")
@@ -742,6 +762,33 @@ WEAK_GEOMETRY = "the views leave the pose loosely determined"
 LITTLE_BONE = "a view shows little of the bone"
 
 
+#: ...and of its objection to a pose that another try rivals
+AMBIGUOUS = "the images do not single out one pose"
+
+
+def alternative_pose(tries, chosen, vertices_ct) -> tuple[float, float]:
+    """The farthest rival of the chosen registration among ``tries`` (every registration an
+    estimate ran, as ``(result, quality)``): a try whose median point-to-path distance is
+    at most :data:`AMBIGUOUS_FIT` times the chosen one's, however it was judged otherwise.
+    Returns ``(its distance from the chosen pose, mm RMS over vertices_ct (V, 3), its
+    median mm)``; ``(0.0, nan)`` when there is none."""
+    res, q = chosen
+    med = q.get("median_residual_mm", np.nan)
+    if not np.isfinite(med):
+        return 0.0, float("nan")
+    v = np.asarray(vertices_ct, dtype=np.float64)
+    here = res.ct2robot.apply(v)
+    far, far_med = 0.0, float("nan")
+    for r, qq in tries:
+        m = qq.get("median_residual_mm", np.nan)
+        if r is res or not m <= AMBIGUOUS_FIT * med:
+            continue
+        d = float(np.sqrt(np.mean(np.sum((r.ct2robot.apply(v) - here) ** 2, axis=1))))
+        if d > far:
+            far, far_med = d, float(m)
+    return far, far_med
+
+
 def _only_weak_geometry(reasons) -> bool:
     """Every objection is one that another start cannot mend (the views' geometry)."""
     return bool(reasons) and all(r.startswith((WEAK_GEOMETRY, LITTLE_BONE)) for r in reasons)
@@ -801,7 +848,10 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
     the matches and the matches hold the pose within ``accept_max_weak_motion_mm`` along its
     least constrained motion (two views, one per end of a long bone, do not: the bone can
     slide along their beams), every view fits (``accept_min_view_fit``) and none shows
-    little of the bone (``accept_min_contour_share``); otherwise ``message`` says why.
+    little of the bone (``accept_min_contour_share``), and, when several starts were tried,
+    no other try that fits about as well ended far from the pose
+    (``accept_max_alternative_mm``, :func:`alternative_pose`); otherwise ``message`` says
+    why.
     When the first result is not accepted, up to ``options.restarts`` turned starts are
     tried and the best verdict is returned (not when the only objections are the views'
     geometry, the loosely held pose or a view showing little bone: no start mends them).
@@ -835,11 +885,14 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
     reg_opts = dict(options.registration)
     if options.fixed_point_ct is not None:
         reg_opts["fixed_point_ct"] = np.asarray(options.fixed_point_ct, dtype=np.float64)
+    seen = []    # every registration run, with its figures (the ambiguity test)
+
     def judged(res):
         q = {"views_used": len(stages.views), "views_failed": len(stages.failed),
              **match_quality(res), "iterations": int(res.iterations), "reason": res.reason}
         q["worst_view_fit"], q["worst_view"] = view_fit(surfaces, stages.views, res.ct2robot)
         q["min_contour_share"], q["least_contour_view"] = contour_share(stages.views)
+        seen.append((res, q))
         return res, q, verdict(res.converged, q, failed, options, len(stages.views),
                                [v.name for v in stages.views], list(stages.failed))
 
@@ -880,6 +933,17 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
                 break
         res, quality, reasons = best(tries)
     quality["restarts"] = restarts
+    # more than one try: does another fit about as well, far from this one?
+    quality["alternative_mm"], quality["alternative_median_mm"] = alternative_pose(
+        seen, (res, quality), np.vstack([s.vertices for s in surfaces]))
+    if quality["alternative_mm"] > options.accept_max_alternative_mm:
+        reasons = list(reasons) + [
+            f"{AMBIGUOUS}: a registration from another start ended "
+            f"{quality['alternative_mm']:.1f} mm from it (RMS over the CT surfaces) with a "
+            f"median point-to-path distance of {quality['alternative_median_mm']:.2f} mm "
+            f"against its {quality['median_residual_mm']:.2f} mm (limit "
+            f"{options.accept_max_alternative_mm:g} mm); the CT surfaces or the X-ray "
+            "contours may be too coarse or too noisy to decide"]
     timings["registration"] = time.perf_counter() - t0
     warnings = _left_out(stages)
     return Estimate(res.ct2robot, not reasons, bool(res.converged), quality, "; ".join(reasons),

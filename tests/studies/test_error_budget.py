@@ -32,6 +32,22 @@ def test_sources_are_the_fields_that_differ_grouped(clinic):
     assert source_of("fluoroscope.some_new_field") == "fluoroscope.some_new_field"
 
 
+def test_the_sampler_is_no_source_and_a_moved_set_up_is_refused(clinic):
+    """A review: the shipped pair listed the quanta's sampler (fast or exact: the same law)
+    as a source, and a scene whose patient was moved, paired with the shipped ideal
+    profile, listed the patient's pose as two sources."""
+    from testbed.spec import SceneError
+
+    shipped = error_sources(clinic, load_scene(find_scene("experiment2-ideal")))
+    assert not any("quantum_sampler" in f for fields in shipped.values() for f in fields)
+    assert "quantum noise" in shipped
+    d = clinic.model_dump(mode="json")
+    d["patient"]["position_mm"] = [835.0, 205.0, 200.0]
+    with pytest.raises(SceneError, match=r"differs from the scene .* set-up.*"
+                                         r"patient\.position_mm"):
+        error_sources(parse_scene(d), clinic)
+
+
 def test_off_and_alone_variants_change_only_that_source(clinic):
     ideal = _ideal(clinic)
     fields = error_sources(clinic, ideal)["intensifier distortion"]
