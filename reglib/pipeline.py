@@ -750,6 +750,11 @@ def verdict(converged: bool, quality: dict, failed: str, options: EstimateOption
                   f"({', '.join(map(str, failed_views))}; why: the warnings): mend "
                   f"{'it' if k == 1 else 'them'} first, or add a view" if k
                   else "add a view, or views further apart")
+        if not k and med > 0.5 * options.accept_max_median_mm:
+            # weak_motion_mm is the median distance over the weakest hold: noisy contours
+            # (few quanta, a coarse CT) loosen it as much as the views' geometry does
+            advice += (f"; or make the contours less noisy (it scales with the median "
+                       f"distance, {med:.2f} mm here)")
         reasons.append(WEAK_GEOMETRY + f": the bone can move {weak:.1f} mm (RMS) along its least "
                        "constrained motion for the contour distances to change by their median "
                        f"(limit {options.accept_max_weak_motion_mm:g} mm); {advice}")

@@ -89,6 +89,12 @@ def test_verdict_objections():
     assert "; 1 of the 3 views was left out (ap; why: the warnings): mend it first" in verdict(
         True, {**good, "weak_motion_mm": 11.0}, "", opts, 2, ["d_ap", "d_obl"], ["ap"])[0]
     assert loose[0].endswith("; add a view, or views further apart")
+    # noisy contours loosen the hold as much as the views do (a review: 50 quanta on
+    # experiment1, poses 0.6 mm off refused with only 'add a view')
+    noisy = verdict(True, {**good, "median_residual_mm": 0.68, "weak_motion_mm": 6.8}, "",
+                    opts, 2)
+    assert noisy[0].endswith("or make the contours less noisy (it scales with the median "
+                             "distance, 0.68 mm here)")
     assert len(loose) == 1 and "loosely determined" in loose[0] and "11.0 mm" in loose[0]
     assert verdict(True, {**good, "weak_motion_mm": 3.0}, "", opts, 4) == []
     assert verdict(True, {**good, "weak_motion_mm": float("nan")}, "", opts, 4) == []
