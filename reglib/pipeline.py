@@ -104,10 +104,10 @@ VIEW_FIT_MM = 2.0
 #: found 0.39-1.0 where the patient was turned at most 12 deg, moved or the views re-aimed.
 MIN_CONTOUR_SHARE = 0.25
 #: the verdict's test that the images single out one pose, when more than one start was
-#: tried (the restarts, or the fine stage from the start after it from the coarse pose): a
-#: pose is refused when another try ended farther than AMBIGUOUS_POSE_MM from it (RMS
-#: displacement of the CT surfaces' vertices) with a median point-to-path distance at most
-#: AMBIGUOUS_FIT times its own. A held-out review (2026-11-26: experiment2 with a CT of 2 mm
+#: tried (the restarts, or the fine stage run from the start as well as from the coarse
+#: pose): a pose is refused when another try ended farther than AMBIGUOUS_POSE_MM from it
+#: (RMS displacement of the CT surfaces' vertices) with a median point-to-path distance at
+#: most AMBIGUOUS_FIT times its own. A held-out review (2026-11-26: experiment2 with a CT of 2 mm
 #: pixels and 5/20 mm slices) found a pose accepted 8.1 mm off (pins 7.0-9.6 mm, median 0.92
 #: mm, weakest motion 5.0 mm, every figure inside its limit) after 12 restarts: 22 tries had
 #: ended 0.74 mm off with medians of 1.01-1.03 mm (just over the 1 mm limit) and 3 more
