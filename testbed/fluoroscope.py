@@ -218,7 +218,10 @@ class ViewSpec(Spec):
     ``name``; ``region`` the part of the femur it images ("proximal" or "distal");
     ``isocenter_mm`` the point on the beam axis the C-arm turns about (robot frame, mm);
     ``orbital_deg`` rotation about the robot x axis, ``angular_deg`` about the robot y axis,
-    ``roll_deg`` of the image about the beam (see the module docstring for the order);
+    ``roll_deg`` of the whole C-arm about its beam (source, intensifier and the C's arc turn
+    together, and the image with them: a roll moves the arc in the workspace check, and the
+    intensifier's orientation in the earth's field; ``c_side_deg`` moves the arc alone; see
+    the module docstring for the order);
     ``source_to_isocenter_mm`` (650) distance from the source to the isocenter, less than the
     fluoroscope's ``sid_mm``; ``c_side_deg`` where the C's arc stands off the beam, as an
     angle in the image plane from the carm's ``+x`` towards ``+y`` (0, the default: ``+x``,
