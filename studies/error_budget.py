@@ -60,9 +60,10 @@ SOURCE_GROUPS = (
     (r"^operator\.ct_", "operator on CT"),
     (r"^operator\.", "operator on X-ray"),
 )
-#: paths that are not error sources (names, the views' poses are the same in both profiles;
-#: the anatomy: the ideal profile keeps the femur its regression thresholds were set on)
-NOT_SOURCES = (r"^scene\.", r"^views", r"^registration\.", r"^workspace\.", r"^phantom\.",
+#: paths that are not error sources (names; the registration's options; the anatomy: the
+#: ideal profile keeps the femur its regression thresholds were set on; how the quanta are
+#: sampled, one law either way); the set-up, views included, must be equal (GEOMETRY)
+NOT_SOURCES = (r"^scene\.", r"^registration\.", r"^workspace\.", r"^phantom\.",
                r"^fluoroscope\.quantum_sampler$")
 #: the set-up, which an ideal profile must share with its clinic scene: where the patient
 #: lies, the views and the instruments (not sources: a review paired a moved patient with the
