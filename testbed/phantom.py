@@ -474,22 +474,36 @@ def make_phantom(spec: PhantomSpec | None = None, rng=None) -> Phantom:
     spec = PhantomSpec() if spec is None else spec
     if spec.mesh_path is not None:
         return _user_phantom(spec)
-    if spec not in _BUILT:
+    key = _build_key(spec)
+    if key not in _BUILT:
         if len(_BUILT) >= 4:
             _BUILT.pop(next(iter(_BUILT)))
-        _BUILT[spec] = _procedural_phantom(spec)
-    return _copied(_BUILT[spec])
+        _BUILT[key] = _procedural_phantom(key)
+    return _copied(_BUILT[key], spec)
 
 
-#: the last few procedural phantoms by spec (building one takes ~0.25 s of CSG; a study
-#: trial asks for its femur up to three times), handed out as copies
+#: the last few procedural phantoms by their geometry's spec (:func:`_build_key`; building
+#: one takes 0.5-1 s of CSG on a 2-core machine; a study trial asks for its femur up to
+#: three times), handed out as copies
 _BUILT: dict = {}
 
 
-def _copied(ph: Phantom) -> Phantom:
-    """``ph`` with its own copies of every mesh and array (callers may change them)."""
+def _build_key(spec: PhantomSpec) -> PhantomSpec:
+    """The spec that fixes the procedural phantom's geometry: ``spec`` itself, with
+    ``shape_seed`` set to 0 when ``shape_variation`` is 0 (the seed then draws nothing that
+    is used: the capture-range study's random femurs have their variation 0, and the
+    simulator gives every case its own seed, so their femur was built twice a trial)."""
+    if spec.shape_variation == 0 and spec.shape_seed != 0:
+        return spec.model_copy(update={"shape_seed": 0})
+    return spec
+
+
+def _copied(ph: Phantom, spec: PhantomSpec | None = None) -> Phantom:
+    """``ph`` with its own copies of every mesh and array (callers may change them), and
+    ``spec`` as its spec when given."""
     return replace(
-        ph, femur=ph.femur.copy(), soft_tissue=ph.soft_tissue.copy(),
+        ph, spec=ph.spec if spec is None else spec, femur=ph.femur.copy(),
+        soft_tissue=ph.soft_tissue.copy(),
         canal=None if ph.canal is None else ph.canal.copy(),
         cancellous=None if ph.cancellous is None else ph.cancellous.copy(),
         pins={k: v.copy() for k, v in ph.pins.items()},

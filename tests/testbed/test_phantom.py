@@ -95,6 +95,26 @@ def test_shape_variation_is_seeded_and_varies():
     assert abs(a.femur.volume - c.femur.volume) > 1e3
 
 
+def test_without_variation_the_seed_draws_nothing_and_the_build_is_shared():
+    """With shape_variation 0 a femur's geometry does not depend on shape_seed (every case
+    of a study sets its own): one build serves every seed, each copy keeps its own spec, and
+    a build from an empty cache gives the same femur."""
+    from testbed import phantom as ph
+
+    ph._BUILT.clear()
+    a = make_phantom(PhantomSpec(shape_variation=0.0, shape_seed=5, segments=24))
+    b = make_phantom(PhantomSpec(shape_variation=0.0, shape_seed=6, segments=24))
+    assert len(ph._BUILT) == 1
+    assert (a.spec.shape_seed, b.spec.shape_seed) == (5, 6)
+    np.testing.assert_array_equal(a.femur.vertices, b.femur.vertices)
+    b.femur.vertices[0] += 1.0                       # copies: the cache is untouched
+    ph._BUILT.clear()
+    c = make_phantom(PhantomSpec(shape_variation=0.0, shape_seed=6, segments=24))
+    np.testing.assert_array_equal(a.femur.vertices, c.femur.vertices)
+    for k in PIN_NAMES:
+        np.testing.assert_array_equal(a.pins[k], c.pins[k])
+
+
 @pytest.mark.slow
 def test_fifty_variations_are_closed_manifolds_with_pins_in_bone():
     for seed in range(50):
