@@ -52,6 +52,9 @@ PLANE_CODES = {v: k for k, v in PLANE_NAMES.items()}
 #: in the image, and a background wider than a bead and narrower than the rod's band
 BLOB_SIGMA_PX = 1.0
 BACKGROUND_SIGMA_PX = 4.0
+#: the smallest blob (px above the threshold) taken for a bead: fewer pixels locate no
+#: centroid to a fraction of a pixel
+MIN_AREA_PX = 4
 #: the noise is measured per block of this size (px): a patient frame's quanta, hence the
 #: noise of its log difference, vary several-fold over the field (bone against air beside
 #: the limb), and one figure for the field lets the noisiest part through as blobs
@@ -203,7 +206,7 @@ def _noise_map(g1, g2, inside, field_noise, mode: str, reference: bool) -> np.nd
 
 def detect_markers(previous, current, *, polarity: str = "dark", response: str = "log",
                    rel_threshold: float = 0.35, noise_mode: str = "block",
-                   n_sigma: float = 4.5, min_area_px: int = 4, max_area_px: int = 2000,
+                   n_sigma: float = 4.5, min_area_px: int = MIN_AREA_PX, max_area_px: int = 2000,
                    max_elongation: float = 2.0, centroid_floor: float = 0.25,
                    mask=None, reference: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Blobs that appeared in ``current`` and not in ``previous`` (the rod's new beads).
@@ -777,7 +780,11 @@ def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int =
                                **detect_kw)
         try:
             if not len(xy):
-                raise ValueError("no blobs")
+                raise ValueError(
+                    "no bead-sized blob in the difference from the previous frame: are "
+                    "the beads smaller than min_area_px = "
+                    f"{detect_kw.get('min_area_px', MIN_AREA_PX)} px in the image, fainter "
+                    "than the noise, or outside the field?")
             bead, _rms = identify_row(xy, s, min_matched=min_matched)
         except ValueError as exc:
             problems.append(f"{name}: row dropped ({exc}; {len(xy)} blobs found)")

@@ -474,6 +474,21 @@ def test_find_markers_checks_shapes():
                                np.zeros((3, 8, 3)), BEADS))
 
 
+def test_a_row_without_blobs_names_what_the_detector_needs():
+    """Frames that differ nowhere (beads too small for the detector, too faint, or out of
+    the field: a held-out scene with 2 mm pixels gave this) drop each row with the detector's
+    smallest blob named, so that the calibration's failure says what to change."""
+    frames = np.stack([_bead_image([])] * 3)
+    sweep = SweepData("v", frames, np.array([-1, 0, 0]), np.zeros((3, 8, 3)), BEADS)
+    m = find_markers(sweep)
+    assert len(m.bead) == 0 and len(m.problems) == 2
+    assert all("smaller than min_area_px = 4 px in the image, fainter than the noise, or "
+               "outside the field?; 0 blobs found" in p for p in m.problems)
+    assert "min_area_px = 9 px" in find_markers(sweep, min_area_px=9).problems[0]
+    with pytest.raises(ValueError, match="near plane has 0 markers in 0 rows.*min_area_px"):
+        calibrate(m)
+
+
 def test_fast_median_equals_numpy_median():
     """The one-rank partition median of the fast marker path against np.median: odd and
     even counts, ties, sorted input, one element."""
