@@ -442,6 +442,15 @@ def write_case(case_dir, case: Mapping[str, Any], *, truth: Iterable[str] = (),
 
 
 # --------------------------------------------------------------------------- reading
+def _inside(rel: str) -> bool:
+    """A file name relative to its case folder that stays inside it."""
+    from pathlib import PurePosixPath, PureWindowsPath
+
+    p = PurePosixPath(rel)
+    return (not p.is_absolute() and ".." not in p.parts and not PureWindowsPath(rel).drive
+            and "\\" not in rel)
+
+
 def _read_doc(case_dir: Path) -> dict:
     path = case_dir / CASE_FILE
     if not path.is_file():
@@ -472,10 +481,30 @@ def _read_doc(case_dir: Path) -> dict:
                 or not all(isinstance(f, str) and f for f in files)):
             raise ValueError(f"{path}: entry {key!r}: 'files' must be a non-empty list of "
                              f"file names, got {files!r}")
+    for rel in [f for rec in doc["entries"].values() for f in rec["files"]] + list(doc["sha256"]):
+        if not _inside(rel):
+            raise ValueError(f"{path}: file name {rel!r} leaves the case folder; a case's "
+                             "files are named relative to it, without '..'")
     for rel, digest in doc["sha256"].items():
         if not isinstance(digest, str) or len(digest) != 64:
             raise ValueError(f"{path}: sha256 of {rel!r} must be 64 hex digits, got {digest!r}")
     return doc
+
+
+def case_problem(case_dir) -> str | None:
+    """Why the case in ``case_dir`` is not whole, or None: its ``case.json`` readable and, in
+    a generated dataset, the checksum the index holds; every listed file present with its
+    SHA-256 (every file is read). For a resumed ``testbed generate``, which must not call a
+    damaged dataset complete."""
+    case_dir = Path(case_dir)
+    try:
+        doc = _read_doc(case_dir)
+        _check_index(case_dir)
+        _check_roles(case_dir, doc)
+        _check_files(case_dir, doc, verify=True)
+    except (ValueError, OSError) as exc:
+        return str(exc)
+    return None
 
 
 def _check_index(case_dir: Path) -> None:

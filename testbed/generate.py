@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -144,7 +145,7 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
     """
     from tqdm import tqdm
 
-    from testbed.dataset import CASE_FILE, FORMAT_VERSION, write_case
+    from testbed.dataset import CASE_FILE, FORMAT_VERSION, case_problem, write_case
     from testbed.simulate import simulate
 
     if isinstance(cases, bool) or not isinstance(cases, int | np.integer) or cases < 1:
@@ -203,13 +204,20 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
     for i in tqdm(range(cases), desc="cases", disable=not progress, unit="case"):
         case_dir = dirs[i]
         if (case_dir / CASE_FILE).is_file() and case_dir.name in hashes:
-            continue
+            problem = case_problem(case_dir)
+            if problem is None:
+                continue
+            # the case's seed gives the same case again: a damaged one is made anew
+            print(f"testbed generate: {case_dir.name} is damaged ({problem}); simulating it "
+                  "again", file=sys.stderr)
+            hashes.pop(case_dir.name)
+            write_index()
         sim = simulate(scene, case_seed(int(seed), i), truth_rays=True, progress=progress,
                        prepared=first if i == 0 else None)
         case, truth = case_entries(sim)
         case["meta"].update(case_index=i, dataset_seed=int(seed), scene_path=str(scene_path),
                             timings_s=sim.timings)
-        write_case(case_dir, case, truth=truth)
+        write_case(case_dir, case, truth=truth, overwrite=True)
         hashes[case_dir.name] = hashlib.sha256((case_dir / CASE_FILE).read_bytes()).hexdigest()
         write_index()
     return dirs[:cases]

@@ -143,8 +143,34 @@ def test_generated_case_round_trips_exactly_and_splits_truth(tmp_path):
     mtime = (dirs[0] / "case.json").stat().st_mtime_ns
     generate_command(scene, scene_path="small.toml", cases=1, out=out, seed=3, progress=False)
     assert (dirs[0] / "case.json").stat().st_mtime_ns == mtime
+    # a damaged case is not called complete: a rerun simulates it again, the same case
+    from testbed.dataset import case_problem
+
+    assert case_problem(dirs[0]) is None
+    before = {p.name: p.read_bytes() for p in (dirs[0] / "arrays").iterdir()}
+    victim = sorted((dirs[0] / "arrays").iterdir())[0]
+    victim.write_bytes(victim.read_bytes()[:100])
+    assert "SHA-256 differs" in case_problem(dirs[0])
+    generate_command(scene, scene_path="small.toml", cases=1, out=out, seed=3, progress=False)
+    assert case_problem(dirs[0]) is None
+    assert {p.name: p.read_bytes() for p in (dirs[0] / "arrays").iterdir()} == before
+    assert "leaves the case folder" in case_problem(_with_file_name(dirs[0], tmp_path))
     with pytest.raises(ValueError, match="--cases"):
         generate_command(scene, scene_path="x", cases=0, out=out, seed=3, progress=False)
+
+
+def _with_file_name(case_dir, tmp_path):
+    """A copy of the case whose case.json lists a file outside the case folder."""
+    import json
+    import shutil
+
+    copy = tmp_path / "escape" / case_dir.name
+    shutil.copytree(case_dir, copy)
+    doc = json.loads((copy / "case.json").read_text())
+    key = next(iter(doc["entries"]))
+    doc["entries"][key]["files"] = ["../../" + doc["entries"][key]["files"][0]]
+    (copy / "case.json").write_text(json.dumps(doc))
+    return copy
 
 
 def test_case_seeds_and_shapes_differ_per_case():
