@@ -70,6 +70,12 @@ TPS_SMOOTHING = 0.01
 MAX_VALIDATION_MM = 1.0
 #: fewer validation markers than this: the calibration cannot be checked and fails
 MIN_VALIDATION_MARKERS = 3
+#: a sweep whose near and far planes lie closer than this (mm, along their normal) fixes
+#: the X-ray paths' directions poorly: the view fails (the paper's planes were 10-20 cm apart)
+MIN_PLANE_GAP_MM = 20.0
+#: a validation row closer than this share of the planes' gap to either plane tests only
+#: that plane, not the paths between: the view fails as not validated
+MIN_VALIDATION_OFFSET = 0.2
 #: the verdict's limit on the pose's uncertainty along its least constrained motion (mm of RMS
 #: displacement of the surfaces for the across-contour distances to change by their median,
 #: ``match_quality``'s ``weak_motion_mm``). It is a scale of the error, not the error: on the
@@ -387,6 +393,77 @@ def _view_names(observation) -> list[str]:
 
 
 # --------------------------------------------------------------------------- stages
+def _sweep_data(view: str, frames, arrays: Mapping, fov):
+    """The sweep's arrays checked against each other (``ValueError`` naming the view and the
+    array: malformed input, not a calibration that cannot be made)."""
+    from reglib.markers import PLANE_NAMES, SweepData
+
+    for key in ("plane", "beads_reported", "bead_positions_mm"):
+        if key not in arrays:
+            raise ValueError(f"view {view}: sweep arrays lack {key!r}")
+    frames = np.asarray(frames)
+    plane = np.asarray(arrays["plane"])
+    beads = np.asarray(arrays["beads_reported"], dtype=np.float64)
+    s = np.asarray(arrays["bead_positions_mm"], dtype=np.float64)
+    if frames.ndim != 3 or not frames.size:
+        raise ValueError(f"view {view}: sweep frames must be (F, H, W) images, got shape "
+                         f"{frames.shape}")
+    F, H, W = frames.shape
+    if plane.shape != (F,) or not np.issubdtype(plane.dtype, np.integer):
+        raise ValueError(f"view {view}: sweep 'plane' must be ({F},) integers (one per frame), "
+                         f"got {plane.dtype} {plane.shape}")
+    bad = sorted(set(plane.tolist()) - set(PLANE_NAMES))
+    if bad:
+        raise ValueError(f"view {view}: sweep 'plane' holds {bad}; expected codes "
+                         f"{sorted(PLANE_NAMES)} ({', '.join(PLANE_NAMES.values())})")
+    if s.ndim != 1 or len(s) < 4 or not np.all(np.isfinite(s)) or np.any(np.diff(s) <= 0):
+        raise ValueError(f"view {view}: sweep 'bead_positions_mm' must be at least 4 "
+                         f"increasing finite positions (mm along the rod), got {s.tolist()}")
+    if beads.shape != (F, len(s), 3):
+        raise ValueError(f"view {view}: sweep 'beads_reported' must be ({F}, {len(s)}, 3) (frame, "
+                         f"bead, robot mm), got {beads.shape}")
+    if fov is not None and np.shape(fov) != (H, W):
+        raise ValueError(f"view {view}: the field of view mask is {np.shape(fov)}, the frames "
+                         f"{(H, W)}")
+    return SweepData(view=view, frames=frames, plane=plane, beads_robot=beads,
+                     bead_positions_mm=s, mask=None if fov is None else np.asarray(fov, bool))
+
+
+def _sweep_geometry(sweep) -> str:
+    """Why the sweep's planes, as the robot reported its beads, cannot give paths that the
+    validation row tests ("" when they can): the near and far planes less than
+    :data:`MIN_PLANE_GAP_MM` apart along the near plane's normal, or the validation row
+    within :data:`MIN_VALIDATION_OFFSET` of their gap from either."""
+    from reglib.markers import FAR, NEAR, VALIDATION
+
+    def pts(code):
+        p = sweep.beads_robot[sweep.plane == code].reshape(-1, 3)
+        return p[np.all(np.isfinite(p), axis=1)]
+
+    near, far, val = pts(NEAR), pts(FAR), pts(VALIDATION)
+    if len(near) < 3 or len(far) < 1:
+        return ""                      # too few: calibrate says so with the markers found
+    centred = near - near.mean(axis=0)
+    _, sv, vt = np.linalg.svd(centred, full_matrices=False)
+    if sv[1] <= 1e-6 * max(sv[0], 1e-12):
+        return ""                      # one row: no plane (calibrate refuses the rows)
+    n = vt[2]
+    gap = float((far.mean(axis=0) - near.mean(axis=0)) @ n)
+    if abs(gap) < MIN_PLANE_GAP_MM:
+        return (f"view {sweep.view}: the near and far planes lie {abs(gap):.1f} mm apart (need "
+                f"at least {MIN_PLANE_GAP_MM:g} mm): a path through both has no sound "
+                "direction")
+    if len(val):
+        v = float((val.mean(axis=0) - near.mean(axis=0)) @ n)
+        off = min(abs(v), abs(v - gap))
+        if off < MIN_VALIDATION_OFFSET * abs(gap):
+            return (f"view {sweep.view}: the validation row lies {off:.1f} mm from a "
+                    f"calibration plane (the planes are {abs(gap):.0f} mm apart; need at least "
+                    f"{MIN_VALIDATION_OFFSET:g} of that): it cannot test the paths between "
+                    "them")
+    return ""
+
+
 def calibrate_view(view: str, frames, arrays: Mapping, *, fov=None,
                    options: EstimateOptions | None = None) -> ViewCalibration:
     """Calibrate one view from its sweep and validate it.
@@ -404,17 +481,13 @@ def calibrate_view(view: str, frames, arrays: Mapping, *, fov=None,
     (``ok`` is False and ``message`` says why), only for malformed input.
     """
     from reglib.calibration import calibrate, summarise_problems
-    from reglib.markers import VALIDATION, SweepData, find_markers, identify_by_paths
+    from reglib.markers import VALIDATION, find_markers, identify_by_paths
 
     options = options or EstimateOptions()
-    for key in ("plane", "beads_reported", "bead_positions_mm"):
-        if key not in arrays:
-            raise ValueError(f"view {view}: sweep arrays lack {key!r}")
-    sweep = SweepData(view=view, frames=np.asarray(frames), plane=np.asarray(arrays["plane"]),
-                      beads_robot=np.asarray(arrays["beads_reported"], dtype=np.float64),
-                      bead_positions_mm=np.asarray(arrays["bead_positions_mm"],
-                                                   dtype=np.float64),
-                      mask=None if fov is None else np.asarray(fov, dtype=bool))
+    sweep = _sweep_data(view, frames, arrays, fov)
+    geometry = _sweep_geometry(sweep)
+    if geometry:
+        return ViewCalibration(view, None, ok=False, message=f"calibration failed: {geometry}")
     try:
         markers = find_markers(sweep)
         cal = calibrate(markers, smoothing=options.tps_smoothing)

@@ -155,7 +155,7 @@ class FluoroscopeSpec(Spec):
     glare_fraction: Annotated[float, Field(ge=0, lt=1)] = 0.12
     glare_sigma_px: Annotated[float, Field(gt=0, le=500)] = 30.0
     vignetting: Annotated[float, Field(ge=0, lt=1)] = 0.25
-    display_range: Positive = 6.0
+    display_range: Annotated[float, Field(ge=1.0, le=20.0)] = 6.0
     black_u8: Annotated[int, Field(ge=0, le=255)] = 8
     white_u8: Annotated[int, Field(ge=1, le=255)] = 240
     oversample: Annotated[int, Field(ge=1, le=8)] = 1

@@ -60,6 +60,32 @@ _M = 1e-3  # metres per mm
 
 
 # --------------------------------------------------------------------------- scene sections
+#: the least difference (largest over a run's three gap ratios, each gap over the run's
+#: length) between the gaps of two runs of 4 consecutive beads of a rod, one of them maybe
+#: reversed; the default rod's closest pair differs by 0.035
+MIN_RUN_CONTRAST = 0.02
+
+
+def _alike_runs(gaps) -> str | None:
+    """Two runs of 4 consecutive beads (3 gaps) that an image could not tell apart, either
+    read forwards or backwards, named; None when every pair differs by
+    :data:`MIN_RUN_CONTRAST`."""
+    g = np.asarray(gaps, dtype=np.float64)
+    runs = [g[i:i + 3] / g[i:i + 3].sum() for i in range(len(g) - 2)]
+    for i, a in enumerate(runs):
+        for j in range(i, len(runs)):
+            for turned in (False, True):
+                if i == j and not turned:
+                    continue
+                b = runs[j][::-1] if turned else runs[j]
+                if np.abs(a - b).max() < MIN_RUN_CONTRAST:
+                    what = (f"beads {i}-{i + 3} read backwards look like themselves" if i == j
+                            else f"beads {i}-{i + 3} look like beads {j}-{j + 3}"
+                            + (" read backwards" if turned else ""))
+                    return what
+    return None
+
+
 class RodSpec(Spec):
     """``[robot.rod]``: the calibration rod (a radiolucent cylinder with steel beads).
 
@@ -101,6 +127,13 @@ class RodSpec(Spec):
             raise ValueError("bead_spacings_mm: every gap must exceed 3 bead diameters")
         if self.bead_diameter_mm >= self.diameter_mm:
             raise ValueError("bead_diameter_mm must be smaller than the rod diameter_mm")
+        clash = _alike_runs(self.bead_spacings_mm)
+        if clash is not None:
+            raise ValueError(
+                f"bead_spacings_mm: {clash}; the gaps must be unequal so that any 4 "
+                "consecutive beads in an image tell where on the rod they are, and which way "
+                "it points (every two runs' gap ratios must differ by at least "
+                f"{MIN_RUN_CONTRAST:g}, as the default rod's (14, 27, 16, 12, 30, 21, 24) do)")
         from testbed.materials import material
 
         for key in ("material", "bead_material", "tip_material"):
@@ -147,6 +180,14 @@ class RodSpec(Spec):
         return len(self.bead_spacings_mm) + 1
 
 
+#: the least gap between the calibration planes, as a fraction of the source-to-image
+#: distance (50 mm at 1 m; the clinic scenes' planes are 0.12 apart)
+MIN_PLANE_GAP = 0.05
+#: the least distance of the validation row's plane from either calibration plane, as a
+#: fraction of their gap (the clinic scenes' row lies half the gap off both)
+MIN_VALIDATION_OFFSET = 0.2
+
+
 class SweepSpec(Spec):
     """``[robot.sweep]``: the calibration sweep per C-arm view (``testbed.sweep``).
 
@@ -170,7 +211,7 @@ class SweepSpec(Spec):
     tilt_deg: Annotated[float, Field(ge=-45, le=45)] = 0.0
     rod_angle_deg: float = 0.0
     rows_per_plane: Annotated[int, Field(ge=3, le=50)] = 9
-    coverage: Annotated[float, Field(gt=0, le=1.2)] = 0.9
+    coverage: Annotated[float, Field(ge=0.25, le=1.2)] = 0.9
     reference_frames: Literal["first", "each"] = "first"
     validation_fraction: Annotated[float, Field(gt=0.05, lt=0.99)] = 0.85
     validation_angle_deg: float = 30.0
@@ -183,6 +224,22 @@ class SweepSpec(Spec):
     def _check(self):
         if not self.near_fraction < self.far_fraction:
             raise ValueError("near_fraction must be smaller than far_fraction")
+        gap = self.far_fraction - self.near_fraction
+        if gap < MIN_PLANE_GAP:
+            raise ValueError(
+                f"far_fraction - near_fraction = {gap:.4g}: the two calibration planes must "
+                f"lie at least {MIN_PLANE_GAP:g} of the source-to-image distance apart (a "
+                "path is the line through its points on the two planes: planes close "
+                "together leave its direction undetermined)")
+        off = min(abs(self.validation_fraction - self.near_fraction),
+                  abs(self.validation_fraction - self.far_fraction))
+        if off < MIN_VALIDATION_OFFSET * gap:
+            raise ValueError(
+                f"validation_fraction = {self.validation_fraction:g} lies {off:.3g} from a "
+                f"calibration plane (near_fraction {self.near_fraction:g}, far_fraction "
+                f"{self.far_fraction:g}): the validation row must lie at least "
+                f"{MIN_VALIDATION_OFFSET:g} of the planes' gap off both, or it cannot test "
+                "the paths between them")
         return self
 
 

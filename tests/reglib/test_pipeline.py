@@ -28,6 +28,49 @@ def test_calibration_that_cannot_be_made_is_a_named_failure_not_an_exception():
         calibrate_view("v", frames, {"beads_reported": 0, "bead_positions_mm": 0})
 
 
+def _sweep_arrays(near_z, far_z, val_z):
+    """A sweep's arrays: 3 rows per plane of 6 beads (robot mm), planes at the given z."""
+    s = np.array([0.0, 14.0, 41.0, 57.0, 69.0, 99.0])
+    rows = [(-1, np.nan)] + [(0, near_z)] * 3 + [(1, far_z)] * 3 + [(2, val_z)]
+    beads = np.full((len(rows), 6, 3), np.nan)
+    for f, (code, z) in enumerate(rows):
+        if code >= 0:
+            beads[f] = np.column_stack([s - 50.0, np.full(6, 20.0 * (f % 3) - 20.0),
+                                        np.full(6, z)])
+    return {"plane": np.array([c for c, _ in rows]), "beads_reported": beads,
+            "bead_positions_mm": s}
+
+
+def test_sweep_planes_that_cannot_calibrate_or_validate_are_named_failures():
+    """From the robot's reported beads alone: planes 5 mm apart, or a validation row in the
+    near plane (a held-out scene's sweep passed its own validation, then registered 158 mm
+    off), fail the view before any detection; malformed arrays raise, naming the array."""
+    frames = np.zeros((8, 48, 64), dtype=np.uint8)
+    cal = calibrate_view("v", frames, _sweep_arrays(830.0, 835.0, 890.0))
+    assert not cal.ok and "the near and far planes lie 5.0 mm apart (need at least 20" in \
+        cal.message
+    cal = calibrate_view("v", frames, _sweep_arrays(830.0, 950.0, 831.0))
+    assert not cal.ok and "the validation row lies 1.0 mm from a calibration plane" in \
+        cal.message
+    cal = calibrate_view("v", frames, _sweep_arrays(830.0, 950.0, 890.0))
+    # sound planes pass to the detection (which finds nothing in blank frames)
+    assert not cal.ok and "near plane has 0 markers in 0 rows" in cal.message
+    assert "apart" not in cal.message and "validation row lies" not in cal.message
+    good = _sweep_arrays(830.0, 950.0, 890.0)
+    for change, match in ((dict(plane=good["plane"][:-1]), "'plane' must be \\(8,\\)"),
+                          (dict(plane=good["plane"] + 3), "'plane' holds \\[3, 4, 5\\]"),
+                          (dict(beads_reported=good["beads_reported"][:, :5]),
+                           "'beads_reported' must be \\(8, 6, 3\\)"),
+                          (dict(bead_positions_mm=good["bead_positions_mm"][::-1]),
+                           "'bead_positions_mm' must be at least 4 increasing")):
+        with pytest.raises(ValueError, match="view v: sweep " + match):
+            calibrate_view("v", frames, {**good, **change})
+    with pytest.raises(ValueError, match="the field of view mask is \\(10, 10\\)"):
+        calibrate_view("v", frames, good, fov=np.ones((10, 10), bool))
+    with pytest.raises(ValueError, match="sweep frames must be \\(F, H, W\\)"):
+        calibrate_view("v", frames[0], good)
+
+
 def test_initial_must_be_rigid():
     obs = {"meta": {"views": ["v"]}, "images": {}, "arrays": {}, "volumes": {}}
     for bad in (2 * np.eye(4), np.diag([1.0, 1.0, -1.0, 1.0]), np.full((4, 4), np.nan),

@@ -4,7 +4,7 @@ import numpy as np
 import pybullet
 import pytest
 
-from testbed.robot import Robot, RobotSpec, RodSpec, rod_bodies
+from testbed.robot import Robot, RobotSpec, RodSpec, SweepSpec, rod_bodies
 
 
 def _random_reachable_lines(robot, rng, n):
@@ -102,6 +102,29 @@ def test_rod_spec_rejects_too_few_or_too_close_beads():
         RodSpec(bead_spacings_mm=(20.0, 30.0))
     with pytest.raises(ValueError, match="3 bead diameters"):
         RodSpec(bead_spacings_mm=(20.0, 5.0, 30.0))
+    # gaps that do not tell the beads apart (a held-out scene's equal gaps loaded, then
+    # every view's calibration failed after a whole simulation)
+    with pytest.raises(ValueError, match="beads 0-3 read backwards look like themselves"):
+        RodSpec(bead_spacings_mm=(20.0,) * 7)
+    with pytest.raises(ValueError, match="beads 0-3 look like beads 3-6"):
+        RodSpec(bead_spacings_mm=(14.0, 27.0, 16.0, 14.0, 27.0, 16.0))
+    with pytest.raises(ValueError, match="beads 0-3 look like beads 4-7 read backwards"):
+        RodSpec(bead_spacings_mm=(14.0, 27.0, 16.0, 12.0, 16.0, 27.0, 14.0))
+    RodSpec(bead_spacings_mm=(14.0, 27.0, 16.0, 12.0))          # a shorter rod is fine
+
+
+def test_sweep_spec_refuses_planes_that_cannot_calibrate_or_validate():
+    """A held-out scene with the near and far planes 0.1 mm apart and the validation row in
+    the near plane passed its own validation and registered 158 mm off."""
+    with pytest.raises(ValueError, match="at least 0.05 of the source-to-image distance"):
+        SweepSpec(near_fraction=0.83, far_fraction=0.8301, validation_fraction=0.9)
+    with pytest.raises(ValueError, match="validation_fraction = 0.83 lies 0 from a calibration"):
+        SweepSpec(near_fraction=0.83, far_fraction=0.95, validation_fraction=0.83)
+    with pytest.raises(ValueError, match="greater than or equal to 0.25"):
+        SweepSpec(coverage=1e-6)
+    # the shipped planes, and a row beyond the far plane, are fine
+    SweepSpec(near_fraction=0.83, far_fraction=0.95, validation_fraction=0.89)
+    SweepSpec(near_fraction=0.76, far_fraction=0.88, validation_fraction=0.94)
 
 
 # --------------------------------------------------------------------------- clinic errors
