@@ -57,6 +57,7 @@ __all__ = [
     "ViewCalibration",
     "ViewContours",
     "calibrate_view",
+    "SurfaceError",
     "ct_surfaces",
     "estimate",
     "prepare",
@@ -520,6 +521,42 @@ def calibrate_view(view: str, frames, arrays: Mapping, *, fov=None,
     return ViewCalibration(view, cal, d, ok=True, problems=problems)
 
 
+class SurfaceError(ValueError):
+    """A CT region's surface cannot be built from its clicks (the contours found on its
+    slices cannot be tiled, or too few slices keep one): well-formed input, a failed stage."""
+
+
+def _region_clicks(region: str, a: Mapping, n_slices: int):
+    """A region's click arrays checked: ``(clicks_xy (P, 2), slice (P,), contour (P,),
+    slices list)``; ``ValueError`` naming the array otherwise."""
+    where = f"ct_clicks_{region}"
+    missing = [k for k in ("slices", "clicks_xy", "slice", "contour") if k not in a]
+    if missing:
+        raise ValueError(f"{where}: lacks {missing}; expected arrays slices (S,), clicks_xy "
+                         "(P, 2) px, slice (P,) and contour (P,)")
+    xy = np.asarray(a["clicks_xy"], dtype=np.float64)
+    if xy.ndim != 2 or xy.shape[1] != 2:
+        raise ValueError(f"{where}: clicks_xy must be (P, 2) (x, y) px, got shape {xy.shape}")
+    if not np.all(np.isfinite(xy)):
+        raise ValueError(f"{where}: clicks_xy holds non-finite values")
+    ints = {}
+    for key in ("slice", "contour", "slices"):
+        v = np.asarray(a[key]).reshape(-1)
+        if v.size and (not np.issubdtype(v.dtype, np.number) or not np.all(np.isfinite(v))
+                       or np.any(v != np.round(v))):
+            raise ValueError(f"{where}: {key} must hold whole numbers, got {v[:5].tolist()}")
+        ints[key] = v.astype(np.int64)
+    sl, co, slices = ints["slice"], ints["contour"], ints["slices"]
+    if not (len(xy) == len(sl) == len(co)):
+        raise ValueError(f"{where}: clicks_xy, slice and contour differ in length ({len(xy)}, "
+                         f"{len(sl)}, {len(co)})")
+    for key, v in (("slices", slices), ("slice", sl)):
+        if v.size and (v.min() < 0 or v.max() >= n_slices):
+            raise ValueError(f"{where}: {key} holds slice indices outside the CT volume's "
+                             f"0-{n_slices - 1}")
+    return xy, sl, co, [int(k) for k in slices]
+
+
 def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
                 options: EstimateOptions | None = None) -> dict:
     """Bone surfaces from the CT: snake contours from the operator's clicks, tiled.
@@ -538,29 +575,29 @@ def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
 
     options = options or EstimateOptions()
     vol = np.asarray(volume)
-    if vol.ndim != 3:
-        raise ValueError(f"CT volume: expected an (I, J, K) array, got shape {vol.shape}")
+    if vol.ndim != 3 or min(vol.shape) < 2 or not np.issubdtype(vol.dtype, np.number):
+        raise ValueError(f"CT volume: expected an (I, J, K) array of numbers (col, row, slice; "
+                         f"at least 2 each), got {vol.dtype} {vol.shape}")
+    s2c = np.asarray(slice2ct, dtype=np.float64)
+    if s2c.shape != (vol.shape[2], 4, 4) or not np.all(np.isfinite(s2c)):
+        raise ValueError(f"slice2ct: expected ({vol.shape[2]}, 4, 4) finite matrices (one per "
+                         f"slice of the CT volume), got shape {s2c.shape}"
+                         + ("" if s2c.shape != (vol.shape[2], 4, 4) else " with non-finite "
+                            "entries"))
     vol_hu = vol.transpose(2, 1, 0)  # [slice, row, col], as reglib.contours reads it
     out = {}
     for region in sorted(ct_clicks):
-        a = ct_clicks[region]
-        xy = np.asarray(a["clicks_xy"], dtype=np.float64).reshape(-1, 2)
-        sl = np.asarray(a["slice"], dtype=np.int64).reshape(-1)
-        co = np.asarray(a["contour"], dtype=np.int64).reshape(-1)
-        if not (len(xy) == len(sl) == len(co)):
-            raise ValueError(f"ct_clicks_{region}: clicks_xy, slice and contour differ in "
-                             "length")
+        xy, sl, co, slices = _region_clicks(region, ct_clicks[region], vol.shape[2])
         clicks = {}
         for k in np.unique(sl):
             m = sl == k
             clicks[int(k)] = [xy[m & (co == j)] for j in np.unique(co[m])]
-        slices = [int(k) for k in np.asarray(a["slices"]).reshape(-1)]
         try:
-            surf, _ = surface_from_ct(vol_hu, slice2ct, slices, clicks,
+            surf, _ = surface_from_ct(vol_hu, s2c, slices, clicks,
                                       quality=options.surface_quality,
                                       simplify_tol_mm=options.simplify_tol_mm)
         except ValueError as exc:
-            raise ValueError(f"CT region {region!r}: {exc}") from None
+            raise SurfaceError(f"CT region {region!r}: {exc}") from None
         out[region] = (np.asarray(surf.vertices, dtype=np.float64),
                        np.asarray(surf.faces, dtype=np.int64))
     return out

@@ -88,7 +88,7 @@ def estimate_options(scene, **registration):
 def prepare_case(scene, seed, *, index: int = 0, sweeps: bool = True,
                  progress: bool = False) -> Case:
     """Simulate a case and run reglib's stages up to (not including) registration."""
-    from reglib.pipeline import prepare
+    from reglib.pipeline import SurfaceError, prepare
     from testbed.simulate import simulate
 
     t0 = time.perf_counter()
@@ -97,11 +97,25 @@ def prepare_case(scene, seed, *, index: int = 0, sweeps: bool = True,
     timings["simulation"] = time.perf_counter() - t0
     options = estimate_options(sim.scene)
     t0 = time.perf_counter()
-    stages = prepare(sim.observation, options=options,
-                     calibrations=None if sweeps else true_calibrations(sim))
+    try:
+        stages = prepare(sim.observation, options=options,
+                         calibrations=None if sweeps else true_calibrations(sim))
+    except SurfaceError as exc:
+        raise ValueError(_surface_failure(sim.scene, exc)) from None
     timings.update({f"estimate {k}": v for k, v in stages.timings.items()})
     timings["estimation stages"] = time.perf_counter() - t0
     return Case(sim, stages, options, timings)
+
+
+def _surface_failure(scene, exc) -> str:
+    """The method's failure to build a CT surface from the simulated operator's clicks, with
+    the scene fields that made the clicks and the slices (it begins with the section, so
+    that the command line puts the scene file in front)."""
+    op, ct = scene.operator, scene.ct
+    return (f"operator: the method cannot build the CT surfaces from the simulated operator's "
+            f"clicks (operator.ct_clicks = {op.ct_clicks}, ct_click_noise_px = "
+            f"{op.ct_click_noise_px:g} px, ct_reclick_every_mm = {op.ct_reclick_every_mm:g}; "
+            f"ct.pixel_mm = {ct.pixel_mm:g}, schedule {ct.schedule!r}): {exc}")
 
 
 def register_case(case: Case, start, *, oracle=(), fixed_pin=None, strategy=None,

@@ -354,6 +354,14 @@ def _grid(phantom, spec: CTSpec):
     lo, hi = phantom.soft_tissue.bounds[0, :2], phantom.soft_tissue.bounds[1, :2]
     centre = (lo + hi) / 2
     fov = spec.fov_mm if spec.fov_mm is not None else float(np.max(hi - lo)) + 20.0
+    # the reconstructed field (a square about the thigh's centre) must hold the bone
+    reach = float(np.max(np.abs(phantom.femur.bounds[:, :2] - centre)))
+    if 2.0 * reach + 2.0 * spec.pixel_mm > fov:
+        raise ValueError(
+            f"ct.fov_mm = {fov:g}: the CT's field (centred on the thigh) cuts the femur, "
+            f"which reaches {reach:.0f} mm from its centre; give at least "
+            f"{np.ceil(2.0 * reach + 2.0 * spec.pixel_mm):.0f} mm, or leave fov_mm out (the "
+            "thigh's width and 20 mm)")
     n = int(np.ceil(fov / spec.pixel_mm))
     origin = centre - (n - 1) / 2 * spec.pixel_mm
     return n, origin

@@ -219,6 +219,18 @@ def _one_section_run(sections: dict, slice_z_mm) -> dict:
     return {k: sections[k] for k in best}
 
 
+def _too_few_sections(region: str, vol, slices, spec, n_bone: int) -> str:
+    """The message of a CT region whose slices show bone on fewer than 2 (``n_bone``): the
+    fields that decide it, with the region's brightest CT number."""
+    idx = np.asarray(slices, dtype=np.int64)
+    brightest = float(vol[idx].max()) if len(idx) else float("nan")
+    how = " as one section" if region == "proximal" else ""
+    return (f"operator.ct_bone_threshold_hu = {spec.ct_bone_threshold_hu:g} HU: bone above it "
+            f"shows{how} on {n_bone} of the {len(idx)} slice(s) of CT region {region!r}, need 2 "
+            f"(the region's brightest pixel is {brightest:.0f} HU): lower the threshold, or "
+            "scan the region with more slices ([ct] schedule and spacing, or slice_z_mm)")
+
+
 def ct_clicks(volume_hu, slice_z_mm, region_slices: dict, *, pixel_mm: float,
               spec: OperatorSpec, rng) -> dict[str, CtClicks]:
     """The operator's clicks on every CT region.
@@ -249,14 +261,16 @@ def ct_clicks(volume_hu, slice_z_mm, region_slices: dict, *, pixel_mm: float,
             sections = _one_section_run(sections, z)
         slices = sorted(sections)
         if len(slices) < 2:
-            raise ValueError(f"CT region {region!r}: fewer than 2 slices show bone above "
-                             f"{spec.ct_bone_threshold_hu:g} HU")
+            raise ValueError(_too_few_sections(region, vol, region_slices[region], spec,
+                                               len(slices)))
+        # a click lands on the slice's image: the error model's tail cannot leave it
+        hi_xy = np.array([vol.shape[2] - 1, vol.shape[1] - 1], dtype=np.float64)
         clicks, last_z, last_n = {}, -np.inf, -1
         for k in slices:
             sec = sections[k]
             if len(sec) != last_n or z[k] - last_z >= spec.ct_reclick_every_mm:
-                clicks[k] = [clicks_along(p, spec.ct_clicks, spec.ct_click_noise_px, rng,
-                                          closed=True) for p in sec]
+                clicks[k] = [np.clip(clicks_along(p, spec.ct_clicks, spec.ct_click_noise_px,
+                                                  rng, closed=True), 0.0, hi_xy) for p in sec]
                 last_z, last_n = z[k], len(sec)
         out[region] = CtClicks(region, np.asarray(slices, dtype=np.int64), clicks)
     return out

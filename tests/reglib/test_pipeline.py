@@ -112,6 +112,32 @@ def test_missing_entries_are_named():
         estimate(obs, np.eye(4))
 
 
+def test_ct_surface_input_is_checked_and_a_failed_region_is_a_surface_error():
+    from reglib.pipeline import SurfaceError, ct_surfaces
+
+    vol = np.zeros((20, 20, 4))
+    s2c = np.tile(np.eye(4), (4, 1, 1))
+    good = {"slices": np.arange(4), "clicks_xy": np.zeros((4, 2)), "slice": np.arange(4),
+            "contour": np.zeros(4, int)}
+    for change, match in (
+            (dict(clicks_xy=np.zeros((4, 3))), r"ct_clicks_distal: clicks_xy must be \(P, 2\)"),
+            (dict(clicks_xy=np.full((4, 2), np.nan)), "clicks_xy holds non-finite"),
+            (dict(slice=np.arange(3)), r"differ in length \(4, 3, 4\)"),
+            (dict(slices=np.array([0, 9])), "slices holds slice indices outside .* 0-3"),
+            (dict(slice=np.array([0.5, 1, 2, 3])), "slice must hold whole numbers")):
+        with pytest.raises(ValueError, match=match):
+            ct_surfaces(vol, s2c, {"distal": {**good, **change}})
+    with pytest.raises(ValueError, match=r"lacks \['slices'\]"):
+        ct_surfaces(vol, s2c, {"distal": {k: v for k, v in good.items() if k != "slices"}})
+    with pytest.raises(ValueError, match=r"slice2ct: expected \(4, 4, 4\) finite .* non-finite"):
+        ct_surfaces(vol, np.full((4, 4, 4), np.nan), {"distal": good})
+    with pytest.raises(ValueError, match=r"CT volume: expected an \(I, J, K\) array"):
+        ct_surfaces(np.zeros((0, 0, 0)), s2c, {"distal": good})
+    # well-formed clicks on an empty CT: the stage fails, as a SurfaceError naming the region
+    with pytest.raises(SurfaceError, match="CT region 'distal'"):
+        ct_surfaces(vol, s2c, {"distal": good})
+
+
 def test_verdict_objections():
     opts = EstimateOptions()
     good = {"median_residual_mm": 0.2, "inlier_fraction": 0.8, "reason": "ok"}

@@ -141,6 +141,17 @@ def test_schedule_outside_the_volume_raises(cylinders):
         scan(cylinders, CTSpec(schedule="explicit", slice_z_mm=(50.0, 40.0)))
 
 
+def test_a_field_that_cuts_the_bone_is_refused(cylinders):
+    """The bone (r 20 mm about (3, -2)) lies 20 mm from the thigh's centre: a 38 mm field cuts
+    it (a review's 50 mm field on the femur failed later in the operator's clicks)."""
+    with pytest.raises(ValueError, match=r"ct.fov_mm = 38: .* reaches 20 mm .* at least 42 mm"):
+        scan(cylinders, CTSpec(fov_mm=50.0, pixel_mm=1.0, schedule="explicit",
+                               slice_z_mm=(50.0,)).model_copy(update={"fov_mm": 38.0}))
+    ct = scan(cylinders, CTSpec(fov_mm=50.0, pixel_mm=1.0, schedule="explicit",
+                                slice_z_mm=(50.0,)), rng=0)
+    assert ct.volume_hu.shape[1:] == (50, 50)
+
+
 def test_clinic_defaults_thick_slices_and_metal_streaks():
     """Coarse slices are as thick as their spacing; streaks radiate from the pins."""
     ph = make_phantom(PhantomSpec(segments=32))

@@ -124,6 +124,24 @@ def test_ct_clicks_follow_the_bone_and_leave_out_the_head():
     assert z_top < ph.landmarks["head_center"][2]
 
 
+def test_ct_clicks_stay_on_the_image_and_a_threshold_above_the_bone_is_named():
+    """A bone section touching the image's edge with a large click error: every click lies
+    on the slice's image. A threshold no bone reaches names the operator's field."""
+    vol = np.full((3, 40, 50), -1000.0)
+    vol[:, 5:35, 0:20] = 1200.0                     # a section cut by the image's left edge
+    spec = OperatorSpec(ct_click_noise_px=30.0, ct_reclick_every_mm=0.0)
+    got = ct_clicks(vol, np.array([0.0, 2.0, 4.0]), {"distal": [0, 1, 2]}, pixel_mm=1.0,
+                    spec=spec, rng=np.random.default_rng(1))
+    xy = np.vstack([p for polys in got["distal"].clicks.values() for p in polys])
+    assert xy.min() >= 0.0 and xy[:, 0].max() <= 49.0 and xy[:, 1].max() <= 39.0
+    assert (xy == 0.0).any()                        # the error model's tail was clipped
+    with pytest.raises(ValueError, match=r"operator.ct_bone_threshold_hu = 1500 HU: bone above "
+                       r"it shows on 0 of the 3 slice\(s\) of CT region 'distal', need 2 "
+                       r"\(the region's brightest pixel is 1200 HU\)"):
+        ct_clicks(vol, np.array([0.0, 2.0, 4.0]), {"distal": [0, 1, 2]}, pixel_mm=1.0,
+                  spec=OperatorSpec(ct_bone_threshold_hu=1500.0), rng=np.random.default_rng(1))
+
+
 def test_proximal_clicks_pass_over_a_one_slice_island_and_stop_at_the_head():
     """A lesser trochanter's tip that shows as an island on one slice just above the
     region's first slice (seen on random femurs, where the region then had 1 slice and the
