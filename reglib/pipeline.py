@@ -195,29 +195,39 @@ class EstimateOptions:
     def __post_init__(self):
         for name in ("tps_smoothing", "simplify_tol_mm"):
             v = getattr(self, name)
-            if not (isinstance(v, int | float) and np.isfinite(v) and v >= 0):
+            if not (_real(v) and np.isfinite(v) and v >= 0):
                 raise ValueError(f"EstimateOptions.{name}: expected a finite number >= 0, "
                                  f"got {v!r}")
         for name in ("max_validation_mm", "accept_max_median_mm", "accept_max_weak_motion_mm",
                      "accept_max_alternative_mm"):
             v = getattr(self, name)
-            if not (isinstance(v, int | float) and v > 0):
+            if not (_real(v) and v > 0):
                 raise ValueError(f"EstimateOptions.{name}: expected a number > 0, got {v!r}")
         for name in ("accept_min_inlier_fraction", "accept_min_view_fit",
                      "accept_min_contour_share"):
             v = getattr(self, name)
-            if not (isinstance(v, int | float) and 0.0 <= v <= 1.0):
+            if not (_real(v) and 0.0 <= v <= 1.0):
                 raise ValueError(f"EstimateOptions.{name}: expected a value in [0, 1], got "
                                  f"{v!r}")
         if self.strategy not in ("coarse-fine", "single"):
             raise ValueError("EstimateOptions.strategy: expected 'coarse-fine' or 'single', "
                              f"got {self.strategy!r}")
-        if self.restarts < 0 or not self.restart_deg > 0:
-            raise ValueError("EstimateOptions: restarts must be >= 0 and restart_deg > 0, got "
-                             f"{self.restarts!r}, {self.restart_deg!r}")
-        if self.min_views < 1 or self.min_validation_markers < 0:
-            raise ValueError("EstimateOptions: min_views must be >= 1 and "
-                             "min_validation_markers >= 0")
+        for name, low in (("restarts", 0), ("min_views", 1), ("accept_min_views", 1),
+                          ("min_validation_markers", 1)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < low:
+                raise ValueError(f"EstimateOptions.{name}: expected a whole number >= {low}, "
+                                 f"got {v!r}")
+        v = self.restart_deg
+        if not (_real(v) and 0 < v <= 90):
+            raise ValueError(f"EstimateOptions.restart_deg: expected a number of degrees in "
+                             f"(0, 90], got {v!r}")
+        if self.fixed_point_ct is not None:
+            fp = np.asarray(self.fixed_point_ct)
+            if fp.shape != (3,) or not np.issubdtype(fp.dtype, np.number) \
+                    or not np.all(np.isfinite(fp)):
+                raise ValueError("EstimateOptions.fixed_point_ct: expected None or a finite "
+                                 f"(x, y, z) ct point in mm, got {self.fixed_point_ct!r}")
         if self.surface_quality not in ("area", "compactness"):
             raise ValueError("EstimateOptions.surface_quality: expected 'area' or "
                              f"'compactness', got {self.surface_quality!r}")
@@ -241,6 +251,36 @@ def _check_register_options(label: str, opts) -> None:
         if key in choices and value not in choices[key]:
             raise ValueError(f"{label}[{key!r}]: expected one of {list(choices[key])}, got "
                              f"{value!r}")
+        if key in _REGISTER_NUMBERS:
+            whole, low, low_open, high, what = _REGISTER_NUMBERS[key]
+            ok = (not isinstance(value, bool) and isinstance(value, int | np.integer)) if whole \
+                else _real(value) and not np.isnan(value)
+            ok = ok and (value > low if low_open else value >= low) and value <= high
+            if not ok:
+                raise ValueError(f"{label}[{key!r}]: expected {what}, got {value!r}")
+
+
+def _real(v) -> bool:
+    """A real number (an int or a float, numpy's too; not a bool, not a string)."""
+    return not isinstance(v, bool) and isinstance(v, int | float | np.integer | np.floating)
+
+
+#: the numeric keyword options of reglib.register.register: (whole number, low, low
+#: excluded, high, in words); NaN is never allowed, inf only where ``high`` is inf
+_REGISTER_NUMBERS = {
+    "max_iterations": (True, 1, False, np.inf, "a whole number >= 1"),
+    "solver_iterations": (True, 1, False, np.inf, "a whole number >= 1"),
+    "stall_window": (True, 1, False, np.inf, "a whole number >= 1"),
+    "stale_window": (True, 1, False, np.inf, "a whole number >= 1"),
+    "tukey_a": (False, 0.0, True, 1e6, "a number > 0 (the Tukey constant, in robust sigmas)"),
+    "max_stab_distance_mm": (False, 0.0, True, np.inf, "a distance > 0 mm (inf: the paper's)"),
+    "tol_step_mm": (False, 0.0, False, 1e6, "a distance >= 0 mm"),
+    "tol_residual_mm": (False, 0.0, False, 1e6, "a distance >= 0 mm"),
+    "tol_stall_mm": (False, 0.0, False, 1e6, "a distance >= 0 mm"),
+    "max_motion_mm": (False, 0.0, True, np.inf, "a distance > 0 mm"),
+    "max_rotation_deg": (False, 0.0, True, 360.0, "an angle in (0, 360] deg"),
+    "min_inlier_fraction": (False, 0.0, False, 1.0, "a fraction in [0, 1]"),
+}
 
 
 @functools.cache
@@ -484,7 +524,7 @@ def calibrate_view(view: str, frames, arrays: Mapping, *, fov=None,
     from reglib.calibration import calibrate, summarise_problems
     from reglib.markers import VALIDATION, find_markers, identify_by_paths
 
-    options = options or EstimateOptions()
+    options = _as_options(options)
     sweep = _sweep_data(view, frames, arrays, fov)
     geometry = _sweep_geometry(sweep)
     if geometry:
@@ -573,7 +613,7 @@ def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
     """
     from reglib.surface import surface_from_ct
 
-    options = options or EstimateOptions()
+    options = _as_options(options)
     vol = np.asarray(volume)
     if vol.ndim != 3 or min(vol.shape) < 2 or not np.issubdtype(vol.dtype, np.number):
         raise ValueError(f"CT volume: expected an (I, J, K) array of numbers (col, row, slice; "
@@ -674,7 +714,7 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
     """
     from reglib.register import View
 
-    options = options or EstimateOptions()
+    options = _as_options(options)
     images, arrays = _part(observation, "images"), _part(observation, "arrays")
     names = _view_names(observation)
     timings: dict[str, float] = {}
@@ -722,6 +762,26 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
         views.append(View(center=cal.calibration.center_of_perspective(), origins=o,
                           directions=d, external=con.external, name=v))
     return Stages(cals, dict(surfaces), conts, views, failed, timings)
+
+
+def _as_options(options) -> EstimateOptions:
+    """``options`` as EstimateOptions: None (the defaults), an EstimateOptions, or a mapping
+    of its fields (unknown names refused, naming them)."""
+    if options is None:
+        return EstimateOptions()
+    if isinstance(options, EstimateOptions):
+        return options
+    if isinstance(options, Mapping):
+        import dataclasses
+
+        known = {f.name for f in dataclasses.fields(EstimateOptions)}
+        unknown = sorted(set(options) - known)
+        if unknown:
+            raise ValueError(f"options: unknown field(s) {unknown} of EstimateOptions (it has "
+                             f"{sorted(known)})")
+        return EstimateOptions(**options)
+    raise ValueError(f"options: expected None, an EstimateOptions or a mapping of its fields, "
+                     f"got {type(options).__name__}")
 
 
 def _as_transform(initial) -> RigidTransform:
@@ -980,8 +1040,11 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
     """
     from reglib.register import register
 
-    options = options or EstimateOptions()
+    options = _as_options(options)
     start = _as_transform(initial)
+    if stages is not None and not isinstance(stages, Stages):
+        raise ValueError(f"stages: expected None or the Stages of reglib.prepare, got "
+                         f"{type(stages).__name__}")
     t0 = time.perf_counter()
     stages = stages if stages is not None else prepare(observation, options=options)
     timings = dict(stages.timings)

@@ -123,6 +123,25 @@ def _case_scene(scene, shape_ss: np.random.SeedSequence):
     return scene.model_copy(update={"phantom": phantom})
 
 
+def _no_trace_message(i: int, vspec, frame, scene) -> str:
+    """Why the operator traced nothing on a view's frame, with the fields that decide it: the
+    femur outside the field (the view, the patient), or shown but every run of its outline
+    too short or too near the rim or an instrument (the detector, the operator's margins)."""
+    femur_px = int(sum(np.count_nonzero((frame.path_mm[n] > 0) & frame.fov)
+                       for n in FEMUR_BODIES if n in frame.path_mm))
+    fl, op = scene.fluoroscope, scene.operator
+    where = f"views[{i}] ({vspec.name!r}): the femur's outline is nowhere traceable in the frame"
+    if femur_px == 0:
+        return (f"{where}: the femur is outside the field; check views[{i}].isocenter_mm and "
+                "its angles, and where [patient] position_mm and rotation_deg put the femur")
+    return (f"{where}: the femur covers {femur_px} px of the field, but no run of its outline "
+            f"is operator.xray_min_trace_px = {op.xray_min_trace_px} px long, farther than "
+            f"xray_edge_margin_px = {op.xray_edge_margin_px:g} px from the field's rim and "
+            f"instrument_margin_px = {op.instrument_margin_px:g} px from an instrument; the "
+            f"detector is fluoroscope.width_px x height_px = {fl.width_px} x {fl.height_px} of "
+            f"pixel_mm = {fl.pixel_mm:g} (check those, the view's aim and the instruments)")
+
+
 def _safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.\-]", "_", name)
 
@@ -334,10 +353,7 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
         clicks = xray_clicks(frame, femur_bodies=FEMUR_BODIES, instrument_bodies=instruments,
                              spec=op_spec, rng=op_rngs[i], view=vspec.name)
         if not clicks.traces:
-            raise ValueError(f"views[{i}] ({vspec.name!r}): the femur's outline is nowhere "
-                             "visible in the frame (outside the field or under instruments); "
-                             f"check views[{i}].isocenter_mm and its angles, and where "
-                             "[patient] position_mm and rotation_deg put the femur")
+            raise ValueError(_no_trace_message(i, vspec, frame, scene))
         obs["arrays"][f"xray_clicks_{v}"] = clicks.to_arrays()
         tick(f"xray {vspec.name}", t0)
     bar.close()

@@ -88,6 +88,33 @@ def test_options_are_checked():
         EstimateOptions(accept_min_inlier_fraction=1.5)
     with pytest.raises(ValueError, match="tps_smoothing"):
         EstimateOptions(tps_smoothing=float("nan"))
+    # a held-out review's values: each refused when made, naming the field
+    for kw, match in ((dict(restart_deg=float("inf")), r"restart_deg: .* \(0, 90\]"),
+                      (dict(restarts=1.5), "restarts: expected a whole number >= 0"),
+                      (dict(accept_min_views=-5), "accept_min_views: expected a whole number"),
+                      (dict(min_validation_markers=0), "min_validation_markers: .* >= 1"),
+                      (dict(min_views="2"), "min_views: expected a whole number"),
+                      (dict(max_validation_mm="1"), "max_validation_mm: expected a number"),
+                      (dict(fixed_point_ct=(1.0, np.nan, 0.0)), "fixed_point_ct"),
+                      (dict(coarse={"max_iterations": "5"}),
+                       r"coarse\['max_iterations'\]: expected a whole number >= 1"),
+                      (dict(registration={"max_iterations": 0}), "a whole number >= 1"),
+                      (dict(registration={"tukey_a": float("nan")}), r"tukey_a'\]: .* > 0"),
+                      (dict(registration={"min_inlier_fraction": 2.0}), "fraction in"),
+                      (dict(registration={"max_stab_distance_mm": -1.0}), "distance > 0")):
+        with pytest.raises(ValueError, match=match):
+            EstimateOptions(**kw)
+    EstimateOptions(registration={"max_stab_distance_mm": float("inf"), "max_iterations": 5})
+    # estimate takes a mapping of the fields too, and names what it does not know
+    obs = {"meta": {"views": ["v"]}, "images": {}, "arrays": {}, "volumes": {}}
+    est = estimate(obs, np.eye(4), options={"restarts": 0}, stages=_stages_with_no_view())
+    assert not est.accepted
+    with pytest.raises(ValueError, match=r"options: unknown field\(s\) \['restart'\]"):
+        estimate(obs, np.eye(4), options={"restart": 0})
+    with pytest.raises(ValueError, match="options: expected None, an EstimateOptions"):
+        estimate(obs, np.eye(4), options=3)
+    with pytest.raises(ValueError, match="stages: expected None or the Stages"):
+        estimate(obs, np.eye(4), stages="abc")
 
 
 def _stages_with_no_view():

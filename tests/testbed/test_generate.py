@@ -417,3 +417,20 @@ def test_entry_roles_agree_with_the_loaders_truth_names():
         concrete = key.replace("{view}", "v").replace("{region}", "r").replace("{body}", "b")
         if any(fnmatchcase(concrete, p) for p in TRUTH_ENTRIES):
             assert role == "truth", key
+
+
+def test_a_view_without_a_traceable_outline_names_the_fields_that_decide_it():
+    """A held-out review's xray_min_trace_px = 100000 and a view aimed off the femur got one
+    message sending the user to the view's aim; each now names its own fields."""
+    from testbed.simulate import simulate
+
+    long_runs = parse_scene({**SMALL, "operator": {"xray_min_trace_px": 100000}})
+    with pytest.raises(ValueError, match=r"views\[0\] \('distal_ap'\): .*the femur covers \d+ "
+                       r"px of the field, but no run of its outline is "
+                       r"operator.xray_min_trace_px = 100000 px long"):
+        simulate(long_runs, 0, sweeps=False)
+    view = {**SMALL["views"][0], "isocenter_mm": [805.0, 900.0, 200.0]}
+    aside = parse_scene({**SMALL, "views": [view]})
+    with pytest.raises(ValueError, match=r"the femur is outside the field; check "
+                       r"views\[0\].isocenter_mm"):
+        simulate(aside, 0, sweeps=False)
