@@ -293,6 +293,9 @@ def cmd_score(args) -> int:
     from testbed.dataset import list_cases
 
     dataset = Path(args.dataset)
+    if dataset.exists() and not dataset.is_dir():
+        raise UsageError(f"{dataset}: is a file, not a dataset folder (give the folder that "
+                         f"{PROG} generate --out wrote)")
     if not dataset.is_dir():
         raise UsageError(f"{dataset}: no such dataset folder")
     try:
@@ -301,6 +304,9 @@ def cmd_score(args) -> int:
         raise UsageError(str(exc)) from None
     _check_scheduler(args, "score")
     if not list_cases(dataset):     # before --out is made
+        if (dataset / "case.json").is_file():
+            raise UsageError(f"{dataset}: is one case; give the dataset folder that holds it "
+                             f"({dataset.parent})")
         raise UsageError(f"{dataset}: holds no case (case_*/case.json); make one with "
                          f"{PROG} generate")
     if Path(args.out).resolve().is_relative_to(dataset.resolve()):
@@ -450,7 +456,7 @@ def build_parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="measure every performance target")
     b.add_argument("--quick", action="store_true")
     b.add_argument("--json", action="store_true")
-    b.add_argument("--only", nargs="*", default=None, metavar="WORKLOAD")
+    b.add_argument("--only", nargs="+", default=None, metavar="WORKLOAD")
     b.set_defaults(func=cmd_bench)
 
     n = sub.add_parser("scenes", help="list the named scenes")

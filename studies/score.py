@@ -54,6 +54,13 @@ def load_method(spec: str):
     fn = getattr(mod, fn_name, None)
     if not callable(fn):
         raise ValueError(f"--method {spec!r}: module {mod_name!r} has no function {fn_name!r}")
+    try:
+        inspect.signature(fn).bind(None, None)
+    except TypeError:
+        raise ValueError(f"--method {spec!r}: {fn_name}{inspect.signature(fn)} cannot be "
+                         "called as method(observation, initial)") from None
+    except ValueError:
+        pass        # no signature to read (a builtin): called as it is
     return fn
 
 

@@ -265,8 +265,9 @@ def _resolve_paths(data: dict, scene_path: Path) -> None:
     for section, key in _PATH_FIELDS:
         table = data.get(section)
         value = table.get(key) if isinstance(table, dict) else None
-        if not isinstance(value, str) or value == "builtin" or Path(value).is_absolute():
-            continue
+        if (not isinstance(value, str) or not value.strip() or value == "builtin"
+                or Path(value).is_absolute()):
+            continue            # an empty name is refused by its section, naming the field
         beside = scene_path.parent / value
         if beside.exists() or not Path(value).exists():
             table[key] = str(beside)
@@ -323,6 +324,9 @@ def find_scene(name_or_path: str | os.PathLike | None) -> Path:
     if name_or_path is None:
         name_or_path = DEFAULT_SCENE
     text = os.fspath(name_or_path)
+    if not text.strip():
+        raise SceneError(f"scene {text!r}: an empty name; give a scene file or a named scene "
+                         f"(e.g. {DEFAULT_SCENE})")
     p = Path(text)
     if p.is_file():
         return p

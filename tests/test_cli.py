@@ -66,6 +66,12 @@ def _one_error_line(err: str) -> str:
     (["render", "/no/such/dir/experiment2.toml", "--out", "{tmp}/r.png"], "no such scene"),
     (["run", "no-such-scene"], "no such scene"),
     (["score", "{tmp}/nothing", "--out", "{tmp}/s"], "no such dataset"),
+    (["score", "{tmp}/afile", "--out", "{tmp}/s"], "is a file, not a dataset folder"),
+    (["score", "{tmp}/case_0003", "--out", "{tmp}/s"], "is one case; give the dataset folder"),
+    (["score", "{tmp}", "--method", "json:dumps", "--out", "{tmp}/s"],
+     "cannot be called as method(observation, initial)"),
+    (["run", ""], "an empty name"),
+    (["bench", "--only"], "expected at least one argument"),
     (["score", "{tmp}", "--scheduler", "tcp://nohost", "--out", "{tmp}/s"], "--scheduler"),
     (["study", "fig9", "--workers", "2", "--scheduler", "tcp://127.0.0.1:1", "--out", "{tmp}/s"],
      "not both"),
@@ -80,6 +86,8 @@ def _one_error_line(err: str) -> str:
 ])
 def test_bad_command_lines_exit_2_with_one_line(tmp_path, capsys, argv, expect):
     (tmp_path / "afile").write_text("not a folder")
+    (tmp_path / "case_0003").mkdir()
+    (tmp_path / "case_0003" / "case.json").write_text("{}")
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
     code, _, err = _run(capsys, *argv)
     assert code == 2, err
