@@ -666,7 +666,9 @@ def xray_contours(view: str, image, clicks: Mapping) -> ViewContours:
         return failed(f"xray_{view}: the frame holds NaN or inf")
     name = f"xray_clicks_{view}"
     try:
-        xy = np.asarray(clicks["clicks_xy"], dtype=np.float64).reshape(-1, 2)
+        xy = np.asarray(clicks["clicks_xy"], dtype=np.float64)
+        if xy.ndim != 2 or xy.shape[1] != 2:
+            raise ValueError(f"clicks_xy must be (P, 2) (x, y) px, got shape {xy.shape}")
         tr = np.asarray(clicks["trace"], dtype=np.int64).reshape(-1)
         ext = np.asarray(clicks["external"], dtype=bool).reshape(-1)
         closed = np.asarray(clicks["closed"], dtype=bool).reshape(-1)

@@ -105,7 +105,35 @@ def build_world(scene, rng=None) -> World:
     patient = [b.transformed(ct2robot) for b in phantom.bodies()]
     table = (table_bodies(patient, proximal_robot=ct2robot.R[:, 2])
              if scene.patient.on_table else [])
-    return World(phantom, ct2robot, patient, table, list(scene_instruments(scene)))
+    instruments = list(scene_instruments(scene))
+    _check_instruments_outside_bone(instruments, patient)
+    return World(phantom, ct2robot, patient, table, instruments)
+
+
+#: surface points of an instrument tested against the femur (seeded: the same every run)
+INSTRUMENT_SAMPLES = 2000
+
+
+def _check_instruments_outside_bone(instruments: list[Body], patient: list[Body]) -> None:
+    """``ValueError`` naming an instrument that passes through the femur (a held-out review
+    placed one inside the bone and the run went on). Instruments rest on the thigh or beside
+    the bone, and may enter the soft tissue; the bone they cannot enter."""
+    femur = next((b.mesh for b in patient if b.name == "femur" and b.mesh is not None), None)
+    if femur is None:
+        return
+    for k, ins in enumerate(instruments):
+        if ins.mesh is None:
+            continue
+        pts, _ = trimesh.sample.sample_surface(ins.mesh, INSTRUMENT_SAMPLES, seed=0)
+        lo, hi = femur.bounds
+        near = np.all((pts >= lo) & (pts <= hi), axis=1)
+        inside = int(femur.contains(pts[near]).sum()) if near.any() else 0
+        if inside:
+            raise ValueError(
+                f"instruments[{k}] ({ins.name!r}): passes through the femur ({inside} of "
+                f"{INSTRUMENT_SAMPLES} points of its surface lie inside the bone); an "
+                "instrument rests on the thigh or beside the bone: move its position_mm or "
+                "turn it (rotation_deg)")
 
 
 def world_bodies(scene, rng=None) -> list[Body]:

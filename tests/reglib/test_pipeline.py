@@ -275,7 +275,9 @@ def test_xray_contours_trace_a_bright_disk_edge_and_name_bad_traces():
                        "clicks_xy has 5 clicks but trace 8"),
                       (dict(trace=arrays["trace"] + 50), r"trace indices must lie in 0\.\.1"),
                       (dict(clicks_xy=np.full((8, 2), np.nan)), "clicks_xy holds NaN"),
-                      (dict(closed=np.array([False])), "external has 2 traces but closed 1")):
+                      (dict(closed=np.array([False])), "external has 2 traces but closed 1"),
+                      (dict(clicks_xy=np.zeros((5, 3))),
+                       r"clicks_xy must be \(P, 2\) \(x, y\) px, got shape \(5, 3\)")):
         with pytest.raises(ValueError, match="xray_clicks_v: " + match):
             xray_contours("v", img.astype(np.uint8), bad(**kw))
     for frame, match in ((np.zeros((0, 0)), r"shape \(0, 0\)"),

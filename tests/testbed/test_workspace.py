@@ -67,6 +67,22 @@ def test_run_on_a_colliding_scene_exits_2_with_one_line(tmp_path, capsys):
     assert "view proximal_oblique, sweep pose" in err[0] and "collides with" in err[0]
 
 
+def test_an_instrument_through_the_bone_is_refused_naming_it(tmp_path, capsys):
+    """A held-out review put the retractor inside the femur and the run went on."""
+    from studies.cli import main
+
+    text = find_scene("experiment2").read_text()
+    bad = text.replace("position_mm = [880.0, -125.0, 295.0]",
+                       "position_mm = [810.0, -160.0, 200.0]")
+    assert bad != text
+    f = tmp_path / "through.toml"
+    f.write_text(bad)
+    assert main(["run", str(f)]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if "pybullet" not in ln]
+    assert len(err) == 1 and str(f) in err[0]
+    assert "instruments[0] ('retractor'): passes through the femur" in err[0]
+
+
 def test_the_table_is_an_or_table_whatever_the_femur():
     # a 2 m table top along the femur, 600 mm beyond the knee end, the rest under a body
     from testbed.world import TABLE_BEYOND_DISTAL_MM, TABLE_LENGTH_MM
