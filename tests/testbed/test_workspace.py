@@ -48,39 +48,37 @@ def test_an_unreachable_robot_is_refused_before_the_simulation(capsys):
         require_feasible(scene, world)
 
 
-def test_run_on_a_colliding_scene_exits_2_with_one_line(tmp_path, capsys):
-    import tomllib
-
+def _run_edited(tmp_path, capsys, old: str, new: str) -> str:
+    """``testbed run`` on experiment2 with ``old`` replaced by ``new``: exits 2 with one line
+    naming the scene file, returned."""
     from studies.cli import main
 
     text = find_scene("experiment2").read_text()
-    d = tomllib.loads(text)
-    assert d["views"][1]["name"] == "proximal_oblique"
-    bad = text.replace("orbital_deg = 10.0\nangular_deg = 28.0",
-                       "orbital_deg = 8.0\nangular_deg = -35.0")
+    bad = text.replace(old, new)
     assert bad != text
-    f = tmp_path / "colliding.toml"
-    f.write_text(bad)
-    assert main(["run", str(f)]) == 2
-    err = [ln for ln in capsys.readouterr().err.splitlines() if "pybullet" not in ln]
-    assert len(err) == 1
-    assert "view proximal_oblique, sweep pose" in err[0] and "collides with" in err[0]
-
-
-def test_an_instrument_through_the_bone_is_refused_naming_it(tmp_path, capsys):
-    """A held-out review put the retractor inside the femur and the run went on."""
-    from studies.cli import main
-
-    text = find_scene("experiment2").read_text()
-    bad = text.replace("position_mm = [880.0, -125.0, 295.0]",
-                       "position_mm = [810.0, -160.0, 200.0]")
-    assert bad != text
-    f = tmp_path / "through.toml"
+    f = tmp_path / "edited.toml"
     f.write_text(bad)
     assert main(["run", str(f)]) == 2
     err = [ln for ln in capsys.readouterr().err.splitlines() if "pybullet" not in ln]
     assert len(err) == 1 and str(f) in err[0]
-    assert "instruments[0] ('retractor'): passes through the femur" in err[0]
+    return err[0]
+
+
+def test_run_on_a_colliding_scene_exits_2_with_one_line(tmp_path, capsys):
+    import tomllib
+
+    d = tomllib.loads(find_scene("experiment2").read_text())
+    assert d["views"][1]["name"] == "proximal_oblique"
+    err = _run_edited(tmp_path, capsys, "orbital_deg = 10.0\nangular_deg = 28.0",
+                      "orbital_deg = 8.0\nangular_deg = -35.0")
+    assert "view proximal_oblique, sweep pose" in err and "collides with" in err
+
+
+def test_an_instrument_through_the_bone_is_refused_naming_it(tmp_path, capsys):
+    """A held-out review put the retractor inside the femur and the run went on."""
+    err = _run_edited(tmp_path, capsys, "position_mm = [880.0, -125.0, 295.0]",
+                      "position_mm = [810.0, -160.0, 200.0]")
+    assert "instruments[0] ('retractor'): passes through the femur" in err
 
 
 def test_the_table_is_an_or_table_whatever_the_femur():
