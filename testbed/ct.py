@@ -50,8 +50,10 @@ class CTSpec(Spec):
     ``uniform_range_mm``, default the whole femur) or ``"explicit"`` (``slice_z_mm``).
     The regions default to the phantom's anatomy: distal from below the condyles to
     ``distal_height_mm`` above them, proximal from ``proximal_depth_mm`` below the top of the
-    femoral head to above it. ``slice_thickness_mm``: the reconstructed thickness, at most the
-    local spacing (None: the local spacing, capped at ``max_slice_thickness_mm``).
+    femoral head to above it. ``slice_thickness_mm``: the reconstructed thickness of every
+    slice, as given (thicker than the spacing: overlapping slabs, as a scanner reconstructs
+    them; a review found it silently capped at the spacing), or None: the local spacing,
+    capped at ``max_slice_thickness_mm``.
 
     Clinic defaults (``docs/error-model.md``): contiguous slices, i.e. the thickness equals the
     spacing up to ``max_slice_thickness_mm`` = 10 mm (so 6 mm on the coarse part of the
@@ -373,8 +375,8 @@ def _thickness(z: np.ndarray, spec: CTSpec) -> np.ndarray:
     else:
         d = np.diff(z)
         gap = np.minimum(np.r_[d[0], d], np.r_[d, d[-1]])
-    if spec.slice_thickness_mm is not None:
-        return np.minimum(spec.slice_thickness_mm, gap)
+    if spec.slice_thickness_mm is not None:   # as given: overlapping slabs when thicker
+        return np.full(len(z), float(spec.slice_thickness_mm))
     return np.minimum(gap, spec.max_slice_thickness_mm)
 
 

@@ -326,6 +326,20 @@ def _joint_origins(spec: RobotSpec) -> list[tuple[np.ndarray, np.ndarray]]:
     return [(xyz, np.zeros(3)) for xyz in L]
 
 
+def _check_urdf_text(path: str, text: str) -> None:
+    """``ValueError`` in one line for a file that is no URDF at all (not XML, or its root is
+    not ``<robot>``), before Bullet's parser prints its own lines about it."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.fromstring(text)
+    except ET.ParseError as exc:
+        raise ValueError(f"robot.urdf: {path!r} is not a URDF (not XML: {exc})") from None
+    if root.tag != "robot":
+        raise ValueError(f"robot.urdf: {path!r} is not a URDF (its XML root is <{root.tag}>, "
+                         "expected <robot>)")
+
+
 def robot_urdf(spec: RobotSpec, *, offsets=None) -> str:
     """URDF text of the robot and its rod (lengths in metres, as pybullet expects).
 
@@ -481,8 +495,9 @@ class Robot:
         else:
             try:
                 nominal_text = true_text = open(sp.urdf).read()
-            except OSError as exc:
+            except (OSError, UnicodeDecodeError) as exc:
                 raise ValueError(f"robot.urdf: cannot read {sp.urdf!r} ({exc})") from None
+            _check_urdf_text(sp.urdf, nominal_text)
         self.nominal_id = self._load(nominal_text, "nominal.urdf")
         self.true_id = self._load(true_text, "true.urdf")
         self._index = self._joint_index(self.nominal_id)

@@ -222,3 +222,22 @@ def test_rod_mounting_error_moves_the_true_rod():
             assert 1e-3 < np.linalg.norm(diff, axis=1).max() < 1.5
     # |t| of a 3-D Gaussian of sigma 0.1 mm: mean 0.16 mm
     assert 0.05 < np.mean(shifts) < 0.3
+
+
+def test_a_user_urdf_is_loaded_and_a_file_that_is_none_is_named(tmp_path):
+    """The builtin robot's URDF written to a file loads as a user URDF with the same joints;
+    a file that is no URDF is refused in one line (a review's urdf = '/etc/passwd' let
+    Bullet print its parser's lines first)."""
+    from testbed.robot import robot_urdf
+
+    good = tmp_path / "arm.urdf"
+    good.write_text(robot_urdf(RobotSpec()))
+    with Robot(RobotSpec(urdf=str(good)), rng=0) as user, Robot(RobotSpec(), rng=0) as builtin:
+        assert np.allclose(user.lower, builtin.lower) and np.allclose(user.upper, builtin.upper)
+    for text, match in (("root:x:0:0:root:/root:/bin/bash\n", "is not a URDF \\(not XML"),
+                        ("<sdf version='1.6'/>",
+                         "is not a URDF \\(its XML root is <sdf>, expected <robot>")):
+        bad = tmp_path / "bad.urdf"
+        bad.write_text(text)
+        with pytest.raises(ValueError, match="robot.urdf: .*bad.urdf' " + match):
+            Robot(RobotSpec(urdf=str(bad)), rng=0)
