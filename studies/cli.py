@@ -61,6 +61,22 @@ def _int_at_least(lo: int, what: str, at_most: int | None = None):
     return parse
 
 
+def _workers(text):
+    """``--workers``: an integer from 1 to :func:`_max_workers` (each worker is a process
+    with its own simulator: beyond a few per core they only compete for the cores)."""
+    v = _int_at_least(1, "--workers")(text)
+    most = _max_workers()
+    if v > most:
+        raise argparse.ArgumentTypeError(
+            f"expected at most {most} for --workers on this machine ({os.cpu_count()} "
+            f"core(s)), got {v}; a cluster's workers come with --scheduler")
+    return v
+
+
+def _max_workers() -> int:
+    return max(64, 8 * (os.cpu_count() or 1))
+
+
 def _folder_problem(path: Path) -> str | None:
     """Why ``path`` cannot be used as an output folder (it is made if missing), or None."""
     if path.exists() and not path.is_dir():
@@ -417,7 +433,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--scene", default=None, help="scene file or name (study default if none)")
     s.add_argument("--seed", type=seed, default=None, help="override the study's seed")
     s.add_argument("--quick", action="store_true", help="a small version (for smoke tests)")
-    s.add_argument("--workers", type=_int_at_least(1, "--workers"), default=1,
+    s.add_argument("--workers", type=_workers, default=1,
                    help="worker processes")
     s.add_argument("--scheduler", default=None,
                    help="run trials on a Dask cluster: scheduler address tcp://HOST:PORT")
@@ -439,7 +455,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pkg.module:function (Observation, initial 4x4) -> 4x4 ct2robot; "
                    "default: reglib.estimate")
     c.add_argument("--out", required=True, type=Path)
-    c.add_argument("--workers", type=_int_at_least(1, "--workers"), default=1)
+    c.add_argument("--workers", type=_workers, default=1)
     c.add_argument("--scheduler", default=None)
     c.set_defaults(func=cmd_score)
 

@@ -52,6 +52,8 @@ def _one_error_line(err: str) -> str:
     (["generate", "experiment2", "--out", "{tmp}/afile/d"], "is a file"),
     (["study", "fig9", "--workers", "0", "--out", "{tmp}/s"], "--workers"),
     (["study", "fig9", "--workers", "-3", "--out", "{tmp}/s"], "--workers"),
+    (["study", "fig9", "--workers", "100000", "--out", "{tmp}/s"],
+     "for --workers on this machine"),
     (["run", "experiment2", "--seed", "-1"], "--seed"),
     (["study", "fig9", "--quick", "--scheduler", "not-an-address", "--out", "{tmp}/s"],
      "--scheduler"),
