@@ -72,7 +72,8 @@ MAX_VALIDATION_MM = 1.0
 #: fewer validation markers than this: the calibration cannot be checked and fails
 MIN_VALIDATION_MARKERS = 3
 #: a sweep whose near and far planes lie closer than this (mm, along their normal) fixes
-#: the X-ray paths' directions poorly: the view fails (the paper's planes were 10-20 cm apart)
+#: the X-ray paths' directions poorly: the view fails (the shipped scenes' planes are 120 mm
+#: apart; the paper gives no figure)
 MIN_PLANE_GAP_MM = 20.0
 #: a validation row closer than this share of the planes' gap to either plane tests only
 #: that plane, not the paths between: the view fails as not validated
@@ -619,11 +620,11 @@ def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
         raise ValueError(f"CT volume: expected an (I, J, K) array of numbers (col, row, slice; "
                          f"at least 2 each), got {vol.dtype} {vol.shape}")
     s2c = np.asarray(slice2ct, dtype=np.float64)
-    if s2c.shape != (vol.shape[2], 4, 4) or not np.all(np.isfinite(s2c)):
-        raise ValueError(f"slice2ct: expected ({vol.shape[2]}, 4, 4) finite matrices (one per "
-                         f"slice of the CT volume), got shape {s2c.shape}"
-                         + ("" if s2c.shape != (vol.shape[2], 4, 4) else " with non-finite "
-                            "entries"))
+    if s2c.shape != (vol.shape[2], 4, 4):
+        raise ValueError(f"slice2ct: expected ({vol.shape[2]}, 4, 4) matrices (one per slice of "
+                         f"the CT volume), got shape {s2c.shape}")
+    if not np.all(np.isfinite(s2c)):
+        raise ValueError("slice2ct: holds NaN or infinite entries")
     vol_hu = vol.transpose(2, 1, 0)  # [slice, row, col], as reglib.contours reads it
     out = {}
     for region in sorted(ct_clicks):
