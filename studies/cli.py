@@ -367,7 +367,8 @@ def cmd_bench(args) -> int:
     from studies.bench.suite import format_table, run_bench
 
     rows = run_bench(quick=args.quick, only=args.only, progress=not args.json)
-    print(json.dumps(rows, indent=2) if args.json else format_table(rows))
+    print(json.dumps(_finite_or_null(rows), indent=2, allow_nan=False) if args.json
+          else format_table(rows))
     return 0
 
 
@@ -443,10 +444,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_study)
 
     g = sub.add_parser("generate", help="write a synthetic dataset")
-    g.add_argument("scene", nargs="?", default=None)
-    g.add_argument("--cases", type=_int_at_least(1, "--cases", at_most=MAX_CASES), default=1)
-    g.add_argument("--out", required=True, type=Path)
-    g.add_argument("--seed", type=seed, default=None)
+    g.add_argument("scene", nargs="?", default=None,
+                   help="scene file or name (default: experiment2)")
+    g.add_argument("--cases", type=_int_at_least(1, "--cases", at_most=MAX_CASES), default=1,
+                   help="number of cases (default 1); a rerun resumes")
+    g.add_argument("--out", required=True, type=Path,
+                   help="the dataset folder (new, empty, or a dataset of the same scene and "
+                   "seed)")
+    g.add_argument("--seed", type=seed, default=None,
+                   help="the dataset's seed (default: the scene's); case i is case i of it")
     g.set_defaults(func=cmd_generate)
 
     c = sub.add_parser("score", help="score a registration method on a generated dataset")
@@ -454,9 +460,11 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--method", default="reglib",
                    help="pkg.module:function (Observation, initial 4x4) -> 4x4 ct2robot; "
                    "default: reglib.estimate")
-    c.add_argument("--out", required=True, type=Path)
-    c.add_argument("--workers", type=_workers, default=1)
-    c.add_argument("--scheduler", default=None)
+    c.add_argument("--out", required=True, type=Path, help="output folder (outside the "
+                   "dataset)")
+    c.add_argument("--workers", type=_workers, default=1, help="worker processes")
+    c.add_argument("--scheduler", default=None,
+                   help="run cases on a Dask cluster: scheduler address tcp://HOST:PORT")
     c.set_defaults(func=cmd_score)
 
     d = sub.add_parser("render", help="render one X-ray frame of a view to PNG")
@@ -470,9 +478,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.set_defaults(func=cmd_render)
 
     b = sub.add_parser("bench", help="measure every performance target")
-    b.add_argument("--quick", action="store_true")
-    b.add_argument("--json", action="store_true")
-    b.add_argument("--only", nargs="+", default=None, metavar="WORKLOAD")
+    b.add_argument("--quick", action="store_true", help="fewer repeats (a smoke test)")
+    b.add_argument("--json", action="store_true", help="print one JSON object")
+    b.add_argument("--only", nargs="+", default=None, metavar="WORKLOAD",
+                   help="only these workloads (keys of the JSON, e.g. frame_ms)")
     b.set_defaults(func=cmd_bench)
 
     n = sub.add_parser("scenes", help="list the named scenes")

@@ -66,4 +66,45 @@ def run(ctx) -> pd.DataFrame:
     ctx.report("Pin errors (mm)",
                "The paper: distal pins within 2 mm with the proximal pin; about 5 mm with the "
                f"views alone.\n\n{verdict}.\n\n" + markdown_table(tab, ".2f"))
+    _figure(ctx, pe, w)
     return df
+
+
+#: the paper's experiment 1 (Sec. V): distal pins within 2 mm with the proximal pin, about
+#: 5 mm with the fluoroscopic views alone
+PAPER_WITH_PIN_MM, PAPER_VIEWS_ALONE_MM = 2.0, 5.0
+
+
+def _figure(ctx, pe: pd.DataFrame, w: pd.DataFrame) -> None:
+    """Each distal pin's error per start, the two variants side by side, the accepted ones
+    filled, with the paper's figures as lines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    distal = pe[pe.pin.str.startswith("distal")]
+    variants = ["with proximal pin", "views alone"]
+    fig, ax = plt.subplots(figsize=(6.0, 3.8))
+    for x, variant in enumerate(variants):
+        d = distal[distal.variant == variant].merge(
+            w[["trial", "variant", "start", "accepted"]], on=["trial", "variant", "start"])
+        jitter = np.linspace(-0.15, 0.15, max(len(d), 1))[: len(d)]
+        acc = d["accepted"].to_numpy() > 0.5
+        ax.scatter(x + jitter[acc], d["value"].to_numpy()[acc], color="C0",
+                   label="accepted" if x == 0 else None)
+        ax.scatter(x + jitter[~acc], d["value"].to_numpy()[~acc], facecolors="none",
+                   edgecolors="C3", label="refused" if x == 0 else None)
+    for y, text in ((PAPER_WITH_PIN_MM, "paper, with the pin"),
+                    (PAPER_VIEWS_ALONE_MM, "paper, views alone")):
+        ax.axhline(y, color="grey", ls=":", lw=1)
+        ax.text(1.45, y, text, fontsize=7, va="bottom", ha="right", color="grey")
+    ax.set_xticks(range(len(variants)), variants)
+    ax.set_xlim(-0.5, 1.5)
+    ax.set_ylabel("distal pin error (mm)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(ctx.figure("experiment1.png", "Each distal pin's error per start, with the "
+                           "proximal pin located and with the views alone (filled: accepted "
+                           "by the method's verdict; dotted: the paper's figures)"), dpi=110)
+    plt.close(fig)

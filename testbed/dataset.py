@@ -464,8 +464,13 @@ def _read_doc(case_dir: Path) -> dict:
         raise ValueError(f"{path}: 'format' is {got!r}, expected {FORMAT_NAME!r}")
     version = doc.get("format_version")
     if version not in SUPPORTED_VERSIONS:
+        older = (isinstance(version, int) and not isinstance(version, bool)
+                 and version < min(SUPPORTED_VERSIONS))
+        advice = ("an older format whose cases lack what reglib.estimate needs: generate the "
+                  "dataset again with this testbed" if older else
+                  "a newer or unknown format: update the testbed")
         raise ValueError(f"{path}: format_version {version!r} is not supported by this reader "
-                         f"(supported: {list(SUPPORTED_VERSIONS)}); update the testbed")
+                         f"(supported: {list(SUPPORTED_VERSIONS)}); {advice}")
     for key in ("meta", "entries", "sha256"):
         if key not in doc:
             raise ValueError(f"{path}: the field {key!r} is missing")

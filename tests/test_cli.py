@@ -391,7 +391,11 @@ def test_bench_quick_prints_every_workload_with_value_unit_goal_reference():
     out = subprocess.run([sys.executable, "-m", "studies.cli", "bench", "--quick", "--json"],
                          capture_output=True, text=True, timeout=900, env=env)
     assert out.returncode == 0, out.stderr[-2000:]
-    result = json.loads(out.stdout)
+
+    def strict(constant):      # NaN or Infinity: not JSON (a quick run's missing references)
+        raise AssertionError(f"bench --json printed {constant}")
+
+    result = json.loads(out.stdout, parse_constant=strict)
     assert keys <= set(result)
     for key in keys:
         row = result[key]
