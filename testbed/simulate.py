@@ -123,6 +123,11 @@ def _case_scene(scene, shape_ss: np.random.SeedSequence):
     return scene.model_copy(update={"phantom": phantom})
 
 
+#: the spawn key, under the robot stream, of the case's one robot (its imperfections and
+#: every move's encoder error); the views' children take keys 0, 1, ... (their frames' noise)
+ROBOT_KEY = 1 << 20
+
+
 def _no_trace_message(i: int, vspec, frame, scene) -> str:
     """Why the operator traced nothing on a view's frame, with the fields that decide it: the
     femur outside the field (the view, the patient), or shown but every run of its outline
@@ -301,22 +306,30 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
     xray_rngs = np.random.default_rng(xray_ss).spawn(len(scene.views))
     op_rngs = xray_op_rng.spawn(len(scene.views))
     instruments = [b.name for b in world.instruments]
-    for i, vspec in enumerate(scene.views):
-        v = _safe(vspec.name)
-        carm = make_carm(scene.fluoroscope, vspec, view_index=i)
-        carms[vspec.name] = carm
-        tru["transforms"][f"carm2robot_{v}"] = carm.carm2robot
-        if sweeps:
-            # the sweep sees the intensifier as it was during calibration: the patient's
-            # frame (and the truth) as it is at the acquisition (their difference is the
-            # distortion's drift, [fluoroscope] distortion_drift_mm)
-            sweep_carm = make_carm(scene.fluoroscope, vspec, view_index=i, stage="calibration")
-            t0 = time.perf_counter()
-            sweep_rng, noise_rng = robot_rngs[i].spawn(2)
-            rep_poses, true_poses = [], []
-            frame_bar = tqdm(desc=f"sweep {vspec.name}", unit="frame", disable=not progress,
-                             leave=False)
-            with Robot(scene.robot, rng=sweep_rng) as robot:
+    # one robot holding one rod sweeps every view of the case: its imperfections (kinematic
+    # offsets, the rod's mounting, its beads' placement) are drawn once, from a child of
+    # the robot stream at a fixed key, and every move then draws its encoder error
+    robot_gen = np.random.default_rng(np.random.SeedSequence(
+        robot_ss.entropy, spawn_key=(*robot_ss.spawn_key, ROBOT_KEY)))
+    robot = Robot(scene.robot, rng=robot_gen) if sweeps else None
+    try:
+        for i, vspec in enumerate(scene.views):
+            v = _safe(vspec.name)
+            carm = make_carm(scene.fluoroscope, vspec, view_index=i)
+            carms[vspec.name] = carm
+            tru["transforms"][f"carm2robot_{v}"] = carm.carm2robot
+            if sweeps:
+                # the sweep sees the intensifier as it was during calibration: the patient's
+                # frame (and the truth) as it is at the acquisition (their difference is the
+                # distortion's drift, [fluoroscope] distortion_drift_mm)
+                sweep_carm = make_carm(scene.fluoroscope, vspec, view_index=i, stage="calibration")
+                t0 = time.perf_counter()
+                # (the first child drew this view's own robot before the robot was shared)
+                _, noise_rng = robot_rngs[i].spawn(2)
+                rep_poses, true_poses = [], []
+                frame_bar = tqdm(desc=f"sweep {vspec.name}", unit="frame", disable=not progress,
+                                 leave=False)
+
                 def record(k, n, robot=robot, rep=rep_poses, tr=true_poses, fb=frame_bar):
                     # after frame k is rendered: the robot is still at that frame's pose
                     rep.append(robot.reported_rod2robot.as_matrix())
@@ -326,36 +339,39 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
 
                 sweep = run_sweep(robot, sweep_carm, scene.fluoroscope, bodies=world.bodies,
                                   rng=noise_rng, progress=record)
-            frame_bar.close()
-            recorded[vspec.name] = sweep
-            obs["images"][f"sweep_{v}"] = sweep.frames
-            obs["arrays"][f"sweep_{v}"] = {
-                "plane": np.asarray(sweep.plane, dtype=np.int64),
-                "beads_reported": sweep.beads_reported,
-                "rod2robot_reported": np.array(rep_poses), "joints": sweep.joints,
-                "time_s": np.asarray(sweep.time_s, dtype=np.float64),
-                "bead_positions_mm": np.asarray(sweep.bead_positions_mm, dtype=np.float64)}
-            tru["arrays"][f"sweep_truth_{v}"] = {"beads_true": sweep.beads_true,
-                                                 "rod2robot_true": np.array(true_poses)}
-            tick(f"sweep {vspec.name}", t0)
-        t0 = time.perf_counter()
-        try:
-            frame = render(carm, world.bodies, fluoro=scene.fluoroscope, rng=xray_rngs[i])
-        except ValueError as exc:
-            raise ValueError(f"views[{i}] ({vspec.name!r}): {exc}") from None
-        frames[vspec.name] = frame
-        obs["images"][f"xray_{v}"] = frame.image_u8
-        obs["arrays"][f"xray_fov_{v}"] = np.asarray(frame.fov, dtype=bool)
-        tru["arrays"][f"xray_float_{v}"] = np.asarray(frame.image, dtype=np.float32)
-        if truth_rays:
-            o, d = carm.pixel_ray_map()
-            tru["arrays"][f"rays_{v}"] = {"origins": o, "directions": d}
-        clicks = xray_clicks(frame, femur_bodies=FEMUR_BODIES, instrument_bodies=instruments,
-                             spec=op_spec, rng=op_rngs[i], view=vspec.name)
-        if not clicks.traces:
-            raise ValueError(_no_trace_message(i, vspec, frame, scene))
-        obs["arrays"][f"xray_clicks_{v}"] = clicks.to_arrays()
-        tick(f"xray {vspec.name}", t0)
+                frame_bar.close()
+                recorded[vspec.name] = sweep
+                obs["images"][f"sweep_{v}"] = sweep.frames
+                obs["arrays"][f"sweep_{v}"] = {
+                    "plane": np.asarray(sweep.plane, dtype=np.int64),
+                    "beads_reported": sweep.beads_reported,
+                    "rod2robot_reported": np.array(rep_poses), "joints": sweep.joints,
+                    "time_s": np.asarray(sweep.time_s, dtype=np.float64),
+                    "bead_positions_mm": np.asarray(sweep.bead_positions_mm, dtype=np.float64)}
+                tru["arrays"][f"sweep_truth_{v}"] = {"beads_true": sweep.beads_true,
+                                                     "rod2robot_true": np.array(true_poses)}
+                tick(f"sweep {vspec.name}", t0)
+            t0 = time.perf_counter()
+            try:
+                frame = render(carm, world.bodies, fluoro=scene.fluoroscope, rng=xray_rngs[i])
+            except ValueError as exc:
+                raise ValueError(f"views[{i}] ({vspec.name!r}): {exc}") from None
+            frames[vspec.name] = frame
+            obs["images"][f"xray_{v}"] = frame.image_u8
+            obs["arrays"][f"xray_fov_{v}"] = np.asarray(frame.fov, dtype=bool)
+            tru["arrays"][f"xray_float_{v}"] = np.asarray(frame.image, dtype=np.float32)
+            if truth_rays:
+                o, d = carm.pixel_ray_map()
+                tru["arrays"][f"rays_{v}"] = {"origins": o, "directions": d}
+            clicks = xray_clicks(frame, femur_bodies=FEMUR_BODIES, instrument_bodies=instruments,
+                                 spec=op_spec, rng=op_rngs[i], view=vspec.name)
+            if not clicks.traces:
+                raise ValueError(_no_trace_message(i, vspec, frame, scene))
+            obs["arrays"][f"xray_clicks_{v}"] = clicks.to_arrays()
+            tick(f"xray {vspec.name}", t0)
+    finally:
+        if robot is not None:
+            robot.close()
     bar.close()
 
     obs_meta = {

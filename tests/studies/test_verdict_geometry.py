@@ -16,15 +16,18 @@ from testbed.scene import find_scene, load_scene, parse_scene
 def test_one_view_per_end_of_the_femur_is_refused_and_was_wrong(pair):
     """Clinic experiment2 with one view per end of the femur: the registration fits the
     contours as well as with four views (median distance ~0.4-0.55 mm) but the bone can slide
-    along the beams; the verdict refuses it, and the truth confirms it was several mm off
-    (3.7 and 4.3 mm; the second pair was accepted under a first limit of 8 mm, at 7.8)."""
+    along the beams; the verdict refuses it, and the truth confirms it was loose: 1.3 and
+    more than 2 mm off, against 0.52 mm with the four views at this seed (before one robot
+    swept every view, 3.7 and 4.3 mm; the second pair was accepted under a first limit of 8
+    mm, at 7.8). The first pair is right by chance at 1.3 mm: the weak-geometry rule refuses
+    what the views cannot vouch for, whatever the error happened to be."""
     scene = load_scene(find_scene("experiment2"))
     two = scene.model_copy(update={"views": tuple(v for v in scene.views if v.name in pair)})
     res, _, _, est = run_case(two, seed=scene.scene.seed)
     assert est.converged and not est.accepted
     assert "loosely determined" in est.message
     assert est.quality["weak_motion_mm"] > MAX_WEAK_MOTION_MM
-    assert res["mtre_mm"] > 2.0                 # the truth: it was right to refuse
+    assert res["mtre_mm"] > 1.0                 # the truth: twice the four views' error
     assert est.quality["restarts"] == 0         # no restart can mend the geometry
 
 
@@ -42,7 +45,9 @@ def test_a_view_that_misses_the_anatomy_of_its_ct_surface_is_refused_and_was_wro
     about 600 mm, its head beyond the proximal views, which show only the shaft): the whole
     median distance passed (0.72 mm) and the pose was accepted 7.7 mm off (a pin 17.9 mm);
     no path of the proximal views passes within 2 mm of the surfaces' apparent contours. The
-    per-view fit refuses it and names the view."""
+    per-view fit refuses it and names the view; the truth: 1.95 mm off, against 0.52 mm for
+    the mean femur's four views at this seed (more than 2 mm before one robot swept every
+    view)."""
     d = load_scene(find_scene("experiment2")).model_dump(mode="json")
     d["phantom"].update(shape_variation=3.0, shape_seed=5)
     scene = parse_scene(d)
@@ -50,4 +55,4 @@ def test_a_view_that_misses_the_anatomy_of_its_ct_surface_is_refused_and_was_wro
     assert not est.accepted
     assert "view proximal_ap does not fit" in est.message
     assert est.quality["worst_view_fit"] < MIN_VIEW_FIT
-    assert res["mtre_mm"] > 2.0                 # the truth: it was right to refuse
+    assert res["mtre_mm"] > 1.5                 # the truth: three times the mean femur's
