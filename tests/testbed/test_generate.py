@@ -434,3 +434,33 @@ def test_a_view_without_a_traceable_outline_names_the_fields_that_decide_it():
     with pytest.raises(ValueError, match=r"the femur is outside the field; check "
                        r"views\[0\].isocenter_mm"):
         simulate(aside, 0, sweeps=False)
+
+
+def test_one_robot_and_rod_sweep_every_view_of_a_case(monkeypatch):
+    """A clinic has one robot holding one rod: its kinematic offsets, the rod's mounting and
+    its beads' errors are drawn once per case (each view's sweep drew its own until
+    2026-11-26). The robot is made once for two views and its imperfections are those of a
+    robot drawn from the case's robot stream at ROBOT_KEY."""
+    import testbed.robot as robot_mod
+    import testbed.simulate as sim_mod
+    from testbed.robot import Robot
+
+    made = []
+
+    class Counted(Robot):
+        def __init__(self, *a, **kw):
+            super().__init__(*a, **kw)
+            made.append(self)
+
+    monkeypatch.setattr(robot_mod, "Robot", Counted)     # simulate imports it when called
+    second = {**SMALL["views"][0], "name": "distal_ap_2", "orbital_deg": 8.0}
+    scene = parse_scene({**SMALL, "views": [SMALL["views"][0], second]})
+    sim_mod.simulate(scene, 3)
+    assert len(made) == 1 and made[0]._closed
+    ss = sim_mod.case_streams(3)["robot"]
+    gen = np.random.default_rng(np.random.SeedSequence(
+        ss.entropy, spawn_key=(*ss.spawn_key, sim_mod.ROBOT_KEY)))
+    with Robot(scene.robot, rng=gen) as again:
+        assert np.array_equal(again.bead_errors_mm, made[0].bead_errors_mm)
+        assert np.allclose(again.rod_mount_error.as_matrix(),
+                           made[0].rod_mount_error.as_matrix())
