@@ -37,7 +37,6 @@ starts of one case, or with some inputs replaced (the judge's oracles).
 
 from __future__ import annotations
 
-import functools
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -237,68 +236,25 @@ class EstimateOptions:
 
 
 def _check_register_options(label: str, opts) -> None:
-    """``opts`` holds only keyword options of :func:`reglib.register.register`, and those
-    with a fixed set of values (``method``, ``residual``, ...) hold one of them: a typo is
-    refused when the options are made, not after the stages before registration."""
+    """``opts`` holds only keyword options of :func:`reglib.register.register`, each a value
+    it can take (:func:`reglib.register.check_options`, the checks register itself makes): a
+    typo or a bad value is refused when the options are made, not after the stages before
+    registration."""
+    from reglib.register import OptionError, check_options
+
     if not isinstance(opts, Mapping):
         raise ValueError(f"{label}: expected a mapping of keyword options of "
                          f"reglib.register.register, got {opts!r}")
-    keywords, choices = _register_keywords()
-    unknown = sorted(set(opts) - set(keywords))
-    if unknown:
-        raise ValueError(f"{label}: unknown option(s) {unknown} of reglib.register.register "
-                         f"(it takes {sorted(keywords)})")
-    for key, value in opts.items():
-        if key in choices and value not in choices[key]:
-            raise ValueError(f"{label}[{key!r}]: expected one of {list(choices[key])}, got "
-                             f"{value!r}")
-        if key in _REGISTER_NUMBERS:
-            whole, low, low_open, high, what = _REGISTER_NUMBERS[key]
-            ok = (not isinstance(value, bool) and isinstance(value, int | np.integer)) if whole \
-                else _real(value) and not np.isnan(value)
-            ok = ok and (value > low if low_open else value >= low) and value <= high
-            if not ok:
-                raise ValueError(f"{label}[{key!r}]: expected {what}, got {value!r}")
+    try:
+        check_options(**opts)
+    except OptionError as exc:
+        where = f"{label}[{exc.option!r}]" if exc.option else label
+        raise ValueError(f"{where}: {exc.why}") from None
 
 
 def _real(v) -> bool:
     """A real number (an int or a float, numpy's too; not a bool, not a string)."""
     return not isinstance(v, bool) and isinstance(v, int | float | np.integer | np.floating)
-
-
-#: the numeric keyword options of reglib.register.register: (whole number, low, low
-#: excluded, high, in words); NaN is never allowed, inf only where ``high`` is inf
-_REGISTER_NUMBERS = {
-    "max_iterations": (True, 1, False, np.inf, "a whole number >= 1"),
-    "solver_iterations": (True, 1, False, np.inf, "a whole number >= 1"),
-    "stall_window": (True, 1, False, np.inf, "a whole number >= 1"),
-    "stale_window": (True, 1, False, np.inf, "a whole number >= 1"),
-    "tukey_a": (False, 0.0, True, 1e6, "a number > 0 (the Tukey constant, in robust sigmas)"),
-    "max_stab_distance_mm": (False, 0.0, True, np.inf, "a distance > 0 mm (inf: the paper's)"),
-    "tol_step_mm": (False, 0.0, False, 1e6, "a distance >= 0 mm"),
-    "tol_residual_mm": (False, 0.0, False, 1e6, "a distance >= 0 mm"),
-    "tol_stall_mm": (False, 0.0, False, 1e6, "a distance >= 0 mm"),
-    "max_motion_mm": (False, 0.0, True, np.inf, "a distance > 0 mm"),
-    "max_rotation_deg": (False, 0.0, True, 360.0, "an angle in (0, 360] deg"),
-    "min_inlier_fraction": (False, 0.0, False, 1.0, "a fraction in [0, 1]"),
-}
-
-
-@functools.cache
-def _register_keywords() -> tuple[frozenset, dict]:
-    """``register``'s keyword options, and the allowed values of those typed ``Literal``
-    (read once: every EstimateOptions is checked against them)."""
-    import inspect
-    import typing
-
-    from reglib.register import register
-
-    params = inspect.signature(register).parameters
-    keywords = frozenset(k for k, p in params.items() if p.kind is inspect.Parameter.KEYWORD_ONLY)
-    hints = typing.get_type_hints(register)
-    choices = {k: typing.get_args(h) for k, h in hints.items()
-               if k in keywords and typing.get_origin(h) is typing.Literal}
-    return keywords, choices
 
 
 # --------------------------------------------------------------------------- stage results

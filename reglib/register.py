@@ -24,6 +24,7 @@ Frames: surfaces in ``ct`` (mm); views (centers and paths) in ``robot`` (mm); th
 
 from __future__ import annotations
 
+import functools
 import inspect
 import time
 from dataclasses import dataclass, field
@@ -391,6 +392,89 @@ def _limit_cycle(placed, tol_mm: float, periods) -> int:
     return 0
 
 
+#: register's whole-number options and their least values
+_WHOLE = {"max_iterations": 1, "solver_iterations": 1, "stall_window": 0, "stale_window": 0}
+#: register's real-valued options: (test, the values in words); NaN never passes
+_REAL = {
+    "tukey_a": (lambda v: v > 0, "a number > 0 (the Tukey constant, in robust sigmas)"),
+    "tol_step_mm": (lambda v: v >= 0, "a distance >= 0 mm"),
+    "tol_residual_mm": (lambda v: v >= 0, "a distance >= 0 mm"),
+    "tol_stall_mm": (lambda v: v >= 0, "a distance >= 0 mm"),
+    "max_motion_mm": (lambda v: v > 0, "a distance > 0 mm"),
+    "max_rotation_deg": (lambda v: v > 0, "an angle > 0 deg"),
+    "min_inlier_fraction": (lambda v: 0 <= v <= 1, "a fraction in [0, 1]"),
+    "max_stab_distance_mm": (lambda v: v > 0, "a distance > 0 mm (inf: the paper's rule)"),
+}
+
+
+class OptionError(ValueError):
+    """A keyword option of :func:`register` it cannot take: ``option`` names it (None for
+    unknown names), ``why`` says what was expected."""
+
+    def __init__(self, option: str | None, why: str, text: str | None = None):
+        super().__init__(text or (f"{option}: {why}" if option else why))
+        self.option, self.why = option, why
+
+
+def _check_values(o: dict) -> None:
+    """``ValueError`` naming the first of register's keyword options (``o``: all of them)
+    that register cannot take: a value outside its ``Literal`` choices, a count that is no
+    whole number or below its least, a real number that is NaN, not a number or out of its
+    range, a fixed point that is no finite (3,) point, or a solver that the residual does
+    not allow."""
+    for name, allowed in _keyword_spec()[1].items():
+        if o[name] not in allowed:
+            raise OptionError(name, f"expected one of {list(allowed)}, got {o[name]!r}")
+    for name, low in _WHOLE.items():
+        v = o[name]
+        if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < low:
+            raise OptionError(name, f"expected an integer >= {low}, got {v!r}")
+    for name, (ok, what) in _REAL.items():
+        v = o[name]
+        real = not isinstance(v, bool) and isinstance(v, int | float | np.integer | np.floating)
+        if not (real and not np.isnan(v) and ok(v)):
+            raise OptionError(name, f"expected {what}, got {v!r}")
+    if o["fixed_point_ct"] is not None:
+        try:
+            fp = np.asarray(o["fixed_point_ct"], dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            fp = np.full(1, np.nan)
+        if fp.shape != (3,) or not np.all(np.isfinite(fp)):
+            raise OptionError("fixed_point_ct", "expected a finite (3,) point, got "
+                              f"{o['fixed_point_ct']!r}")
+    if ((o["residual"] == "normal" or o["fixed_point_ct"] is not None)
+            and o["method"] not in ("robust", "linear")):
+        why = (f"{o['method']!r} cannot be used with residual='normal' or a fixed point "
+               "(their solve is an IRLS); use 'robust' or 'linear'")
+        raise OptionError("method", why, f"method {why}")
+
+
+@functools.cache
+def _keyword_spec() -> tuple[dict, dict]:
+    """register's keyword options with their defaults, and the allowed values of those typed
+    ``Literal`` (read once from its signature)."""
+    import typing
+
+    params = inspect.signature(register).parameters
+    defaults = {k: p.default for k, p in params.items() if p.kind is inspect.Parameter.KEYWORD_ONLY}
+    hints = typing.get_type_hints(register)
+    choices = {k: typing.get_args(h) for k, h in hints.items()
+               if k in defaults and typing.get_origin(h) is typing.Literal}
+    return defaults, choices
+
+
+def check_options(**options) -> None:
+    """``ValueError`` naming the option for keyword options of :func:`register` that it would
+    refuse (an unknown name, or a value :func:`register` cannot take, register's defaults
+    standing for the others), before any work is done."""
+    defaults = _keyword_spec()[0]
+    unknown = sorted(set(options) - set(defaults))
+    if unknown:
+        raise OptionError(None, f"unknown option(s) {unknown} of reglib.register.register (it "
+                                f"takes {sorted(defaults)})")
+    _check_values({**defaults, **options})
+
+
 def register(surfaces, views, initial: RigidTransform, *,
              method: Literal["robust", "lm", "linear", "ransac"] = "robust",
              closest: Literal["compiled", "blocks", "dense", "hierarchy", "reference"] = "compiled",
@@ -491,44 +575,18 @@ def register(surfaces, views, initial: RigidTransform, *,
             or not np.allclose(R0.T @ R0, np.eye(3), atol=1e-6) or np.linalg.det(R0) < 0):
         raise ValueError("initial: its 3x3 part is not a rotation (orthonormal, det +1) or it "
                          "holds NaN/inf; a rigid ct2robot is expected")
-    if max_iterations < 1:
-        raise ValueError(f"max_iterations: expected >= 1, got {max_iterations}")
+    _check_values(dict(method=method, closest=closest, selection=selection,
+                       max_stab_distance_mm=max_stab_distance_mm, residual=residual,
+                       fixed_point_ct=fixed_point_ct, tukey_a=tukey_a,
+                       max_iterations=max_iterations, tol_step_mm=tol_step_mm,
+                       tol_residual_mm=tol_residual_mm, stall_window=stall_window,
+                       tol_stall_mm=tol_stall_mm, max_motion_mm=max_motion_mm,
+                       max_rotation_deg=max_rotation_deg,
+                       min_inlier_fraction=min_inlier_fraction, stale_window=stale_window,
+                       solver_iterations=solver_iterations))
     fixed_robot = None
     if fixed_point_ct is not None:
-        fp = np.asarray(fixed_point_ct, dtype=np.float64).reshape(-1)
-        if fp.shape != (3,) or not np.all(np.isfinite(fp)):
-            raise ValueError(f"fixed_point_ct: expected a finite (3,) point, got {fp!r}")
-        fixed_robot = initial.apply(fp)
-    if residual not in ("line", "normal"):
-        raise ValueError(f"residual: expected 'line' or 'normal', got {residual!r}")
-    if method not in ("robust", "lm", "linear", "ransac"):
-        raise ValueError(f"method: expected 'robust', 'lm', 'linear' or 'ransac', got "
-                         f"{method!r}")
-    if (residual == "normal" or fixed_point_ct is not None) and method not in ("robust",
-                                                                               "linear"):
-        raise ValueError(f"method {method!r} cannot be used with residual='normal' or a fixed "
-                         "point (their solve is an IRLS); use 'robust' or 'linear'")
-    for name, val, ok in (("tukey_a", tukey_a, lambda v: v > 0),
-                          ("tol_step_mm", tol_step_mm, lambda v: v >= 0),
-                          ("tol_residual_mm", tol_residual_mm, lambda v: v >= 0),
-                          ("tol_stall_mm", tol_stall_mm, lambda v: v >= 0),
-                          ("max_motion_mm", max_motion_mm, lambda v: v > 0),
-                          ("max_rotation_deg", max_rotation_deg, lambda v: v > 0),
-                          ("min_inlier_fraction", min_inlier_fraction, lambda v: 0 <= v <= 1),
-                          ("max_stab_distance_mm", max_stab_distance_mm, lambda v: v > 0)):
-        try:
-            good = bool(ok(float(val))) and not np.isnan(float(val))
-        except (TypeError, ValueError):
-            good = False
-        if not good:
-            raise ValueError(f"{name}: got {val!r}, which is not a valid value (see "
-                             "register's docstring)")
-    for name, val, lo in (("stall_window", stall_window, 0), ("stale_window", stale_window, 0),
-                          ("solver_iterations", solver_iterations, 1)):
-        if isinstance(val, bool) or not isinstance(val, int | np.integer) or val < lo:
-            raise ValueError(f"{name}: expected an integer >= {lo}, got {val!r}")
-    if selection not in ("paper", "closest"):
-        raise ValueError(f"selection: expected 'paper' or 'closest', got {selection!r}")
+        fixed_robot = initial.apply(np.asarray(fixed_point_ct, dtype=np.float64).reshape(3))
     opts = dict(solver_options or {})
     _check_solver_options(method, opts)
     opts.setdefault("max_iterations", solver_iterations)

@@ -97,9 +97,10 @@ def test_options_are_checked():
                       (dict(max_validation_mm="1"), "max_validation_mm: expected a number"),
                       (dict(fixed_point_ct=(1.0, np.nan, 0.0)), "fixed_point_ct"),
                       (dict(coarse={"max_iterations": "5"}),
-                       r"coarse\['max_iterations'\]: expected a whole number >= 1"),
-                      (dict(registration={"max_iterations": 0}), "a whole number >= 1"),
+                       r"EstimateOptions.coarse\['max_iterations'\]: expected an integer >= 1"),
+                      (dict(registration={"max_iterations": 0}), "an integer >= 1"),
                       (dict(registration={"tukey_a": float("nan")}), r"tukey_a'\]: .* > 0"),
+                      (dict(registration={"tukey_a": "4"}), r"tukey_a'\]: .* > 0"),
                       (dict(registration={"min_inlier_fraction": 2.0}), "fraction in"),
                       (dict(registration={"max_stab_distance_mm": -1.0}), "distance > 0")):
         with pytest.raises(ValueError, match=match):

@@ -534,3 +534,22 @@ def test_view_fit_measures_each_view_against_the_nearest_apparent_contour(world)
         o, d = robot2ct.apply_lines(near.origins, near.directions)
         ref = closest_points(cset, o, d, method="reference")
         assert fit == pytest.approx(float(np.mean(ref.distance.min(axis=1) <= 2.0)), abs=1e-12)
+
+
+@pytest.mark.parametrize("bad", [{"stale_window": -1}, {"max_iterations": 0},
+                                 {"tukey_a": float("nan")}, {"tukey_a": "4"},
+                                 {"min_inlier_fraction": 1.5}, {"closest": "fast"},
+                                 {"method": "lm"}, {"fixed_point_ct": (0.0, np.inf, 0.0)},
+                                 {"max_rotation_deg": 0.0}])
+def test_check_options_refuses_what_register_refuses(world, bad):
+    """reglib.register.check_options (used by EstimateOptions when it is made) runs register's
+    own checks: the same option refused with the same message, before any work."""
+    from reglib.register import OptionError, check_options
+
+    tops, views, true = world
+    with pytest.raises(OptionError) as made:
+        check_options(**bad)
+    with pytest.raises(ValueError) as ran:
+        register(tops, list(views.values()), true, **bad)
+    assert str(made.value) == str(ran.value) and made.value.option == next(iter(bad))
+    check_options(max_iterations=5, tukey_a=float("inf"), method="lm", residual="line")
