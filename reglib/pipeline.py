@@ -193,20 +193,22 @@ class EstimateOptions:
     accept_max_alternative_mm: float = AMBIGUOUS_POSE_MM
 
     def __post_init__(self):
+        from reglib.register import is_real
+
         for name in ("tps_smoothing", "simplify_tol_mm"):
             v = getattr(self, name)
-            if not (_real(v) and np.isfinite(v) and v >= 0):
+            if not (is_real(v) and np.isfinite(v) and v >= 0):
                 raise ValueError(f"EstimateOptions.{name}: expected a finite number >= 0, "
                                  f"got {v!r}")
         for name in ("max_validation_mm", "accept_max_median_mm", "accept_max_weak_motion_mm",
                      "accept_max_alternative_mm"):
             v = getattr(self, name)
-            if not (_real(v) and v > 0):
+            if not (is_real(v) and v > 0):
                 raise ValueError(f"EstimateOptions.{name}: expected a number > 0, got {v!r}")
         for name in ("accept_min_inlier_fraction", "accept_min_view_fit",
                      "accept_min_contour_share"):
             v = getattr(self, name)
-            if not (_real(v) and 0.0 <= v <= 1.0):
+            if not (is_real(v) and 0.0 <= v <= 1.0):
                 raise ValueError(f"EstimateOptions.{name}: expected a value in [0, 1], got "
                                  f"{v!r}")
         if self.strategy not in ("coarse-fine", "single"):
@@ -219,7 +221,7 @@ class EstimateOptions:
                 raise ValueError(f"EstimateOptions.{name}: expected a whole number >= {low}, "
                                  f"got {v!r}")
         v = self.restart_deg
-        if not (_real(v) and 0 < v <= 90):
+        if not (is_real(v) and 0 < v <= 90):
             raise ValueError(f"EstimateOptions.restart_deg: expected a number of degrees in "
                              f"(0, 90], got {v!r}")
         if self.fixed_point_ct is not None:
@@ -250,11 +252,6 @@ def _check_register_options(label: str, opts) -> None:
     except OptionError as exc:
         where = f"{label}[{exc.option!r}]" if exc.option else label
         raise ValueError(f"{where}: {exc.why}") from None
-
-
-def _real(v) -> bool:
-    """A real number (an int or a float, numpy's too; not a bool, not a string)."""
-    return not isinstance(v, bool) and isinstance(v, int | float | np.integer | np.floating)
 
 
 # --------------------------------------------------------------------------- stage results

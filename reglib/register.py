@@ -407,6 +407,11 @@ _REAL = {
 }
 
 
+def is_real(v) -> bool:
+    """A real number (an int or a float, numpy's too; not a bool, not a string)."""
+    return not isinstance(v, bool) and isinstance(v, int | float | np.integer | np.floating)
+
+
 class OptionError(ValueError):
     """A keyword option of :func:`register` it cannot take: ``option`` names it (None for
     unknown names), ``why`` says what was expected."""
@@ -431,8 +436,7 @@ def _check_values(o: dict) -> None:
             raise OptionError(name, f"expected an integer >= {low}, got {v!r}")
     for name, (ok, what) in _REAL.items():
         v = o[name]
-        real = not isinstance(v, bool) and isinstance(v, int | float | np.integer | np.floating)
-        if not (real and not np.isnan(v) and ok(v)):
+        if not (is_real(v) and not np.isnan(v) and ok(v)):
             raise OptionError(name, f"expected {what}, got {v!r}")
     if o["fixed_point_ct"] is not None:
         try:
