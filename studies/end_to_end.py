@@ -301,19 +301,22 @@ PAPER_TABLE2 = {  # Table II of the paper (mm); 5 deg #1 and #2 are unreadable i
 }
 
 
-def table2_starts(case: Case, seed, *, quick: bool = False, about=None) -> dict:
-    """The paper's 11 starts: the true pose, and five 5 deg and five 7 deg rotations about
-    seeded random axes through the pins' centroid (translation keeping it fixed)."""
+def table2_starts(case: Case, seed, *, quick: bool = False, about=None, pose=None) -> dict:
+    """The paper's 11 starts: ``pose`` (``ct2robot``; the truth when None; the paper's was
+    its pin-based registration, :func:`studies.scoring.pin_reference`), and five 5 deg and
+    five 7 deg rotations of it about seeded random axes through the pins' centroid
+    (translation keeping it fixed)."""
     from studies.scoring import judge_seed
     from testbed.simulate import case_seed
 
+    pose = case.ct2robot if pose is None else pose
     rngs = judge_seed(case_seed(seed), TABLE2_SALT).spawn(10)
-    starts = {"identity": case.ct2robot}
+    starts = {"identity": pose}
     n = 2 if quick else 5
     for j, angle in enumerate((5.0, 7.0)):
         for k in range(n):
             starts[f"rot{int(angle)}_{k + 1}"] = perturbed_start(
-                case.ct2robot, case.pins_ct, angle, rngs[5 * j + k], about=about)
+                pose, case.pins_ct, angle, rngs[5 * j + k], about=about)
     return starts
 
 

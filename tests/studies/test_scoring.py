@@ -84,3 +84,24 @@ def test_a_case_whose_truth_lost_a_pin_is_named():
         _check_truth(nan, "case_0000")
     with pytest.raises(ValueError, match="lacks transforms/ct2robot"):
         _check_truth(SimpleNamespace(transforms={}, points=ok.points), "case_0000")
+
+
+def test_table2_starts_are_made_from_the_given_pose():
+    from studies.end_to_end import table2_starts
+
+    truth = SimpleNamespace(points={"pins_ct": PINS}, transforms={"ct2robot": TRUTH})
+    ref = pin_reference(truth, 4)
+    case = SimpleNamespace(ct2robot=TRUTH, pins_ct=PINS)
+    ss = np.random.SeedSequence(5, spawn_key=(0,))
+    from_ref = table2_starts(case, ss, pose=ref)
+    from_truth = table2_starts(case, ss)
+    assert len(from_ref) == 11
+    assert from_ref["identity"] is ref and from_truth["identity"] is TRUTH
+    c = np.mean(list(PINS.values()), axis=0)
+    for name, s in from_ref.items():
+        # every start keeps the pins' centroid where the reference puts it, off the truth's
+        assert np.allclose(s.apply(c), ref.apply(c))
+        assert not np.allclose(s.apply(c), TRUTH.apply(c), atol=1e-3)
+        if name != "identity":   # the same turn about the centroid as from the truth
+            turn_ref, turn_truth = s @ ref.inverse(), from_truth[name] @ TRUTH.inverse()
+            assert np.allclose(turn_ref.R, turn_truth.R)
