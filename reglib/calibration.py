@@ -90,13 +90,22 @@ class Calibration:
 
     def path_map(self, width_px: int, height_px: int) -> tuple[np.ndarray, np.ndarray]:
         """Paths of every pixel of a ``(height_px, width_px)`` image: ``(H, W, 3)`` each."""
+        for name, v in (("width_px", width_px), ("height_px", height_px)):
+            if isinstance(v, bool) or not isinstance(v, int | np.integer) or not 1 <= v <= 65536:
+                raise ValueError(f"path_map: {name} must be an integer in [1, 65536] px, got "
+                                 f"{v!r}")
         yy, xx = np.mgrid[0:height_px, 0:width_px].astype(np.float64)
         return self.paths(xx, yy)
 
     def distances(self, xy_px, points_robot) -> np.ndarray:
         """Distance (mm) from each 3-D point (N, 3) to the path of its pixel (N, 2)."""
-        o, d = self.paths(_as_xy(xy_px))
-        return point_line_distances(np.asarray(points_robot, dtype=np.float64), o, d)
+        xy = _as_xy(xy_px)
+        p = np.asarray(points_robot, dtype=np.float64)
+        if p.shape != (len(xy), 3):
+            raise ValueError(f"distances: points_robot must be ({len(xy)}, 3), one per pixel "
+                             f"of xy_px, got {p.shape}")
+        o, d = self.paths(xy)
+        return point_line_distances(p, o, d)
 
     def center_of_perspective(self, xy_px=None) -> np.ndarray:
         """The point (3,) mm closest in least squares to the paths of ``xy_px`` (default: the
@@ -139,6 +148,7 @@ def calibrate(markers: Markers, *, smoothing: float = 0.01, min_markers: int = 1
     ``ValueError`` names the view and plane and lists the problems met while finding the
     markers. Otherwise the problems are kept in ``Calibration.problems``.
     """
+    _check_markers(markers)
     tps = {}
     for p in (NEAR, FAR):
         m = markers.plane == p
@@ -149,8 +159,63 @@ def calibrate(markers: Markers, *, smoothing: float = 0.01, min_markers: int = 1
                 f"view {markers.view}: {PLANE_NAMES[p]} plane has {int(m.sum())} markers in "
                 f"{n_rows} rows (need {min_markers} in {min_rows}); cannot calibrate. "
                 f"Problems: {detail}")
+        spread = _plane_spread_mm(markers.robot[m])
+        if spread < MIN_PLANE_SPREAD_MM:
+            raise ValueError(
+                f"view {markers.view}: {PLANE_NAMES[p]} plane: the robot reported its markers "
+                f"within {spread:.3g} mm of one line (need a plane at least "
+                f"{MIN_PLANE_SPREAD_MM:g} mm wide across the rod); cannot calibrate")
         try:
             tps[p] = ThinPlateSpline.fit(markers.xy_px[m], markers.robot[m], smoothing=smoothing)
         except ValueError as exc:
             raise ValueError(f"view {markers.view}: {PLANE_NAMES[p]} plane: {exc}") from None
-    return Calibration(markers.view, tps[0], tps[1], tuple(markers.problems))
+    cal = Calibration(markers.view, tps[0], tps[1], tuple(markers.problems))
+    xy = markers.xy_px[np.isin(markers.plane, (NEAR, FAR))]
+    gap = np.linalg.norm(cal.far(xy) - cal.near(xy), axis=1)
+    if not np.all(gap >= MIN_PATH_LENGTH_MM):
+        raise ValueError(
+            f"view {markers.view}: the near and far planes' fits meet (their points "
+            f"{np.nanmin(gap):.3g} mm apart at a marker's pixel, need {MIN_PATH_LENGTH_MM:g}): "
+            "the paths have no direction; cannot calibrate")
+    return cal
+
+
+#: a calibration plane's markers, as the robot reported them, must spread this far across
+#: their best line (mm): a row of beads alone, or beads reported at one point, fit no plane
+MIN_PLANE_SPREAD_MM = 5.0
+#: ...and the near and far planes' fits must lie this far apart at every marker's pixel (mm)
+MIN_PATH_LENGTH_MM = 1.0
+
+
+def _plane_spread_mm(points: np.ndarray) -> float:
+    """The extent (mm) of ``points`` (N, 3) along their second principal direction: 0 for
+    points on one line or at one point."""
+    if len(points) < 3:
+        return 0.0
+    c = points - points.mean(axis=0)
+    _, _, vt = np.linalg.svd(c, full_matrices=False)
+    along = c @ vt[1]
+    return float(along.max() - along.min())
+
+
+def _check_markers(markers) -> None:
+    """``ValueError`` naming the field of a :class:`Markers` that calibrate cannot read."""
+    if not isinstance(markers, Markers):
+        raise ValueError(f"markers: expected a reglib.markers.Markers, got "
+                         f"{type(markers).__name__}")
+    try:
+        n = len(markers.frame)
+        fields = {"frame": np.asarray(markers.frame), "plane": np.asarray(markers.plane),
+                  "xy_px": np.asarray(markers.xy_px, dtype=np.float64),
+                  "robot": np.asarray(markers.robot, dtype=np.float64)}
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"markers of view {markers.view}: frame, plane, xy_px and robot must "
+                         f"be arrays of numbers ({exc})") from None
+    want = {"frame": (n,), "plane": (n,), "xy_px": (n, 2), "robot": (n, 3)}
+    for name, shape in want.items():
+        if fields[name].shape != shape:
+            raise ValueError(f"markers of view {markers.view}: {name} must be {shape} (one "
+                             f"row per marker), got {fields[name].shape}")
+    for name in ("xy_px", "robot"):
+        if not np.all(np.isfinite(fields[name])):
+            raise ValueError(f"markers of view {markers.view}: {name} holds NaN or inf")

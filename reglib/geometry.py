@@ -148,6 +148,12 @@ def cayley_from_matrix(Q, *, max_angle_deg: float = 179.0) -> np.ndarray:
     Q = np.asarray(Q, dtype=np.float64)
     if Q.shape != (3, 3):
         raise ValueError(f"Q: expected a (3, 3) rotation matrix, got shape {Q.shape}")
+    if not np.all(np.isfinite(Q)):
+        raise ValueError("Q: contains NaN or inf; expected a rotation matrix")
+    err = np.abs(Q.T @ Q - np.eye(3)).max()
+    if err > 1e-6 or np.linalg.det(Q) < 0:
+        raise ValueError(f"Q: not a proper rotation matrix (|QtQ - I| = {err:.2e}, "
+                         f"det {np.linalg.det(Q):.3g})")
     rotvec = Rotation.from_matrix(Q).as_rotvec()
     angle = np.linalg.norm(rotvec)
     if np.degrees(angle) > max_angle_deg:
@@ -173,14 +179,26 @@ class RigidTransform:
     t: np.ndarray
 
     def __post_init__(self):
-        R = np.array(self.R, dtype=np.float64)
-        t = np.array(self.t, dtype=np.float64).reshape(-1)
+        for name in ("R", "t"):
+            if np.iscomplexobj(getattr(self, name)):
+                raise ValueError(f"RigidTransform: {name} has complex values; expected real "
+                                 "numbers")
+        try:
+            R = np.array(self.R, dtype=np.float64)
+            t = np.array(self.t, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"RigidTransform: R and t must be arrays of numbers "
+                             f"({_one_line(exc)})") from None
         if R.shape != (3, 3) or t.shape != (3,):
             raise ValueError(
                 f"RigidTransform: R must be (3, 3) and t (3,), got {R.shape}, {t.shape}"
             )
         if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
             raise ValueError("RigidTransform: R and t must be finite")
+        if np.max(np.abs(t)) > MAX_COORDINATE_MM:
+            raise ValueError(f"RigidTransform: translation up to {np.max(np.abs(t)):.3g} mm; "
+                             f"expected the millimetres of a scene (|t| <= "
+                             f"{MAX_COORDINATE_MM:g})")
         err = np.abs(R.T @ R - np.eye(3)).max()
         if err > 1e-6 or np.linalg.det(R) < 0:
             raise ValueError(f"RigidTransform: R is not a proper rotation (|RtR - I| = {err:.2e})")
@@ -196,10 +214,18 @@ class RigidTransform:
 
     @classmethod
     def from_matrix(cls, T) -> RigidTransform:
-        """From a (4, 4) homogeneous matrix."""
-        T = np.asarray(T, dtype=np.float64)
+        """From a (4, 4) homogeneous matrix (its last row ``[0, 0, 0, 1]``)."""
+        if np.iscomplexobj(T):
+            raise ValueError("expected a real (4, 4) matrix, got complex values")
+        try:
+            T = np.asarray(T, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"expected a (4, 4) matrix of numbers ({_one_line(exc)})") from None
         if T.shape != (4, 4):
             raise ValueError(f"expected a (4, 4) matrix, got {T.shape}")
+        if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], rtol=0.0, atol=1e-9):
+            raise ValueError(f"expected a rigid (4, 4) matrix whose last row is [0, 0, 0, 1], "
+                             f"got {np.round(T[3], 6).tolist()}")
         return cls(T[:3, :3], T[:3, 3])
 
     @classmethod
@@ -337,6 +363,10 @@ def point_line_residuals(points, origins, directions) -> np.ndarray:
 
 def point_line_distances(points, origins, directions) -> np.ndarray:
     """Distance (mm) from each point ``(N, 3)`` to its line; returns ``(N,)``."""
+    shapes = [np.shape(a) for a in (points, origins, directions)]
+    if len(set(shapes)) != 1 or len(shapes[0]) != 2 or shapes[0][1] != 3:
+        raise ValueError(f"point_line_distances: points, origins and directions must be "
+                         f"(N, 3) each, one line per point; got {shapes}")
     return np.linalg.norm(point_line_residuals(points, origins, directions), axis=1)
 
 
@@ -353,7 +383,12 @@ def closest_point_to_lines(origins, directions, weights=None) -> np.ndarray:
     are all parallel (the point is at infinity).
     """
     o, d = as_lines(origins, directions)
+    if len(o) == 0:
+        raise ValueError("closest_point_to_lines: no lines given")
     w = np.ones(len(o)) if weights is None else np.asarray(weights, dtype=np.float64)
+    if w.shape != (len(o),) or not np.all(np.isfinite(w)) or np.any(w < 0):
+        raise ValueError(f"closest_point_to_lines: weights must be ({len(o)},) finite numbers "
+                         f">= 0, one per line; got shape {w.shape}")
     M = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
     A = np.einsum("n,nij->ij", w, M)
     b = np.einsum("n,nij,nj->i", w, M, o)

@@ -743,6 +743,9 @@ def _as_options(options) -> EstimateOptions:
 def _as_transform(initial) -> RigidTransform:
     if isinstance(initial, RigidTransform):
         return initial
+    if np.iscomplexobj(initial):
+        raise ValueError("initial: the (4, 4) ct2robot matrix has complex values; expected "
+                         "real numbers")
     try:
         m = np.asarray(initial, dtype=np.float64)
     except (TypeError, ValueError):
@@ -758,7 +761,10 @@ def _as_transform(initial) -> RigidTransform:
             or np.linalg.det(R) < 0):
         raise ValueError("initial: the (4, 4) matrix is not a rigid transform (its 3x3 part "
                          "must be a rotation, its last row [0, 0, 0, 1])")
-    return RigidTransform(R, m[:3, 3])
+    try:
+        return RigidTransform(R, m[:3, 3])
+    except ValueError as exc:
+        raise ValueError(f"initial: {exc}") from None
 
 
 def match_quality(res) -> dict:

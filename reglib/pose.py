@@ -48,6 +48,7 @@ cube. All methods start from ``initial`` (default: identity, as in the paper).
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, replace
 from typing import Literal
 
@@ -152,6 +153,13 @@ def _check_inputs(points, origins, directions, method: str):
     return p, o, d
 
 
+#: the largest iteration count and RANSAC sample count :func:`solve_pose` takes (RANSAC draws
+#: its samples up front: 10**9 of them took 22 GB; 10**6 is 5,000 times the count that
+#: reaches 99 % confidence with half the points outliers)
+MAX_ITERATIONS = 100_000
+MAX_TRIALS = 1_000_000
+
+
 def _check_options(method, *, max_iterations, tol, r, tukey_a, threshold, max_trials,
                    confidence, backend):
     """Clear ValueErrors for option values :func:`solve_pose` cannot use."""
@@ -163,16 +171,17 @@ def _check_options(method, *, max_iterations, tol, r, tukey_a, threshold, max_tr
     def number(name, val, ok, what, allow_none=False):
         if val is None and allow_none:
             return
-        try:
-            good = bool(np.isfinite(float(val))) and bool(ok(float(val)))
-        except (TypeError, ValueError):
-            good = False
-        if isinstance(val, bool) or not good:
+        # a real number, not text that float() would read ("1e-3" reached the compiled
+        # solver and failed there with a typing error)
+        if isinstance(val, bool) or not isinstance(val, numbers.Real):
+            raise ValueError(f"{name}: expected {what}, got {val!r}")
+        if not (np.isfinite(float(val)) and ok(float(val))):
             raise ValueError(f"{name}: expected {what}, got {val!r}")
 
-    for name, val in (("max_iterations", max_iterations), ("max_trials", max_trials)):
-        if isinstance(val, bool) or not isinstance(val, int | np.integer) or val < 1:
-            raise ValueError(f"{name}: expected an integer >= 1, got {val!r}")
+    for name, val, top in (("max_iterations", max_iterations, MAX_ITERATIONS),
+                           ("max_trials", max_trials, MAX_TRIALS)):
+        if isinstance(val, bool) or not isinstance(val, int | np.integer) or not 1 <= val <= top:
+            raise ValueError(f"{name}: expected an integer in [1, {top}], got {val!r}")
     number("tol", tol, lambda v: v >= 0, "a finite number >= 0")
     number("r", r, lambda v: v > 0, "a finite trust radius > 0 (or None)", allow_none=True)
     number("tukey_a", tukey_a, lambda v: v > 0, "a finite Tukey constant > 0")

@@ -27,6 +27,7 @@ from __future__ import annotations
 import functools
 import inspect
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -178,6 +179,11 @@ def match_view(surfaces, view: View, ct2robot: RigidTransform, *, closest: str =
     contours : ContourSet of the apparent contours in the CT frame.
     surface_of_contour : (C,) int64, which surface each contour belongs to.
     """
+    if not isinstance(ct2robot, RigidTransform):
+        raise ValueError(f"ct2robot: expected a RigidTransform (RigidTransform.from_matrix "
+                         f"makes one of a (4, 4) matrix), got {type(ct2robot).__name__}")
+    if not isinstance(view, View):
+        raise ValueError(f"view: expected a View, got {type(view).__name__}")
     robot2ct = ct2robot.inverse()
     c_ct = robot2ct.apply(view.center)
     o_ct, d_ct = robot2ct.apply_lines(view.origins, view.directions)
@@ -396,10 +402,11 @@ def _limit_cycle(placed, tol_mm: float, periods) -> int:
 _WHOLE = {"max_iterations": 1, "solver_iterations": 1, "stall_window": 0, "stale_window": 0}
 #: register's real-valued options: (test, the values in words); NaN never passes
 _REAL = {
-    "tukey_a": (lambda v: v > 0, "a number > 0 (the Tukey constant, in robust sigmas)"),
-    "tol_step_mm": (lambda v: v >= 0, "a distance >= 0 mm"),
-    "tol_residual_mm": (lambda v: v >= 0, "a distance >= 0 mm"),
-    "tol_stall_mm": (lambda v: v >= 0, "a distance >= 0 mm"),
+    "tukey_a": (lambda v: 0 < v < np.inf,
+                "a finite number > 0 (the Tukey constant, in robust sigmas)"),
+    "tol_step_mm": (lambda v: 0 <= v < np.inf, "a finite distance >= 0 mm"),
+    "tol_residual_mm": (lambda v: 0 <= v < np.inf, "a finite distance >= 0 mm"),
+    "tol_stall_mm": (lambda v: 0 <= v < np.inf, "a finite distance >= 0 mm"),
     "max_motion_mm": (lambda v: v > 0, "a distance > 0 mm"),
     "max_rotation_deg": (lambda v: v > 0, "an angle > 0 deg"),
     "min_inlier_fraction": (lambda v: 0 <= v <= 1, "a fraction in [0, 1]"),
@@ -427,6 +434,10 @@ def _check_values(o: dict) -> None:
     whole number or below its least, a real number that is NaN, not a number or out of its
     range, a fixed point that is no finite (3,) point, or a solver that the residual does
     not allow."""
+    so = o.get("solver_options")
+    if so is not None and not isinstance(so, Mapping):
+        raise OptionError("solver_options", "expected a mapping of solve_pose's options "
+                          f"(e.g. {{'tol': 1e-8}}), got {type(so).__name__}")
     for name, allowed in _keyword_spec()[1].items():
         if o[name] not in allowed:
             raise OptionError(name, f"expected one of {list(allowed)}, got {o[name]!r}")
@@ -587,7 +598,7 @@ def register(surfaces, views, initial: RigidTransform, *,
                        tol_stall_mm=tol_stall_mm, max_motion_mm=max_motion_mm,
                        max_rotation_deg=max_rotation_deg,
                        min_inlier_fraction=min_inlier_fraction, stale_window=stale_window,
-                       solver_iterations=solver_iterations))
+                       solver_iterations=solver_iterations, solver_options=solver_options))
     fixed_robot = None
     if fixed_point_ct is not None:
         fixed_robot = initial.apply(np.asarray(fixed_point_ct, dtype=np.float64).reshape(3))

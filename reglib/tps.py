@@ -12,6 +12,7 @@ Smoothing is given in the units of the paper's kernel ``k = r^2 log(r^2) / (16 p
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -34,6 +35,42 @@ def _as_xy(xy, name="xy_px") -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- TPS reference
+def _check_fit(xy_px, values, smoothing, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """The centres (n, 2) and values (n, m) of a fit, or ``ValueError``: fewer than 3
+    centres, centres on one line (no affine part), values not one finite row per centre, a
+    smoothing that is no finite number >= 0, or a centre given twice without smoothing (the
+    interpolation then has no solution)."""
+    xy = _as_xy(xy_px)
+    try:
+        v = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"values: expected an (n, m) array of numbers, got "
+                         f"{type(values).__name__}") from None
+    v = v[:, None] if v.ndim == 1 else v
+    if v.ndim != 2 or v.shape[0] != len(xy):
+        raise ValueError(f"values: expected {len(xy)} rows (one per centre), got shape "
+                         f"{v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise ValueError("values: contains NaN or inf")
+    if (isinstance(smoothing, bool) or not isinstance(smoothing, numbers.Real)
+            or not np.isfinite(smoothing) or smoothing < 0):
+        raise ValueError(f"smoothing: expected a finite number >= 0, got {smoothing!r}")
+    if len(xy) < 3:
+        raise ValueError(f"{what}: at least 3 markers are needed, got {len(xy)}")
+    centred = xy - xy.mean(axis=0)
+    sv = np.linalg.svd(centred, compute_uv=False)
+    if sv[-1] < 1e-6 * max(sv[0], 1e-300):
+        raise ValueError(f"{what}: the markers are collinear in the image")
+    if smoothing == 0:
+        _, first, counts = np.unique(xy, axis=0, return_index=True, return_counts=True)
+        if np.any(counts > 1):
+            raise ValueError(f"{what}: {int(np.sum(counts > 1))} centre(s) given more than "
+                             "once (e.g. row "
+                             f"{int(first[np.argmax(counts > 1)])}); interpolating them needs "
+                             "smoothing > 0")
+    return xy, v
+
+
 def tps_kernel(r2) -> np.ndarray:
     """The paper's thin-plate kernel ``r^2 log(r^2) / (16 pi)`` of squared distances (px^2)."""
     r2 = np.asarray(r2, dtype=np.float64)
@@ -59,14 +96,8 @@ def tps_fit_svd(xy_px, values, smoothing: float = 0.01) -> np.ndarray:
     -------
     coef : (n + 3, m) array: ``a`` (n rows) then the affine part ``c`` (constant, x, y).
     """
-    xy = _as_xy(xy_px)
-    v = np.asarray(values, dtype=np.float64)
-    v = v[:, None] if v.ndim == 1 else v
+    xy, v = _check_fit(xy_px, values, smoothing, "tps_fit_svd")
     n = len(xy)
-    if v.shape[0] != n:
-        raise ValueError(f"values: expected {n} rows (one per centre), got {v.shape[0]}")
-    if n < 3:
-        raise ValueError(f"tps_fit_svd: at least 3 centres are needed, got {n}")
     d2 = np.sum((xy[:, None, :] - xy[None, :, :]) ** 2, axis=-1)
     A = np.zeros((n + 3, n + 3))
     A[:n, :n] = tps_kernel(d2) + smoothing * np.eye(n)
@@ -114,20 +145,9 @@ class ThinPlateSpline:
         Raises ``ValueError`` with fewer than 3 centres, collinear centres (no affine part
         can be fitted), or a negative smoothing.
         """
-        xy = _as_xy(xy_px)
-        v = np.asarray(values, dtype=np.float64)
-        v = v[:, None] if v.ndim == 1 else v
-        if v.shape[0] != len(xy):
-            raise ValueError(f"values: expected {len(xy)} rows, got {v.shape[0]}")
-        if smoothing < 0:
-            raise ValueError(f"smoothing must be >= 0, got {smoothing}")
-        if len(xy) < 3:
-            raise ValueError(f"thin-plate spline: at least 3 markers are needed, got {len(xy)}")
+        xy, v = _check_fit(xy_px, values, smoothing, "thin-plate spline")
         shift = xy.mean(axis=0)
         centred = xy - shift
-        sv = np.linalg.svd(centred, compute_uv=False)
-        if sv[-1] < 1e-6 * max(sv[0], 1e-300):
-            raise ValueError("thin-plate spline: the markers are collinear in the image")
         interp = RBFInterpolator(xy, v, kernel="thin_plate_spline", degree=1,
                                  smoothing=_EIGHT_PI * smoothing)
         n = len(xy)

@@ -63,6 +63,19 @@ def test_tps_bad_input():
         ThinPlateSpline.fit(line, np.zeros((10, 3)))
     with pytest.raises(ValueError, match="expected 10 rows"):
         ThinPlateSpline.fit(np.random.default_rng(0).random((10, 2)), np.zeros((9, 3)))
+    xy = np.random.default_rng(1).random((10, 2)) * 100
+    for bad in (float("nan"), float("inf"), -1.0, "0.1"):
+        for fit in (ThinPlateSpline.fit, tps_fit_svd):   # the two solves refuse alike
+            with pytest.raises(ValueError, match="smoothing: expected a finite number >= 0"):
+                fit(xy, np.zeros((10, 3)), smoothing=bad)
+        with pytest.raises(ValueError, match="collinear"):
+            tps_fit_svd(line, np.zeros((10, 3)))
+    twice = np.vstack([xy, xy[3]])
+    with pytest.raises(ValueError, match=r"1 centre\(s\) given more than once \(e.g. row 3\)"):
+        ThinPlateSpline.fit(twice, np.arange(33.0).reshape(11, 3), smoothing=0.0)
+    assert np.all(np.isfinite(ThinPlateSpline.fit(twice, np.zeros((11, 3)), smoothing=0.01)(xy)))
+    with pytest.raises(ValueError, match="values: contains NaN"):
+        ThinPlateSpline.fit(xy, np.full((10, 3), np.nan))
 
 
 # --------------------------------------------------------------------------- detection
@@ -414,6 +427,38 @@ def test_calibrate_names_view_and_plane_when_too_few_markers():
                  m.robot[keep], ["view lateral, far plane, frame 12: row dropped"])
     cal = calibrate(ok)
     assert cal.problems == ("view lateral, far plane, frame 12: row dropped",)
+
+
+def test_calibrate_refuses_robot_positions_that_span_no_plane():
+    """A sweep whose beads the robot reported at one point, or along one line, fits no
+    plane: refused, not a calibration whose paths have no direction (it had passed its own
+    validation at 1e-13 mm, then failed the registration with NaN directions)."""
+    carm2robot = RigidTransform.from_rotvec([0.3, 0.0, 0.1], [0.0, 0.0, 0.0])
+    m = _grid_markers(carm2robot)
+    for robot in (np.zeros_like(m.robot) + [800.0, 0.0, 500.0],
+                  np.outer(m.bead, [10.0, 0.0, 0.0]) + [800.0, 0.0, 500.0]):
+        bad = Markers("lateral", m.frame, m.plane, m.bead, m.xy_px, robot)
+        with pytest.raises(ValueError, match=r"view lateral: near plane: the robot reported its "
+                                             r"markers within 0 mm of one line"):
+            calibrate(bad)
+    # the far plane's rows a copy of the near plane's: the paths would have no direction
+    near = m.plane == 0
+    same = Markers("lateral", np.r_[m.frame[near], m.frame[near] + 100],
+                   np.r_[m.plane[near], m.plane[near] + 1], np.r_[m.bead[near], m.bead[near]],
+                   np.vstack([m.xy_px[near]] * 2), np.vstack([m.robot[near]] * 2))
+    with pytest.raises(ValueError, match="the near and far planes' fits meet"):
+        calibrate(same)
+    with pytest.raises(ValueError, match=r"markers of view lateral: robot must be \(96, 3\)"):
+        calibrate(Markers("lateral", m.frame, m.plane, m.bead, m.xy_px, m.robot[:, :2]))
+    with pytest.raises(ValueError, match="markers of view lateral: robot holds NaN"):
+        calibrate(Markers("lateral", m.frame, m.plane, m.bead, m.xy_px, m.robot * np.nan))
+    with pytest.raises(ValueError, match="markers: expected a reglib.markers.Markers"):
+        calibrate({"xy_px": m.xy_px})
+    cal = calibrate(m)
+    with pytest.raises(ValueError, match=r"path_map: width_px must be an integer"):
+        cal.path_map(-5, 10)
+    with pytest.raises(ValueError, match=r"distances: points_robot must be \(96, 3\)"):
+        cal.distances(m.xy_px, m.robot[:5])
 
 
 def _distorted_rows(rng, rows=5):

@@ -87,3 +87,32 @@ def test_composition_and_inverse_stay_rigid_and_read_only():
     for arr in (acc.R, acc.t, ts[0].inverse().R, (ts[0] @ ts[1]).t):
         assert not arr.flags.writeable
     RigidTransform(acc.R, acc.t)                    # passes the full checks
+
+
+def test_bad_transforms_and_lines_are_named():
+    M = np.eye(4)
+    M[3] = [0.0, 0.0, 1.0, 0.0]                      # projective, not rigid
+    with pytest.raises(ValueError, match=r"last row is \[0, 0, 0, 1\], got \[0.0, 0.0, 1.0, 0.0\]"):
+        RigidTransform.from_matrix(M)
+    M = np.eye(4)
+    M[3, 0] = 1e-3
+    with pytest.raises(ValueError, match="last row"):
+        RigidTransform.from_matrix(M)
+    with pytest.raises(ValueError, match="complex"):
+        RigidTransform.from_matrix(np.eye(4) + 0j)
+    with pytest.raises(ValueError, match="t has complex values"):
+        RigidTransform(np.eye(3), [1 + 2j, 0.0, 0.0])
+    with pytest.raises(ValueError, match="translation up to 1e\\+300 mm"):
+        RigidTransform(np.eye(3), [1e300, 0.0, 0.0])
+    with pytest.raises(ValueError, match="Q: contains NaN"):
+        cayley_from_matrix(np.full((3, 3), np.nan))
+    with pytest.raises(ValueError, match="Q: not a proper rotation"):
+        cayley_from_matrix(2 * np.eye(3))
+    o = np.zeros((4, 3))
+    d = np.tile([0.0, 0.0, 1.0], (4, 1))
+    with pytest.raises(ValueError, match="one line per point"):
+        point_line_distances(np.zeros((3, 3)), o, d)
+    with pytest.raises(ValueError, match="no lines given"):
+        closest_point_to_lines(np.zeros((0, 3)), np.zeros((0, 3)))
+    with pytest.raises(ValueError, match=r"weights must be \(4,\)"):
+        closest_point_to_lines(o + np.eye(4, 3), np.tile([0.0, 0.6, 0.8], (4, 1)), [1.0, 2.0])

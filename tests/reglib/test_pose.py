@@ -357,8 +357,13 @@ def test_linear_stops_when_its_cost_stops_decreasing(monkeypatch):
     ({"tol": float("nan")}, "tol: expected a finite number >= 0, got nan"),
     ({"r": 0.0}, r"r: expected a finite trust radius > 0 \(or None\), got 0.0"),
     ({"threshold": -1.0}, r"threshold: expected a finite inlier distance > 0 \(or None\)"),
-    ({"max_iterations": 0}, "max_iterations: expected an integer >= 1, got 0"),
-    ({"max_trials": 2.5}, "max_trials: expected an integer >= 1, got 2.5"),
+    ({"max_iterations": 0}, r"max_iterations: expected an integer in \[1, 100000\], got 0"),
+    ({"max_trials": 2.5}, r"max_trials: expected an integer in \[1, 1000000\], got 2.5"),
+    # RANSAC draws its samples up front: 10**9 of them took 22 GB
+    ({"max_trials": 10**9, "method": "ransac"}, r"max_trials: expected an integer in \[1, "),
+    # text that float() reads must not reach the compiled solver
+    ({"tol": "1e-3"}, "tol: expected a finite number >= 0, got '1e-3'"),
+    ({"tukey_a": "2"}, "tukey_a: expected a finite Tukey constant > 0, got '2'"),
     ({"confidence": 1.0}, r"confidence: expected a probability in \(0, 1\), got 1.0"),
     ({"backend": "cuda"}, "backend: expected 'auto', 'numpy' or 'numba', got 'cuda'"),
     ({"method": "gauss"}, "method: expected one of"),

@@ -538,6 +538,7 @@ def test_view_fit_measures_each_view_against_the_nearest_apparent_contour(world)
 
 @pytest.mark.parametrize("bad", [{"stale_window": -1}, {"max_iterations": 0},
                                  {"tukey_a": float("nan")}, {"tukey_a": "4"},
+                                 {"tukey_a": float("inf")}, {"solver_options": [1, 2]},
                                  {"min_inlier_fraction": 1.5}, {"closest": "fast"},
                                  {"method": "lm"}, {"fixed_point_ct": (0.0, np.inf, 0.0)},
                                  {"max_rotation_deg": 0.0}])
@@ -552,4 +553,4 @@ def test_check_options_refuses_what_register_refuses(world, bad):
     with pytest.raises(ValueError) as ran:
         register(tops, list(views.values()), true, **bad)
     assert str(made.value) == str(ran.value) and made.value.option == next(iter(bad))
-    check_options(max_iterations=5, tukey_a=float("inf"), method="lm", residual="line")
+    check_options(max_iterations=5, tukey_a=2.0, method="lm", residual="line")
