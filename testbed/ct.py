@@ -341,6 +341,10 @@ class _Accumulator:
         return (self.part + np.cumsum(self.full, axis=1))[:, :self.width]
 
 
+#: the largest CT volume a scan makes (voxels; float32: 0.74 GiB)
+MAX_VOXELS = 2.0e8
+
+
 def _hu_steps(bodies: list[Body]) -> list[tuple[Body, float]]:
     by_name = {b.name: b for b in bodies}
     steps = []
@@ -420,6 +424,14 @@ def scan(phantom, spec: CTSpec | None = None, rng=None, *, bodies: list[Body] | 
     z, regions = slice_schedule(phantom, spec)
     thick = _thickness(z, spec)
     n, origin = _grid(phantom, spec)
+    voxels = len(z) * n * n
+    if voxels > MAX_VOXELS:
+        raise ValueError(
+            f"ct: the schedule and field give {len(z)} slices of {n} x {n} px "
+            f"({voxels:.3g} voxels, {4 * voxels / 2**30:.1f} GiB); at most {MAX_VOXELS:.3g} "
+            "(a 512 x 512 clinical scan of 760 slices): coarsen the spacing "
+            "(fine_spacing_mm, coarse_spacing_mm or uniform_spacing_mm) or pixel_mm, or "
+            "narrow fov_mm")
     px = spec.pixel_mm
     ss = spec.supersample
     y_sub = origin[1] + (np.arange(n * ss) + 0.5) / ss * px - 0.5 * px

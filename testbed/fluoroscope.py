@@ -87,6 +87,11 @@ IDEAL_FLUOROSCOPE = dict(focal_spot_mm=0.0, mtf50_lp_per_mm=0.0, scatter_to_prim
 _Field_uT = Annotated[float, Field(ge=-200.0, le=200.0)]
 
 
+#: the most rays a frame may cast (width x height x oversample^2): 2**24, a 2048 x 2048
+#: image with oversample 2 (the default frame casts 307,200)
+MAX_RAYS_PER_FRAME = 2**24
+
+
 class FluoroscopeSpec(Spec):
     """``[fluoroscope]``: the C-arm and its image intensifier (defaults: a 9-inch mobile C-arm).
 
@@ -203,6 +208,13 @@ class FluoroscopeSpec(Spec):
                 f"fov_diameter_mm / pixel_mm = {2 * radius_px:.1f} px: the field of view must "
                 "span at least 8 pixels"
             )
+        rays = self.width_px * self.height_px * self.oversample ** 2
+        if rays > MAX_RAYS_PER_FRAME:
+            raise ValueError(
+                f"width_px x height_px x oversample^2 = {self.width_px} x {self.height_px} x "
+                f"{self.oversample}^2 = {rays:,} rays per frame; at most {MAX_RAYS_PER_FRAME:,} "
+                "(a 2048 x 2048 image with oversample 2): a frame would take minutes and a "
+                "sweep hours")
         size = max(self.width_px, self.height_px)
         for name in ("principal_offset_px", "distortion_center_px"):
             v = getattr(self, name)

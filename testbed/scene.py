@@ -31,6 +31,7 @@ import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
 
+import numpy as np
 from pydantic import Field, ValidationError, model_validator
 
 from testbed.ct import CTSpec
@@ -95,13 +96,25 @@ class SyntheticSpec(Spec):
     n_points: Annotated[int, Field(ge=4, le=100_000)] = 20
     """At least 4: the synthetic job runs every solver, and the robust ones need 4."""
     center_of_perspective: Vec3 = (-2.0, -2.0, -2.0)
+    """Within 1000 cube sizes of the cube's centre: farther, the lines through the unit
+    cube are parallel to rounding and the pose is undetermined."""
     rotation_deg: Annotated[float, Field(ge=0, le=179)] = 30.0
-    translation_norm: Annotated[float, Field(ge=0)] = 1.0
-    noise_std: Annotated[float, Field(ge=0)] = 0.0
+    translation_norm: Annotated[float, Field(ge=0, le=1000)] = 1.0
+    noise_std: Annotated[float, Field(ge=0, le=1000)] = 0.0
     outlier_fraction: Annotated[float, Field(ge=0, le=1)] = 0.0
     landmarks: Annotated[tuple[Vec3, ...], Field(min_length=1)] = (
         (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
     success_threshold: Pos = 0.1
+
+    @model_validator(mode="after")
+    def _check(self):
+        far = float(np.linalg.norm(np.asarray(self.center_of_perspective) - 0.5))
+        if far > 1000.0:
+            raise ValueError(
+                f"center_of_perspective = {tuple(self.center_of_perspective)}: {far:.3g} cube "
+                "sizes from the points' cube; at most 1000 (the paper's lies at 4.3), else the "
+                "lines through the cube are parallel to rounding")
+        return self
 
 
 class PatientSpec(Spec):
@@ -184,6 +197,15 @@ class Scene(Spec):
             raise ValueError("scene.kind is 'synthetic' but there is no [synthetic] table")
         if self.scene.kind == "operating_room" and not self.views:
             raise ValueError("scene.kind is 'operating_room' but no [[views]] are given")
+        # a table the scene's kind does not read would be ignored without a word
+        if self.scene.kind == "operating_room" and self.synthetic is not None:
+            raise ValueError("scene.kind is 'operating_room': its [synthetic] table would be "
+                             "ignored; remove it, or set kind = 'synthetic'")
+        unused = sorted(set(self.model_fields_set) - {"scene", "synthetic"})
+        if self.scene.kind == "synthetic" and unused:
+            raise ValueError(f"scene.kind is 'synthetic': its table(s) {unused} would be "
+                             "ignored (a synthetic scene reads [scene] and [synthetic] only); "
+                             "remove them, or set kind = 'operating_room'")
         first: dict[str, int] = {}
         for i, v in enumerate(self.views):
             key = v.name.lower()  # file names differ in case only on some file systems

@@ -219,3 +219,13 @@ def test_compiled_section_coverage_equals_the_numpy_reference(seed):
             np.testing.assert_array_equal(got.full, ref.full)
             crossed += int(np.count_nonzero(ref.full))
     assert crossed > 1000
+
+
+def test_a_volume_too_large_to_hold_is_refused_before_it_is_made():
+    """Fields each in range (0.1 mm slices, 0.3 mm pixels, a 700 mm field) that together ask
+    for 92 GiB are refused naming them, not an out-of-memory error."""
+    ph = make_phantom(PhantomSpec(segments=32))
+    spec = CTSpec(schedule="uniform", uniform_spacing_mm=0.1, pixel_mm=0.3, fov_mm=700.0)
+    with pytest.raises(ValueError, match=r"ct: the schedule and field give \d+ slices of 2334 x "
+                                         r"2334 px .* GiB\); at most 2e\+08 .*pixel_mm"):
+        scan(ph, spec)

@@ -103,20 +103,20 @@ def test_a_residual_the_strategy_does_not_use_is_refused(tmp_path):
     used with strategy = "single", which reaches the estimate's options."""
     from studies.end_to_end import estimate_options
 
-    data = {k: dict(v) for k, v in VALID.items()}
-    data["registration"] = {"residual": "normal"}
+    base = find_scene("experiment2").read_text()   # an operating room: it registers
     f = tmp_path / "scene.toml"
-    f.write_text(_dump(data))
+
+    def write(registration: dict):
+        f.write_text(base + "\n" + _dump({"registration": registration}))
+
+    write({"residual": "normal"})
     with pytest.raises(SceneError, match=r"scene.toml.*registration.*residual = 'normal' is "
                                          r"not used by strategy 'coarse-fine'"):
         load_scene(f)
-    data["registration"]["strategy"] = "single"
-    f.write_text(_dump(data))
+    write({"residual": "normal", "strategy": "single"})
     opts = estimate_options(load_scene(f))
     assert opts.strategy == "single" and opts.registration["residual"] == "normal"
-    del data["registration"]["residual"]
-    data["registration"]["strategy"] = "coarse-fine"
-    f.write_text(_dump(data))
+    write({"strategy": "coarse-fine"})
     assert estimate_options(load_scene(f)).strategy == "coarse-fine"
 
 
@@ -250,3 +250,40 @@ def test_a_relative_mesh_path_is_read_from_the_scene_files_folder(tmp_path, monk
     (folder / "femur.stl").unlink()
     (elsewhere / "femur.stl").write_text("solid x\nendsolid x\n")
     assert load_scene(folder / "s.toml").phantom.mesh_path == "femur.stl"
+
+
+@pytest.mark.parametrize("edits, message", [
+    ({"width_px = 640": "width_px = 4096", "height_px = 480": "height_px = 4096",
+      "oversample = 1": "oversample = 8"},
+     r"field 'fluoroscope': width_px x height_px x oversample\^2 = 4096 x 4096 x 8\^2 = "
+     r"1,073,741,824 rays per frame; at most 16,777,216"),
+    ({"[fluoroscope]": "[synthetic]\nn_points = 20\n\n[fluoroscope]"},
+     r"scene.kind is 'operating_room': its \[synthetic\] table would be ignored"),
+])
+def test_scenes_absurd_as_a_whole_are_refused_by_field(tmp_path, edits, message):
+    """Fields each in range that together make an absurd scene (a frame of a billion rays:
+    minutes per frame, then out of memory) or a table the scene's kind would ignore."""
+    text = find_scene("experiment2").read_text()
+    for old, new in edits.items():
+        assert old in text
+        text = text.replace(old, new, 1)
+    f = tmp_path / "scene.toml"
+    f.write_text(text)
+    with pytest.raises(SceneError, match=message):
+        load_scene(f)
+
+
+def test_a_synthetic_scene_far_from_its_cube_or_with_room_tables_is_refused(tmp_path):
+    f = tmp_path / "scene.toml"
+    data = {k: dict(v) for k, v in VALID.items()}
+    data["synthetic"]["center_of_perspective"] = [1e8, 1e8, 1e8]
+    f.write_text(_dump(data))
+    with pytest.raises(SceneError, match=r"center_of_perspective = .*cube sizes from the "
+                                         r"points' cube; at most 1000"):
+        load_scene(f)
+    data = {k: dict(v) for k, v in VALID.items()}
+    data["ct"] = {"pixel_mm": 0.5}
+    f.write_text(_dump(data))
+    with pytest.raises(SceneError, match=r"scene.kind is 'synthetic': its table\(s\) \['ct'\] "
+                                         r"would be ignored"):
+        load_scene(f)
