@@ -578,6 +578,16 @@ def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
                          f"the CT volume), got shape {s2c.shape}")
     if not np.all(np.isfinite(s2c)):
         raise ValueError("slice2ct: holds NaN or infinite entries")
+    bad = np.flatnonzero(np.abs(s2c[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1) > 1e-9)
+    if bad.size:
+        raise ValueError(f"slice2ct: the matrices of slices {bad[:5].tolist()} are not affine "
+                         f"(last row {np.round(s2c[bad[0], 3], 6).tolist()}, expected "
+                         "[0, 0, 0, 1])")
+    axes = np.cross(s2c[:, :3, 0], s2c[:, :3, 1])
+    flat = np.flatnonzero(np.linalg.norm(axes, axis=1) <= 1e-12)
+    if flat.size:
+        raise ValueError(f"slice2ct: the column and row axes of slices {flat[:5].tolist()} are "
+                         "zero or parallel; they span no slice plane")
     vol_hu = vol.transpose(2, 1, 0)  # [slice, row, col], as reglib.contours reads it
     out = {}
     for region in sorted(ct_clicks):
@@ -679,6 +689,10 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
     if surfaces is None:
         meta = _part(observation, "meta")
         regions = meta.get("regions") or []
+        if (not isinstance(regions, list | tuple)
+                or not all(isinstance(r, str) and r for r in regions)):
+            raise ValueError(f"observation: meta['regions'] must be a list of CT region names "
+                             f"(e.g. ['distal', 'proximal']), got {regions!r:.80}")
         vol = _entry(_part(observation, "volumes"), "ct", "volumes")
         slices = _entry(arrays, "ct_slices", "arrays")
         clicks = {r: _entry(arrays, f"ct_clicks_{r}", "arrays") for r in regions}

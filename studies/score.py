@@ -161,10 +161,14 @@ def missing_cases(dataset) -> list[str]:
     generate`` interrupted before it wrote them, or a case folder removed), in order."""
     from testbed.dataset import INDEX_FILE, list_cases
 
+    index = Path(dataset) / INDEX_FILE
     try:
-        listed = json.loads((Path(dataset) / INDEX_FILE).read_text()).get("cases", [])
+        listed = json.loads(index.read_text()).get("cases", [])
     except (OSError, ValueError, AttributeError):
         return []
+    if not isinstance(listed, list) or not all(isinstance(c, str) for c in listed):
+        raise ValueError(f"{index}: 'cases' must be a list of case folder names, got "
+                         f"{listed!r:.80}")
     have = {c.name for c in list_cases(dataset)}
     return [str(c) for c in listed if str(c) not in have]
 

@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from reglib.geometry import RigidTransform
+from reglib.geometry import RigidTransform, as_points
 
 __all__ = [
     "FORMAT_NAME",
@@ -456,14 +456,17 @@ def _read_doc(case_dir: Path) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: missing; {case_dir} is not a dataset case folder")
     try:
-        doc = json.loads(path.read_text())
+        doc = json.loads(path.read_text(encoding="utf-8"))
     except json.JSONDecodeError as exc:
         raise ValueError(f"{path}: not valid JSON ({exc})") from exc
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not UTF-8 text, so not the JSON of a case ({exc})") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT_NAME:
         got = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
         raise ValueError(f"{path}: 'format' is {got!r}, expected {FORMAT_NAME!r}")
     version = doc.get("format_version")
-    if version not in SUPPORTED_VERSIONS:
+    if isinstance(version, bool) or not isinstance(version, int) or version not in \
+            SUPPORTED_VERSIONS:
         older = (isinstance(version, int) and not isinstance(version, bool)
                  and version < min(SUPPORTED_VERSIONS))
         advice = ("an older format whose cases lack what reglib.estimate needs: generate the "
@@ -634,9 +637,11 @@ def _read_entry(case_dir: Path, group: str, name: str, rec: dict, transforms: di
         if name not in points:
             raise ValueError(f"{case_dir / 'points.json'}: no points {name!r}")
         p = points[name]
+        where = f"{case_dir / 'points.json'}: points {name!r}"
         if p["kind"] == "named":
-            return {k: np.array(v, dtype=np.float64) for k, v in p["points"].items()}
-        return np.array(p["points"], dtype=np.float64).reshape(-1, 3)
+            return {k: as_points(v, f"{where}, {k!r}", min_count=1).reshape(3)
+                    for k, v in p["points"].items()}
+        return as_points(np.asarray(p["points"], dtype=np.float64).reshape(-1, 3), where)
     raise ValueError(f"{case_dir / CASE_FILE}: unknown group {group!r} in entry {what!r}")
 
 

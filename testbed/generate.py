@@ -190,10 +190,16 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
     # again when it is simulated: its femur may differ)
     from testbed.simulate import checked_world
 
-    first = checked_world(scene, case_seed(int(seed), 0))      # case 0 reuses it
-    out.mkdir(parents=True, exist_ok=True)
     n_all = max(int(cases), len(old.get("cases", [])))
     dirs = [out / f"case_{i:04d}" for i in range(n_all)]
+    # a case's place taken by something that is no case folder: said before any simulation
+    # (a review's plain file 'case_0000' was found after 8 s of simulating)
+    for d in dirs[:cases]:
+        if d.exists() and not (d / CASE_FILE).is_file():
+            raise ValueError(f"--out {out}: {d.name} exists and is not a case folder (no "
+                             f"{CASE_FILE}); move it away, or choose another folder")
+    first = checked_world(scene, case_seed(int(seed), 0))      # case 0 reuses it
+    out.mkdir(parents=True, exist_ok=True)
     hashes = dict(old.get("case_json_sha256", {}))
 
     def write_index():

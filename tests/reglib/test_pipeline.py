@@ -161,6 +161,15 @@ def test_ct_surface_input_is_checked_and_a_failed_region_is_a_surface_error():
         ct_surfaces(vol, np.full((4, 4, 4), np.nan), {"distal": good})
     with pytest.raises(ValueError, match=r"slice2ct: expected \(4, 4, 4\) matrices"):
         ct_surfaces(vol, s2c[:2], {"distal": good})
+    projective = s2c.copy()
+    projective[2, 3, 2] = 5.0
+    with pytest.raises(ValueError, match=r"slice2ct: the matrices of slices \[2\] are not "
+                                         r"affine"):
+        ct_surfaces(vol, projective, {"distal": good})
+    flat = s2c.copy()
+    flat[1, :3, 1] = flat[1, :3, 0]
+    with pytest.raises(ValueError, match=r"row axes of slices \[1\] are zero or parallel"):
+        ct_surfaces(vol, flat, {"distal": good})
     with pytest.raises(ValueError, match=r"CT volume: expected an \(I, J, K\) array"):
         ct_surfaces(np.zeros((0, 0, 0)), s2c, {"distal": good})
     # well-formed clicks on an empty CT: the stage fails, as a SurfaceError naming the region

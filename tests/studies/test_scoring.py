@@ -105,3 +105,18 @@ def test_table2_starts_are_made_from_the_given_pose():
         if name != "identity":   # the same turn about the centroid as from the truth
             turn_ref, turn_truth = s @ ref.inverse(), from_truth[name] @ TRUTH.inverse()
             assert np.allclose(turn_ref.R, turn_truth.R)
+
+
+def test_a_dataset_index_whose_cases_are_no_list_is_named(tmp_path):
+    """A review's dataset.json with "cases": "case_0000" was read letter by letter (nine
+    missing cases 'c', 'a', 's', ...)."""
+    import json
+
+    from studies.score import missing_cases
+
+    (tmp_path / "dataset.json").write_text(json.dumps({"cases": "case_0000"}))
+    with pytest.raises(ValueError, match=r"dataset\.json: 'cases' must be a list of case "
+                                         r"folder names, got 'case_0000'"):
+        missing_cases(tmp_path)
+    (tmp_path / "dataset.json").write_text(json.dumps({"cases": ["case_0000"]}))
+    assert missing_cases(tmp_path) == ["case_0000"]

@@ -305,3 +305,33 @@ def test_malformed_case_json_is_refused_naming_the_file_even_unverified(tmp_path
         load(case_dir, verify=False)
     with pytest.raises(ValueError, match=r"transforms\.json: SHA-256 differs"):
         load(case_dir)
+
+
+def test_values_a_case_cannot_hold_are_refused_naming_the_file(tmp_path):
+    """A review's cases that loaded and were scored: a projective ct2robot, a pin at 1e300 mm,
+    a float format_version; and a case.json that is not UTF-8, named as such."""
+    case_dir = tmp_path / "c"
+    write_case(case_dir, small_case(3), truth=TRUTH)
+    doc_path = case_dir / "case.json"
+    doc = json.loads(doc_path.read_text())
+    doc_path.write_text(json.dumps({**doc, "format_version": float(doc["format_version"])}))
+    with pytest.raises(ValueError, match=r"case\.json: format_version .*\.0 is not supported"):
+        load(case_dir, verify=False)
+    doc_path.write_bytes(b"\xff" + json.dumps(doc).encode())
+    with pytest.raises(ValueError, match=r"case\.json: not UTF-8 text"):
+        load(case_dir, verify=False)
+    doc_path.write_text(json.dumps(doc))
+    transforms = json.loads((case_dir / "transforms.json").read_text())
+    points = json.loads((case_dir / "points.json").read_text())
+    m = np.array(transforms["ct2robot"])
+    m[3, 0] = 1e-3
+    (case_dir / "transforms.json").write_text(json.dumps({**transforms,
+                                                          "ct2robot": m.tolist()}))
+    with pytest.raises(ValueError, match=r"ct2robot.*last row is \[0, 0, 0, 1\]"):
+        load(case_dir, verify=False)
+    (case_dir / "transforms.json").write_text(json.dumps(transforms))
+    points["pins_ct"]["points"]["distal_1"] = [1e300, 0.0, 0.0]
+    (case_dir / "points.json").write_text(json.dumps(points))
+    with pytest.raises(ValueError, match=r"points\.json: points 'pins_ct', 'distal_1': "
+                                         r"coordinates up to 1e\+300"):
+        load(case_dir, verify=False)

@@ -361,7 +361,7 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path):
         score_dataset(ds3, tmp_path / "s7", progress=False)
 
 
-def test_generate_refuses_to_mix_datasets_and_wrong_scenes(tmp_path):
+def test_generate_refuses_to_mix_datasets_and_wrong_scenes(tmp_path, monkeypatch):
     """Refusals come before any simulation and leave nothing behind."""
     from testbed.generate import GENERATOR_VERSION, generate_command, scene_digest
     from testbed.scene import find_scene, load_scene
@@ -385,6 +385,19 @@ def test_generate_refuses_to_mix_datasets_and_wrong_scenes(tmp_path):
     with pytest.raises(ValueError, match="another format version"):
         generate_command(scene, scene_path="x", cases=1, out=out, seed=3, progress=False)
     assert sorted(p.name for p in out.iterdir()) == ["dataset.json"]
+    # a case's place taken by a plain file: said before any simulation
+    (out / "dataset.json").write_text(json.dumps(index))
+    (out / "case_0000").write_text("mine")
+
+    def no_simulation(*args, **kwargs):
+        raise AssertionError("simulated before refusing")
+
+    import testbed.simulate
+
+    monkeypatch.setattr(testbed.simulate, "checked_world", no_simulation)
+    with pytest.raises(ValueError, match="case_0000 exists and is not a case folder"):
+        generate_command(scene, scene_path="x", cases=1, out=out, seed=3, progress=False)
+    (out / "case_0000").unlink()
     # a folder with other things in it and no dataset.json
     junk = tmp_path / "junk"
     junk.mkdir()
