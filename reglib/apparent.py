@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from reglib.geometry import as_points
+from reglib.geometry import as_faces, as_points
 
 __all__ = [
     "ApparentContour",
@@ -134,17 +134,7 @@ def prepare_surface(vertices, faces) -> SurfaceTopology:
         in the same direction (inconsistent orientation).
     """
     v = as_points(vertices, "vertices", min_count=3)
-    f = np.asarray(faces)
-    if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] == 0:
-        raise ValueError(f"faces: expected a non-empty (F, 3) integer array, got shape {f.shape}")
-    if not np.issubdtype(f.dtype, np.integer):
-        if not np.all(np.equal(np.mod(f, 1), 0)):
-            raise ValueError("faces: expected integer vertex indices")
-    f = np.ascontiguousarray(f, dtype=np.int64)
-    if f.min() < 0 or f.max() >= len(v):
-        raise ValueError(
-            f"faces: vertex indices must be in [0, {len(v) - 1}], got [{f.min()}, {f.max()}]"
-        )
+    f = as_faces(faces, len(v))
     degen = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
     if np.any(degen):
         raise ValueError(f"faces: repeated vertex in faces {np.flatnonzero(degen)[:10].tolist()}")

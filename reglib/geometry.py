@@ -86,6 +86,31 @@ def as_points(points, name: str = "points", *, min_count: int = 0) -> np.ndarray
     return np.ascontiguousarray(arr)
 
 
+def as_faces(faces, n_vertices: int, name: str = "faces") -> np.ndarray:
+    """Return triangle ``faces`` as a C-contiguous int64 ``(F, 3)`` array of indices into
+    ``n_vertices`` vertices, or raise ``ValueError`` naming the argument: not numbers
+    (text, complex, ragged rows), not whole, not (F, 3) with F >= 1, or out of range."""
+    try:
+        raw = np.asarray(faces)
+    except ValueError as exc:     # ragged rows
+        raise ValueError(f"{name}: expected an (F, 3) array of vertex indices "
+                         f"({_one_line(exc)})") from None
+    if raw.dtype.kind not in "iuf" or raw.dtype == np.float16:
+        raise ValueError(f"{name}: expected integer vertex indices, got an array of "
+                         f"{raw.dtype}")
+    if raw.ndim != 2 or raw.shape[1] != 3 or raw.shape[0] == 0:
+        raise ValueError(f"{name}: expected a non-empty (F, 3) integer array, got shape "
+                         f"{raw.shape}")
+    if raw.dtype.kind == "f" and not (np.all(np.isfinite(raw))
+                                      and np.all(np.equal(np.mod(raw, 1), 0))):
+        raise ValueError(f"{name}: expected integer vertex indices")
+    f = np.ascontiguousarray(raw, dtype=np.int64)
+    if f.min() < 0 or f.max() >= n_vertices:
+        raise ValueError(f"{name}: vertex indices must be in [0, {n_vertices - 1}], got "
+                         f"[{f.min()}, {f.max()}]")
+    return f
+
+
 def as_lines(origins, directions, *, unit_tol: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
     """Check a bundle of lines: ``origins (N, 3)``, unit ``directions (N, 3)`` (float64).
 

@@ -756,7 +756,7 @@ def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int =
             f"{beads.shape} disagree (expected (F, H, W), (F,), (F, {len(s)}, 3))")
     rows = {k: [] for k in ("frame", "plane", "bead", "xy", "robot")}
     problems: list[str] = []
-    weak = []  # rows too short to identify on their own: (frame, name, blobs, message index)
+    weak = []  # rows too short to identify on their own: (frame, name, blobs, message)
     blobs: dict[int, np.ndarray] = {}   # every blob of an identified row, by frame
     names: dict[int, str] = {}
     expected = 0
@@ -788,8 +788,8 @@ def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int =
             bead, _rms = identify_row(xy, s, min_matched=min_matched)
         except ValueError as exc:
             problems.append(f"{name}: row dropped ({exc}; {len(xy)} blobs found)")
-            if len(xy):
-                weak.append((f, name, xy, len(problems) - 1))
+            if len(xy):   # the message itself: the relabelling below rebuilds the list
+                weak.append((f, name, xy, problems[-1]))
             continue
         ok = bead >= 0
         blobs[f], names[f] = xy, name
@@ -807,7 +807,7 @@ def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int =
     # rows with too few blobs (at the edge of the field): predict where their beads appear
     # from the identified rows of the same plane (a TPS from in-plane mm to pixels) and take
     # the blobs that fall on a prediction
-    for f, name, xy, k in weak:
+    for f, name, xy, message in weak:
         p = int(plane[f])
         have = [i for i, fr in enumerate(rows["frame"]) if len(fr) and plane[fr[0]] == p]
         if len(have) < 2:
@@ -826,9 +826,13 @@ def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int =
         if good.any():
             add(f, j[good], xy[good])
             missing = sorted(set(range(len(s))) - set(j[good].tolist()))
-            problems[k] = (f"{name}: {int(good.sum())} blob(s) identified from the plane's other "
-                           f"rows; beads {missing} not found (outside the field, hidden, or too "
-                           "faint)")
+            found = (f"{name}: {int(good.sum())} blob(s) identified from the plane's other "
+                     f"rows; beads {missing} not found (outside the field, hidden, or too "
+                     "faint)")
+            if message in problems:
+                problems[problems.index(message)] = found
+            else:
+                problems.append(found)
 
     def cat(key, shape):
         return np.concatenate(rows[key]) if rows[key] else np.zeros(shape)

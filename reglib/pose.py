@@ -491,9 +491,16 @@ def p3l_solutions(p, o, d, *, grid: int = 200):
     a safeguarded regula falsi (Illinois) to machine precision. A tangential (double) root
     can be missed.
     """
-    p = np.asarray(p, float)
-    o = np.asarray(o, float)
-    d = np.asarray(d, float)
+    p = as_points(p, "p")
+    o, d = as_lines(o, d)
+    if p.shape != (3, 3) or o.shape != (3, 3):
+        raise ValueError(f"p3l_solutions: expected three points and three lines, (3, 3) each, "
+                         f"got p {p.shape}, o and d {o.shape}")
+    return _p3l_solutions(p, o, d, grid=grid)
+
+
+def _p3l_solutions(p, o, d, *, grid: int = 200):
+    """:func:`p3l_solutions` on checked arrays (the RANSAC reference calls it per sample)."""
     D12 = np.sum((p[0] - p[1]) ** 2)
     D13 = np.sum((p[0] - p[2]) ** 2)
     D23 = np.sum((p[1] - p[2]) ** 2)
@@ -600,7 +607,7 @@ def _ransac_hypotheses_numpy(p, o, d, samples, thr, confidence, max_trials, grid
         trial += 1
         if _sample_is_degenerate(p[idx]):
             continue
-        Rs, ts = p3l_solutions(p[idx], o[idx], d[idx], grid=grid)
+        Rs, ts = _p3l_solutions(p[idx], o[idx], d[idx], grid=grid)
         if len(Rs) == 0:
             continue
         if cheirality:  # the sample's own points in front of their lines' origins

@@ -32,6 +32,7 @@ Nothing here sees the simulator: contours in, vertices (V, 3) mm and faces (F, 3
 from __future__ import annotations
 
 import itertools
+import operator
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
@@ -44,6 +45,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from reglib.contours import _polygon_area, contours_from_ct
+from reglib.geometry import as_faces, as_points
 
 __all__ = [
     "SURFACE_SIMPLIFY_TOL_MM",
@@ -204,8 +206,21 @@ def tile_pair(a, b, *, quality: Quality = "area", method: Literal["dp", "brute_f
         m), oriented so that the normals point away from the contours' inside.
     cost : the total cost of the strip (area in mm^2, or minus the total compactness).
     """
+    if method not in ("dp", "brute_force"):
+        raise ValueError(f"tile_pair: method must be 'dp' or 'brute_force', got {method!r}")
+    if quality not in ("area", "compactness"):
+        raise ValueError(f"tile_pair: quality must be 'area' or 'compactness', got {quality!r}")
     a = _as_contour(a, "tile_pair a")
     b = _as_contour(b, "tile_pair b")
+    if start is not None:
+        try:
+            s0, s1 = (operator.index(i) for i in start)
+        except (TypeError, ValueError):
+            raise ValueError(f"tile_pair: start must be a pair of vertex indices, got "
+                             f"{start!r}") from None
+        if not (0 <= s0 < len(a) and 0 <= s1 < len(b)):
+            raise ValueError(f"tile_pair: start {start!r} is outside the contours' "
+                             f"{len(a)} and {len(b)} vertices")
     ia = _ccw(np.arange(len(a)), a)
     ib = _ccw(np.arange(len(b)), b)
     if start is not None:
@@ -451,7 +466,7 @@ def check_manifold(vertices, faces) -> dict:
     edge used once in each direction), ``boundary_edges``, ``single_fan`` (each vertex's
     triangles form one fan), ``manifold`` (all of these hold).
     """
-    f = np.asarray(faces, dtype=np.int64)
+    f = as_faces(faces, len(as_points(vertices, "vertices")))
     e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
     und = np.sort(e, axis=1)
     _, inv, cnt = np.unique(und, axis=0, return_inverse=True, return_counts=True)
@@ -492,9 +507,9 @@ def check_manifold(vertices, faces) -> dict:
 def surface_distances(points, vertices, faces) -> np.ndarray:
     """Exact distances (mm) from points (N, 3) to a triangulated surface (trimesh's r-tree
     closest-point query)."""
-    mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64),
-                           process=False)
-    _, d, _ = trimesh.proximity.closest_point(mesh, np.asarray(points, np.float64))
+    v = as_points(vertices, "vertices", min_count=3)
+    mesh = trimesh.Trimesh(v, as_faces(faces, len(v)), process=False)
+    _, d, _ = trimesh.proximity.closest_point(mesh, as_points(points, "points"))
     return np.asarray(d)
 
 
@@ -507,9 +522,13 @@ def surface_distances_fast(points, vertices, faces, *, tol_mm: float, k: int = 8
     Points whose bound exceeds ``tol_mm`` get the exact distance of
     :func:`surface_distances`. So ``result <= tol_mm`` exactly where the true distance is.
     """
-    p = np.asarray(points, dtype=np.float64)
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
+    p = as_points(points, "points")
+    v = as_points(vertices, "vertices", min_count=3)
+    f = as_faces(faces, len(v))
+    if isinstance(k, bool) or not isinstance(k, int | np.integer) or k < 1:
+        raise ValueError(f"k: expected an integer >= 1 (triangles tried per point), got {k!r}")
+    if not (isinstance(tol_mm, int | float | np.number) and np.isfinite(tol_mm) and tol_mm >= 0):
+        raise ValueError(f"tol_mm: expected a finite distance >= 0 mm, got {tol_mm!r}")
     tri = v[f]
     k = min(k, len(f))
     _, idx = cKDTree(tri.mean(axis=1)).query(p, k=k)
