@@ -888,7 +888,8 @@ def verdict(converged: bool, quality: dict, failed: str, options: EstimateOption
         reasons.append(f"{name} does not fit: {fit:.1%} of its X-ray paths pass within "
                        f"{VIEW_FIT_MM:g} mm of the surfaces' apparent contours (at least "
                        f"{options.accept_min_view_fit:.0%} needed; it may not show the anatomy "
-                       "its region's CT surface covers)")
+                       "its region's CT surface covers, or that surface may not be the "
+                       "bone's outline)")
     share = quality.get("min_contour_share", float("nan"))
     if share < options.accept_min_contour_share and n_views > 1:
         k = quality.get("least_contour_view", -1)
@@ -1027,7 +1028,8 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
     timings["prepare"] = time.perf_counter() - t0
     failed = "; ".join(f"view {k}: {m}" for k, m in stages.failed.items())
     if len(stages.views) < options.min_views:
-        msg = (f"only {len(stages.views)} usable view(s), need {options.min_views}"
+        msg = (f"only {len(stages.views)} usable view(s), need {options.min_views} to "
+               f"register ({options.accept_min_views} to accept)"
                + (f" (left out: {', '.join(map(str, stages.failed))}; why: the warnings)"
                   if stages.failed else ""))
         return Estimate(start, False, False, {"views_used": len(stages.views)}, msg, None,

@@ -424,9 +424,7 @@ class Distortion:
                               0.5 * self.curvature_bound(reach), reach)
             if ok.all():
                 return u.reshape(shape)
-            raise ValueError(
-                f"Distortion.undistort: no convergence to {tol_px} px in {max_iter} "
-                "iterations (distortion too strong for this pixel range)")
+            raise ValueError(_not_invertible(tol_px, max_iter, d[~ok]))
         # start from the displacement evaluated at the distorted point (first order), and
         # iterate only the points not yet within tol_px (most converge in 2 steps)
         u = 2.0 * d - self.distort(d)
@@ -442,10 +440,18 @@ class Distortion:
             du0 = (J[..., 1, 1] * r[..., 0] - J[..., 0, 1] * r[..., 1]) / det
             du1 = (-J[..., 1, 0] * r[..., 0] + J[..., 0, 0] * r[..., 1]) / det
             u[active] -= np.stack([du0, du1], -1)
-        raise ValueError(
-            f"Distortion.undistort: no convergence to {tol_px} px in {max_iter} iterations "
-            "(distortion too strong for this pixel range)"
-        )
+        raise ValueError(_not_invertible(tol_px, max_iter, d[active]))
+
+
+def _not_invertible(tol_px: float, max_iter: int, where_px: np.ndarray) -> str:
+    """The message of a distortion that :meth:`Distortion.undistort` cannot invert, naming
+    the scene fields that make it."""
+    return (f"fluoroscope: the intensifier's distortion folds the image over itself, or nearly "
+            f"(it cannot be inverted to {tol_px} px in {max_iter} iterations at "
+            f"{len(where_px)} pixel(s), e.g. {np.round(where_px[0], 1).tolist()} px): weaken "
+            "pincushion_k1 / pincushion_k2 (|k| up to about 0.05; negative values fold the "
+            "edge), distortion_local_mm, or the S-distortion (s_rotation_deg_per_uT, "
+            "s_shift_mm_per_uT, earth_field_uT)")
 
 
 def sinusoid_terms(rms_px: float, radius_px: float, rng, *, n_terms: int = 12,

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from typing import Annotated
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from reglib.geometry import arc_length
 from testbed.spec import NonNegative, Spec
@@ -70,6 +70,20 @@ class OperatorSpec(Spec):
     ct_reclick_every_mm: NonNegative = 10.0
     ct_bone_threshold_hu: Annotated[float, Field(ge=-500.0, le=3000.0)] = 400.0
     ct_min_section_mm2: Annotated[float, Field(gt=0.0, le=1000.0)] = 20.0
+
+    @field_validator("ct_bone_threshold_hu")
+    @classmethod
+    def _between_tissue_and_bone(cls, v: float) -> float:
+        # what the user sees as bone must lie between the simulated CT's soft tissue and
+        # cortical bone (a review: -300 HU outlined the thigh, 2500 HU found no bone, and
+        # both were refused later by the registration's verdict, blaming the views)
+        from testbed.materials import material
+
+        lo, hi = material("soft_tissue").hu, material("cortical_bone").hu
+        if not lo < v < hi:
+            raise ValueError(f"the user's bone threshold must lie between the CT's soft "
+                             f"tissue ({lo:g} HU) and cortical bone ({hi:g} HU), got {v:g} HU")
+        return v
     xray_clicks: Annotated[int, Field(ge=2, le=200)] = 8
     xray_click_noise_px: Annotated[float, Field(ge=0.0, le=50.0)] = 2.0
     xray_edge_margin_px: Annotated[float, Field(ge=0.0, le=200.0)] = 6.0

@@ -86,6 +86,10 @@ def _alike_runs(gaps) -> str | None:
     return None
 
 
+#: the longest marker rod a scene may give (mm, from the wrist to the tip's end)
+MAX_ROD_LENGTH_MM = 1000.0
+
+
 class RodSpec(Spec):
     """``[robot.rod]``: the calibration rod (a radiolucent cylinder with steel beads).
 
@@ -127,6 +131,16 @@ class RodSpec(Spec):
             raise ValueError("bead_spacings_mm: every gap must exceed 3 bead diameters")
         if self.bead_diameter_mm >= self.diameter_mm:
             raise ValueError("bead_diameter_mm must be smaller than the rod diameter_mm")
+        length = (self.mount_mm + sum(self.bead_spacings_mm) + self.tip_gap_mm
+                  + self.tip_length_mm)
+        if length > MAX_ROD_LENGTH_MM:
+            raise ValueError(
+                f"the rod would be {length:g} mm long (mount_mm + bead_spacings_mm + tip_gap_mm "
+                f"+ tip_length_mm); at most {MAX_ROD_LENGTH_MM:g} mm, a rod a robot can sweep "
+                "through a C-arm (the default is 301 mm)")
+        if self.diameter_mm > 50.0:
+            raise ValueError(f"diameter_mm = {self.diameter_mm:g}: at most 50 mm for a rod "
+                             "(the default is 10 mm)")
         clash = _alike_runs(self.bead_spacings_mm)
         if clash is not None:
             raise ValueError(
@@ -215,10 +229,13 @@ class SweepSpec(Spec):
     reference_frames: Literal["first", "each"] = "first"
     validation_fraction: Annotated[float, Field(gt=0.05, lt=0.99)] = 0.85
     validation_angle_deg: float = 30.0
-    validation_offset_mm: float = 5.0
-    move_time_s: Positive = 1.0
+    validation_offset_mm: Annotated[float, Field(ge=-100.0, le=100.0)] = 5.0
+    """The validation row's centre from the beam's axis, across it (mm): inside the field
+    (a 9-inch field is 97 mm in radius at 0.85 of the SID)."""
+    move_time_s: Annotated[float, Field(ge=0.04, le=60.0)] = 1.0
+    """Time of one rod move and its frame (s): at least one video frame (0.04 s at 25 Hz);
+    the paper's about 1 s."""
     dose_rate_mrem_per_min: Positive = 45.0
-    park_distance_mm: Positive = 250.0
 
     @model_validator(mode="after")
     def _check(self):

@@ -315,3 +315,42 @@ def test_strip_check_equals_counting_edges_with_numpy_unique():
         assert _strip_is_manifold(f) == ref
         seen.add(bool(ref))
     assert seen == {True, False}
+
+
+def test_bad_faces_methods_and_counts_are_named():
+    """A review's inputs that failed deep inside (numpy's remainder on text faces, trimesh's
+    IndexError) or passed (indices out of range called manifold; an unknown tiling method
+    named as brute force's size limit)."""
+    from reglib.apparent import prepare_surface
+    from reglib.pose import p3l_solutions
+    from reglib.surface import check_manifold, surface_distances, surface_distances_fast
+
+    v = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    for bad, message in ((f.astype(str), "expected integer vertex indices, got an array of <U"),
+                         (f + 0j, "expected integer vertex indices, got an array of complex"),
+                         (f + 10, r"vertex indices must be in \[0, 3\], got \[10, 13\]"),
+                         ([[0, 1, 2], [0, 1]], "expected an \\(F, 3\\) array of vertex indices"),
+                         (f + 0.5, "expected integer vertex indices$")):
+        with pytest.raises(ValueError, match="faces: " + message):
+            prepare_surface(v, bad)
+    with pytest.raises(ValueError, match=r"faces: vertex indices must be in \[0, 3\]"):
+        check_manifold(v, f + 10)
+    with pytest.raises(ValueError, match=r"faces: vertex indices must be in \[0, 3\]"):
+        surface_distances(np.zeros((2, 3)), v, f + 10)
+    with pytest.raises(ValueError, match="k: expected an integer >= 1"):
+        surface_distances_fast(np.zeros((2, 3)), v, f, tol_mm=0.1, k=0)
+    with pytest.raises(ValueError, match="tol_mm: expected a finite distance"):
+        surface_distances_fast(np.zeros((2, 3)), v, f, tol_mm=float("nan"))
+    assert check_manifold(v, f)["manifold"]
+    ring = np.column_stack([np.cos(np.linspace(0, 6, 8)), np.sin(np.linspace(0, 6, 8)),
+                            np.zeros(8)])
+    with pytest.raises(ValueError, match="tile_pair: method must be 'dp' or 'brute_force', got "
+                                         "'greedy'"):
+        tile_pair(ring, ring + [0, 0, 1], method="greedy")
+    with pytest.raises(ValueError, match=r"tile_pair: start \(9, 0\) is outside"):
+        tile_pair(ring, ring + [0, 0, 1], start=(9, 0))
+    d = np.tile([0.0, 0.0, 1.0], (2, 1))
+    with pytest.raises(ValueError, match=r"p3l_solutions: expected three points and three "
+                                         r"lines"):
+        p3l_solutions(v[:2], np.zeros((2, 3)), d)

@@ -135,11 +135,16 @@ def test_ct_clicks_stay_on_the_image_and_a_threshold_above_the_bone_is_named():
     xy = np.vstack([p for polys in got["distal"].clicks.values() for p in polys])
     assert xy.min() >= 0.0 and xy[:, 0].max() <= 49.0 and xy[:, 1].max() <= 39.0
     assert (xy == 0.0).any()                        # the error model's tail was clipped
-    with pytest.raises(ValueError, match=r"operator.ct_bone_threshold_hu = 1500 HU: bone above "
+    with pytest.raises(ValueError, match=r"operator.ct_bone_threshold_hu = 1400 HU: bone above "
                        r"it shows on 0 of the 3 slice\(s\) of CT region 'distal', need 2 "
                        r"\(the region's brightest pixel is 1200 HU\)"):
         ct_clicks(vol, np.array([0.0, 2.0, 4.0]), {"distal": [0, 1, 2]}, pixel_mm=1.0,
-                  spec=OperatorSpec(ct_bone_threshold_hu=1500.0), rng=np.random.default_rng(1))
+                  spec=OperatorSpec(ct_bone_threshold_hu=1400.0), rng=np.random.default_rng(1))
+    # a threshold outside the simulated CT's soft tissue and cortical bone is refused first
+    for bad in (-300.0, 2500.0):
+        with pytest.raises(ValueError, match=r"bone threshold must lie between the CT's soft "
+                                             r"tissue \(40 HU\) and cortical bone \(1500 HU\)"):
+            OperatorSpec(ct_bone_threshold_hu=bad)
 
 
 def test_proximal_clicks_pass_over_a_one_slice_island_and_stop_at_the_head():

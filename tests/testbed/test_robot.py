@@ -241,3 +241,20 @@ def test_a_user_urdf_is_loaded_and_a_file_that_is_none_is_named(tmp_path):
         bad.write_text(text)
         with pytest.raises(ValueError, match="robot.urdf: .*bad.urdf' " + match):
             Robot(RobotSpec(urdf=str(bad)), rng=0)
+
+
+def test_rod_and_sweep_fields_absurd_as_a_whole_are_refused():
+    """A review's rod of 24 m and a validation row 1e8 mm off the axis loaded, then failed as
+    'unreachable ... move the view', naming the wrong field."""
+    from pydantic import ValidationError
+
+    from testbed.robot import RodSpec, SweepSpec
+
+    with pytest.raises(ValidationError, match=r"the rod would be 24157 mm long .*at most "
+                                              r"1000 mm"):
+        RodSpec(bead_spacings_mm=(4000.0, 3000.0, 5000.0, 12000.0))
+    with pytest.raises(ValidationError, match="validation_offset_mm"):
+        SweepSpec(validation_offset_mm=1e8)
+    with pytest.raises(ValidationError, match="move_time_s"):
+        SweepSpec(move_time_s=1e-9)
+    assert RodSpec().bead_spacings_mm and SweepSpec().validation_offset_mm == 5.0
