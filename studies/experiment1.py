@@ -18,7 +18,13 @@ import pandas as pd
 
 from studies.common import markdown_table
 from studies.end_to_end import case_rows, prepare_case, registration_rows
-from studies.scoring import judge_seed, perturbed_start, pin_errors, pin_reference
+from studies.scoring import (
+    REFERENCE_SALT,
+    judge_seed,
+    perturbed_start,
+    pin_errors,
+    pin_reference,
+)
 
 TITLE = "the paper's experiment 1: two views plus the proximal pin, 9 deg starts"
 DEFAULT_SCENE = "experiment1"
@@ -27,9 +33,6 @@ STARTS = 5
 QUICK_STARTS = 2
 #: the judge's seed salt of this study's starts
 START_SALT = 1
-#: ...and of the pin-based reference registration the starts are made from (the salt of
-#: table2's, so that a case's reference is the same in both studies)
-REFERENCE_SALT = 3
 
 
 def trial(tr) -> list[dict]:

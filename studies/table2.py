@@ -33,6 +33,7 @@ from studies.end_to_end import (
 from studies.scoring import (
     REFERENCE_CT_SIGMA_MM,
     REFERENCE_ROBOT_SIGMA_MM,
+    REFERENCE_SALT,
     judge_seed,
     pin_errors,
     pin_reference,
@@ -47,8 +48,6 @@ QUICK_CASES = 1
 TARGET_MEAN_MM = (1.8, 4.2)
 TARGET_MEDIAN_RATIO = 1.5
 TARGET_VALIDATION_MM = (0.1, 0.4)
-#: the judge's seed salt of the pin-based reference registration
-REFERENCE_SALT = 3
 
 
 def paper_medians() -> dict[str, float]:

@@ -7,6 +7,8 @@ import pytest
 
 from reglib.geometry import RigidTransform
 from studies.scoring import (
+    REFERENCE_SALT,
+    judge_seed,
     mtre,
     perturbed_start,
     pin_errors,
@@ -120,3 +122,22 @@ def test_a_dataset_index_whose_cases_are_no_list_is_named(tmp_path):
         missing_cases(tmp_path)
     (tmp_path / "dataset.json").write_text(json.dumps({"cases": ["case_0000"]}))
     assert missing_cases(tmp_path) == ["case_0000"]
+
+
+def test_a_located_pins_start_keeps_the_pin_based_registrations_error():
+    """With a fixed pin (experiment1) the run's start is the pin-based registration turned
+    about that pin: the pin is where that registration puts it, not where the truth does."""
+    truth = SimpleNamespace(points={"pins_ct": PINS}, transforms={"ct2robot": TRUTH})
+    ss = np.random.SeedSequence(5, spawn_key=(0,))
+    free = SimpleNamespace(registration=SimpleNamespace(start_rotation_deg=9.0, fixed_pin=None))
+    pinned = SimpleNamespace(registration=SimpleNamespace(start_rotation_deg=9.0,
+                                                          fixed_pin="proximal"))
+    start = run_start(truth, pinned, ss)
+    ref = pin_reference(truth, judge_seed(ss, REFERENCE_SALT))
+    at_pin = pin_errors(start, TRUTH, PINS)["proximal"]
+    assert at_pin == pytest.approx(pin_errors(ref, TRUTH, PINS)["proximal"], abs=1e-9)
+    assert at_pin > 0.01
+    assert pin_errors(start, ref, PINS)["proximal"] < 1e-9
+    # without a fixed pin the start is the truth turned about the pins' centroid
+    c = np.mean(list(PINS.values()), axis=0)
+    assert np.allclose(run_start(truth, free, ss).apply(c), TRUTH.apply(c))
