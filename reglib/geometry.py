@@ -65,6 +65,8 @@ def as_points(points, name: str = "points", *, min_count: int = 0) -> np.ndarray
         raw = np.asarray(points)
         if raw.dtype.kind == "c":
             raise ValueError(f"{name}: complex values; expected real coordinates")
+        if raw.dtype.kind == "b":
+            raise ValueError(f"{name}: booleans; expected real coordinates (mm)")
         arr = np.asarray(raw, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         if str(exc).startswith(name):
@@ -84,6 +86,32 @@ def as_points(points, name: str = "points", *, min_count: int = 0) -> np.ndarray
         raise ValueError(f"{name}: coordinates up to {np.max(np.abs(arr)):.3g}; expected "
                          f"millimetres of a scene (|x| <= {MAX_COORDINATE_MM:g})")
     return np.ascontiguousarray(arr)
+
+
+def as_flags(values, name: str) -> np.ndarray:
+    """Return ``values`` as a bool array of its own shape, or raise ``ValueError`` naming
+    the argument: booleans, or numbers that are 0 or 1 (not text: ``"no"`` is no False,
+    nor NaN)."""
+    a = np.asarray(values)
+    if a.dtype == bool:
+        return a
+    if a.dtype.kind not in "iuf" or not np.all(np.isin(a, (0, 1))):
+        shown = np.unique(a.ravel()[:1000])[:5].tolist() if a.dtype.kind in "iufUSO" else a.dtype
+        raise ValueError(f"{name}: expected booleans (or 0 and 1), got {a.dtype} values "
+                         f"such as {shown}")
+    return a.astype(bool)
+
+
+def as_whole(values, name: str) -> np.ndarray:
+    """Return ``values`` as an int64 array of its own shape, or raise ``ValueError`` naming
+    the argument: integers, or real numbers without a fractional part (0.7 is no index)."""
+    a = np.asarray(values)
+    if a.dtype.kind in "iu":
+        return a.astype(np.int64)
+    if a.dtype.kind != "f" or not (np.all(np.isfinite(a)) and np.all(a == np.round(a))):
+        raise ValueError(f"{name}: expected whole numbers, got {a.dtype}"
+                         + (" with a fractional part" if a.dtype.kind == "f" else ""))
+    return a.astype(np.int64)
 
 
 def as_faces(faces, n_vertices: int, name: str = "faces") -> np.ndarray:

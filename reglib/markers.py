@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from reglib.geometry import as_flags
 from reglib.tps import ThinPlateSpline, _as_xy
 
 __all__ = [
@@ -258,7 +259,7 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
     if noise_mode not in ("block", "field"):
         raise ValueError(f"noise_mode: expected 'block' or 'field', got {noise_mode!r}")
     if mask is not None:
-        mask = np.asarray(mask, dtype=bool)
+        mask = as_flags(mask, "mask")
         if mask.shape != a.shape:
             raise ValueError(f"mask: expected shape {a.shape}, got {mask.shape}")
     x_off = y_off = 0

@@ -44,7 +44,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from reglib.geometry import RigidTransform, point_line_distances
+from reglib.geometry import RigidTransform, as_flags, as_whole, point_line_distances
 from reglib.surface import SURFACE_SIMPLIFY_TOL_MM
 
 __all__ = [
@@ -421,7 +421,9 @@ def _sweep_data(view: str, frames, arrays: Mapping, fov):
         raise ValueError(f"view {view}: the field of view mask is {np.shape(fov)}, the frames "
                          f"{(H, W)}")
     return SweepData(view=view, frames=frames, plane=plane, beads_robot=beads,
-                     bead_positions_mm=s, mask=None if fov is None else np.asarray(fov, bool))
+                     bead_positions_mm=s,
+                     mask=None if fov is None else as_flags(fov, f"view {view}: the field of "
+                                                               "view mask"))
 
 
 def _sweep_geometry(sweep) -> str:
@@ -633,9 +635,9 @@ def xray_contours(view: str, image, clicks: Mapping) -> ViewContours:
         xy = np.asarray(clicks["clicks_xy"], dtype=np.float64)
         if xy.ndim != 2 or xy.shape[1] != 2:
             raise ValueError(f"clicks_xy must be (P, 2) (x, y) px, got shape {xy.shape}")
-        tr = np.asarray(clicks["trace"], dtype=np.int64).reshape(-1)
-        ext = np.asarray(clicks["external"], dtype=bool).reshape(-1)
-        closed = np.asarray(clicks["closed"], dtype=bool).reshape(-1)
+        tr = as_whole(clicks["trace"], "trace").reshape(-1)
+        ext = as_flags(clicks["external"], "external").reshape(-1)
+        closed = as_flags(clicks["closed"], "closed").reshape(-1)
     except KeyError as exc:
         raise ValueError(f"observation: {name} lacks {exc}") from None
     except (TypeError, ValueError) as exc:

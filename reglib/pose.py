@@ -58,6 +58,7 @@ from scipy.spatial.transform import Rotation
 
 from reglib.geometry import (
     MAD_TO_SIGMA,
+    MAX_COORDINATE_MM,
     RigidTransform,
     as_lines,
     as_points,
@@ -203,6 +204,9 @@ def _check_initial(initial) -> tuple[np.ndarray, np.ndarray]:
                          f"{t.shape}")
     if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise ValueError("initial: R is not a rotation (R^T R = I and det R = +1 are needed)")
+    if np.max(np.abs(t)) > MAX_COORDINATE_MM:
+        raise ValueError(f"initial: translation up to {np.max(np.abs(t)):.3g} mm; expected the "
+                         f"millimetres of a scene (|t| <= {MAX_COORDINATE_MM:g})")
     return R, t
 
 
@@ -969,6 +973,9 @@ def solve_pose(points, origins, directions, method: Method = "robust", *, initia
     _check_options(method, max_iterations=max_iterations, tol=tol, r=r, tukey_a=tukey_a,
                    threshold=threshold, max_trials=max_trials, confidence=confidence,
                    backend=backend)
+    for name, flag in (("cheirality", cheirality), ("check", check)):
+        if not isinstance(flag, bool | np.bool_):
+            raise ValueError(f"{name}: expected True or False, got {flag!r}")
     if normals is not None or fixed_point is not None:
         if method not in ("robust", "linear"):
             raise ValueError(f"method {method!r} cannot solve with normals or a fixed point; "

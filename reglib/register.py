@@ -35,7 +35,7 @@ import numpy as np
 
 from reglib.apparent import SurfaceTopology, prepare_surface
 from reglib.closest import ContourSet, _match_contours, closest_points, select_contours
-from reglib.geometry import RigidTransform, as_lines, skew
+from reglib.geometry import RigidTransform, as_flags, as_lines, skew
 from reglib.pose import _check_options as _check_pose_options
 from reglib.pose import solve_pose
 
@@ -83,8 +83,11 @@ class View:
                 o, d = as_lines(o, d)
             except ValueError as err:
                 raise ValueError(f"{label}: {err}") from None
-        ext = (np.ones(len(o), dtype=bool) if self.external is None
-               else np.asarray(self.external, dtype=bool).reshape(-1))
+        try:
+            ext = (np.ones(len(o), dtype=bool) if self.external is None
+                   else as_flags(self.external, "external").reshape(-1))
+        except ValueError as err:
+            raise ValueError(f"{label}: {err}") from None
         if ext.shape != (len(o),):
             raise ValueError(f"{label}: external must have shape ({len(o)},), got {ext.shape}")
         object.__setattr__(self, "center", c)

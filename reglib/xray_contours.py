@@ -40,6 +40,7 @@ import numpy as np
 from scipy import ndimage
 
 from reglib.contours import snake_contour
+from reglib.geometry import as_flags
 
 __all__ = ["XrayContour", "field_of_view_mask", "prepare_xray", "refine_edge_profile",
            "xray_contour", "xray_contours"]
@@ -271,10 +272,16 @@ def xray_contour(
     img = np.asarray(image, dtype=np.float64)
     if img.ndim != 2:
         raise ValueError(f"image: expected a 2-D (H, W) array, got shape {img.shape}")
-    mask = field_of_view_mask(img) if fov_mask is None else np.asarray(fov_mask, dtype=bool)
+    if not np.all(np.isfinite(img)) or np.abs(img).max(initial=0.0) > MAX_IMAGE_VALUE:
+        raise ValueError(f"image: values must be finite and within +-{MAX_IMAGE_VALUE:g} "
+                         "(grey levels or counts), got up to "
+                         f"{np.nanmax(np.abs(img)):.3g}")
+    mask = field_of_view_mask(img) if fov_mask is None else as_flags(fov_mask, "fov_mask")
     pts = np.asarray(clicks_xy, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 2:
         raise ValueError(f"clicks_xy: expected a (K, 2) array of (x, y) px, got {pts.shape}")
+    if mask.shape == img.shape and mask.any() and np.ptp(img[mask]) == 0:
+        raise ValueError("image: uniform inside the field of view; there is no edge to trace")
     # a click is accepted anywhere in the field, its blurred rim included (the snake works on
     # the filled image, so a click just outside the eroded mask does no harm)
     inside = _near_mask(mask, np.rint(pts[:, 1]).astype(int), np.rint(pts[:, 0]).astype(int),
@@ -291,7 +298,33 @@ def xray_contour(
                             spacing_px=spacing_px, **snake_options)
     if profile_fit:
         pts_out = refine_edge_profile(filled, pts_out, closed=closed)
+    step = _edge_step(filled, pts_out, closed, mask)
+    if not step >= MIN_EDGE_STEP * np.ptp(filled[mask]):
+        raise ValueError(f"no edge along the traced outline: the image changes by "
+                         f"{step:.3g} across it (median over its points), under "
+                         f"{MIN_EDGE_STEP:.0%} of the field's range {np.ptp(filled[mask]):.3g}; "
+                         "are the clicks near the bone's outline?")
     return XrayContour(points_xy=pts_out, label=label, closed=closed)
+
+
+#: an X-ray image's largest value (grey levels or counts): beyond it, gradients overflow
+MAX_IMAGE_VALUE = 1e12
+#: the least change of the image across a traced outline (median over its points, between
+#: 3 px inside and 3 px outside), as a fraction of the field's range: a bone's outline in
+#: a fluoroscopic frame changes by tens of grey levels of 255
+MIN_EDGE_STEP = 0.01
+
+
+def _edge_step(filled, pts, closed: bool, mask) -> float:
+    """The median absolute change of ``filled`` across the contour ``pts`` (N, 2) px: between
+    the points 3 px to either side along its normals (bilinear)."""
+    if len(pts) < 2:
+        return float("nan")
+    n = _normals(pts, closed)
+    a, b = pts + 3.0 * n, pts - 3.0 * n
+    va = ndimage.map_coordinates(filled, [a[:, 1], a[:, 0]], order=1, mode="nearest")
+    vb = ndimage.map_coordinates(filled, [b[:, 1], b[:, 0]], order=1, mode="nearest")
+    return float(np.median(np.abs(va - vb)))
 
 
 def xray_contours(image, traces: Sequence[dict], *, fov_mask=None) -> list[XrayContour]:

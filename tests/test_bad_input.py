@@ -213,3 +213,39 @@ def test_an_error_of_the_console_script_is_exactly_one_line(tmp_path):
     assert res.stdout == ""
     lines = res.stderr.splitlines()
     assert len(lines) == 1 and "--out" in lines[0] and ".png" in lines[0], res.stderr
+
+
+def test_flags_indices_and_coordinates_are_not_coerced():
+    """A review's silent coercions: external flags "no" read as True, a trace index of 0.7
+    read as 0, boolean points, cheirality="no" taken as true, an initial translation of
+    1e300 mm reaching the solver."""
+    import numpy as np
+
+    from reglib.geometry import as_points
+    from reglib.pipeline import xray_contours
+    from reglib.pose import solve_pose
+    from reglib.register import View
+
+    o = np.zeros((4, 3))
+    d = np.tile([0.0, 0.0, 1.0], (4, 1))
+    with pytest.raises(ValueError, match="external: expected booleans"):
+        View(center=np.zeros(3), origins=o, directions=d, external=["no"] * 4)
+    assert View(center=np.zeros(3), origins=o, directions=d, external=[1, 0, 1, 1]).external[1] \
+        == np.False_
+    img = np.full((40, 50), 100, dtype=np.uint8)
+    clicks = {"clicks_xy": np.array([[10.0, 10], [20, 10], [20, 20]]), "trace": [0.7, 0, 0],
+              "external": [True], "closed": [True]}
+    with pytest.raises(ValueError, match="xray_clicks_v: trace: expected whole numbers"):
+        xray_contours("v", img, clicks)
+    with pytest.raises(ValueError, match="xray_clicks_v: external: expected booleans"):
+        xray_contours("v", img, {**clicks, "trace": [0, 0, 0], "external": ["no"]})
+    with pytest.raises(ValueError, match="points: booleans"):
+        as_points(np.ones((3, 3), dtype=bool))
+    rng = np.random.default_rng(0)
+    p = rng.normal(size=(10, 3)) * 50
+    q = p + [0.0, 0.0, 1000.0]
+    dirs = q / np.linalg.norm(q, axis=1, keepdims=True)
+    with pytest.raises(ValueError, match="cheirality: expected True or False"):
+        solve_pose(p, np.zeros((10, 3)), dirs, cheirality="no")
+    with pytest.raises(ValueError, match="initial: translation up to 1e\\+300 mm"):
+        solve_pose(p, np.zeros((10, 3)), dirs, method="lm", initial=(np.eye(3), [1e300, 0, 0]))

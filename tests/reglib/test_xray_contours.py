@@ -100,6 +100,27 @@ def test_field_of_view_and_bad_input(frames):
         xray_contour(np.zeros((3, 4, 5)), edge[[1000, 1500]])
     with pytest.raises(ValueError, match="label"):
         XrayContour(np.zeros((3, 2)), "middle", False)
+    # a review: a constant image gave 60 contour points and no problem, a 1e300 one a
+    # message about converting NaN to an integer, a mask of text a mask of True
+    flat = np.where(clean.fov, 120, 0).astype(np.uint8)
+    H, W = mask.shape
+    ij = np.rint(edge[:, ::-1]).astype(int)
+    seen = (ij[:, 0] >= 0) & (ij[:, 0] < H) & (ij[:, 1] >= 0) & (ij[:, 1] < W)
+    inner = edge[seen][mask[ij[seen, 0], ij[seen, 1]]]
+    clicks = inner[np.linspace(0, len(inner) - 1, 6).astype(int)]
+    with pytest.raises(ValueError, match="uniform inside the field of view"):
+        xray_contour(flat, clicks)
+    with pytest.raises(ValueError, match=r"values must be finite and within \+-1e\+12"):
+        xray_contour(clean.image_u8 * 1e300, clicks)
+    with pytest.raises(ValueError, match="fov_mask: expected booleans"):
+        xray_contour(clean.image_u8, clicks, fov_mask=np.where(clean.fov, "yes", "no"))
+    spot = flat.copy()                     # flat where the clicks are, one bright spot
+    r, c = np.argwhere(clean.fov)[len(np.argwhere(clean.fov)) // 2]
+    spot[r - 2:r + 3, c - 2:c + 3] = 250
+    with pytest.raises(ValueError, match="no edge along the traced outline"):
+        xray_contour(spot, clicks)
+    # the true image's outline passes
+    assert len(xray_contour(clean.image_u8, clicks).points_xy) > 10
 
 
 def test_click_window_check_equals_the_dilated_mask():
