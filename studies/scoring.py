@@ -155,11 +155,15 @@ def pin_reference(truth, rng, *, ct_sigma_mm: float = REFERENCE_CT_SIGMA_MM,
                   robot_sigma_mm: float = REFERENCE_ROBOT_SIGMA_MM) -> RigidTransform:
     """The paper's reference pose: a pin-based registration with its own error.
 
-    The pins are located in the CT and touched by the robot, each with a Gaussian error
-    (``ct_sigma_mm``, ``robot_sigma_mm`` per axis), and the rigid transform that best maps
-    the CT positions onto the robot's (least squares, Kabsch) is the reference ``ct2robot``.
-    The paper measured its Table II against such a reference; reporting errors against it
-    beside the errors against the truth compares like with like.
+    The pins are located in the CT, each with a Gaussian error (``ct_sigma_mm`` per axis),
+    and touched by the robot: where the case's truth holds the positions its own robot
+    reported (``points['pins_robot_digitized']``, :meth:`testbed.robot.Robot.digitize`:
+    the robot's absolute error at each pin, shared in part with its sweeps), those; else
+    (a pin the robot could not reach, a dataset written before) a Gaussian error
+    (``robot_sigma_mm`` per axis). The rigid transform that best maps the CT positions onto
+    the robot's (least squares, Kabsch) is the reference ``ct2robot``. The paper measured
+    its Table II against such a reference; reporting errors against it beside the errors
+    against the truth compares like with like.
     """
     rng = np.random.default_rng(rng)
     names = [k for k in PIN_NAMES if k in truth.points["pins_ct"]]
@@ -167,6 +171,10 @@ def pin_reference(truth, rng, *, ct_sigma_mm: float = REFERENCE_CT_SIGMA_MM,
     p_robot = as_transform(truth.transforms["ct2robot"]).apply(p_ct)
     a = p_ct + rng.normal(0.0, ct_sigma_mm, p_ct.shape)
     b = p_robot + rng.normal(0.0, robot_sigma_mm, p_robot.shape)
+    touched = truth.points.get("pins_robot_digitized") or {}
+    for i, k in enumerate(names):    # the Gaussian drawn all the same: one stream either way
+        if k in touched and np.all(np.isfinite(touched[k])):
+            b[i] = np.asarray(touched[k], dtype=np.float64)
     ca, cb = a.mean(axis=0), b.mean(axis=0)
     u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
     d = np.sign(np.linalg.det(vt.T @ u.T))

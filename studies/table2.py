@@ -102,9 +102,11 @@ def run(ctx) -> pd.DataFrame:
     if len(ref):
         ctx.report("Against the paper's kind of reference",
                    "The paper measured its errors against a pin-based registration, itself in "
-                   "error: here the pins located in CT and touched by the robot, each with a "
-                   f"Gaussian error ({REFERENCE_CT_SIGMA_MM} mm and {REFERENCE_ROBOT_SIGMA_MM} "
-                   "mm per axis), registered by least squares. That reference lies "
+                   "error: here the pins located in CT, each with a Gaussian error "
+                   f"({REFERENCE_CT_SIGMA_MM} mm per axis), and touched by the case's robot, "
+                   "with its own absolute error at each pin (the error its sweeps share in "
+                   f"part; a Gaussian {REFERENCE_ROBOT_SIGMA_MM} mm per axis where it could "
+                   "not reach one), registered by least squares. That reference lies "
                    f"{ref['value'].median():.2f} mm (median, {ref['value'].max():.2f} mm at "
                    "most) from the truth at the pins; the errors against it:\n\n"
                    + table2_markdown(ok, "pin_error_vs_reference"))

@@ -806,6 +806,39 @@ class Robot:
         local = np.column_stack([s, np.zeros_like(s), np.zeros_like(s)])
         return self.reported_rod2robot.apply(local)
 
+    def digitize(self, point_robot) -> np.ndarray | None:
+        """Where the robot reports a point that its rod's first bead touches (robot frame,
+        (3,) mm), as when it locates an implanted pin; None where it cannot reach it.
+
+        The controller moves its nominal model until the true bead stands at the point: it
+        reports ``x`` with ``f(x) = p``, ``f`` the true bead (the arm's kinematic offsets,
+        the rod's mounting, the bead's placement and sag) at the joints the nominal model
+        puts at ``x``; to first order
+        ``x = p - (f(p) - p)``, the robot's own absolute error at that configuration with
+        its sign turned. The rod points from the robot's base towards the point (or, where
+        that cannot be reached, along another horizontal or the vertical). Draws nothing from
+        the robot's random stream; leaves the arms where the last move put them.
+        """
+        p = np.asarray(point_robot, dtype=np.float64).reshape(3)
+        radial = np.array([p[0], p[1], 0.0])
+        radial = radial / n if (n := np.linalg.norm(radial)) > 1e-9 else np.array([1.0, 0, 0])
+        side = np.cross([0.0, 0.0, 1.0], radial)
+        q = None
+        for d in (radial, side, -side, np.array([0.0, 0.0, -1.0])):
+            try:
+                q = self.inverse(p, d)
+                break
+            except ValueError:
+                continue
+        if q is None:
+            return None
+        self._set(self.true_id, self._to_internal(q))
+        pose = self._link_pose(self.true_id, self.bead0_link) @ self.rod_mount_error
+        true_p = pose.apply(self.true_bead_local(pose)[:1])[0]   # placed, sagging bead 0
+        self._set(self.true_id, self.q_true)            # the arms as the last move left them
+        self._set(self.nominal_id, self.q_read)
+        return p - (true_p - p)
+
     def rod_bodies(self) -> list[Body]:
         """The rod at its true pose, with its true beads, as world bodies (robot frame)."""
         pose = self.true_rod2robot

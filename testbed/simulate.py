@@ -369,6 +369,12 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
                 raise ValueError(_no_trace_message(i, vspec, frame, scene))
             obs["arrays"][f"xray_clicks_{v}"] = clicks.to_arrays()
             tick(f"xray {vspec.name}", t0)
+        if robot is not None:
+            # the pins located by the same robot, with its own error there: what the judge's
+            # pin-based reference registration takes (studies.scoring.pin_reference)
+            touched = {k: robot.digitize(p) for k, p in world.pins_robot.items()}
+            tru["points"]["pins_robot_digitized"] = {k: v for k, v in touched.items()
+                                                     if v is not None}
     finally:
         if robot is not None:
             robot.close()

@@ -141,3 +141,21 @@ def test_a_located_pins_start_keeps_the_pin_based_registrations_error():
     # without a fixed pin the start is the truth turned about the pins' centroid
     c = np.mean(list(PINS.values()), axis=0)
     assert np.allclose(run_start(truth, free, ss).apply(c), TRUTH.apply(c))
+
+
+def test_the_reference_takes_the_positions_the_robot_reported_where_it_has_them():
+    """pin_reference: the case's robot touched the pins (truth points
+    'pins_robot_digitized'); its reports, not a Gaussian, are the robot side; a pin it
+    could not reach keeps the Gaussian."""
+    shift = np.array([0.3, -0.2, 0.4])
+    touched = {k: TRUTH.apply(v) + shift for k, v in PINS.items()}
+    truth = SimpleNamespace(points={"pins_ct": PINS, "pins_robot_digitized": touched},
+                            transforms={"ct2robot": TRUTH})
+    ref = pin_reference(truth, 0, ct_sigma_mm=0.0)
+    for e in pin_errors(ref, TRUTH, PINS).values():   # the robot's offset, whole
+        assert e == pytest.approx(np.linalg.norm(shift), abs=1e-9)
+    assert pin_reference(truth, 0, ct_sigma_mm=0.0, robot_sigma_mm=5.0).t == pytest.approx(
+        ref.t)                                        # the Gaussian is not used
+    partial = SimpleNamespace(points={"pins_ct": PINS, "pins_robot_digitized": {
+        "proximal": touched["proximal"]}}, transforms={"ct2robot": TRUTH})
+    assert not np.allclose(pin_reference(partial, 0, ct_sigma_mm=0.0).t, ref.t)

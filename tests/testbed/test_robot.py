@@ -258,3 +258,35 @@ def test_rod_and_sweep_fields_absurd_as_a_whole_are_refused():
     with pytest.raises(ValidationError, match="move_time_s"):
         SweepSpec(move_time_s=1e-9)
     assert RodSpec().bead_spacings_mm and SweepSpec().validation_offset_mm == 5.0
+
+
+def test_a_touched_point_is_reported_with_the_robots_own_error():
+    """Robot.digitize: the nominal model sent to the reported point puts the true arm's first
+    bead (with the rod's mounting error) back on the touched point, to second order; a
+    perfect robot reports the point itself; nothing is drawn from the robot's stream."""
+    rng = np.random.default_rng(11)
+    spec = RobotSpec(kinematic_offset_mm=0.3, kinematic_offset_deg=0.03,
+                     rod_mount_error_mm=0.2, rod_mount_error_deg=0.1, encoder_noise_deg=0.0,
+                     encoder_noise_mm=0.0)
+    with Robot(spec.without_errors(), rng=1) as perfect, Robot(spec, rng=2) as robot:
+        checked = 0
+        for p, _ in _random_reachable_lines(robot, rng, 6):
+            radial = np.array([p[0], p[1], 0.0]) / np.hypot(p[0], p[1])
+            try:     # the arm on the branch that reaches p along the radial direction...
+                robot.move_joints(robot.inverse(p, radial))
+            except ValueError:
+                continue
+            assert np.linalg.norm(perfect.digitize(p) - p) < 0.01
+            state = robot.rng.bit_generator.state
+            x = robot.digitize(p)        # ...which its inverse kinematics starts from
+            assert robot.rng.bit_generator.state == state
+            err = np.linalg.norm(x - p)
+            assert 0.05 < err < 5.0                     # the robot's own absolute error
+            # commanding the reported point on that branch: the true bead is back at p, up
+            # to the error field's change over err (second order)
+            robot.place_rod(x, radial)
+            assert np.linalg.norm(robot.bead_positions(true=True)[0] - p) < 0.1 * err
+            checked += 1
+        assert checked >= 2
+    with Robot(RobotSpec(), rng=0) as robot:
+        assert robot.digitize([1e5, 0.0, 0.0]) is None   # far out of reach
