@@ -250,6 +250,12 @@ def targets_markdown(df: pd.DataFrame) -> str:
             "adding in quadrature); `testbed study error-budget` attributes the error to each "
             "source and gives the factor by which each source's magnitude would have to grow "
             "to supply it (section 'What would close the gap to the paper').")
+    vs_ref = df[df.metric == "pin_error_vs_reference"]
+    if len(vs_ref):
+        lines.append(
+            f"  - measured as the paper measured it, against the pin-based reference: mean "
+            f"{float(vs_ref['value'].mean()):.2f} mm (the pins' errors against the truth "
+            "include the robot's error that the reference, touched by the same robot, shares)")
     for pin in PIN_NAMES:
         m = float(pe[(pe.pin == pin) & (pe.start != "identity")]["value"].median())
         r = m / paper[pin]

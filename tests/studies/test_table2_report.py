@@ -36,3 +36,12 @@ def test_the_paper_method_rows_are_reported_apart_from_the_default():
     # the per-view reading of the validation target
     assert "median over the cases of each view's largest distance is 0.30-0.30 mm, inside " \
            "the range for 1 of 1 views" in text
+
+
+def test_the_mean_against_the_pin_based_reference_is_said_beside_the_target():
+    rows = _rows(1.0, 0.3)
+    ref = rows[rows.metric == "pin_error"].assign(metric="pin_error_vs_reference", value=0.4)
+    text = targets_markdown(pd.concat([rows, ref], ignore_index=True))
+    assert "**missed**: mean pin error 1.00 mm" in text
+    assert "against the pin-based reference: mean 0.40 mm" in text
+    assert "against the pin-based reference" not in targets_markdown(rows)
