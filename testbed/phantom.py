@@ -91,6 +91,13 @@ class PhantomSpec(Spec):
     """Population standard deviations per dimension (0-3; beyond 3 the drawn femur is no
     femur: negative radii)."""
     shape_seed: Annotated[int, Field(ge=0)] = 0
+    surface_detail_mm: Annotated[float, Field(ge=0, le=1.0)] = 0.0
+    """Surface detail of a real femur that the smooth procedural one lacks (mm RMS along the
+    normals; 0: none, both profiles): a smooth random field of 24 plane waves of
+    ``surface_detail_wavelength_mm`` (0.6-1.6 times it), drawn from ``shape_seed``, moves the
+    outer bone surface (subdivided to a sixth of the wavelength). An optional source, not a
+    default: docs/error-model.md gives its measured effect and why no default is set."""
+    surface_detail_wavelength_mm: Annotated[float, Field(ge=5, le=100)] = 20.0
     mesh_path: str | None = None
     mesh_pins_mm: dict[str, Vec3] | None = None
     mesh_margin_mm: Positive = 40.0
@@ -591,6 +598,34 @@ def _check_soft_tissue_holds(femur: trimesh.Trimesh, soft: trimesh.Trimesh, spec
         f"{d.head_r:.0f} mm, after shape_variation)")
 
 
+#: the salt of the surface detail's random stream (after the shape's draws of shape_seed)
+_DETAIL_SALT = 7
+
+
+def _with_detail(femur: trimesh.Trimesh, spec: PhantomSpec, d) -> trimesh.Trimesh:
+    """The outer bone surface with ``spec.surface_detail_mm`` RMS of detail along its normals
+    (see :class:`PhantomSpec`), or ``femur`` itself when it is 0. The displacement is clipped
+    at 2.5 RMS, and inward also to 0.5 mm short of the ends' cortex, so that the surface
+    stays outside the cancellous bone it holds."""
+    amp = float(spec.surface_detail_mm)
+    if amp <= 0:
+        return femur
+    lam = float(spec.surface_detail_wavelength_mm)
+    v, f = trimesh.remesh.subdivide_to_size(femur.vertices, femur.faces, max_edge=lam / 6.0)
+    mesh = trimesh.Trimesh(v, f, process=True)
+    rng = np.random.default_rng([spec.shape_seed, _DETAIL_SALT])
+    k = 24
+    dirs = rng.normal(size=(k, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    wave = dirs * (2.0 * np.pi / (rng.uniform(0.6, 1.6, k) * lam))[:, None]
+    phase = rng.uniform(0.0, 2.0 * np.pi, k)
+    field = np.sin(mesh.vertices @ wave.T + phase).sum(axis=1)
+    field *= amp / np.sqrt(np.mean(field ** 2))
+    field = np.clip(field, -min(2.5 * amp, max(d.end_cortex - 0.5, 0.0)), 2.5 * amp)
+    return trimesh.Trimesh(mesh.vertices + field[:, None] * mesh.vertex_normals, mesh.faces,
+                           process=False)
+
+
 def _procedural_phantom(spec: PhantomSpec) -> Phantom:
     d = _resolve(spec)
     g = _geometry(d)
@@ -610,7 +645,7 @@ def _procedural_phantom(spec: PhantomSpec) -> Phantom:
     if mirror:
         femur_m, canc_m, canal_m, soft_m = (m.mirror((1.0, 0.0, 0.0))
                                             for m in (femur_m, canc_m, canal_m, soft_m))
-    femur = _to_trimesh(femur_m)
+    femur = _with_detail(_to_trimesh(femur_m), spec, d)
     soft = _to_trimesh(soft_m)
     _check_soft_tissue_holds(femur, soft, spec, d)
     canal = _to_trimesh(canal_m)

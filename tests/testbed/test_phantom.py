@@ -288,3 +288,27 @@ def test_a_short_femur_under_the_shipped_views_calibrates_every_view():
     stages = prepare(sim.observation)
     assert not stages.failed, stages.failed
     assert len(stages.views) == 4
+
+
+def test_surface_detail_moves_the_outer_surface_by_its_rms():
+    """[phantom] surface_detail_mm: the outer bone surface moved along its normals by a
+    smooth field of that RMS (the inward part clipped short of the ends' cortex), closed and
+    consistently wound, drawn from shape_seed; 0 leaves the femur as it was."""
+    from reglib.surface import surface_distances
+
+    plain = make_phantom(PhantomSpec(segments=32))
+    same = make_phantom(PhantomSpec(segments=32, surface_detail_mm=0.0))
+    assert np.array_equal(plain.femur.vertices, same.femur.vertices)
+    a = make_phantom(PhantomSpec(segments=32, surface_detail_mm=0.5))
+    b = make_phantom(PhantomSpec(segments=32, surface_detail_mm=0.5))
+    c = make_phantom(PhantomSpec(segments=32, surface_detail_mm=0.5, shape_seed=3,
+                                 shape_variation=0.0))
+    assert np.array_equal(a.femur.vertices, b.femur.vertices)      # reproducible
+    d = surface_distances(a.femur.vertices, plain.femur.vertices, plain.femur.faces)
+    assert 0.4 < np.sqrt(np.mean(d ** 2)) < 0.55
+    assert d.max() <= 2.5 * 0.5 + 1e-6
+    assert a.femur.is_watertight and a.femur.is_winding_consistent
+    # the nested bone is still inside, and the pins
+    assert a.cancellous.contains(a.femur.vertices).sum() == 0
+    # shape_variation 0: the same femur, and so the same detail, whatever the seed
+    assert np.array_equal(c.femur.vertices, a.femur.vertices)
