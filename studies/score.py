@@ -20,6 +20,7 @@ reglib's method ``accepted`` and ``converged``) and ``OUT/report.md``.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import inspect
 import json
@@ -87,6 +88,31 @@ def _as_pose(value, spec: str):
     return RigidTransform(R, m[:3, 3])
 
 
+#: scene fields that a dataset's stored scene may hold from an older testbed and that this
+#: one no longer has (they never had an effect): left out when a stored scene is read
+REMOVED_FIELDS = (("robot", "sweep", "park_distance_mm"),)
+
+
+def parse_stored_scene(data, *, source: str):
+    """The scene a dataset's case stored (``meta.truth.scene``), read as
+    :func:`testbed.scene.parse_scene` reads a file, less :data:`REMOVED_FIELDS` (a case
+    written before a field was removed is still scored; a scene file that names one is
+    refused, as any unknown key)."""
+    import copy
+
+    from testbed.scene import parse_scene
+
+    if isinstance(data, dict):
+        data = copy.deepcopy(data)
+        for path in REMOVED_FIELDS:
+            node = data
+            for key in path[:-1]:
+                node = node.get(key) if isinstance(node, dict) else None
+            if isinstance(node, dict):
+                node.pop(path[-1], None)
+    return parse_scene(data, source=source)
+
+
 def _check_truth(truth, case_dir) -> None:
     """ValueError naming the case and the entry when the truth the score needs is missing or
     not finite: ``transforms/ct2robot`` and the three pins of ``points/pins_ct`` (a review:
@@ -115,13 +141,12 @@ def score_case(case_dir, method: str = DEFAULT_METHOD) -> list[dict]:
     from studies.end_to_end import estimate_options
     from studies.scoring import pin_errors, run_start
     from testbed.dataset import load
-    from testbed.scene import parse_scene
 
     obs, truth = load(case_dir)
     _check_truth(truth, case_dir)
     tmeta = truth.meta.get("truth", truth.meta)
     try:
-        scene = parse_scene(tmeta["scene"], source=f"{case_dir}/case.json meta.truth.scene")
+        scene = parse_stored_scene(tmeta["scene"], source=f"{case_dir}/case.json meta.truth.scene")
         seed = tmeta["seed"]
         case_ss = np.random.SeedSequence(int(seed["entropy"]),
                                          spawn_key=tuple(int(k) for k in seed["spawn_key"]))
@@ -133,7 +158,13 @@ def score_case(case_dir, method: str = DEFAULT_METHOD) -> list[dict]:
     rows = []
     t0 = time.perf_counter()
     if fn is None:
-        est = reglib.estimate(obs, start, options=estimate_options(scene))
+        options = estimate_options(scene)
+        pin = scene.registration.fixed_pin
+        if pin:   # the located pin, as testbed run gives it (studies.end_to_end.register_case)
+            options = dataclasses.replace(
+                options, fixed_point_ct=tuple(np.asarray(truth.points["pins_ct"][pin],
+                                                         dtype=np.float64).tolist()))
+        est = reglib.estimate(obs, start, options=options)
         pose = est.ct2robot
         rows += [{"metric": "accepted", "value": float(est.accepted), "unit": ""},
                  {"metric": "converged", "value": float(est.converged), "unit": ""}]
@@ -180,7 +211,6 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
     from studies.common import StudyContext, finish_study, markdown_table
     from studies.runner import fingerprint, make_trials, run_trials
     from testbed.dataset import list_cases
-    from testbed.scene import parse_scene
 
     dataset = Path(dataset)
     if not dataset.is_dir():
@@ -212,7 +242,8 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
     for c in cases:
         try:
             _, truth0 = load(c)
-            scene = parse_scene(truth0.meta.get("truth", truth0.meta)["scene"], source=str(c))
+            scene = parse_stored_scene(truth0.meta.get("truth", truth0.meta)["scene"],
+                                       source=str(c))
             break
         except (OSError, ValueError, KeyError) as exc:
             problems.append(f"{c.name}: {exc}")

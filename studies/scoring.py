@@ -171,10 +171,12 @@ def pin_reference(truth, rng, *, ct_sigma_mm: float = REFERENCE_CT_SIGMA_MM,
     p_robot = as_transform(truth.transforms["ct2robot"]).apply(p_ct)
     a = p_ct + rng.normal(0.0, ct_sigma_mm, p_ct.shape)
     b = p_robot + rng.normal(0.0, robot_sigma_mm, p_robot.shape)
-    touched = truth.points.get("pins_robot_digitized") or {}
+    touched = truth.points.get("pins_robot_digitized")
+    touched = touched if isinstance(touched, dict) else {}    # named points, or none
     for i, k in enumerate(names):    # the Gaussian drawn all the same: one stream either way
-        if k in touched and np.all(np.isfinite(touched[k])):
-            b[i] = np.asarray(touched[k], dtype=np.float64)
+        p = np.asarray(touched.get(k, np.nan), dtype=np.float64)
+        if p.shape == (3,) and np.all(np.isfinite(p)):
+            b[i] = p
     ca, cb = a.mean(axis=0), b.mean(axis=0)
     u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
     d = np.sign(np.linalg.det(vt.T @ u.T))

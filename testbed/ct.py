@@ -341,8 +341,9 @@ class _Accumulator:
         return (self.part + np.cumsum(self.full, axis=1))[:, :self.width]
 
 
-#: the largest CT volume a scan makes (voxels; float32: 0.74 GiB)
-MAX_VOXELS = 2.0e8
+#: the largest CT volume a scan makes (voxels; float32: 1.5 GiB): a whole femur in 0.5 mm
+#: slices at 512 x 512 px (2.4e8, a review's thin-slice protocol) fits
+MAX_VOXELS = 4.0e8
 
 
 def _hu_steps(bodies: list[Body]) -> list[tuple[Body, float]]:
@@ -429,7 +430,7 @@ def scan(phantom, spec: CTSpec | None = None, rng=None, *, bodies: list[Body] | 
         raise ValueError(
             f"ct: the schedule and field give {len(z)} slices of {n} x {n} px "
             f"({voxels:.3g} voxels, {4 * voxels / 2**30:.1f} GiB); at most {MAX_VOXELS:.3g} "
-            "(a 512 x 512 clinical scan of 760 slices): coarsen the spacing "
+            "(a 512 x 512 scan of 1500 slices): coarsen the spacing "
             "(fine_spacing_mm, coarse_spacing_mm or uniform_spacing_mm) or pixel_mm, or "
             "narrow fov_mm")
     px = spec.pixel_mm

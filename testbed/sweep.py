@@ -140,7 +140,30 @@ def plan_sweep(carm, spec: RobotSpec) -> list[SweepPose]:
     if sw.reference_frames == "each":
         poses.append(SweepPose(-1, -1, park - span / 2 * d, d))
     poses.append(SweepPose(2, 0, centre - span / 2 * d, d))
+    # the validation row must show enough beads to be identified (identify_row needs 4):
+    # those within 0.9 of the field's radius at their depth (nearer the rim, the detector's
+    # window is cut). A review's 90 mm offset left 2 of 8 in a 9-inch field, and the views
+    # failed as "0 validation markers", naming no field
+    beads = centre - span / 2 * d + s[:, None] * d
+    rel = beads - src
+    depth = rel @ axis
+    rho = np.linalg.norm(rel - np.outer(depth, axis), axis=1) / (
+        depth / carm.sid_mm * carm.fov_radius_mm)
+    inside = int(np.count_nonzero(rho <= VALIDATION_FIELD_SHARE))
+    if inside < MIN_VALIDATION_BEADS:
+        raise ValueError(
+            f"robot.sweep.validation_offset_mm = {sw.validation_offset_mm:g}: only {inside} of "
+            f"the validation row's {len(s)} beads fall within the field of view (need "
+            f"{MIN_VALIDATION_BEADS}, within {VALIDATION_FIELD_SHARE:g} of its radius); move "
+            "the row towards the beam's axis, or check validation_fraction and "
+            "validation_angle_deg")
     return poses
+
+
+#: the validation row's beads that must lie within this share of the field's radius...
+VALIDATION_FIELD_SHARE = 0.9
+#: ...at least this many (reglib.markers.identify_row identifies a row from 4)
+MIN_VALIDATION_BEADS = 4
 
 
 def run_sweep(robot: Robot, carm, fluoro, *, bodies=(), rng=None, noise: bool | None = None,

@@ -159,3 +159,24 @@ def test_the_reference_takes_the_positions_the_robot_reported_where_it_has_them(
     partial = SimpleNamespace(points={"pins_ct": PINS, "pins_robot_digitized": {
         "proximal": touched["proximal"]}}, transforms={"ct2robot": TRUTH})
     assert not np.allclose(pin_reference(partial, 0, ct_sigma_mm=0.0).t, ref.t)
+
+
+def test_a_stored_scene_with_a_removed_field_is_still_read():
+    """A dataset written before [robot.sweep] park_distance_mm was removed (it never had an
+    effect) still scores; a scene file that names it is refused as an unknown key."""
+    import tomllib
+
+    from studies.score import parse_stored_scene
+    from testbed.scene import SceneError, find_scene, parse_scene
+
+    data = tomllib.loads(find_scene("experiment2").read_text())
+    data.setdefault("robot", {}).setdefault("sweep", {})["park_distance_mm"] = 250.0
+    assert parse_stored_scene(data, source="case.json").robot.sweep.validation_offset_mm == 5.0
+    assert data["robot"]["sweep"]["park_distance_mm"] == 250.0     # the caller's dict kept
+    with pytest.raises(SceneError, match="park_distance_mm.*unknown key"):
+        parse_scene(data, source="scene.toml")
+    pins_array = SimpleNamespace(points={"pins_ct": PINS,
+                                         "pins_robot_digitized": np.zeros((3, 3))},
+                                 transforms={"ct2robot": TRUTH})
+    assert np.allclose(pin_reference(pins_array, 0).t, pin_reference(
+        SimpleNamespace(points={"pins_ct": PINS}, transforms={"ct2robot": TRUTH}), 0).t)

@@ -227,5 +227,5 @@ def test_a_volume_too_large_to_hold_is_refused_before_it_is_made():
     ph = make_phantom(PhantomSpec(segments=32))
     spec = CTSpec(schedule="uniform", uniform_spacing_mm=0.1, pixel_mm=0.3, fov_mm=700.0)
     with pytest.raises(ValueError, match=r"ct: the schedule and field give \d+ slices of 2334 x "
-                                         r"2334 px .* GiB\); at most 2e\+08 .*pixel_mm"):
+                                         r"2334 px .* GiB\); at most 4e\+08 .*pixel_mm"):
         scan(ph, spec)

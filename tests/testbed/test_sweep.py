@@ -45,6 +45,16 @@ def test_plan_lays_rows_in_planes_perpendicular_to_the_beam():
             assert depth == pytest.approx(want * carm.sid_mm)
 
 
+def test_a_validation_row_mostly_outside_the_field_is_refused_naming_the_offset():
+    """A review's validation_offset_mm of 90 mm left 2 of the row's 8 beads in a 9-inch
+    field, and every view then failed as '0 validation markers', naming no field."""
+    carm = make_carm(FluoroscopeSpec(), ViewSpec(name="v", isocenter_mm=(800.0, 0.0, 200.0)))
+    plan_sweep(carm, _spec(validation_offset_mm=60.0))
+    with pytest.raises(ValueError, match=r"robot.sweep.validation_offset_mm = 95: only \d of "
+                                         r"the validation row's 8 beads fall within the field"):
+        plan_sweep(carm, _spec(validation_offset_mm=95.0))
+
+
 @pytest.mark.slow
 def test_sweep_reports_time_dose_and_positions(clean_sweep):
     carm, sw = clean_sweep
