@@ -27,7 +27,9 @@ import numpy as np
 __all__ = ["ENTRY_DOC", "GENERATOR_VERSION", "case_entries", "case_seed", "generate_command",
            "scene_digest"]
 
-GENERATOR_VERSION = 2
+#: what the generator writes: 3 since 2026-11-26 (the truth's points/pins_robot_digitized);
+#: a dataset resumed by another version is refused, so its cases are never mixed
+GENERATOR_VERSION = 3
 
 #: entry name pattern -> (role, description); ``{view}`` is a view's name, ``{region}`` a CT
 #: region's (``proximal``, ``distal``).
@@ -74,6 +76,9 @@ ENTRY_DOC = {
                             "robot frame, mm"),
     "points/pins_ct": ("truth", "pin centres, ct mm, by name"),
     "points/pins_robot": ("truth", "pin centres, robot mm, by name"),
+    "points/pins_robot_digitized": ("truth", "where the case's robot reported each pin its "
+                                    "rod's first bead touched (its own absolute error there), "
+                                    "robot mm, by name; a pin it cannot reach left out"),
     "points/landmarks_ct": ("truth", "anatomical landmarks of the femur, ct mm, by name"),
 }
 
