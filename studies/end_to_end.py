@@ -24,7 +24,8 @@ from studies.oracles import ORACLES, oracle_stages, silhouette_points, true_cali
 from studies.scoring import PIN_NAMES, perturbed_start, pin_errors, run_start
 
 __all__ = ["ORACLES", "PAPER_METHOD", "PIN_NAMES", "Case", "case_rows", "estimate_options",
-           "prepare_case", "register_case", "registration_rows", "run_case", "table2_starts"]
+           "prepare_case", "register_case", "registration_rows", "run_case", "table2_starts",
+           "with_fixed_pin"]
 
 #: The paper's registration as it published it (Section IV; paper/NOTES.md s3), as options of
 #: :func:`register_case`: one loop with the point-to-path residual and the robust (Tukey)
@@ -118,6 +119,16 @@ def _surface_failure(scene, exc) -> str:
             f"ct.pixel_mm = {ct.pixel_mm:g}, schedule {ct.schedule!r}): {exc}")
 
 
+def with_fixed_pin(options, pins_ct: dict, pin: str):
+    """``options`` (a ``reglib.EstimateOptions``) with the located pin ``pin`` as their
+    ``fixed_point_ct``: its CT position from ``pins_ct`` (name -> (3,) mm); the start holds
+    its robot position (:func:`studies.scoring.run_start`)."""
+    import dataclasses
+
+    return dataclasses.replace(options, fixed_point_ct=tuple(
+        np.asarray(pins_ct[pin], dtype=np.float64).tolist()))
+
+
 def register_case(case: Case, start, *, oracle=(), fixed_pin=None, strategy=None,
                   restarts=None, **registration):
     """Register ``case`` from ``start`` (``ct2robot``) with :func:`reglib.estimate`.
@@ -142,8 +153,7 @@ def register_case(case: Case, start, *, oracle=(), fixed_pin=None, strategy=None
         reg = {**options.registration, **registration}
         options = dataclasses.replace(options, registration=reg)
     if fixed_pin:
-        options = dataclasses.replace(options,
-                                      fixed_point_ct=tuple(case.pins_ct[fixed_pin].tolist()))
+        options = with_fixed_pin(options, case.pins_ct, fixed_pin)
     stages = oracle_stages(case.sim, case.stages, oracle, options=options)
     est = estimate(case.sim.observation, start, options=options, stages=stages)
     return est, pin_errors(est.ct2robot, case.ct2robot, case.pins_ct)

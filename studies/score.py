@@ -20,7 +20,6 @@ reglib's method ``accepted`` and ``converged``) and ``OUT/report.md``.
 
 from __future__ import annotations
 
-import dataclasses
 import importlib
 import inspect
 import json
@@ -138,7 +137,7 @@ def _check_truth(truth, case_dir) -> None:
 def score_case(case_dir, method: str = DEFAULT_METHOD) -> list[dict]:
     """Rows of one case (see the module docstring)."""
     import reglib
-    from studies.end_to_end import estimate_options
+    from studies.end_to_end import estimate_options, with_fixed_pin
     from studies.scoring import pin_errors, run_start
     from testbed.dataset import load
 
@@ -159,11 +158,9 @@ def score_case(case_dir, method: str = DEFAULT_METHOD) -> list[dict]:
     t0 = time.perf_counter()
     if fn is None:
         options = estimate_options(scene)
-        pin = scene.registration.fixed_pin
-        if pin:   # the located pin, as testbed run gives it (studies.end_to_end.register_case)
-            options = dataclasses.replace(
-                options, fixed_point_ct=tuple(np.asarray(truth.points["pins_ct"][pin],
-                                                         dtype=np.float64).tolist()))
+        if scene.registration.fixed_pin:   # the located pin, as testbed run gives it
+            options = with_fixed_pin(options, truth.points["pins_ct"],
+                                     scene.registration.fixed_pin)
         est = reglib.estimate(obs, start, options=options)
         pose = est.ct2robot
         rows += [{"metric": "accepted", "value": float(est.accepted), "unit": ""},
