@@ -298,11 +298,11 @@ def xray_contour(
                             spacing_px=spacing_px, **snake_options)
     if profile_fit:
         pts_out = refine_edge_profile(filled, pts_out, closed=closed)
-    step = _edge_step(filled, pts_out, closed, mask)
-    if not step >= MIN_EDGE_STEP * np.ptp(filled[mask]):
+    step, span = _edge_step(filled, pts_out, closed), float(np.ptp(filled[mask]))
+    if not step >= MIN_EDGE_STEP * span:
         raise ValueError(f"no edge along the traced outline: the image changes by "
                          f"{step:.3g} across it (median over its points), under "
-                         f"{MIN_EDGE_STEP:.0%} of the field's range {np.ptp(filled[mask]):.3g}; "
+                         f"{MIN_EDGE_STEP:.0%} of the field's range {span:.3g}; "
                          "are the clicks near the bone's outline?")
     return XrayContour(points_xy=pts_out, label=label, closed=closed)
 
@@ -315,7 +315,7 @@ MAX_IMAGE_VALUE = 1e12
 MIN_EDGE_STEP = 0.01
 
 
-def _edge_step(filled, pts, closed: bool, mask) -> float:
+def _edge_step(filled, pts, closed: bool) -> float:
     """The median absolute change of ``filled`` across the contour ``pts`` (N, 2) px: between
     the points 3 px to either side along its normals (bilinear)."""
     if len(pts) < 2:

@@ -18,13 +18,7 @@ import pandas as pd
 
 from studies.common import markdown_table
 from studies.end_to_end import case_rows, prepare_case, registration_rows
-from studies.scoring import (
-    REFERENCE_SALT,
-    judge_seed,
-    perturbed_start,
-    pin_errors,
-    pin_reference,
-)
+from studies.scoring import case_reference, judge_seed, perturbed_start, pin_errors
 
 TITLE = "the paper's experiment 1: two views plus the proximal pin, 9 deg starts"
 DEFAULT_SCENE = "experiment1"
@@ -42,7 +36,7 @@ def trial(tr) -> list[dict]:
     case = prepare_case(scene, tr.seed_sequence)
     angle = scene.registration.start_rotation_deg
     pin = scene.registration.fixed_pin or "proximal"
-    reference = pin_reference(case.sim.truth, judge_seed(tr.seed_sequence, REFERENCE_SALT))
+    reference = case_reference(case.sim.truth, tr.seed_sequence)
     rngs = judge_seed(tr.seed_sequence, START_SALT).spawn(int(tr.params["starts"]))
     starts = {f"rot{angle:g}_{k + 1}": perturbed_start(reference, case.pins_ct, angle,
                                                        np.random.default_rng(r), about=pin)

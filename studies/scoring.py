@@ -95,7 +95,7 @@ def run_start(truth, scene, case_ss: np.random.SeedSequence) -> RigidTransform:
     reg = scene.registration
     pose = truth.transforms["ct2robot"]
     if reg.fixed_pin:
-        pose = pin_reference(truth, judge_seed(case_ss, REFERENCE_SALT))
+        pose = case_reference(truth, case_ss)
     return perturbed_start(pose, truth.points["pins_ct"], reg.start_rotation_deg,
                            np.random.default_rng(judge_seed(case_ss)),
                            about=reg.fixed_pin or None)
@@ -149,6 +149,13 @@ REFERENCE_CT_SIGMA_MM = 0.25
 #: the robot's error when it touches a pin with its probe (mm, per axis): its absolute
 #: accuracy, 0.1-0.6 mm for surgical arms (docs/error-model.md)
 REFERENCE_ROBOT_SIGMA_MM = 0.25
+
+
+def case_reference(truth, case_ss: np.random.SeedSequence) -> RigidTransform:
+    """The case's pin-based reference registration: :func:`pin_reference` drawn from the
+    judge's stream at :data:`REFERENCE_SALT`, the same in ``testbed run``, ``score`` and the
+    studies."""
+    return pin_reference(truth, judge_seed(case_ss, REFERENCE_SALT))
 
 
 def pin_reference(truth, rng, *, ct_sigma_mm: float = REFERENCE_CT_SIGMA_MM,

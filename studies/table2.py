@@ -33,10 +33,8 @@ from studies.end_to_end import (
 from studies.scoring import (
     REFERENCE_CT_SIGMA_MM,
     REFERENCE_ROBOT_SIGMA_MM,
-    REFERENCE_SALT,
-    judge_seed,
+    case_reference,
     pin_errors,
-    pin_reference,
 )
 
 TITLE = "the paper's Table II: pin errors after registration from 11 perturbed starts"
@@ -62,7 +60,7 @@ def trial(tr) -> list[dict]:
 
     case = prepare_case(load_scene(tr.scene), tr.seed_sequence)
     # the paper's starts: its pin-based registration, and that turned
-    reference = pin_reference(case.sim.truth, judge_seed(tr.seed_sequence, REFERENCE_SALT))
+    reference = case_reference(case.sim.truth, tr.seed_sequence)
     starts = table2_starts(case, tr.seed_sequence, quick=bool(tr.params["quick"]),
                            pose=reference)
     ref_rows = [{"metric": "reference_error", "value": e, "unit": "mm", "pin": p}

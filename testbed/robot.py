@@ -832,11 +832,14 @@ class Robot:
                 continue
         if q is None:
             return None
-        self._set(self.true_id, self._to_internal(q))
-        pose = self._link_pose(self.true_id, self.bead0_link) @ self.rod_mount_error
-        true_p = pose.apply(self.true_bead_local(pose)[:1])[0]   # placed, sagging bead 0
-        self._set(self.true_id, self.q_true)            # the arms as the last move left them
-        self._set(self.nominal_id, self.q_read)
+        moved = self.q_true
+        self.q_true = self._to_internal(q)              # the true arm at the touching joints
+        try:
+            true_p = self.bead_positions(true=True)[0]  # its placed, sagging bead 0
+        finally:
+            self.q_true = moved                         # the arms as the last move left them
+            self._set(self.true_id, self.q_true)
+            self._set(self.nominal_id, self.q_read)
         return p - (true_p - p)
 
     def rod_bodies(self) -> list[Body]:
