@@ -37,7 +37,9 @@ __all__ = [
     "cubic_coefficients",
     "resample_polygon",
     "snake_contour",
+    "snake_scale",
     "untangle_contour",
+    "REFERENCE_CT_PIXEL_MM",
 ]
 
 
@@ -357,6 +359,7 @@ def snake_contour(
     boundary_condition: str = "free",
     normal_sigma: float = 0.0,
     neighbour_edges: bool = False,
+    scale: int = 1,
 ) -> np.ndarray:
     """A contour from a few clicks: a snake on a coarse, then on a fine potential.
 
@@ -382,6 +385,13 @@ def snake_contour(
     margin_px : the work is done on a crop of the image around the clicks, this much larger.
     closed : a closed contour (periodic snake) or an open one (``boundary_condition`` of
         skimage, default "free").
+    scale : an integer >= 1: the image's pixels per pixel of the image the lengths above
+        (given in px) were set for. With ``scale > 1`` both snakes run on the image's block
+        means over ``scale x scale`` pixels, with the options as given (so that they keep
+        their meaning in mm and the snake its dynamics: its steps, tension and capture range
+        are all in pixels); only the sub-pixel step uses the full resolution, with
+        ``search_px``, ``spacing_px``, ``fine_sigma_px`` and its jump limit times ``scale``.
+        :func:`contours_from_ct` sets it from the slices' pixel size.
 
     Returns
     -------
@@ -397,6 +407,16 @@ def snake_contour(
     pts = _check_clicks(clicks_xy, img.shape, closed=closed)
     if coarse_factor < 1:
         raise ValueError(f"coarse_factor must be >= 1, got {coarse_factor}")
+    if isinstance(scale, bool) or int(scale) != scale or scale < 1:
+        raise ValueError(f"scale must be an integer >= 1, got {scale!r}")
+    options = dict(alpha=alpha, beta=beta, gamma=gamma, coarse_factor=coarse_factor,
+                   coarse_sigma_px=coarse_sigma_px, fine_sigma_px=fine_sigma_px,
+                   spacing_px=spacing_px, coarse_iterations=coarse_iterations,
+                   fine_iterations=fine_iterations, polarity=polarity, search_px=search_px,
+                   margin_px=margin_px, closed=closed, boundary_condition=boundary_condition,
+                   normal_sigma=normal_sigma, neighbour_edges=neighbour_edges)
+    if scale > 1:
+        return _snake_scaled(img, pts, int(scale), subpixel=subpixel, **options)
 
     # Work on a crop around the clicks.
     h, w = img.shape
@@ -450,6 +470,49 @@ def snake_contour(
                             normal_sigma=normal_sigma, neighbour_edges=neighbour_edges,
                             spline=spline)
     return c + off
+
+
+def _snake_scaled(img: np.ndarray, pts: np.ndarray, m: int, *, subpixel: bool,
+                  **options) -> np.ndarray:
+    """:func:`snake_contour` with ``scale = m > 1`` (``img`` and ``pts`` checked)."""
+    h, w = img.shape
+    pad = m * (options["margin_px"] + 3 * options["coarse_sigma_px"])
+    x0 = int(max(0, np.floor(pts[:, 0].min() - pad)))
+    y0 = int(max(0, np.floor(pts[:, 1].min() - pad)))
+    x1 = int(min(w, np.ceil(pts[:, 0].max() + pad) + 1))
+    y1 = int(min(h, np.ceil(pts[:, 1].max() + pad) + 1))
+    # whole blocks of m x m pixels (the crop grown, else shrunk, to a multiple of m)
+    x1 = min(w, x0 + -(-(x1 - x0) // m) * m)
+    y1 = min(h, y0 + -(-(y1 - y0) // m) * m)
+    hh, ww = ((y1 - y0) // m) * m, ((x1 - x0) // m) * m
+    if min(hh, ww) < 8 * m:
+        raise ValueError(f"image is too small for a snake at scale {m}: shape {img.shape}")
+    crop = img[y0:y0 + hh, x0:x0 + ww]
+    small = crop.reshape(hh // m, m, ww // m, m).mean(axis=(1, 3))
+    off = np.array([x0, y0], dtype=np.float64)
+    shift = (m - 1) / 2.0                 # centre of a block in full-resolution px
+    lim_small = np.array([small.shape[1] - 1, small.shape[0] - 1], dtype=np.float64)
+    clicks = np.clip((pts - off - shift) / m, 0.0, lim_small)
+    c = snake_contour(small, clicks, subpixel=False, **options) * m + shift
+    lim = np.array([ww - 1, hh - 1], dtype=np.float64)
+    c = np.clip(c, 0, lim)
+    if not subpixel:
+        return c + off
+    closed, polarity = options["closed"], options["polarity"]
+    sigma = options["fine_sigma_px"] * m
+    edge_img = (ndimage.gaussian_gradient_magnitude(crop, sigma) if polarity is None
+                else ndimage.gaussian_filter(crop, sigma))
+    spline = cubic_coefficients(edge_img)
+    refine = dict(closed=closed, polarity=polarity, search_px=options["search_px"] * m,
+                  step_px=0.25 * m, max_jump_px=1.0 * m, normal_sigma=options["normal_sigma"],
+                  neighbour_edges=options["neighbour_edges"], spline=spline)
+    spacing = options["spacing_px"] * m
+    c = resample_polygon(c, spacing, closed=closed)
+    for _ in range(2):
+        c = refine_subpixel(edge_img, c, **refine)
+        c = resample_polygon(np.clip(c, 0, lim), spacing, closed=closed,
+                             min_points=len(c) // 2)
+    return refine_subpixel(edge_img, c, **refine) + off
 
 
 # --------------------------------------------------------------------------- CT slices
@@ -559,6 +622,32 @@ def _polygon_area(p: np.ndarray) -> float:
     return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
 
 
+#: the CT pixel size (mm) for which the snake's lengths in px (:func:`snake_contour`'s
+#: defaults and :func:`contours_from_ct`'s) were set: the testbed's default CT, and within
+#: the 0.6-0.9 mm of a clinical hip or knee field of view
+REFERENCE_CT_PIXEL_MM = 0.8
+
+
+def snake_scale(pixel_mm: float) -> int:
+    """:func:`snake_contour`'s ``scale`` for CT pixels of ``pixel_mm``: the whole number of
+    pixels nearest to one :data:`REFERENCE_CT_PIXEL_MM` pixel, at least 1. On finer slices
+    the snake then keeps its capture range and smoothing in mm: with its lengths in px,
+    slices of 0.5 mm pixels gave surfaces with 2.8-3.2 mm at their 95th percentile from
+    the true bone (0.2 mm at this scale), and a registration 1.9 mm off that the verdict
+    accepted. Coarser pixels keep scale 1: the lengths stay at least what they were set
+    for."""
+    p = float(pixel_mm)
+    if not (np.isfinite(p) and p > 0):
+        raise ValueError(f"CT pixel size must be a positive number of mm, got {pixel_mm!r}")
+    return max(1, int(np.floor(REFERENCE_CT_PIXEL_MM / p + 0.5)))
+
+
+def _pixel_mm(slice2ct: np.ndarray) -> float:
+    """The mean in-plane pixel size (mm) of a (4, 4) or (K, 4, 4) slice affine."""
+    a = slice2ct.reshape(-1, 4, 4)
+    return float(np.mean(np.linalg.norm(a[:, :3, :2], axis=1)))
+
+
 def contours_from_ct(
     volume_hu,
     slice2ct,
@@ -581,7 +670,9 @@ def contours_from_ct(
     snake_options : keyword options of :func:`snake_contour`; ``polarity`` defaults to
         ``"bright_inside"`` (bone on CT), ``search_px`` to 5 (beyond a cortical shell),
         ``normal_sigma`` to 1 and ``neighbour_edges`` to True (no vertex left off the edge:
-        see :func:`refine_subpixel`).
+        see :func:`refine_subpixel`), ``scale`` to :func:`snake_scale` of the slices' pixel
+        size (the options' lengths in px are meant for pixels of
+        :data:`REFERENCE_CT_PIXEL_MM`).
 
     Returns
     -------
@@ -598,7 +689,8 @@ def contours_from_ct(
     if not clicks_xy:
         raise ValueError("clicks_xy is empty: give the clicks of at least one slice")
     snake_options = {"polarity": "bright_inside", "search_px": 5.0, "normal_sigma": 1.0,
-                     "neighbour_edges": True, **snake_options}
+                     "neighbour_edges": True, "scale": snake_scale(_pixel_mm(aff)),
+                     **snake_options}
     keys = np.array(sorted(int(k) for k in clicks_xy))
     outside = [int(k) for k in keys if not 0 <= k < vol.shape[0]]
     if outside:

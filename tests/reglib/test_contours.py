@@ -11,6 +11,7 @@ from reglib.contours import (
     cubic_coefficients,
     refine_subpixel,
     snake_contour,
+    snake_scale,
 )
 
 
@@ -143,6 +144,53 @@ def test_contours_from_ct_reuses_clicks_and_maps_to_ct_mm():
         assert abs(r.mean() - 9.0 * 0.8) < 0.3
     with pytest.raises(ValueError, match="outside the volume"):
         contours_from_ct(vol, slice2ct, [4], clicks)
+
+
+def _cortical_slice(px_mm, rng, a_mm=14.0, b_mm=11.0, shell_mm=2.5, ang=0.3):
+    """A CT slice (HU) of an elliptic bone of ``a_mm x b_mm`` with a cortical shell of
+    ``shell_mm`` around a darker medulla, in soft tissue, pixels of ``px_mm``; and its
+    centre (px)."""
+    n = int(round(70.0 / px_mm))
+    c = n / 2 + 0.3
+    outer = _ellipse_image((n, n), c, c, a_mm / px_mm, b_mm / px_mm, ang, ss=2, level=1.0)
+    inner = _ellipse_image((n, n), c, c, (a_mm - shell_mm) / px_mm, (b_mm - shell_mm) / px_mm,
+                           ang, ss=2, level=1.0)
+    return 40.0 + 1200.0 * (outer - inner) + 300.0 * inner + rng.normal(0, 15.0, (n, n)), c
+
+
+def test_snake_scale_follows_the_pixel_size():
+    assert [snake_scale(p) for p in (2.0, 1.2, 0.8, 0.6, 0.5, 0.4, 0.3)] == [1, 1, 1, 1, 2, 2, 3]
+    for bad in (0.0, -0.5, float("nan")):
+        with pytest.raises(ValueError, match="positive"):
+            snake_scale(bad)
+    img = _ellipse_image((60, 60), 30.0, 30.0, 10.0, 10.0, 0.0)
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="scale"):
+            snake_contour(img, _ellipse_points(30.0, 30.0, 10.0, 10.0, 0.0, 5), scale=bad)
+
+
+def test_fine_ct_pixels_keep_the_snake_on_the_outer_edge():
+    """Clicks reused from a smaller cross-section (1.5 mm inside the outline, 1 mm noise) on
+    slices of 0.3 mm pixels: the snake's lengths are in px, set for 0.8 mm pixels. With
+    them as they are (scale 1) the snake does not reach the outline; contours_from_ct
+    scales them from the pixel size and lands on the outer edge (measured: 0.02 mm mean,
+    0.04 mm at most; with scale 1, 1.0-1.9 mm mean and about 5 mm at most)."""
+    px = 0.3
+    s2c = np.eye(4)
+    s2c[0, 0] = s2c[1, 1] = px
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        img, c = _cortical_slice(px, rng)
+        a, b = 14.0 / px, 11.0 / px
+        clicks = (_ellipse_points(c, c, a - 1.5 / px, b - 1.5 / px, 0.3, 7)
+                  + rng.normal(0, 1.0 / px, (7, 2)))
+        truth = _ellipse_points(c, c, a, b, 0.3, 20000)
+        out = contours_from_ct(img[None], s2c, [0], {0: [clicks]})
+        d = _mean_distance(out[0].contours_px[0], truth) * px
+        assert d.mean() < 0.1 and d.max() < 0.3, (seed, d.mean(), d.max())
+        fixed = contours_from_ct(img[None], s2c, [0], {0: [clicks]}, scale=1)
+        d1 = _mean_distance(fixed[0].contours_px[0], truth) * px
+        assert d1.mean() > 0.5, (seed, d1.mean())
 
 
 @pytest.mark.parametrize("seed", range(3))
