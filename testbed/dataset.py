@@ -639,9 +639,15 @@ def _read_entry(case_dir: Path, group: str, name: str, rec: dict, transforms: di
         p = points[name]
         where = f"{case_dir / 'points.json'}: points {name!r}"
         if p["kind"] == "named":
-            return {k: as_points(v, f"{where}, {k!r}", min_count=1).reshape(3)
-                    for k, v in p["points"].items()}
-        return as_points(np.asarray(p["points"], dtype=np.float64).reshape(-1, 3), where)
+            out = {}
+            for k, v in p["points"].items():
+                a = as_points(v, f"{where}, {k!r}", min_count=1)
+                if len(a) != 1:
+                    raise ValueError(f"{where}, {k!r}: expected one point [x, y, z] (mm), got "
+                                     f"{len(a)} rows")
+                out[k] = a.reshape(3)
+            return out
+        return as_points(p["points"], where)
     raise ValueError(f"{case_dir / CASE_FILE}: unknown group {group!r} in entry {what!r}")
 
 

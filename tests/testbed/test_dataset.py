@@ -335,3 +335,13 @@ def test_values_a_case_cannot_hold_are_refused_naming_the_file(tmp_path):
     with pytest.raises(ValueError, match=r"points\.json: points 'pins_ct', 'distal_1': "
                                          r"coordinates up to 1e\+300"):
         load(case_dir, verify=False)
+    # a named point of the wrong shape, and an array of points that are not triples: named
+    # with the file and the entry (they were numpy's reshape errors)
+    for bad, match in (([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]], r"'distal_1': expected one point "
+                                                          r"\[x, y, z\] \(mm\), got 2 rows"),
+                       ([1.0, 2.0], r"'distal_1': expected an \(N, 3\) array"),
+                       ("pin", r"'distal_1': expected an \(N, 3\) array of numbers")):
+        points["pins_ct"]["points"]["distal_1"] = bad
+        (case_dir / "points.json").write_text(json.dumps(points))
+        with pytest.raises(ValueError, match=r"points\.json: points 'pins_ct', " + match):
+            load(case_dir, verify=False)
