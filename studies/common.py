@@ -12,11 +12,14 @@ import json
 import subprocess
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
 
 from testbed.scene import find_scene, load_scene
+
+if TYPE_CHECKING:   # pandas only in annotations: testbed run does not pay its import
+    import pandas as pd
 
 REQUIRED_COLUMNS = ("trial", "metric", "value", "unit")
 
