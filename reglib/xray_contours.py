@@ -42,8 +42,8 @@ from scipy import ndimage
 from reglib.contours import snake_contour
 from reglib.geometry import as_flags
 
-__all__ = ["XrayContour", "field_of_view_mask", "prepare_xray", "refine_edge_profile",
-           "xray_contour", "xray_contours"]
+__all__ = ["REFERENCE_FIELD_PX", "XrayContour", "field_of_view_mask", "field_scale",
+           "prepare_xray", "refine_edge_profile", "xray_contour", "xray_contours"]
 
 Label = Literal["external", "internal"]
 
@@ -106,8 +106,13 @@ def _normals(c: np.ndarray, closed: bool) -> np.ndarray:
     return n / np.where(norm > 0, norm, 1.0)
 
 
+#: the least reach (px) of :func:`_blurred_sqrt_table`: what the default lengths of
+#: :func:`refine_edge_profile` need (4 + 2 px from the edge, and the blur's tail)
+TABLE_REACH_PX = 12.0
+
+
 @functools.lru_cache(maxsize=8)
-def _blurred_sqrt_table(sigmas: tuple, step: float = 0.01, reach: float = 12.0):
+def _blurred_sqrt_table(sigmas: tuple, step: float = 0.01, reach: float = TABLE_REACH_PX):
     """``H_sigma(x) = (G_sigma * sqrt(max(., 0)))(x)`` on a grid, one row per sigma of the
     tuple ``sigmas`` (remembered: every contour of a run asks for the same; read-only)."""
     x = np.arange(-reach, reach + step / 2, step)
@@ -167,7 +172,11 @@ def refine_edge_profile(image, contour_xy, *, closed: bool = False, half_width_p
     prof = ndimage.map_coordinates(img, [(py - r0).ravel(), (px - c0).ravel()], order=1,
                                    mode="nearest").reshape(px.shape)  # (K, S)
     eff = np.sqrt(np.asarray(sigmas_px, dtype=np.float64) ** 2 + pre_sigma_px**2)
-    xt, table = _blurred_sqrt_table(tuple(float(e) for e in eff))
+    # the model is evaluated at up to half_width + search from its edge: the table reaches
+    # that far and 3 of the widest blur's sigmas beyond, or its ends would flatten the
+    # model there (the defaults need 11 px: the table of 12 px, as before)
+    reach = max(TABLE_REACH_PX, half_width_px + search_px + 3.0 * float(eff.max()))
+    xt, table = _blurred_sqrt_table(tuple(float(e) for e in eff), reach=float(reach))
     s0 = np.arange(-search_px, search_px + 1e-9, 0.05)  # (T,)
     best_res = np.full(len(c), np.inf)
     best_t = np.zeros(len(c), dtype=int)
@@ -241,6 +250,7 @@ def xray_contour(
     spacing_px: float = 2.0,
     profile_fit: bool = True,
     filled=None,
+    scale: int | None = None,
     **snake_options,
 ) -> XrayContour:
     """One bone contour from a few clicks on an X-ray image.
@@ -258,6 +268,9 @@ def xray_contour(
     profile_fit : finish with :func:`refine_edge_profile` (else the snake's gradient maximum).
     filled : the image as :func:`prepare_xray` gives it for ``fov_mask`` (computed when
         None); pass it when tracing several contours on one image.
+    scale : the snake's and the profile fit's lengths in px (set for a field of view of
+        :data:`REFERENCE_FIELD_PX` px across) times this whole number; None:
+        :func:`field_scale` of the field of view.
 
     Returns
     -------
@@ -294,10 +307,11 @@ def xray_contour(
     elif np.shape(filled) != img.shape:
         raise ValueError(f"filled: shape {np.shape(filled)} differs from the image's "
                          f"{img.shape}")
+    m = field_scale(mask) if scale is None else scale
     pts_out = snake_contour(filled, pts, closed=closed, fine_sigma_px=fine_sigma_px,
-                            spacing_px=spacing_px, **snake_options)
+                            spacing_px=spacing_px, scale=m, **snake_options)
     if profile_fit:
-        pts_out = refine_edge_profile(filled, pts_out, closed=closed)
+        pts_out = refine_edge_profile(filled, pts_out, closed=closed, **_profile_lengths(m))
     step, span = _edge_step(filled, pts_out, closed), float(np.ptp(filled[mask]))
     if not step >= MIN_EDGE_STEP * span:
         raise ValueError(f"no edge along the traced outline: the image changes by "
@@ -305,6 +319,30 @@ def xray_contour(
                          f"{MIN_EDGE_STEP:.0%} of the field's range {span:.3g}; "
                          "are the clicks near the bone's outline?")
     return XrayContour(points_xy=pts_out, label=label, closed=closed)
+
+
+#: the field of view's diameter (px) for which the X-ray snake's and profile fit's lengths in
+#: px were set: a 9-inch (228.6 mm) intensifier on 640 x 480 video of 0.5 mm pixels
+REFERENCE_FIELD_PX = 457.0
+
+
+def field_scale(fov_mask) -> int:
+    """The whole number of pixels nearest to one pixel of the reference video
+    (:data:`REFERENCE_FIELD_PX` across the field), at least 1, from the field of view's
+    area: on finer video the lengths in px of :func:`xray_contour` grow with it, so that
+    the snake keeps its smoothing and reach, and the profile fit the blur widths it tries,
+    in mm of the intensifier's input (its blur is set in mm, not in pixels)."""
+    mask = np.asarray(fov_mask, dtype=bool)
+    diameter = 2.0 * np.sqrt(np.count_nonzero(mask) / np.pi)
+    return max(1, int(np.floor(diameter / REFERENCE_FIELD_PX + 0.5)))
+
+
+def _profile_lengths(m: int) -> dict:
+    """:func:`refine_edge_profile`'s lengths in px at scale ``m`` (its defaults at 1)."""
+    if m == 1:
+        return {}
+    return dict(half_width_px=4.0 * m, sample_px=0.25 * m, search_px=2.0 * m,
+                pre_sigma_px=0.7 * m, sigmas_px=tuple(v * m for v in (0.6, 0.8, 1.0, 1.2, 1.5)))
 
 
 #: an X-ray image's largest value (grey levels or counts): beyond it, gradients overflow

@@ -10,6 +10,7 @@ from reglib.xray_contours import (
     XrayContour,
     _near_mask,
     field_of_view_mask,
+    field_scale,
     refine_edge_profile,
     xray_contour,
     xray_contours,
@@ -153,3 +154,50 @@ def test_edge_profile_on_the_samples_box_equals_the_whole_image():
         got = refine_edge_profile(img, c)
         ref = refine_edge_profile(img, c, whole_image=True)
         np.testing.assert_array_equal(got, ref)
+
+
+def test_edge_profile_fit_with_long_lengths_finds_the_edge():
+    """The profile model is tabulated to a reach; with lengths of several times the
+    defaults (finer video) the model must not flatten at the table's end. A disc's line
+    integral (a square root at its outline), blurred by 3 px, traced from 2 px off with the
+    lengths tripled: every vertex within 0.1 px of the outline (the table's fixed 12 px
+    reach left them up to 7.4 px off)."""
+    from scipy import ndimage
+    yy, xx = np.mgrid[0:400, 0:400]
+    r_true = 120.0
+    chord = np.sqrt(np.clip(r_true**2 - (xx - 200.0) ** 2 - (yy - 200.0) ** 2, 0, None))
+    img = ndimage.gaussian_filter(60.0 + 1.5 * chord, 3.0)
+    t = np.linspace(0.2, 2.8, 60)
+    c = np.column_stack([200.0 + (r_true - 2.0) * np.cos(t), 200.0 + (r_true - 2.0) * np.sin(t)])
+    m = 3
+    out = refine_edge_profile(img, c, half_width_px=4.0 * m, sample_px=0.25 * m,
+                              search_px=2.0 * m, pre_sigma_px=0.7 * m,
+                              sigmas_px=tuple(v * m for v in (0.6, 0.8, 1.0, 1.2, 1.5)))
+    r = np.linalg.norm(out - 200.0, axis=1)
+    assert np.abs(r - r_true).max() < 0.1, np.abs(r - r_true).max()
+
+
+def test_fine_video_keeps_the_contour_on_the_outline():
+    """A bone shaft on the clinic chain with 2048 x 1536 video of 0.156 mm pixels (the same
+    9-inch field): xray_contour scales its lengths by the field's size in pixels (3 here)
+    and lands within 0.15 mm of the true outline (median; measured 0.09-0.10 mm, at most
+    0.32 mm); with the lengths of 640 x 480 video (scale 1), 0.18-0.21 mm and up to
+    1.1 mm."""
+    bodies, axis = _shaft_scene()
+    p = 0.15625
+    fluoro = FluoroscopeSpec(width_px=2048, height_px=1536, pixel_mm=p)
+    carm = make_carm(fluoro, ViewSpec(orbital_deg=5.0))
+    frame = render(carm, bodies, fluoro=fluoro, rng=np.random.default_rng(3))
+    mask = field_of_view_mask(frame.image_u8)
+    assert field_scale(mask) == 3
+    rng = np.random.default_rng(0)
+    for edge in _true_edges(carm, axis):
+        tree = cKDTree(edge)
+        n = len(edge)
+        clicks = (edge[[int(n * 0.3), int(n * 0.43), int(n * 0.57), int(n * 0.7)]]
+                  + rng.normal(0.0, 1.5 * 0.5 / p, (4, 2)))    # 1.5 px of 640 x 480 video
+        d = tree.query(xray_contour(frame.image_u8, clicks, fov_mask=mask).points_xy)[0] * p
+        assert np.median(d) < 0.15 and d.max() < 0.5, (np.median(d), d.max())
+        d1 = tree.query(xray_contour(frame.image_u8, clicks, fov_mask=mask,
+                                     scale=1).points_xy)[0] * p
+        assert np.percentile(d1, 90) > 2 * np.percentile(d, 90)
