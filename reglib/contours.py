@@ -38,6 +38,7 @@ __all__ = [
     "resample_polygon",
     "snake_contour",
     "snake_scale",
+    "snake_upsampling",
     "untangle_contour",
     "REFERENCE_CT_PIXEL_MM",
 ]
@@ -360,6 +361,7 @@ def snake_contour(
     normal_sigma: float = 0.0,
     neighbour_edges: bool = False,
     scale: int = 1,
+    upsample: int = 1,
 ) -> np.ndarray:
     """A contour from a few clicks: a snake on a coarse, then on a fine potential.
 
@@ -392,6 +394,10 @@ def snake_contour(
         are all in pixels); only the sub-pixel step uses the full resolution, with
         ``search_px``, ``spacing_px``, ``fine_sigma_px`` and its jump limit times ``scale``.
         :func:`contours_from_ct` sets it from the slices' pixel size.
+    upsample : an integer >= 1, for coarser images than the lengths were set for: the
+        snake runs, with the options as given, on the image interpolated (cubic) to
+        ``upsample`` times as many pixels in each direction, and its contour is mapped back.
+        At most one of ``scale`` and ``upsample`` may exceed 1.
 
     Returns
     -------
@@ -407,8 +413,12 @@ def snake_contour(
     pts = _check_clicks(clicks_xy, img.shape, closed=closed)
     if coarse_factor < 1:
         raise ValueError(f"coarse_factor must be >= 1, got {coarse_factor}")
-    if isinstance(scale, bool) or not isinstance(scale, (int, np.integer)) or scale < 1:
-        raise ValueError(f"scale must be an integer >= 1, got {scale!r}")
+    for name, v in (("scale", scale), ("upsample", upsample)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+            raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+    if scale > 1 and upsample > 1:
+        raise ValueError(f"scale ({scale}) and upsample ({upsample}): at most one may "
+                         "exceed 1")
     options = dict(alpha=alpha, beta=beta, gamma=gamma, coarse_factor=coarse_factor,
                    coarse_sigma_px=coarse_sigma_px, fine_sigma_px=fine_sigma_px,
                    spacing_px=spacing_px, coarse_iterations=coarse_iterations,
@@ -417,6 +427,8 @@ def snake_contour(
                    normal_sigma=normal_sigma, neighbour_edges=neighbour_edges)
     if scale > 1:
         return _snake_scaled(img, pts, int(scale), subpixel=subpixel, **options)
+    if upsample > 1:
+        return _snake_upsampled(img, pts, int(upsample), subpixel=subpixel, **options)
 
     # Work on a crop around the clicks.
     h, w = img.shape
@@ -513,6 +525,27 @@ def _snake_scaled(img: np.ndarray, pts: np.ndarray, m: int, *, subpixel: bool,
         c = resample_polygon(np.clip(c, 0, lim), spacing, closed=closed,
                              min_points=len(c) // 2)
     return refine_subpixel(edge_img, c, **refine) + off
+
+
+def _snake_upsampled(img: np.ndarray, pts: np.ndarray, u: int, *, subpixel: bool,
+                     **options) -> np.ndarray:
+    """:func:`snake_contour` with ``upsample = u > 1`` (``img`` and ``pts`` checked): on a
+    crop around the clicks interpolated to ``u`` times the pixels (the centre of pixel
+    ``i`` at ``u i + (u - 1) / 2``), mapped back."""
+    h, w = img.shape
+    pad = (options["margin_px"] + 3 * options["coarse_sigma_px"]) / u + 2
+    x0 = int(max(0, np.floor(pts[:, 0].min() - pad)))
+    y0 = int(max(0, np.floor(pts[:, 1].min() - pad)))
+    x1 = int(min(w, np.ceil(pts[:, 0].max() + pad) + 1))
+    y1 = int(min(h, np.ceil(pts[:, 1].max() + pad) + 1))
+    crop = img[y0:y1, x0:x1]
+    big = ndimage.zoom(crop, u, order=3, mode="nearest", grid_mode=True)
+    off = np.array([x0, y0], dtype=np.float64)
+    shift = (u - 1) / 2.0
+    lim = np.array([big.shape[1] - 1, big.shape[0] - 1], dtype=np.float64)
+    clicks = np.clip((pts - off) * u + shift, 0.0, lim)
+    c = snake_contour(big, clicks, subpixel=subpixel, **options)
+    return (c - shift) / u + off
 
 
 # --------------------------------------------------------------------------- CT slices
@@ -628,6 +661,24 @@ def _polygon_area(p: np.ndarray) -> float:
 REFERENCE_CT_PIXEL_MM = 0.8
 
 
+def snake_upsampling(pixel_mm: float) -> int:
+    """:func:`snake_contour`'s ``upsample`` for CT pixels of ``pixel_mm``: the whole number
+    nearest to ``pixel_mm`` over :data:`REFERENCE_CT_PIXEL_MM`, at least 1, so that on
+    coarser slices the snake's reach and smoothing stay near their meaning in mm. With
+    its lengths in px, 1.5 mm pixels gave it twice its reach: on ``experiment2`` (seed 2)
+    contours near the distal pins leaked 20 mm out to the knee's skin and the registration
+    ended 1.6 mm off (1.97 mm with 10 mm coarse slices), accepted."""
+    p = _positive_mm(pixel_mm)
+    return max(1, int(np.floor(p / REFERENCE_CT_PIXEL_MM + 0.5)))
+
+
+def _positive_mm(pixel_mm) -> float:
+    p = float(pixel_mm)
+    if not (np.isfinite(p) and p > 0):
+        raise ValueError(f"CT pixel size must be a positive number of mm, got {pixel_mm!r}")
+    return p
+
+
 def snake_scale(pixel_mm: float) -> int:
     """:func:`snake_contour`'s ``scale`` for CT pixels of ``pixel_mm``: the whole number of
     pixels nearest to one :data:`REFERENCE_CT_PIXEL_MM` pixel, at least 1. On finer slices
@@ -635,10 +686,8 @@ def snake_scale(pixel_mm: float) -> int:
     the surfaces of ``experiment2`` with 0.5 mm pixels lay 3.2 / 2.8 mm (distal / proximal)
     from the true bone at their 95th percentile, and a registration ended 1.9 mm off,
     accepted; at this scale 1.1 / 0.2 mm (0.3 mm pixels: 4.7 / 4.6 -> 0.4 / 0.2 mm).
-    Coarser pixels keep scale 1: the lengths stay at least what they were set for."""
-    p = float(pixel_mm)
-    if not (np.isfinite(p) and p > 0):
-        raise ValueError(f"CT pixel size must be a positive number of mm, got {pixel_mm!r}")
+    Coarser pixels keep scale 1 (:func:`snake_upsampling` is theirs)."""
+    p = _positive_mm(pixel_mm)
     return max(1, int(np.floor(REFERENCE_CT_PIXEL_MM / p + 0.5)))
 
 
@@ -670,9 +719,9 @@ def contours_from_ct(
     snake_options : keyword options of :func:`snake_contour`; ``polarity`` defaults to
         ``"bright_inside"`` (bone on CT), ``search_px`` to 5 (beyond a cortical shell),
         ``normal_sigma`` to 1 and ``neighbour_edges`` to True (no vertex left off the edge:
-        see :func:`refine_subpixel`), ``scale`` to :func:`snake_scale` of the slices' pixel
-        size (the options' lengths in px are meant for pixels of
-        :data:`REFERENCE_CT_PIXEL_MM`).
+        see :func:`refine_subpixel`), ``scale`` and ``upsample`` to :func:`snake_scale` and
+        :func:`snake_upsampling` of the slices' pixel size (the options' lengths in px are
+        meant for pixels of :data:`REFERENCE_CT_PIXEL_MM`).
 
     Returns
     -------
@@ -690,7 +739,7 @@ def contours_from_ct(
         raise ValueError("clicks_xy is empty: give the clicks of at least one slice")
     snake_options = {"polarity": "bright_inside", "search_px": 5.0, "normal_sigma": 1.0,
                      "neighbour_edges": True, "scale": snake_scale(_pixel_mm(aff)),
-                     **snake_options}
+                     "upsample": snake_upsampling(_pixel_mm(aff)), **snake_options}
     keys = np.array(sorted(int(k) for k in clicks_xy))
     outside = [int(k) for k in keys if not 0 <= k < vol.shape[0]]
     if outside:

@@ -12,6 +12,7 @@ from reglib.contours import (
     refine_subpixel,
     snake_contour,
     snake_scale,
+    snake_upsampling,
 )
 
 
@@ -160,6 +161,10 @@ def _cortical_slice(px_mm, rng, a_mm=14.0, b_mm=11.0, shell_mm=2.5, ang=0.3):
 
 def test_snake_scale_follows_the_pixel_size():
     assert [snake_scale(p) for p in (2.0, 1.2, 0.8, 0.6, 0.5, 0.4, 0.3)] == [1, 1, 1, 1, 2, 2, 3]
+    assert [snake_upsampling(p) for p in (2.0, 1.5, 1.0, 0.8, 0.3)] == [3, 2, 1, 1, 1]
+    with pytest.raises(ValueError, match="at most one"):
+        snake_contour(_ellipse_image((60, 60), 30.0, 30.0, 10.0, 10.0, 0.0),
+                      _ellipse_points(30.0, 30.0, 10.0, 10.0, 0.0, 5), scale=2, upsample=2)
     for bad in (0.0, -0.5, float("nan")):
         with pytest.raises(ValueError, match="positive"):
             snake_scale(bad)
@@ -191,6 +196,36 @@ def test_fine_ct_pixels_keep_the_snake_on_the_outer_edge():
         fixed = contours_from_ct(img[None], s2c, [0], {0: [clicks]}, scale=1)
         d1 = _mean_distance(fixed[0].contours_px[0], truth) * px
         assert d1.mean() > 0.5, (seed, d1.mean())
+
+
+def test_coarse_ct_pixels_keep_the_snake_off_the_skin():
+    """Slices of 1.5 and 2 mm pixels, the skin 6 mm from the bone on one side, clicks 1 mm
+    outside the outline (1 mm noise): with the snake's lengths in px as set for 0.8 mm
+    (upsample 1) its reach doubles or more and the contour strays towards the skin
+    (measured: 0.4-1.5 mm mean at 1.5 mm, 2.2-7.6 mm at 2 mm); contours_from_ct runs it
+    on the slice interpolated to about 0.8 mm (0.16-0.18 mm mean)."""
+    for px in (1.5, 2.0):
+        s2c = np.eye(4)
+        s2c[0, 0] = s2c[1, 1] = px
+        worst_fixed = 0.0
+        for seed in range(4):
+            rng = np.random.default_rng(seed)
+            bone, c = _cortical_slice(px, rng)
+            n = bone.shape[0]
+            a, b = 14.0 / px, 11.0 / px
+            skin = _ellipse_image((n, n), c + 8.0 / px, c, 20.0 / px, 44.0 / px, 0.0, ss=2,
+                                  level=1.0)
+            img = np.where(skin > 0, bone, bone - 1040.0 * (1.0 - skin))  # air outside
+            clicks = (_ellipse_points(c, c, a + 1.0 / px, b + 1.0 / px, 0.3, 7)
+                      + rng.normal(0, 1.0 / px, (7, 2)))
+            truth = _ellipse_points(c, c, a, b, 0.3, 20000)
+            d = _mean_distance(contours_from_ct(img[None], s2c, [0], {0: [clicks]})[0]
+                               .contours_px[0], truth) * px
+            assert d.mean() < 0.3 and d.max() < 1.2, (px, seed, d.mean(), d.max())
+            fixed = contours_from_ct(img[None], s2c, [0], {0: [clicks]}, upsample=1)
+            worst_fixed = max(worst_fixed,
+                              _mean_distance(fixed[0].contours_px[0], truth).mean() * px)
+        assert worst_fixed > 1.0, (px, worst_fixed)
 
 
 @pytest.mark.parametrize("seed", range(3))
