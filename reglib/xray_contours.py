@@ -338,11 +338,17 @@ def field_scale(fov_mask) -> int:
 
 
 def _profile_lengths(m: int) -> dict:
-    """:func:`refine_edge_profile`'s lengths in px at scale ``m`` (its defaults at 1)."""
+    """:func:`refine_edge_profile`'s lengths in px at scale ``m``: its defaults times ``m``
+    (none at 1)."""
     if m == 1:
         return {}
-    return dict(half_width_px=4.0 * m, sample_px=0.25 * m, search_px=2.0 * m,
-                pre_sigma_px=0.7 * m, sigmas_px=tuple(v * m for v in (0.6, 0.8, 1.0, 1.2, 1.5)))
+    import inspect
+
+    defaults = {k: p.default for k, p in inspect.signature(refine_edge_profile).parameters.items()}
+    out = {k: defaults[k] * m for k in ("half_width_px", "sample_px", "search_px",
+                                        "pre_sigma_px")}
+    out["sigmas_px"] = tuple(v * m for v in defaults["sigmas_px"])
+    return out
 
 
 #: an X-ray image's largest value (grey levels or counts): beyond it, gradients overflow
