@@ -609,12 +609,15 @@ def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
     return out
 
 
-def xray_contours(view: str, image, clicks: Mapping) -> ViewContours:
+def xray_contours(view: str, image, clicks: Mapping, *, pixel_mm=None) -> ViewContours:
     """Bone contours on one X-ray frame from the operator's clicks.
 
     ``image`` (H, W) uint8; ``clicks``: ``clicks_xy`` (P, 2) px, ``trace`` (P,) the trace of
     each click, ``external`` (T,) bool, ``closed`` (T,) bool. A trace the snake cannot follow
-    is left out and named in ``problems``.
+    is left out and named in ``problems``. ``pixel_mm``: the video's nominal pixel at the
+    intensifier's input (the observation's ``meta["xray_pixel_mm"]``), which sets the
+    tracing's lengths in px (:func:`reglib.xray_contours.pixel_scale`); None: from the field
+    of view's size.
     """
     from reglib.xray_contours import field_of_view_mask, prepare_xray, xray_contour
 
@@ -662,7 +665,8 @@ def xray_contours(view: str, image, clicks: Mapping) -> ViewContours:
     for t in range(len(ext)):
         try:
             c = xray_contour(img, xy[tr == t], fov_mask=mask, filled=filled,
-                             label="external" if ext[t] else "internal", closed=bool(closed[t]))
+                             label="external" if ext[t] else "internal", closed=bool(closed[t]),
+                             pixel_mm=pixel_mm)
         except ValueError as exc:
             problems.append(f"view {view}: trace {t}: {exc}")
             continue
@@ -671,6 +675,19 @@ def xray_contours(view: str, image, clicks: Mapping) -> ViewContours:
     if not pts:
         return ViewContours(view, np.zeros((0, 2)), np.zeros(0, bool), tuple(problems))
     return ViewContours(view, np.vstack(pts), np.concatenate(flags), tuple(problems))
+
+
+def _xray_pixel_mm(meta) -> float | None:
+    """The observation's ``meta["xray_pixel_mm"]`` (mm), None when absent; a value that is
+    not a positive number of mm is refused naming the key."""
+    if not isinstance(meta, Mapping) or meta.get("xray_pixel_mm") is None:
+        return None
+    v = meta["xray_pixel_mm"]
+    ok = isinstance(v, int | float | np.integer | np.floating) and not isinstance(v, bool)
+    if not (ok and np.isfinite(v) and 0 < v <= 10):
+        raise ValueError(f"observation: meta['xray_pixel_mm'] must be the video's pixel at the "
+                         f"intensifier's input, a number of mm in (0, 10], got {v!r:.40}")
+    return float(v)
 
 
 def prepare(observation, *, options: EstimateOptions | None = None, calibrations=None,
@@ -685,6 +702,7 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
     options = _as_options(options)
     images, arrays = _part(observation, "images"), _part(observation, "arrays")
     names = _view_names(observation)
+    pixel_mm = _xray_pixel_mm(_part(observation, "meta"))
     timings: dict[str, float] = {}
 
     t0 = time.perf_counter()
@@ -720,7 +738,7 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
             con = contours[v]
         else:
             con = xray_contours(v, _entry(images, f"xray_{v}", "images"),
-                                _entry(arrays, f"xray_clicks_{v}", "arrays"))
+                                _entry(arrays, f"xray_clicks_{v}", "arrays"), pixel_mm=pixel_mm)
         conts[v] = con
         timings["contours"] = timings.get("contours", 0.0) + time.perf_counter() - t0
         if not cal.ok:

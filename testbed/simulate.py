@@ -385,6 +385,9 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
         "view_regions": [getattr(v, "region", "") for v in scene.views],
         "regions": sorted(_safe(r) for r in regions),
         "image_size_px": [int(scene.fluoroscope.width_px), int(scene.fluoroscope.height_px)],
+        # the video's nominal pixel at the intensifier's input (a device's specification,
+        # as DICOM's imager pixel spacing: the same at every pose, no distortion in it)
+        "xray_pixel_mm": float(scene.fluoroscope.pixel_mm),
         "ct_uniform_slices": uniform,
         "units": {"length": "mm", "angle": "rad", "pixel": "px (x, y) = (col, row)"},
         "sweeps": bool(sweeps),

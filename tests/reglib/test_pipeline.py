@@ -354,3 +354,17 @@ def test_a_rival_pose_that_fits_about_as_well_is_found():
     EstimateOptions(accept_max_alternative_mm=float("inf"))
     with pytest.raises(ValueError, match="accept_max_alternative_mm"):
         EstimateOptions(accept_max_alternative_mm=0.0)
+
+
+def test_the_video_pixel_in_meta_is_checked():
+    """meta['xray_pixel_mm'] (the video's nominal pixel at the intensifier's input) sets the
+    X-ray tracing's lengths; absent, it is None; a value that is no positive number of mm
+    is refused naming the key."""
+    from reglib.pipeline import _xray_pixel_mm
+
+    assert _xray_pixel_mm({}) is None
+    assert _xray_pixel_mm({"xray_pixel_mm": None}) is None
+    assert _xray_pixel_mm({"xray_pixel_mm": 0.25}) == 0.25
+    for bad in (0, -0.5, float("nan"), "0.5", True, [0.5], 50.0):
+        with pytest.raises(ValueError, match=r"meta\['xray_pixel_mm'\]"):
+            _xray_pixel_mm({"xray_pixel_mm": bad})
