@@ -160,8 +160,14 @@ def _cortical_slice(px_mm, rng, a_mm=14.0, b_mm=11.0, shell_mm=2.5, ang=0.3):
 
 
 def test_snake_scale_follows_the_pixel_size():
-    assert [snake_scale(p) for p in (2.0, 1.2, 0.8, 0.6, 0.5, 0.4, 0.3)] == [1, 1, 1, 1, 2, 2, 3]
-    assert [snake_upsampling(p) for p in (2.0, 1.5, 1.0, 0.8, 0.3)] == [3, 2, 1, 1, 1]
+    np.testing.assert_allclose([snake_scale(p) for p in (2.0, 1.2, 0.8, 0.7, 0.6, 0.5, 0.3)],
+                               [1, 1, 1, 1, 4 / 3, 1.6, 8 / 3])
+    np.testing.assert_allclose([snake_upsampling(p) for p in (2.0, 1.5, 1.0, 0.9, 0.8, 0.3)],
+                               [2.5, 1.875, 1.25, 1, 1, 1])
+    for bad in (None, "0.8", [0.8], True):
+        with pytest.raises(ValueError, match="positive number of mm"):
+            snake_scale(bad)
+    assert snake_scale(1e-9) == 16.0 and snake_upsampling(1e9) == 16.0   # bounded
     with pytest.raises(ValueError, match="at most one"):
         snake_contour(_ellipse_image((60, 60), 30.0, 30.0, 10.0, 10.0, 0.0),
                       _ellipse_points(30.0, 30.0, 10.0, 10.0, 0.0, 5), scale=2, upsample=2)
@@ -169,17 +175,19 @@ def test_snake_scale_follows_the_pixel_size():
         with pytest.raises(ValueError, match="positive"):
             snake_scale(bad)
     img = _ellipse_image((60, 60), 30.0, 30.0, 10.0, 10.0, 0.0)
-    for bad in (0, 1.5, True):
+    for bad in (0, 0.5, 17.0, float("nan"), "2", None, True):
         with pytest.raises(ValueError, match="scale"):
             snake_contour(img, _ellipse_points(30.0, 30.0, 10.0, 10.0, 0.0, 5), scale=bad)
+    with pytest.raises(ValueError, match="too small for a snake at scale 8"):
+        snake_contour(img, _ellipse_points(30.0, 30.0, 10.0, 10.0, 0.0, 5), scale=8)
 
 
 def test_fine_ct_pixels_keep_the_snake_on_the_outer_edge():
     """Clicks reused from a smaller cross-section (1.5 mm inside the outline, 1 mm noise) on
     slices of 0.3 mm pixels: the snake's lengths are in px, set for 0.8 mm pixels. With
     them as they are (scale 1) the snake does not reach the outline; contours_from_ct
-    scales them from the pixel size and lands on the outer edge (measured: 0.02 mm mean,
-    0.04 mm at most; with scale 1, 1.0-1.9 mm mean and about 5 mm at most)."""
+    scales them from the pixel size (8/3 here) and lands on the outer edge (measured:
+    0.01 mm mean, 0.05 mm at most; with scale 1, 1.0-1.9 mm mean and about 5 mm at most)."""
     px = 0.3
     s2c = np.eye(4)
     s2c[0, 0] = s2c[1, 1] = px
@@ -203,7 +211,8 @@ def test_coarse_ct_pixels_keep_the_snake_off_the_skin():
     outside the outline (1 mm noise): with the snake's lengths in px as set for 0.8 mm
     (upsample 1) its reach doubles or more and the contour strays towards the skin
     (measured: 0.4-1.5 mm mean at 1.5 mm, 2.2-7.6 mm at 2 mm); contours_from_ct runs it
-    on the slice interpolated to about 0.8 mm (0.16-0.18 mm mean)."""
+    on the slice interpolated to 0.8 mm (0.13-0.14 mm mean at 1.5 mm, 0.21-0.22 at 2 mm;
+    to whole numbers of times the pixels, 0.6 and 0.67 mm, it gave 0.16-0.18)."""
     for px in (1.5, 2.0):
         s2c = np.eye(4)
         s2c[0, 0] = s2c[1, 1] = px
