@@ -180,9 +180,10 @@ def test_edge_profile_fit_with_long_lengths_finds_the_edge():
 
 def test_fine_video_keeps_the_contour_on_the_outline():
     """A bone shaft on the clinic chain with 2048 x 1536 video of 0.156 mm pixels (the same
-    9-inch field): xray_contour scales its lengths by the field's size in pixels (3 here)
-    and lands within 0.15 mm of the true outline (median; measured 0.09-0.10 mm, at most
-    0.32 mm); with the lengths of 640 x 480 video (scale 1), 0.18-0.21 mm and up to
+    9-inch field): xray_contour scales its lengths by the field's size in pixels (3.27
+    here; 3.2 from the nominal pixel) and lands within 0.15 mm of the true outline
+    (median; measured 0.09-0.11 mm, 90th percentile 0.19-0.20, at most 0.53); with the
+    lengths of 640 x 480 video (scale 1), 0.18-0.21 mm, 90th percentile 0.62-0.63, up to
     1.1 mm."""
     bodies, axis = _shaft_scene()
     p = 0.15625
@@ -190,7 +191,7 @@ def test_fine_video_keeps_the_contour_on_the_outline():
     carm = make_carm(fluoro, ViewSpec(orbital_deg=5.0))
     frame = render(carm, bodies, fluoro=fluoro, rng=np.random.default_rng(3))
     mask = field_of_view_mask(frame.image_u8)
-    assert field_scale(mask) == 3
+    assert field_scale(mask) == pytest.approx(3.2, abs=0.1)      # the 3-px eroded field
     rng = np.random.default_rng(0)
     for edge in _true_edges(carm, axis):
         tree = cKDTree(edge)
@@ -198,24 +199,29 @@ def test_fine_video_keeps_the_contour_on_the_outline():
         clicks = (edge[[int(n * 0.3), int(n * 0.43), int(n * 0.57), int(n * 0.7)]]
                   + rng.normal(0.0, 1.5 * 0.5 / p, (4, 2)))    # 1.5 px of 640 x 480 video
         d = tree.query(xray_contour(frame.image_u8, clicks, fov_mask=mask).points_xy)[0] * p
-        assert np.median(d) < 0.15 and d.max() < 0.5, (np.median(d), d.max())
+        assert np.median(d) < 0.15 and np.percentile(d, 90) < 0.3 and d.max() < 0.7, (
+            np.median(d), np.percentile(d, 90), d.max())
         d1 = tree.query(xray_contour(frame.image_u8, clicks, fov_mask=mask,
                                      scale=1).points_xy)[0] * p
         assert np.percentile(d1, 90) > 2 * np.percentile(d, 90)
-        # the nominal pixel, when the observation states it, gives the same scale here
-        np.testing.assert_array_equal(
-            xray_contour(frame.image_u8, clicks, fov_mask=mask, pixel_mm=p).points_xy,
-            xray_contour(frame.image_u8, clicks, fov_mask=mask).points_xy)
+        # the nominal pixel, when the observation states it (scale 3.2 here)
+        dp = tree.query(xray_contour(frame.image_u8, clicks, fov_mask=mask,
+                                     pixel_mm=p).points_xy)[0] * p
+        assert np.median(dp) < 0.15 and np.percentile(dp, 90) < 0.3 and dp.max() < 0.7, (
+            np.median(dp), np.percentile(dp, 90), dp.max())
 
 
 def test_the_scale_follows_the_pixel_not_the_field():
     """A 150 mm intensifier on 1024 x 768 video of 0.25 mm: its field is 600 px across,
-    which field_scale reads as a 9-inch field (scale 1); the pixel asks for 2 (a held-out
-    review: seeds 2 and 3 were accepted 1.50 and 1.69 mm off at scale 1, 0.79 at 2)."""
+    which field_scale reads as a 9-inch field (scale 1.31); the pixel asks for 2 (a
+    held-out review: seeds 2 and 3 were accepted 1.50 and 1.69 mm off at scale 1, 0.79 at
+    2)."""
     yy, xx = np.mgrid[0:768, 0:1024]
     field = (xx - 511.5) ** 2 + (yy - 383.5) ** 2 <= (75.0 / 0.25) ** 2
-    assert field_scale(field) == 1
-    assert [pixel_scale(v) for v in (0.25, 0.156, 0.2, 0.333, 0.5, 0.667)] == [2, 3, 3, 2, 1, 1]
+    assert field_scale(field) == pytest.approx(1.31, abs=0.01)
+    np.testing.assert_allclose([pixel_scale(v) for v in (0.25, 0.15625, 0.2, 0.4, 0.45, 0.5,
+                                                         0.667)],
+                               [2.0, 3.2, 2.5, 1.25, 1.0, 1.0, 1.0])
     for bad in (0.0, -0.25, float("nan"), None, "0.25", [0.25]):
         with pytest.raises(ValueError, match="pixel_mm"):
             pixel_scale(bad)
