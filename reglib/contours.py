@@ -39,6 +39,8 @@ __all__ = [
     "snake_contour",
     "snake_scale",
     "snake_upsampling",
+    "positive_mm",
+    "resampling",
     "untangle_contour",
     "REFERENCE_CT_PIXEL_MM",
 ]
@@ -696,16 +698,23 @@ def snake_upsampling(pixel_mm: float) -> float:
     its lengths in px, 1.5 mm pixels gave it twice its reach: on ``experiment2`` (seed 2)
     contours near the distal pins leaked 20 mm out to the knee's skin and the registration
     ended 1.6 mm off (1.97 mm with 10 mm coarse slices), accepted."""
-    r = _positive_mm(pixel_mm) / REFERENCE_CT_PIXEL_MM
-    return float(min(r, MAX_RESAMPLING)) if r >= RESAMPLE_FROM else 1.0
+    return resampling(positive_mm(pixel_mm) / REFERENCE_CT_PIXEL_MM)
 
 
-def _positive_mm(pixel_mm) -> float:
-    number = isinstance(pixel_mm, int | float | np.integer | np.floating)
-    p = float(pixel_mm) if number and not isinstance(pixel_mm, bool) else float("nan")
+def positive_mm(value, what: str = "CT pixel size") -> float:
+    """``value`` as a float if it is a positive, finite number (mm), else a ``ValueError``
+    naming ``what`` (text, booleans and None are refused, not converted)."""
+    number = isinstance(value, int | float | np.integer | np.floating)
+    p = float(value) if number and not isinstance(value, bool) else float("nan")
     if not (np.isfinite(p) and p > 0):
-        raise ValueError(f"CT pixel size must be a positive number of mm, got {pixel_mm!r}")
+        raise ValueError(f"{what} must be a positive number of mm, got {value!r}")
     return p
+
+
+def resampling(ratio: float) -> float:
+    """:func:`snake_contour`'s ``scale`` or ``upsample`` for a ratio of pixel sizes: the
+    ratio from :data:`RESAMPLE_FROM` up (at most :data:`MAX_RESAMPLING`), else 1."""
+    return float(min(ratio, MAX_RESAMPLING)) if ratio >= RESAMPLE_FROM else 1.0
 
 
 def snake_scale(pixel_mm: float) -> float:
@@ -719,8 +728,7 @@ def snake_scale(pixel_mm: float) -> float:
     from the true bone at their 95th percentile, and a registration ended 1.9 mm off,
     accepted; at this scale 1.1 / 0.2 mm (0.3 mm pixels: 4.7 / 4.6 -> 0.4 / 0.2 mm).
     Coarser pixels keep scale 1 (:func:`snake_upsampling` is theirs)."""
-    r = REFERENCE_CT_PIXEL_MM / _positive_mm(pixel_mm)
-    return float(min(r, MAX_RESAMPLING)) if r >= RESAMPLE_FROM else 1.0
+    return resampling(REFERENCE_CT_PIXEL_MM / positive_mm(pixel_mm))
 
 
 def _pixel_mm(slice2ct: np.ndarray) -> float:

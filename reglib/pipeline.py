@@ -682,12 +682,13 @@ def _xray_pixel_mm(meta) -> float | None:
     not a positive number of mm is refused naming the key."""
     if not isinstance(meta, Mapping) or meta.get("xray_pixel_mm") is None:
         return None
-    v = meta["xray_pixel_mm"]
-    ok = isinstance(v, int | float | np.integer | np.floating) and not isinstance(v, bool)
-    if not (ok and np.isfinite(v) and 0 < v <= 10):
-        raise ValueError(f"observation: meta['xray_pixel_mm'] must be the video's pixel at the "
-                         f"intensifier's input, a number of mm in (0, 10], got {v!r:.40}")
-    return float(v)
+    from reglib.contours import positive_mm
+
+    what = "observation: meta['xray_pixel_mm'] (the video's pixel at the intensifier's input)"
+    v = positive_mm(meta["xray_pixel_mm"], what)
+    if v > 10:
+        raise ValueError(f"{what} must be at most 10 mm, got {v:g}")
+    return v
 
 
 def prepare(observation, *, options: EstimateOptions | None = None, calibrations=None,

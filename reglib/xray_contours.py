@@ -39,7 +39,7 @@ from typing import Literal
 import numpy as np
 from scipy import ndimage
 
-from reglib.contours import MAX_RESAMPLING, RESAMPLE_FROM, snake_contour
+from reglib.contours import positive_mm, resampling, snake_contour
 from reglib.geometry import as_flags
 
 __all__ = ["REFERENCE_FIELD_PX", "REFERENCE_PIXEL_MM", "XrayContour", "field_of_view_mask",
@@ -336,24 +336,15 @@ REFERENCE_FIELD_PX = 457.0
 
 
 def pixel_scale(pixel_mm: float) -> float:
-    """:data:`REFERENCE_PIXEL_MM` over ``pixel_mm`` (mm at the intensifier's input) from
-    :data:`reglib.contours.RESAMPLE_FROM` up (at most
-    :data:`reglib.contours.MAX_RESAMPLING`), else 1: on finer video the lengths in px of
+    """:func:`reglib.contours.resampling` of :data:`REFERENCE_PIXEL_MM` over ``pixel_mm``
+    (mm at the intensifier's input): on finer video the lengths in px of
     :func:`xray_contour` grow with it, so that the snake keeps its smoothing and reach, and
     the profile fit the blur widths it tries, in mm (an intensifier's blur is set in mm,
     not in pixels). Measured on ``experiment2`` with 2048 x 1536 video of 0.156 mm pixels
     (seed 1): with the reference's lengths the external contours lay 1.8-3.4 px from the
     true outline (median) and the registration ended 2.2 mm off, accepted."""
-    number = isinstance(pixel_mm, int | float | np.integer | np.floating)
-    p = float(pixel_mm) if number and not isinstance(pixel_mm, bool) else float("nan")
-    if not (np.isfinite(p) and p > 0):
-        raise ValueError(f"pixel_mm: expected a positive number of mm (the video's pixel at "
-                         f"the intensifier's input), got {pixel_mm!r}")
-    return _ratio_scale(REFERENCE_PIXEL_MM / p)
-
-
-def _ratio_scale(r: float) -> float:
-    return float(min(r, MAX_RESAMPLING)) if r >= RESAMPLE_FROM else 1.0
+    p = positive_mm(pixel_mm, "pixel_mm (the video's pixel at the intensifier's input)")
+    return resampling(REFERENCE_PIXEL_MM / p)
 
 
 def field_scale(fov_mask) -> float:
@@ -365,7 +356,7 @@ def field_scale(fov_mask) -> float:
     the frame's edge counts short."""
     mask = np.asarray(fov_mask, dtype=bool)
     diameter = 2.0 * np.sqrt(np.count_nonzero(mask) / np.pi)
-    return _ratio_scale(diameter / REFERENCE_FIELD_PX)
+    return resampling(diameter / REFERENCE_FIELD_PX)
 
 
 def _profile_lengths(m: float) -> dict:
