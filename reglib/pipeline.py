@@ -538,10 +538,11 @@ def _region_clicks(region: str, a: Mapping, n_slices: int):
     ints = {}
     for key in ("slice", "contour", "slices"):
         v = np.asarray(a[key]).reshape(-1)
-        if v.size and (not np.issubdtype(v.dtype, np.number) or not np.all(np.isfinite(v))
-                       or np.any(v != np.round(v))):
-            raise ValueError(f"{where}: {key} must hold whole numbers, got {v[:5].tolist()}")
-        ints[key] = v.astype(np.int64)
+        try:
+            ints[key] = as_whole(v, key) if v.size else v.astype(np.int64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{where}: {key} must hold whole numbers, got "
+                             f"{v[:5].tolist()}") from None
     sl, co, slices = ints["slice"], ints["contour"], ints["slices"]
     if not (len(xy) == len(sl) == len(co)):
         raise ValueError(f"{where}: clicks_xy, slice and contour differ in length ({len(xy)}, "

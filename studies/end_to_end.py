@@ -206,7 +206,7 @@ def _aim_warnings(case: Case) -> list[str]:
         if carm is None or v.region not in centres:
             continue
         try:
-            rho = float(carm.fov_rho(carm.project(T.apply(centres[v.region])[None]))[0])
+            rho = float(carm.point_rho(T.apply(centres[v.region])[None])[0])
         except ValueError:      # behind the source: nothing to say here
             continue
         if rho > 1.0:

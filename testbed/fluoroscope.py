@@ -695,6 +695,11 @@ class CArm:
         ``(N, 2)``; the field of view is ``rho <= 1``. Returns ``(N,)``."""
         return self._rho_of_undistorted(self.undistort_px(np.asarray(xy_px, dtype=np.float64)))
 
+    def point_rho(self, points_robot) -> np.ndarray:
+        """:meth:`fov_rho` of robot-frame points ``(N, 3)`` mm as seen from the source (the
+        central projection, without the distortion's round trip). Returns ``(N,)``."""
+        return self._rho_of_undistorted(self.project_undistorted(points_robot))
+
     def _rho_of_undistorted(self, xy_u) -> np.ndarray:
         p = self._plane_points(xy_u)
         return np.hypot(p[..., 0], p[..., 1]) / self.fov_radius_mm

@@ -144,11 +144,7 @@ def plan_sweep(carm, spec: RobotSpec) -> list[SweepPose]:
     # those within 0.9 of the field's radius at their depth (nearer the rim, the detector's
     # window is cut). A review's 90 mm offset left 2 of 8 in a 9-inch field, and the views
     # failed as "0 validation markers", naming no field
-    beads = centre - span / 2 * d + s[:, None] * d
-    rel = beads - src
-    depth = rel @ axis
-    rho = np.linalg.norm(rel - np.outer(depth, axis), axis=1) / (
-        depth / carm.sid_mm * carm.fov_radius_mm)
+    rho = carm.point_rho(centre - span / 2 * d + s[:, None] * d)
     inside = int(np.count_nonzero(rho <= VALIDATION_FIELD_SHARE))
     if inside < MIN_VALIDATION_BEADS:
         raise ValueError(
