@@ -17,7 +17,10 @@ so the surface stays manifold. A branch is made only when the single contour ove
 (seen from above, :func:`contours_overlap`); when it overlaps one of them alone, as where
 the lowest slice of a real femur cuts one condyle and the next one both, it is tiled with
 that one and the other starts there as an open end (bridging it would join a condyle to
-its neighbour's tip and give edges of four triangles). The result is a consistently oriented
+its neighbour's tip and give edges of four triangles). Other counts (three cross-sections in
+a slice, as a ridge or an osteophyte of a real femur can make) are grouped by overlap: the
+contours of each group are bridged into one loop per slice, nearest first, never at the ends
+of the bridge the same slice got for its other strip. The result is a consistently oriented
 manifold surface with boundary (normals point out of the bone); its ends are open.
 
 Simplification within a tolerance, verified afterwards with exact closest points (and backed
@@ -256,10 +259,7 @@ def _tile_indices(ia, ib, pts, quality, method, start):
 def bridge_contours(pts: np.ndarray, idx1: np.ndarray, idx2: np.ndarray) -> np.ndarray:
     """Join two counter-clockwise index loops into pts (V, 3) by a bridge between their
     closest vertices; returns the keyhole loop (the two bridge vertices appear twice)."""
-    i, j = _closest_pair(pts[idx1], pts[idx2])
-    l1 = np.roll(idx1, -i)
-    l2 = np.roll(idx2, -j)
-    return np.concatenate([l1, l1[:1], l2, l2[:1]])
+    return bridge_loops(pts, [np.asarray(idx1), np.asarray(idx2)])
 
 
 # --------------------------------------------------------------------------- surfaces
@@ -283,9 +283,11 @@ def surface_from_contours(slices, *, quality: Quality = "area",
     Parameters
     ----------
     slices : sequence over slices (increasing z) of sequences of (K, 3) contours in mm (or
-        :class:`reglib.contours.SliceContours`). One or two contours per slice; between
-        neighbours, equal counts are matched by nearest centroid, one and two are joined by a
-        bridge (branching).
+        :class:`reglib.contours.SliceContours`). Between neighbours, one contour is tiled
+        with one, two with two when their nearest centroids pair contours that overlap,
+        one with two by a bridge (branching); any other counts by their overlaps: each
+        group of contours that overlap across the two slices is joined into one loop per
+        slice by bridges, and a contour overlapping none is an open end.
     quality : tiling quality, "area" or "compactness".
     simplify_tol_mm : if given (0-0.3 mm is the paper's range), simplify within it.
     simplify : "contours" (default): every contour is reduced by Douglas-Peucker
@@ -370,10 +372,33 @@ def _tile_stack(stack, quality):
     loops = [[_ccw(np.arange(len(c)) + o, vertices) for c, o in zip(s, offs, strict=True)]
              for s, offs in zip(stack, offsets, strict=True)]
     faces = []
-    for k in range(len(stack) - 1):
-        for la, lb in _match(loops[k], loops[k + 1], vertices, k):
-            faces.append(_tile_strip(la, lb, vertices, quality))
+    ends: set[int] = set()   # the vertices that end a bridge already (a slice is bridged
+    for k in range(len(stack) - 1):   # for the strip below it and again for the one above)
+        for group in _match(loops[k], loops[k + 1], vertices, k):
+            faces.append(_tile_group(*group, vertices, quality, ends))
     return vertices, np.vstack(faces)
+
+
+def _tile_group(lo: list, hi: list, vertices, quality, ends: set) -> np.ndarray:
+    """The strip between the loops ``lo`` of one slice and ``hi`` of the next (a group of
+    :func:`_match`): each side bridged into one loop (:func:`bridge_loops`, avoiding and
+    then adding to the bridge ends ``ends``). When the bridged loops cannot be tiled into a
+    manifold strip, the largest loop of each side alone, if they overlap (the others are
+    then open ends there)."""
+    la, lb = (bridge_loops(vertices, x, avoid=ends) for x in (lo, hi))
+    try:
+        faces = _tile_strip(la, lb, vertices, quality)
+    except ValueError:
+        if len(lo) == len(hi) == 1:
+            raise
+        a, b = (max(x, key=lambda c: abs(_polygon_area(vertices[c]))) for x in (lo, hi))
+        if not contours_overlap(vertices[a], vertices[b]):
+            raise
+        return _tile_strip(a, b, vertices, quality)
+    for loop in (la, lb):    # a bridge end appears twice in its loop
+        _, inverse, counts = np.unique(loop, return_inverse=True, return_counts=True)
+        ends.update(loop[counts[inverse] > 1].tolist())
+    return faces
 
 
 def _strip_is_manifold(faces: np.ndarray) -> bool:
@@ -414,28 +439,89 @@ def _tile_strip(la, lb, vertices, quality, tries: int = 8) -> np.ndarray:
     return best[0]
 
 
-def _match(lo, hi, vertices, k):
-    """Pairs of index loops to tile between slice k and k + 1 (bridging one to two)."""
-    if len(lo) == len(hi):
-        if len(lo) == 1:
-            return [(lo[0], hi[0])]
+def _match(lo, hi, vertices, k) -> list[tuple[list, list]]:
+    """The groups of index loops to tile between slice k and k + 1, each ``(loops of slice
+    k, loops of slice k + 1)``: one to one; two to two when their nearest centroids pair
+    contours that overlap; one to two (a branching, the two bridged when the one overlaps
+    both, else the one with the one it overlaps); any other counts by their overlaps
+    (:func:`_match_overlaps`)."""
+    if len(lo) == 1 and len(hi) == 1:
+        return [([lo[0]], [hi[0]])]
+    if len(lo) == len(hi) == 2:
         cl = np.array([vertices[x].mean(axis=0) for x in lo])
         ch = np.array([vertices[x].mean(axis=0) for x in hi])
         order = [int(np.argmin(np.linalg.norm(ch[:, :2] - c[:2], axis=1))) for c in cl]
-        if len(set(order)) != len(order):
-            raise ValueError(f"slices {k} and {k + 1}: cannot match their contours one to one")
-        return [(lo[i], hi[o]) for i, o in enumerate(order)]
+        pairs = [([lo[i]], [hi[o]]) for i, o in enumerate(order)]
+        if len(set(order)) == len(order) and all(
+                contours_overlap(vertices[a[0]], vertices[b[0]]) for a, b in pairs):
+            return pairs
+        return _match_overlaps(lo, hi, vertices, k)
     if sorted((len(lo), len(hi))) == [1, 2]:
         one, two = (lo[0], hi) if len(lo) == 1 else (hi[0], lo)
         meets = [contours_overlap(vertices[one], vertices[c]) for c in two]
         if meets[0] != meets[1]:  # the single contour continues one of the two only
             match = two[0] if meets[0] else two[1]
-            return [(lo[0], match) if len(lo) == 1 else (match, hi[0])]
-        if len(lo) == 2:
-            return [(bridge_contours(vertices, lo[0], lo[1]), hi[0])]
-        return [(lo[0], bridge_contours(vertices, hi[0], hi[1]))]
-    raise ValueError(f"slices {k} and {k + 1} hold {len(lo)} and {len(hi)} contours; "
-                     "only 1-1, 2-2 and 1-2 branching are supported")
+            return [([lo[0]], [match]) if len(lo) == 1 else ([match], [hi[0]])]
+        return [(list(lo), list(hi))]
+    return _match_overlaps(lo, hi, vertices, k)
+
+
+def _match_overlaps(lo, hi, vertices, k) -> list[tuple[list, list]]:
+    """:func:`_match` for any counts of contours: the groups of contours that overlap (seen
+    along z; the connected parts of the graph whose edges join a contour of slice k to one
+    of slice k + 1 that it overlaps). A contour that overlaps none of the other slice is an
+    open end there (a branch that starts or stops between the slices, as a condyle's tip or
+    a ridge that a slice cuts off). ``ValueError`` when no contour of one slice overlaps one
+    of the other."""
+    n_lo = len(lo)
+    parent = list(range(n_lo + len(hi)))
+
+    def root(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i, a in enumerate(lo):
+        for j, b in enumerate(hi):
+            if contours_overlap(vertices[a], vertices[b]):
+                parent[root(i)] = root(n_lo + j)
+    groups: dict[int, tuple[list, list]] = {}
+    for i in range(len(parent)):
+        side = 0 if i < n_lo else 1
+        groups.setdefault(root(i), ([], []))[side].append(lo[i] if side == 0 else hi[i - n_lo])
+    pairs = [g for g in groups.values() if g[0] and g[1]]
+    if not pairs:
+        raise ValueError(f"slices {k} and {k + 1} hold {len(lo)} and {len(hi)} contours, and "
+                         "none of one slice overlaps one of the other (seen along z)")
+    return pairs
+
+
+def bridge_loops(pts: np.ndarray, loops: list[np.ndarray], *, avoid=()) -> np.ndarray:
+    """One index loop from several counter-clockwise ones into ``pts`` (V, 3): starting from
+    the first, each time the nearest remaining loop is bridged to it as
+    :func:`bridge_contours` does, between the closest vertices that the joined loop holds
+    once and that are not in ``avoid`` (a set of vertex indices: the ends of the bridges
+    the same contours got for the strip on their other side, which would otherwise be
+    chosen again and give the bridge's edge four triangles) where such vertices exist."""
+    rest = list(loops)
+    out = rest.pop(0)
+    while rest:
+        def usable(loop):
+            _, inverse, counts = np.unique(loop, return_inverse=True, return_counts=True)
+            ok = (counts[inverse] == 1) & ~np.isin(loop, list(avoid))
+            return np.flatnonzero(ok) if ok.any() else np.arange(len(loop))
+
+        at_out = usable(out)
+        tree = cKDTree(pts[out[at_out]])
+        dist = [float(tree.query(pts[c[usable(c)]])[0].min()) for c in rest]
+        nxt = rest.pop(int(np.argmin(dist)))
+        at_nxt = usable(nxt)
+        i, j = _closest_pair(pts[out[at_out]], pts[nxt[at_nxt]])
+        l1 = np.roll(out, -int(at_out[i]))
+        l2 = np.roll(nxt, -int(at_nxt[j]))
+        out = np.concatenate([l1, l1[:1], l2, l2[:1]])
+    return out
 
 
 def points_in_polygon(points_xy, polygon_xy) -> np.ndarray:

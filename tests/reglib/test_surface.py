@@ -109,8 +109,54 @@ def test_ellipse_into_two_circles_branching_is_manifold_and_oriented():
     low = s.vertices[s.faces].mean(axis=1)[:, 2] < 1.0
     assert _outward_fraction(s.vertices, s.faces[low], centre) == 1.0
     assert _outward_fraction(s.vertices, s.faces[~low], centre) > 0.9
-    with pytest.raises(ValueError, match="1-2 branching"):
+    # two slices of which no contour overlaps one of the other: nothing to join
+    with pytest.raises(ValueError, match="none of one slice overlaps"):
         surface_from_contours([slices[0], [_ellipse(0, 0, 3, 3, 5.0, 10)] * 3])
+
+
+@pytest.mark.parametrize("name", ["one into three", "a new island", "islands end",
+                                  "a notch in one slice", "two into two across"])
+def test_any_counts_of_contours_tile_by_overlap_into_an_oriented_manifold(name):
+    """Three cross-sections in a slice (a ridge or an osteophyte of a real femur): the
+    contours that overlap across two slices are bridged into one loop per slice and tiled,
+    a contour overlapping none is left out of that strip; every strip manifold, the
+    winding consistent, and the boundary exactly the end slices' edges."""
+    e = _ellipse
+    slices, open_ends, unused = {
+        "one into three": (
+            [[e(0, 0, 25, 8, 0, 80)], [e(0, 0, 24, 8, 1, 78)],
+             [e(-15, 0, 6, 6, 2, 30), e(0, 0, 5, 5, 2, 28), e(15, 0, 6, 6, 2, 30)],
+             [e(-15, 0, 5.5, 6, 3, 30), e(0, 0, 5, 5, 3, 28), e(15, 0, 6, 5.5, 3, 30)]],
+            80 + 30 + 28 + 30, 0),
+        "a new island": (    # 2 -> 3 -> 2: the island is tiled with nothing
+            [[e(-12, 0, 6, 6, 0, 30), e(12, 0, 6, 6, 0, 30)],
+             [e(-12, 0, 6, 6, 1, 30), e(12, 0, 6, 6, 1, 30), e(0, 20, 2, 2, 1, 12)],
+             [e(-12, 0, 6, 6, 2, 30), e(12, 0, 6, 6, 2, 30)]],
+            4 * 30, 12),
+        "islands end": (     # 3 -> 1: two small contours beside the bone end there
+            [[e(0, 0, 10, 10, 0, 40), e(30, 0, 2, 2, 0, 10), e(-30, 0, 2, 2, 0, 10)],
+             [e(0, 0, 10, 10, 1, 40)]],
+            40 + 40, 20),
+        "a notch in one slice": (   # 1 -> 2 -> 1: bridged for both strips, not twice
+            [[e(0, 0, 20, 8, 0, 70)],    # at the same vertices (an edge of 4 triangles)
+             [e(-10, 0, 8, 6, 1, 40), e(10, 0, 8, 6, 1, 40)],
+             [e(0, 0, 20, 8, 2, 70)]],
+            70 + 70, 0),
+        "two into two across": (   # each lower contour overlaps both upper ones
+            [[e(-6, 0, 5, 5, 0, 30), e(6, 0, 5, 5, 0, 30)],
+             [e(0, -5, 7, 4, 1, 30), e(0, 5, 7, 4, 1, 30)]],
+            4 * 30, 0),
+    }[name]
+    s = surface_from_contours(slices)
+    np.testing.assert_array_equal(s.vertices, np.vstack([c for sl in slices for c in sl]))
+    info = check_manifold(s.vertices, s.faces)
+    assert info["manifold"] and info["max_faces_per_edge"] == 2, info
+    assert trimesh.Trimesh(s.vertices, s.faces, process=False).is_winding_consistent
+    # an island that overlaps nothing in either neighbour has no triangle
+    assert len(s.vertices) - len(np.unique(s.faces)) == unused
+    # the boundary: the lowest and the highest slice's contours (a bridge's two sides
+    # each get one triangle of the strip, so it is no boundary)
+    assert info["boundary_edges"] == open_ends
 
 
 def test_surface_of_a_cylinder_is_exact_and_simplifies_within_tolerance():
