@@ -316,14 +316,15 @@ def visible_outline(femur_mask, fov, *, occluder_mask=None, edge_margin_px: floa
     """Runs of the femur's outline that a user can see: (K, 2) (x, y) px chains.
 
     The outline of ``femur_mask`` (H, W) bool is cut where it comes within
-    ``edge_margin_px`` of the field's rim (``fov`` (H, W) bool) or within
-    ``occluder_margin_px`` of ``occluder_mask`` (instruments' shadows); runs shorter than
-    ``min_len_px`` points are dropped.
+    ``edge_margin_px`` of the field's rim (``fov`` (H, W) bool; beyond the frame is outside
+    the field too, as where a zoomed intensifier's circle is cut by the video's rectangle)
+    or within ``occluder_margin_px`` of ``occluder_mask`` (instruments' shadows); runs
+    shorter than ``min_len_px`` points are dropped.
     """
     from scipy.ndimage import distance_transform_edt
     from skimage.measure import find_contours
 
-    ok = distance_transform_edt(fov) > edge_margin_px
+    ok = distance_transform_edt(np.pad(np.asarray(fov, bool), 1))[1:-1, 1:-1] > edge_margin_px
     if occluder_mask is not None and np.any(occluder_mask):
         ok &= distance_transform_edt(~np.asarray(occluder_mask, bool)) > occluder_margin_px
     H, W = ok.shape
@@ -358,6 +359,8 @@ def xray_clicks(frame, *, femur_bodies, instrument_bodies, spec: OperatorSpec, r
                              edge_margin_px=spec.xray_edge_margin_px,
                              occluder_margin_px=spec.instrument_margin_px,
                              min_len_px=spec.xray_min_trace_px)
-    traces = [clicks_along(c, spec.xray_clicks, spec.xray_click_noise_px, rng, closed=False)
-              for c in chains]
+    H, W = frame.fov.shape
+    # a click lands on the screen's image, whatever its error
+    traces = [np.clip(clicks_along(c, spec.xray_clicks, spec.xray_click_noise_px, rng,
+                                   closed=False), 0.0, [W - 1.0, H - 1.0]) for c in chains]
     return XrayClicks(view, traces)

@@ -91,6 +91,29 @@ def test_xray_clicks_only_on_the_visible_outline():
     assert len(chains) == 1
 
 
+def test_xray_clicks_keep_off_the_frame_edge_of_a_zoomed_field():
+    """A zoomed intensifier's circle is cut by the video's rectangle: the frame's edge is
+    the field's edge too, and the outline's runs stop short of it (before, they ran to the
+    edge, and clicks with their error fell outside the image, where reglib refuses them:
+    two of four views lost on 640 x 480 video of 0.25 mm)."""
+    H, W = 120, 160
+    fov = _disk((H, W), (80, 60), 120)          # the circle holds the whole frame
+    femur = np.zeros((H, W), bool)
+    femur[40:80, :] = True                        # a shaft across the frame, edge to edge
+    margin = 6.0
+    chains = visible_outline(femur, fov, occluder_mask=None, edge_margin_px=margin,
+                             occluder_margin_px=4.0, min_len_px=10)
+    pts = np.vstack(chains)
+    assert len(chains) == 2                       # the two sides of the shaft
+    assert pts[:, 0].min() > margin - 1 and pts[:, 0].max() < W - 1 - (margin - 1)
+    frame = SimpleNamespace(fov=fov, path_mm={"femur": femur * 10.0})
+    spec = OperatorSpec(xray_clicks=8, xray_click_noise_px=20.0, xray_min_trace_px=10)
+    for seed in range(5):   # errors far larger than the margin: still on the image
+        got = np.vstack(xray_clicks(frame, femur_bodies=("femur",), instrument_bodies=(),
+                                    spec=spec, rng=np.random.default_rng(seed)).traces)
+        assert got.min() >= 0 and np.all(got.max(axis=0) <= [W - 1, H - 1])
+
+
 @pytest.mark.slow
 def test_ct_clicks_follow_the_bone_and_leave_out_the_head():
     from testbed.ct import CTSpec, scan
