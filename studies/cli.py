@@ -256,7 +256,14 @@ def cmd_study(args) -> int:
         from testbed.scene import find_scene, load_scene
 
         _scene_path = find_scene(args.scene)
-        load_scene(_scene_path)   # a malformed scene is refused before --out is made
+        scene = load_scene(_scene_path)   # a malformed scene is refused before --out is made
+        if scene.scene.kind == "operating_room":
+            # ...and one whose world cannot be built (a user mesh that cannot be read, a view
+            # the C-arm or the robot cannot take), as testbed run refuses it: exit 2 naming
+            # the field, not a failed trial per case after the work has started
+            from testbed.simulate import checked_world
+
+            checked_world(scene, scene.scene.seed if args.seed is None else args.seed)
     made = not Path(args.out).exists()
     out = _out_folder(args.out)
     try:
@@ -328,12 +335,12 @@ def cmd_score(args) -> int:
     if Path(args.out).resolve().is_relative_to(dataset.resolve()):
         raise UsageError(f"--out {args.out}: inside the dataset {dataset}; the scores go to a "
                          "folder of their own (the dataset stays as generate wrote it)")
+    missing = missing_cases(dataset)   # a malformed dataset.json: refused before the work
     out = _out_folder(args.out)
     score_dataset(dataset, out, method=args.method, workers=args.workers,
                   scheduler=args.scheduler, progress=sys.stderr.isatty())
     print(f"wrote {out / 'results.csv'} and {out / 'report.md'}")
     status = _failed_trials(out)
-    missing = missing_cases(dataset)
     if missing:
         print(f"{PROG}: {dataset}/dataset.json lists {len(missing)} case(s) the folder does "
               f"not hold ({', '.join(missing[:5])}{', ...' if len(missing) > 5 else ''}): not "
@@ -583,7 +590,8 @@ def main(argv=None) -> int:
         if debug:
             raise
         if isinstance(exc, SceneError | ValueError | FileNotFoundError):
-            print(f"{PROG}: {_names_scene_file(exc, _one_line(str(exc)))}", file=sys.stderr)
+            msg = _names_scene_file(exc, _one_line(str(exc)))
+            print(msg if msg.startswith(f"{PROG} ") else f"{PROG}: {msg}", file=sys.stderr)
             return 2
         print(f"{PROG}: internal error: {type(exc).__name__}: {_one_line(str(exc))} "
               "(TESTBED_DEBUG=1 shows the traceback)", file=sys.stderr)

@@ -24,7 +24,8 @@ def run_main_job(scene, *, scene_path, seed=None, out=None, progress: bool = Fal
     seed = scene.scene.seed if seed is None else int(seed)
     if scene.scene.kind == "synthetic":
         out = Path(out) if out is not None else Path("runs") / scene.scene.name
-        return _synthetic_job(scene, scene_path=scene_path, seed=seed, out=out)
+        return _synthetic_job(scene, scene_path=scene_path, seed=seed, out=out,
+                              progress=progress)
     from studies.end_to_end import run_case, write_overlays
 
     result, case, start, est = run_case(scene, seed=seed, progress=progress)
@@ -37,7 +38,7 @@ def run_main_job(scene, *, scene_path, seed=None, out=None, progress: bool = Fal
     return result
 
 
-def _synthetic_job(scene, *, scene_path, seed, out) -> dict:
+def _synthetic_job(scene, *, scene_path, seed, out, progress: bool = False) -> dict:
     from reglib.pose import solve_pose
     from studies import run_study
     from studies.fig9 import summary
@@ -65,10 +66,12 @@ def _synthetic_job(scene, *, scene_path, seed, out) -> dict:
             "message": res.message,
         }
     t0 = time.perf_counter()
-    run_study("fig9", out / "fig9", scene=str(scene_path), seed=seed, quick=True)
+    run_study("fig9", out / "fig9", scene=str(scene_path), seed=seed, quick=True,
+              progress=progress)
     timings["study_fig9_quick"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    run_study("table1", out / "table1", scene=str(scene_path), seed=seed, quick=True)
+    run_study("table1", out / "table1", scene=str(scene_path), seed=seed, quick=True,
+              progress=progress)
     timings["study_table1_quick"] = time.perf_counter() - t0
 
     import pandas as pd

@@ -41,6 +41,16 @@ __all__ = ["CTScan", "CTSpec", "sample_hu_reference", "scan", "slice_schedule"]
 Spacing = Annotated[float, Field(ge=0.1, le=20.0)]
 
 
+#: the fields each slice schedule reads (any other CT field applies to every schedule)
+SCHEDULE_FIELDS = {
+    "clinical": ("fine_spacing_mm", "fine_half_width_mm", "coarse_spacing_mm",
+                 "distal_height_mm", "proximal_depth_mm", "distal_range_mm",
+                 "proximal_range_mm"),
+    "uniform": ("uniform_spacing_mm", "uniform_range_mm"),
+    "explicit": ("slice_z_mm",),
+}
+
+
 class CTSpec(Spec):
     """``[ct]``: the CT scanner and its slice schedule.
 
@@ -87,9 +97,17 @@ class CTSpec(Spec):
     def _check(self):
         if self.schedule == "explicit" and len(self.slice_z_mm) == 0:
             raise ValueError("schedule 'explicit' needs slice_z_mm (a list of slice positions)")
-        if self.schedule != "explicit" and len(self.slice_z_mm):
-            raise ValueError(f"slice_z_mm is only used by schedule 'explicit' (this scene's is "
-                             f"{self.schedule!r}): set schedule = \"explicit\" or leave it out")
+        # a field that only another schedule reads, set away from its default, would be
+        # ignored without a word (the value, not whether it was written: a scene dumped
+        # with every field, as the error budget's variants are, holds the defaults)
+        for name in sorted(n for names in SCHEDULE_FIELDS.values() for n in names):
+            used_by = [k for k, names in SCHEDULE_FIELDS.items() if name in names]
+            default = type(self).model_fields[name].default
+            if self.schedule not in used_by and getattr(self, name) != default:
+                only = " or ".join(repr(k) for k in used_by)
+                raise ValueError(f"{name} is only used by schedule {only} (this scene's is "
+                                 f"{self.schedule!r}): set schedule = {used_by[0]!r} or leave "
+                                 f"{name} out")
         for name in ("distal_range_mm", "proximal_range_mm", "uniform_range_mm"):
             r = getattr(self, name)
             if r is not None and not r[0] < r[1]:

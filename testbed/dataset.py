@@ -618,6 +618,11 @@ def _read_entry(case_dir: Path, group: str, name: str, rec: dict, transforms: di
                 _same_layout(path, a, rec["keys"][k], f"array {k!r}")
             return out
         a = np.load(path, allow_pickle=False)
+        if not isinstance(a, np.ndarray):     # an .npz archive under the .npy name
+            a.close()
+            raise ValueError(f"{path}: not a .npy array (numpy reads an .npz archive there); "
+                             f"{CASE_FILE} says one array of {rec.get('dtype')} "
+                             f"{rec.get('shape')}")
         _same_layout(path, a, rec, "array")
         return a
     if group == "meshes":
@@ -638,7 +643,14 @@ def _read_entry(case_dir: Path, group: str, name: str, rec: dict, transforms: di
             raise ValueError(f"{case_dir / 'points.json'}: no points {name!r}")
         p = points[name]
         where = f"{case_dir / 'points.json'}: points {name!r}"
+        if not (isinstance(p, dict) and p.get("kind") in ("named", "array")
+                and "points" in p):
+            raise ValueError(f"{where}: expected an object {{\"kind\": \"named\" or "
+                             f"\"array\", \"points\": ...}}, got {p!r:.80}")
         if p["kind"] == "named":
+            if not isinstance(p["points"], dict):
+                raise ValueError(f"{where}: kind 'named' holds an object label -> [x, y, z], "
+                                 f"got {type(p['points']).__name__}")
             out = {}
             for k, v in p["points"].items():
                 a = as_points(v, f"{where}, {k!r}", min_count=1)

@@ -12,6 +12,7 @@ Euler angles, deg). Kinds:
 
 from __future__ import annotations
 
+import re
 from typing import Literal
 
 import numpy as np
@@ -30,6 +31,13 @@ __all__ = ["InstrumentSpec", "instrument_mesh", "make_instrument", "scene_instru
 #: names of the bodies the world builds itself (testbed.world): an instrument cannot take them
 RESERVED_NAMES = frozenset({"soft_tissue", "femur", "cancellous", "canal", "pin_proximal",
                             "pin_distal_1", "pin_distal_2", "foam", "table"})
+
+
+def file_key(name: str) -> str:
+    """A body's name as a dataset's file names carry it (``meshes/robot_<key>.ply``): every
+    character but ASCII letters, digits, ``_``, ``.`` and ``-`` replaced by ``_``. Two names
+    whose keys differ only in case name one file on a case-insensitive disk."""
+    return re.sub(r"[^A-Za-z0-9_.\-]", "_", name)
 
 
 class InstrumentSpec(Spec):

@@ -544,22 +544,32 @@ class Robot:
             f.write(text)
         if self.spec.urdf == "builtin":
             return pybullet.loadURDF(path, useFixedBase=True, physicsClientId=self.client)
-        # a user's URDF: Bullet prints its parser's errors and warnings on the C stdout,
-        # where they would spoil a --json output; they go to stderr instead
+        # a user's URDF: Bullet prints its parser's errors and warnings (without a final
+        # newline) on the C stdout and stderr, where they would spoil a --json output and a
+        # one-line error; they are caught in a file, and the last one goes into the error
         import sys
+        import tempfile
 
         sys.stdout.flush()
-        saved = os.dup(1)
-        try:
-            os.dup2(2, 1)
-            return pybullet.loadURDF(path, useFixedBase=True, physicsClientId=self.client)
-        except pybullet.error as exc:
-            os.write(2, b"\n")   # Bullet's messages end without one
-            raise ValueError(f"robot.urdf: {self.spec.urdf!r} cannot be loaded as a URDF "
-                             f"(pybullet: {exc}; its parser's messages are above)") from None
-        finally:
-            os.dup2(saved, 1)
-            os.close(saved)
+        sys.stderr.flush()
+        saved = [os.dup(1), os.dup(2)]
+        with tempfile.TemporaryFile() as log:
+            try:
+                os.dup2(log.fileno(), 1)
+                os.dup2(log.fileno(), 2)
+                return pybullet.loadURDF(path, useFixedBase=True, physicsClientId=self.client)
+            except pybullet.error as exc:
+                log.seek(0)
+                said = [ln.strip() for ln in log.read().decode(errors="replace").splitlines()
+                        if ln.strip()]
+                last = f"; its parser said: {said[-1][:200]}" if said else ""
+                raise ValueError(f"robot.urdf: {self.spec.urdf!r} cannot be loaded as a URDF "
+                                 f"(pybullet: {exc}{last})") from None
+            finally:
+                os.dup2(saved[0], 1)
+                os.dup2(saved[1], 2)
+                for fd in saved:
+                    os.close(fd)
 
     def close(self) -> None:
         if not self._closed:

@@ -36,7 +36,7 @@ from pydantic import Field, ValidationError, model_validator
 
 from testbed.ct import CTSpec
 from testbed.fluoroscope import FluoroscopeSpec, ViewSpec
-from testbed.instruments import InstrumentSpec
+from testbed.instruments import RESERVED_NAMES, InstrumentSpec, file_key
 from testbed.operator import OperatorSpec
 from testbed.phantom import PhantomSpec
 from testbed.robot import RobotSpec
@@ -214,6 +214,16 @@ class Scene(Spec):
                                  f"{self.views[first[key]].name!r}: view names must be unique "
                                  "(ignoring case)")
             first[key] = i
+        # an instrument's name names its mesh file in a dataset (testbed.instruments.file_key)
+        taken = {file_key(n).lower(): f"the world's own body {n!r}" for n in RESERVED_NAMES}
+        for i, ins in enumerate(self.instruments):
+            key = file_key(ins.name).lower()
+            if key in taken:
+                raise ValueError(f"instruments[{i}].name {ins.name!r} gives the same file name "
+                                 f"as {taken[key]} (names count alike when they differ only in "
+                                 "case or in characters other than ASCII letters, digits, '_', "
+                                 "'.' and '-'); instrument names must be distinct")
+            taken[key] = f"instruments[{i}].name {ins.name!r}"
         return self
 
 
@@ -243,8 +253,10 @@ def _describe(err: dict) -> str:
     msg = err.get("msg", "invalid value")
     if msg.startswith("Value error, "):
         msg = msg[len("Value error, "):]
-    if not err.get("loc"):  # a check across fields: its message names them; the input is
-        return msg          # the whole file
+    # a check across fields (of the file, or of a table: the input is the whole of it) names
+    # them in its message; a message that shows the value already is not followed by it
+    if not err.get("loc") or isinstance(got, dict) or "got " in msg:
+        return msg
     return f"{msg}; got {shown} ({type(got).__name__})"
 
 

@@ -31,13 +31,13 @@ the stages ask for them.
 
 from __future__ import annotations
 
-import re
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from testbed.dataset import Observation, Truth, Volume
+from testbed.instruments import file_key
 
 __all__ = [
     "CtCase",
@@ -145,10 +145,6 @@ def _no_trace_message(i: int, vspec, frame, scene) -> str:
             f"instrument_margin_px = {op.instrument_margin_px:g} px from an instrument; the "
             f"detector is fluoroscope.width_px x height_px = {fl.width_px} x {fl.height_px} of "
             f"pixel_mm = {fl.pixel_mm:g} (check those, the view's aim and the instruments)")
-
-
-def _safe(name: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_.\-]", "_", name)
 
 
 @dataclass
@@ -273,7 +269,7 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
     tru["meshes"].update({k: m for k, m in meshes.items() if m is not None})
     for body in [*world.table, *world.instruments]:  # already in the robot frame
         if body.mesh is not None:
-            tru["meshes"]["robot_" + _safe(body.name)] = body.mesh
+            tru["meshes"]["robot_" + file_key(body.name)] = body.mesh
     tru["points"]["pins_ct"] = {k: np.asarray(v, float) for k, v in ph.pins.items()}
     tru["points"]["pins_robot"] = {k: np.asarray(v, float) for k, v in world.pins_robot.items()}
     if ph.landmarks:
@@ -296,7 +292,7 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
         "z_mm": z, "thickness_mm": np.asarray(ct.slice_thickness_mm, dtype=np.float64),
         "slice2ct": np.asarray(ct.slice2ct, dtype=np.float64), "uniform": np.array(uniform)}
     for region, cc in regions.items():
-        obs["arrays"][f"ct_clicks_{_safe(region)}"] = cc.to_arrays()
+        obs["arrays"][f"ct_clicks_{file_key(region)}"] = cc.to_arrays()
     tick("ct", t0)
     xray_op_rng = ctc.xray_operator_rng
 
@@ -314,7 +310,7 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
     robot = Robot(scene.robot, rng=robot_gen) if sweeps else None
     try:
         for i, vspec in enumerate(scene.views):
-            v = _safe(vspec.name)
+            v = file_key(vspec.name)
             carm = make_carm(scene.fluoroscope, vspec, view_index=i)
             carms[vspec.name] = carm
             tru["transforms"][f"carm2robot_{v}"] = carm.carm2robot
@@ -381,9 +377,9 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
     bar.close()
 
     obs_meta = {
-        "views": [_safe(v.name) for v in scene.views],
+        "views": [file_key(v.name) for v in scene.views],
         "view_regions": [getattr(v, "region", "") for v in scene.views],
-        "regions": sorted(_safe(r) for r in regions),
+        "regions": sorted(file_key(r) for r in regions),
         "image_size_px": [int(scene.fluoroscope.width_px), int(scene.fluoroscope.height_px)],
         # the video's nominal pixel at the intensifier's input (a device's specification,
         # as DICOM's imager pixel spacing: the same at every pose, no distortion in it)

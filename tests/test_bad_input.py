@@ -141,7 +141,7 @@ def test_a_missing_scene_path_is_an_error_not_the_named_scene(tmp_path, capsys):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("command", ["run", "generate"])
+@pytest.mark.parametrize("command", ["run", "generate", "study"])
 def test_a_scene_the_robot_cannot_reach_fails_before_the_work(tmp_path, capsys, command):
     f = tmp_path / "unreachable.toml"
     f.write_text(_with(_with(EXP2, "robot", "link1_mm = 1.0"), "robot", "link2_mm = 1.0"))
@@ -149,12 +149,28 @@ def test_a_scene_the_robot_cannot_reach_fails_before_the_work(tmp_path, capsys, 
     argv = [command, str(f), "--out", str(out)]
     if command == "generate":
         argv += ["--cases", "2"]
+    if command == "study":    # before 2026-11-26 (fifth session): a failed trial, exit 1
+        argv = ["study", "surfaces", "--quick", "--scene", str(f), "--out", str(out)]
     assert main(argv) == 2
     line = _error_line(capsys)
     assert str(f) in line and "unreachable" in line, line
     if out.exists():  # no case written, no figure drawn
         assert not list_cases(out)
         assert not list(out.glob("*.png"))
+
+
+def test_a_study_refuses_a_scene_whose_world_cannot_be_built(tmp_path, capsys):
+    """As testbed run does (exit 2, the field named), not by failing each trial after the
+    study has started (held-out review: exit 1, the field named only in report.md)."""
+    f = _write(tmp_path, "phantom", f'mesh_path = "{tmp_path / "nope.stl"}"')
+    f.write_text(f.read_text().replace('side = "right"', 'side = "right"\nmesh_pins_mm = '
+                                       '{proximal = [0.0, 0.0, 400.0], distal_1 = [0.0, 0.0, '
+                                       '20.0], distal_2 = [10.0, 0.0, 20.0]}', 1))
+    out = tmp_path / "out"
+    assert main(["study", "surfaces", "--quick", "--scene", str(f), "--out", str(out)]) == 2
+    line = _error_line(capsys)
+    assert str(f) in line and "phantom.mesh_path" in line and "no such file" in line, line
+    assert not out.exists()
 
 
 @pytest.mark.parametrize("name, other, expect", [

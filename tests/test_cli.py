@@ -451,6 +451,32 @@ def test_score_out_inside_the_dataset_is_refused(tmp_path, capsys):
     assert not (ds / "scores").exists()
 
 
+def test_a_study_that_times_its_work_refuses_workers_in_one_line(tmp_path, capsys):
+    """The message starts with the command it names, once (it read 'testbed: testbed study
+    table1: ...')."""
+    out = tmp_path / "t1"
+    assert main(["study", "table1", "--workers", "2", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("testbed study table1: --workers and --scheduler are refused"), err
+    assert len(err.splitlines()) == 1 and not out.exists()
+
+
+def test_score_refuses_a_malformed_dataset_index_before_the_work(tmp_path, capsys):
+    """A dataset.json whose 'cases' is no list was found after every case was scored (held-out
+    review: 7 s of work, then exit 2 and no results); now before --out is made."""
+    import json
+
+    ds = tmp_path / "ds"
+    (ds / "case_0000").mkdir(parents=True)
+    (ds / "case_0000" / "case.json").write_text("{}")
+    (ds / "dataset.json").write_text(json.dumps({"cases": "case_0000"}))
+    out = tmp_path / "scores"
+    assert main(["score", str(ds), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "'cases' must be a list of case folder names" in err and len(err.splitlines()) == 1
+    assert not out.exists()
+
+
 def test_study_refuses_a_malformed_scene_before_making_its_out_folder(tmp_path, capsys):
     (tmp_path / "bad.toml").write_text('[scene]\nname = "bad"\nkind = "operating_room"\n'
                                        "bogus = 1\n")

@@ -345,3 +345,19 @@ def test_values_a_case_cannot_hold_are_refused_naming_the_file(tmp_path):
         (case_dir / "points.json").write_text(json.dumps(points))
         with pytest.raises(ValueError, match=r"points\.json: points 'pins_ct', " + match):
             load(case_dir, verify=False)
+    # a points entry without its kind, or whose named points are a list (held-out review:
+    # "cannot be read: KeyError: 'kind'")
+    for bad, match in (({"points": [[1.0, 2.0, 3.0]]}, r"expected an object"),
+                       ({"kind": "named", "points": [[1.0, 2.0, 3.0]]}, r"kind 'named' holds "
+                                                                       r"an object")):
+        (case_dir / "points.json").write_text(json.dumps({**points, "pins_ct": bad}))
+        with pytest.raises(ValueError, match=r"points\.json: points 'pins_ct': " + match):
+            load(case_dir, verify=False)
+    (case_dir / "points.json").write_text(json.dumps(points))
+    # an .npz archive under an .npy name ("AttributeError: 'NpzFile' object has no
+    # attribute 'dtype'")
+    npy = case_dir / "arrays" / "flags.npy"
+    np.savez(npy.with_suffix(""), flags=np.zeros(5, bool))
+    npy.with_suffix(".npz").replace(npy)
+    with pytest.raises(ValueError, match=r"flags\.npy: not a \.npy array"):
+        load(case_dir, verify=False)

@@ -15,7 +15,7 @@ SMALL = {
     "patient": {"position_mm": [810.0, 225.0, 200.0], "rotation_deg": [90.0, 0.0, 0.0],
                 "on_table": True},
     "phantom": {"shape_variation": 1.0, "segments": 32},
-    "ct": {"pixel_mm": 2.0, "schedule": "uniform", "coarse_spacing_mm": 10.0},
+    "ct": {"pixel_mm": 2.0, "schedule": "uniform"},
     "fluoroscope": {"width_px": 160, "height_px": 120, "pixel_mm": 2.0},
     "views": [{"name": "distal_ap", "region": "distal", "isocenter_mm": [805.0, 170.0, 200.0],
                "source_to_isocenter_mm": 650.0}],

@@ -243,6 +243,29 @@ def test_a_user_urdf_is_loaded_and_a_file_that_is_none_is_named(tmp_path):
             Robot(RobotSpec(urdf=str(bad)), rng=0)
 
 
+def test_bullets_parser_messages_stay_off_the_output(tmp_path, capfd):
+    """Bullet prints its URDF parser's warnings and errors (without a final newline) on the
+    C stdout and stderr: a URDF without inertia gave five warning lines before the error,
+    the error glued to the last ('...basetestbed: ...'). Now none reach the output, and the
+    parser's last message goes into the error of a file it cannot load."""
+    import pybullet  # noqa: F401  (imported, its build banner printed, before the capture)
+
+    capfd.readouterr()
+    cases = (
+        ('<robot name="r"><link name="base"/></robot>', "lacks the joints"),
+        ('<robot name="r"><joint name="j" type="revolute"><parent link="a"/>'
+         '<child link="b"/></joint></robot>',
+         "cannot be loaded as a URDF .*its parser said: No links found"),
+    )
+    for text, match in cases:
+        f = tmp_path / "user.urdf"
+        f.write_text('<?xml version="1.0"?>\n' + text + "\n")
+        with pytest.raises(ValueError, match=match):
+            Robot(RobotSpec(urdf=str(f)), rng=0)
+        out, err = capfd.readouterr()
+        assert out == "" and err == "", (out, err)
+
+
 def test_rod_and_sweep_fields_absurd_as_a_whole_are_refused():
     """A review's rod of 24 m and a validation row 1e8 mm off the axis loaded, then failed as
     'unreachable ... move the view', naming the wrong field."""

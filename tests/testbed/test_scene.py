@@ -187,18 +187,31 @@ def test_unreadable_file(tmp_path):
     ("rod = 'unobtainium'", "unknown material 'unobtainium'"),
     # slice positions that the clinical schedule would ignore
     ("ct = slices", "only used by schedule 'explicit'"),
+    # ...and the uniform schedule's range (held-out review: read by nothing, accepted)
+    ("ct = uniform", "uniform_range_mm is only used by schedule 'uniform'"),
+    # instruments whose mesh files in a dataset would be one file (the second overwrote the
+    # first without a word), or one file on a case-insensitive disk
+    ("instruments = 'retractor x', 'retractor_x'", "gives the same file name as"),
+    ("instruments = 'Clamp', 'clamp'", "gives the same file name as"),
+    ("instruments = 'Table'", "the world's own body 'table'"),
 ])
 def test_names_and_references_are_refused_at_load(tmp_path, edit, expect):
     """Each of these passed the load before and failed later (a path outside runs/, a
     'File name too long' after the simulation, an unhashable spec, a material error without
-    its field) or silently (an instrument named like the table)."""
+    its field) or silently (an instrument named like the table, two instruments whose mesh
+    files were one, a CT field no schedule read)."""
     text = (scenes_dir() / "experiment2.toml").read_text()
     if edit.startswith("name"):
         text = text.replace('name = "experiment2"', edit.replace("'", '"'), 1)
     elif edit.startswith("views"):
         text = text.replace('name = "proximal_ap"', f'name = "{"v" * 65}"', 1)
+    elif edit.startswith("instruments"):
+        for name in edit.split("=")[1].split(","):
+            text += f'\n[[instruments]]\nname = "{name.strip()[1:-1]}"\nkind = "clamp"\n'
     elif edit.startswith("instrument"):
         text += '\n[[instruments]]\nname = "table"\nkind = "clamp"\n'
+    elif edit == "ct = uniform":
+        text += "\n[ct]\nuniform_range_mm = [0.0, 100.0]\n"
     elif edit.startswith("ct"):
         text += "\n[ct]\nslice_z_mm = [100.0, 200.0]\n"
     elif edit.startswith("mesh_pins"):
