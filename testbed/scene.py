@@ -27,6 +27,7 @@ Sections:
 from __future__ import annotations
 
 import os
+import re
 import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
@@ -255,7 +256,7 @@ def _describe(err: dict) -> str:
         msg = msg[len("Value error, "):]
     # a check across fields (of the file, or of a table: the input is the whole of it) names
     # them in its message; a message that shows the value already is not followed by it
-    if not err.get("loc") or isinstance(got, dict) or "got " in msg:
+    if not err.get("loc") or isinstance(got, dict) or re.search(r"\bgot\b", msg):
         return msg
     return f"{msg}; got {shown} ({type(got).__name__})"
 
