@@ -336,9 +336,15 @@ def cmd_score(args) -> int:
         raise UsageError(f"--out {args.out}: inside the dataset {dataset}; the scores go to a "
                          "folder of their own (the dataset stays as generate wrote it)")
     missing = missing_cases(dataset)   # a malformed dataset.json: refused before the work
+    made = not Path(args.out).exists()
     out = _out_folder(args.out)
-    score_dataset(dataset, out, method=args.method, workers=args.workers,
-                  scheduler=args.scheduler, progress=sys.stderr.isatty())
+    try:
+        score_dataset(dataset, out, method=args.method, workers=args.workers,
+                      scheduler=args.scheduler, progress=sys.stderr.isatty())
+    except BaseException:
+        if made and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()   # refused before any result (no case can be read): no folder left
+        raise
     print(f"wrote {out / 'results.csv'} and {out / 'report.md'}")
     status = _failed_trials(out)
     if missing:

@@ -229,12 +229,11 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
     trials = make_trials(str(dataset.resolve()), 0, params, fingerprint=fingerprint(
         files=[dataset / "dataset.json", *(c / "case.json" for c in cases),
                *([source] if source else [])]))
-    df = run_trials(trial, trials, out_dir=out, workers=workers, scheduler=scheduler,
-                    progress=progress)
     from testbed.dataset import load
 
     # the report's scene: from the first case that can be read (a broken case is a failed
-    # trial, reported below, and must not lose the others' results)
+    # trial, reported below, and must not lose the others' results); none: refused before
+    # the work
     scene, problems = None, []
     for c in cases:
         try:
@@ -250,6 +249,8 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
                          + (f"; dataset.json lists {', '.join(gone[:5])}"
                             + (f" and {len(gone) - 5} more" if len(gone) > 5 else "")
                             + ", which the folder lacks (renamed or removed?)" if gone else ""))
+    df = run_trials(trial, trials, out_dir=out, workers=workers, scheduler=scheduler,
+                    progress=progress)
     try:
         seed = int(json.loads((dataset / "dataset.json").read_text()).get("seed", 0))
     except (OSError, ValueError, TypeError, AttributeError):

@@ -359,6 +359,7 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path):
     with pytest.raises(ValueError, match=r"no case can be read \(case_moved: .*; dataset.json "
                        r"lists case_0000, case_0001, which the folder lacks"):
         score_dataset(ds3, tmp_path / "s7", progress=False)
+    assert not (tmp_path / "s7").exists()   # refused before the trials (they left their db)
 
 
 def test_generate_refuses_to_mix_datasets_and_wrong_scenes(tmp_path, monkeypatch):
