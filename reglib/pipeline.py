@@ -779,14 +779,19 @@ def _as_options(options) -> EstimateOptions:
 def _as_transform(initial) -> RigidTransform:
     if isinstance(initial, RigidTransform):
         return initial
-    if np.iscomplexobj(initial):
+    try:
+        raw = np.asarray(initial) if not isinstance(initial, str | bytes) else None
+    except (TypeError, ValueError):   # ragged nesting
+        raw = None
+    if raw is not None and raw.dtype.kind == "c":
         raise ValueError("initial: the (4, 4) ct2robot matrix has complex values; expected "
                          "real numbers")
-    try:
-        m = np.asarray(initial, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"initial: expected a RigidTransform or a (4, 4) ct2robot matrix, "
-                         f"got {type(initial).__name__}") from None
+    if raw is None or raw.dtype.kind not in "biuf":   # None entries would become NaN
+        what = (type(initial).__name__ if raw is None or raw.ndim == 0
+                else f"an array of {raw.dtype} values")
+        raise ValueError(f"initial: expected a RigidTransform or a (4, 4) ct2robot matrix of "
+                         f"numbers, got {what}")
+    m = raw.astype(np.float64)
     if m.shape != (4, 4):
         raise ValueError(f"initial: expected a RigidTransform or a (4, 4) ct2robot matrix, "
                          f"got shape {m.shape}")

@@ -376,14 +376,18 @@ def find_scene(name_or_path: str | os.PathLike | None) -> Path:
     if p.exists():
         raise SceneError(f"{text}: is not a regular file (a device, pipe or socket), not a "
                          "scene file")
+    if p.is_symlink():   # a link whose target is missing, or a loop of links
+        raise SceneError(f"{text}: a symbolic link that leads to no file (its target is "
+                         "missing, or the links form a loop)")
     if not bare:
         raise SceneError(f"{text}: no such scene file")
     cand = scenes_dir() / (p.name if p.suffix == ".toml" else p.name + ".toml")
     if cand.is_file():
         return cand
     if not scenes_dir().is_dir():
+        what = "is not a folder" if scenes_dir().exists() else "does not exist"
         raise SceneError(f"{text}: no such scene file, and the folder of named scenes "
-                         f"{scenes_dir()} does not exist (TESTBED_SCENES="
+                         f"{scenes_dir()} {what} (TESTBED_SCENES="
                          f"{os.environ.get('TESTBED_SCENES', '')!r})")
     known = sorted(x.stem for x in scenes_dir().glob("*.toml"))
     raise SceneError(f"{text}: no such scene file or named scene (known: {', '.join(known)})")

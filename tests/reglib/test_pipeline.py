@@ -303,7 +303,12 @@ def test_xray_contours_trace_a_bright_disk_edge_and_name_bad_traces():
 def test_initial_and_observation_errors_say_what_is_wrong():
     obs = {"meta": {"views": ["v"]}, "images": {}, "arrays": {}, "volumes": {}}
     for bad, match in (("identity", "got str"), (np.full((4, 4), np.nan), "NaN or inf"),
-                       (np.eye(3), r"shape \(3, 3\)")):
+                       (np.eye(3), r"shape \(3, 3\)"),
+                       # None entries became NaN ("holds NaN or inf"), and a ragged list
+                       # numpy's own message (held-out review)
+                       (np.full((4, 4), None), "of numbers, got an array of object values"),
+                       ([[1.0, 0.0], [0.0]], "of numbers, got list"),
+                       (np.eye(4) * 1j, "complex values")):
         with pytest.raises(ValueError, match="initial: .*" + match):
             estimate(obs, bad)
     with pytest.raises(ValueError, match="got NoneType"):

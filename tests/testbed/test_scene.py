@@ -61,6 +61,19 @@ def test_find_scene_by_name_and_unknown():
         find_scene("does-not-exist")
 
 
+def test_a_dangling_link_and_a_scenes_folder_that_is_a_file_are_named(tmp_path, monkeypatch):
+    """Both said 'no such scene file' / 'does not exist' (held-out review)."""
+    (tmp_path / "a.toml").symlink_to(tmp_path / "b.toml")
+    (tmp_path / "b.toml").symlink_to(tmp_path / "a.toml")
+    with pytest.raises(SceneError, match="a symbolic link that leads to no file"):
+        find_scene(tmp_path / "a.toml")
+    monkeypatch.setenv("TESTBED_SCENES", str(tmp_path / "a.toml"))
+    (tmp_path / "a.toml").unlink()
+    (tmp_path / "a.toml").write_text("")
+    with pytest.raises(SceneError, match="named scenes .*a.toml is not a folder"):
+        find_scene("nosuch")
+
+
 def test_syntax_error_names_file(tmp_path):
     f = tmp_path / "bad.toml"
     f.write_text("[scene\nname = 1\n")
