@@ -115,6 +115,17 @@ class SyntheticSpec(Spec):
                 f"center_of_perspective = {tuple(self.center_of_perspective)}: {far:.3g} cube "
                 "sizes from the points' cube; at most 1000 (the paper's lies at 4.3), else the "
                 "lines through the cube are parallel to rounding")
+        # the noise goes to outlier_fraction of the points: either alone changes nothing
+        if (self.noise_std > 0) != (self.outlier_fraction > 0):
+            raise ValueError(
+                f"noise_std = {self.noise_std:g} and outlier_fraction = "
+                f"{self.outlier_fraction:g}: the noise is added to that fraction of the points, "
+                "so with either at 0 no point gets any; set both (outlier_fraction = 1 puts "
+                "the noise on every point) or neither")
+        if self.noise_std > 0 and round(self.outlier_fraction * self.n_points) == 0:
+            raise ValueError(
+                f"outlier_fraction = {self.outlier_fraction:g} of n_points = {self.n_points} "
+                "rounds to no point: no point gets the noise")
         return self
 
 
