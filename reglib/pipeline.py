@@ -786,7 +786,7 @@ def _as_transform(initial) -> RigidTransform:
     if raw is not None and raw.dtype.kind == "c":
         raise ValueError("initial: the (4, 4) ct2robot matrix has complex values; expected "
                          "real numbers")
-    if raw is None or raw.dtype.kind not in "biuf":   # None entries would become NaN
+    if raw is None or raw.dtype.kind not in "iuf":   # None entries would become NaN
         what = (type(initial).__name__ if raw is None or raw.ndim == 0
                 else f"an array of {raw.dtype} values")
         raise ValueError(f"initial: expected a RigidTransform or a (4, 4) ct2robot matrix of "

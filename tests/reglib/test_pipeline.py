@@ -308,7 +308,8 @@ def test_initial_and_observation_errors_say_what_is_wrong():
                        # numpy's own message (held-out review)
                        (np.full((4, 4), None), "of numbers, got an array of object values"),
                        ([[1.0, 0.0], [0.0]], "of numbers, got list"),
-                       (np.eye(4) * 1j, "complex values")):
+                       (np.eye(4) * 1j, "complex values"),
+                       (np.eye(4, dtype=bool), "got an array of bool values")):
         with pytest.raises(ValueError, match="initial: .*" + match):
             estimate(obs, bad)
     with pytest.raises(ValueError, match="got NoneType"):
