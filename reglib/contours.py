@@ -93,6 +93,7 @@ def resample_polygon(points_xy, spacing: float, *, closed: bool = True,
     -------
     (M, 2) array, ``min_points <= M <= max_points``.
     """
+    spacing = positive_mm(spacing, "resample_polygon: spacing", unit="px")
     p, s = arc_length(points_xy, closed=closed)
     total = s[-1]
     if total <= 0:
@@ -118,7 +119,12 @@ def gradient_potential(image, sigma_px: float, *, clip_percentile: float = 98.0)
     -------
     (H, W) float64 array.
     """
-    g = ndimage.gaussian_gradient_magnitude(np.asarray(image, np.float64), sigma_px)
+    img = np.asarray(image, np.float64)
+    if img.ndim != 2 or img.size == 0:
+        raise ValueError(f"image must be a non-empty 2-D array (H, W), got shape {img.shape}")
+    if not 0 < clip_percentile <= 100:
+        raise ValueError(f"clip_percentile must lie in (0, 100], got {clip_percentile!r}")
+    g = ndimage.gaussian_gradient_magnitude(img, positive_mm(sigma_px, "sigma_px", unit="px"))
     q = float(np.percentile(g, clip_percentile))
     if q <= 0:
         q = float(g.max()) or 1.0
@@ -416,6 +422,14 @@ def snake_contour(
     pts = _check_clicks(clicks_xy, img.shape, closed=closed)
     if coarse_factor < 1:
         raise ValueError(f"coarse_factor must be >= 1, got {coarse_factor}")
+    for name, v in (("spacing_px", spacing_px), ("coarse_sigma_px", coarse_sigma_px),
+                    ("fine_sigma_px", fine_sigma_px), ("search_px", search_px),
+                    ("gamma", gamma)):
+        positive_mm(v, name, unit="px" if name.endswith("_px") else "")
+    for name, v in (("margin_px", margin_px), ("alpha", alpha), ("beta", beta)):
+        positive_mm(v, name, unit="px" if name.endswith("_px") else "", zero=True)
+    if np.ptp(img) == 0:
+        raise ValueError("image: uniform (every pixel equal); there is no edge to follow")
     for name, v in (("scale", scale), ("upsample", upsample)):
         real = isinstance(v, int | float | np.integer | np.floating) and not isinstance(v, bool)
         if not (real and 1 <= v <= MAX_RESAMPLING):
@@ -660,6 +674,9 @@ def untangle_contour(xy) -> np.ndarray:
     itself when it is simple; the kept loop's vertices are a subset of the contour's plus
     the crossing points."""
     p = np.asarray(xy, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 2:
+        raise ValueError(f"untangle_contour: expected a (K, 2) contour (x, y) px, got shape "
+                         f"{p.shape}")
     for _ in range(len(p)):
         hit = _first_crossing(p) if len(p) >= 4 else None
         if hit is None:
@@ -701,13 +718,17 @@ def snake_upsampling(pixel_mm: float) -> float:
     return resampling(positive_mm(pixel_mm) / REFERENCE_CT_PIXEL_MM)
 
 
-def positive_mm(value, what: str = "CT pixel size") -> float:
-    """``value`` as a float if it is a positive, finite number (mm), else a ``ValueError``
-    naming ``what`` (text, booleans and None are refused, not converted)."""
+def positive_mm(value, what: str = "CT pixel size", *, unit: str = "mm",
+                zero: bool = False) -> float:
+    """``value`` as a float if it is a positive (``zero``: or zero), finite number (of
+    ``unit``), else a ``ValueError`` naming ``what`` (text, booleans and None are refused,
+    not converted)."""
     number = isinstance(value, int | float | np.integer | np.floating)
     p = float(value) if number and not isinstance(value, bool) else float("nan")
-    if not (np.isfinite(p) and p > 0):
-        raise ValueError(f"{what} must be a positive number of mm, got {value!r}")
+    if not (np.isfinite(p) and (p > 0 or (zero and p == 0))):
+        of = f" of {unit}" if unit else ""
+        raise ValueError(f"{what} must be a {'non-negative' if zero else 'positive'} number"
+                         f"{of}, got {value!r}")
     return p
 
 

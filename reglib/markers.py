@@ -431,6 +431,9 @@ def identify_row(xy_px, bead_positions_mm, *, tolerance: float = 0.15,
     """
     xy = _as_xy(xy_px)
     s = np.asarray(bead_positions_mm, dtype=np.float64)
+    if s.ndim != 1 or len(s) < 2 or not np.all(np.isfinite(s)) or np.any(np.diff(s) <= 0):
+        raise ValueError(f"identify_row: bead_positions_mm must be increasing finite positions "
+                         f"(mm along the rod), got {s.tolist()!r:.80}")
     K, n = len(xy), len(s)
     if K < min_matched:
         raise ValueError(f"identify_row: {K} blobs; at least {min_matched} are needed")

@@ -357,11 +357,42 @@ class Estimate:
 
 
 # --------------------------------------------------------------------------- reading
-def _entry(group: Mapping, name: str, what: str):
+def _entry(group: Mapping, name: str, what: str, *, table: tuple[str, ...] | None = None,
+           numeric: bool = False):
+    """The observation's entry ``what/name``. ``numeric``: an array of real numbers (a frame);
+    ``table``: a mapping of such arrays holding at least these keys (``()``: any). Else a
+    ValueError naming the entry (an entry of the wrong kind gave a KeyError, IndexError or
+    TypeError deep in a stage, a complex one lost its imaginary part with a warning)."""
     try:
-        return group[name]
+        value = group[name]
     except (KeyError, TypeError):
         raise ValueError(f"observation: missing entry {what}/{name}") from None
+    if numeric:
+        _real(value, f"observation: {what}/{name}")
+    if table is not None:
+        if not isinstance(value, Mapping):
+            raise ValueError(f"observation: {what}/{name} must be a table of named arrays "
+                             f"(as testbed.dataset.load gives it), got {type(value).__name__}")
+        lacking = [k for k in table if k not in value]
+        if lacking:
+            raise ValueError(f"observation: {what}/{name} lacks {', '.join(map(repr, lacking))}")
+        for k, v in value.items():
+            _real(v, f"observation: {what}/{name}[{k!r}]")
+    return value
+
+
+def _real(value, label: str) -> np.ndarray:
+    """``value`` as an array of real numbers (bool, integers, floats), else a ValueError
+    naming ``label``."""
+    try:
+        a = np.asarray(value)
+    except (TypeError, ValueError):    # ragged nesting
+        raise ValueError(f"{label}: not an array of numbers (lists of unequal lengths?)") \
+            from None
+    if a.dtype.kind not in "biuf":
+        raise ValueError(f"{label}: expected real numbers, got {a.dtype}"
+                         + (" (complex)" if a.dtype.kind == "c" else ""))
+    return a
 
 
 def _part(observation, group: str) -> Mapping:
@@ -404,6 +435,14 @@ def _sweep_data(view: str, frames, arrays: Mapping, fov):
         raise ValueError(f"view {view}: sweep frames must be (F, H, W) images, got shape "
                          f"{frames.shape}")
     F, H, W = frames.shape
+    if frames.dtype.kind not in "uif":
+        raise ValueError(f"view {view}: sweep frames must be numbers (grey levels), got "
+                         f"{frames.dtype}")
+    if frames.dtype.kind == "f":
+        bad_frames = np.flatnonzero(~np.all(np.isfinite(frames), axis=(1, 2)))
+        if bad_frames.size:
+            raise ValueError(f"view {view}: sweep frames {bad_frames[:10].tolist()} hold NaN "
+                             "or infinite values")
     if plane.shape != (F,) or not np.issubdtype(plane.dtype, np.integer):
         raise ValueError(f"view {view}: sweep 'plane' must be ({F},) integers (one per frame), "
                          f"got {plane.dtype} {plane.shape}")
@@ -692,6 +731,43 @@ def _xray_pixel_mm(meta) -> float | None:
     return v
 
 
+def _check_given(calibrations, contours, surfaces) -> None:
+    """The stages handed to :func:`prepare` instead of computed: mappings of the stage's own
+    results (a None or a dict there failed later as an AttributeError or TypeError)."""
+    for name, given, kind in (("calibrations", calibrations, ViewCalibration),
+                              ("contours", contours, ViewContours)):
+        if given is None:
+            continue
+        if not isinstance(given, Mapping):
+            raise ValueError(f"{name}: expected a mapping view -> {kind.__name__}, got "
+                             f"{type(given).__name__}")
+        bad = [k for k, v in given.items() if not isinstance(v, kind)]
+        if bad:
+            raise ValueError(f"{name}: the entries {bad[:5]} are not {kind.__name__} (got "
+                             f"{type(given[bad[0]]).__name__})")
+        if kind is ViewCalibration:
+            bad = [k for k, v in given.items()
+                   if v.ok and not callable(getattr(v.calibration, "paths", None))]
+            if bad:
+                raise ValueError(f"calibrations: {bad[:5]} are ok but hold no calibration "
+                                 "(an object with paths(xy_px))")
+    if surfaces is None:
+        return
+    if not isinstance(surfaces, Mapping):
+        raise ValueError(f"surfaces: expected a mapping region -> (vertices (V, 3) mm, faces "
+                         f"(F, 3)), got {type(surfaces).__name__}")
+    for region, sf in surfaces.items():
+        try:
+            v, f = sf
+            v, f = _real(v, "v"), _real(f, "f")
+            ok = v.ndim == 2 and v.shape[1] == 3 and f.ndim == 2 and f.shape[1] == 3
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ValueError(f"surfaces[{region!r}]: expected (vertices (V, 3) mm, faces (F, "
+                             f"3)), got {type(sf).__name__}")
+
+
 def prepare(observation, *, options: EstimateOptions | None = None, calibrations=None,
             surfaces=None, contours=None) -> Stages:
     """Every stage before registration; any of them may be given instead of computed.
@@ -702,6 +778,7 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
     from reglib.register import View
 
     options = _as_options(options)
+    _check_given(calibrations, contours, surfaces)
     images, arrays = _part(observation, "images"), _part(observation, "arrays")
     names = _view_names(observation)
     pixel_mm = _xray_pixel_mm(_part(observation, "meta"))
@@ -716,8 +793,9 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
             raise ValueError(f"observation: meta['regions'] must be a list of CT region names "
                              f"(e.g. ['distal', 'proximal']), got {regions!r:.80}")
         vol = _entry(_part(observation, "volumes"), "ct", "volumes")
-        slices = _entry(arrays, "ct_slices", "arrays")
-        clicks = {r: _entry(arrays, f"ct_clicks_{r}", "arrays") for r in regions}
+        _real(getattr(vol, "data", vol), "observation: volumes/ct")
+        slices = _entry(arrays, "ct_slices", "arrays", table=("slice2ct",))
+        clicks = {r: _entry(arrays, f"ct_clicks_{r}", "arrays", table=()) for r in regions}
         if not clicks:
             raise ValueError("observation: meta['regions'] lists no CT region to contour")
         surfaces = ct_surfaces(getattr(vol, "data", vol), np.asarray(slices["slice2ct"]),
@@ -730,8 +808,8 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
         if calibrations is not None and v in calibrations:
             cal = calibrations[v]
         else:
-            cal = calibrate_view(v, _entry(images, f"sweep_{v}", "images"),
-                                 _entry(arrays, f"sweep_{v}", "arrays"),
+            cal = calibrate_view(v, _entry(images, f"sweep_{v}", "images", numeric=True),
+                                 _entry(arrays, f"sweep_{v}", "arrays", table=()),
                                  fov=arrays.get(f"xray_fov_{v}"), options=options)
         cals[v] = cal
         timings["calibration"] = timings.get("calibration", 0.0) + time.perf_counter() - t0
@@ -739,8 +817,9 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
         if contours is not None and v in contours:
             con = contours[v]
         else:
-            con = xray_contours(v, _entry(images, f"xray_{v}", "images"),
-                                _entry(arrays, f"xray_clicks_{v}", "arrays"), pixel_mm=pixel_mm)
+            con = xray_contours(v, _entry(images, f"xray_{v}", "images", numeric=True),
+                                _entry(arrays, f"xray_clicks_{v}", "arrays", table=()),
+                                pixel_mm=pixel_mm)
         conts[v] = con
         timings["contours"] = timings.get("contours", 0.0) + time.perf_counter() - t0
         if not cal.ok:

@@ -152,6 +152,18 @@ def refine_edge_profile(image, contour_xy, *, closed: bool = False, half_width_p
     -------
     (K, 2) float64 (x, y) px.
     """
+    for name, v in (("half_width_px", half_width_px), ("sample_px", sample_px),
+                    ("search_px", search_px)):
+        positive_mm(v, f"refine_edge_profile: {name}", unit="px")
+    positive_mm(pre_sigma_px, "refine_edge_profile: pre_sigma_px", unit="px", zero=True)
+    if not len(sigmas_px):
+        raise ValueError("refine_edge_profile: sigmas_px must list at least one edge width (px)")
+    shape = np.shape(contour_xy)
+    if len(shape) != 2 or shape[1] != 2 or shape[0] < (3 if closed else 2):
+        raise ValueError(f"refine_edge_profile: contour_xy must be (K, 2) (x, y) px with K >= "
+                         f"{3 if closed else 2}, got shape {shape}")
+    for v in sigmas_px:
+        positive_mm(v, "refine_edge_profile: sigmas_px", unit="px")
     image = np.asarray(image, dtype=np.float64)
     c = np.asarray(contour_xy, dtype=np.float64)
     n = _normals(c, closed)
@@ -286,6 +298,8 @@ def xray_contour(
     """
     if label not in ("external", "internal"):
         raise ValueError(f"label: expected 'external' or 'internal', got {label!r}")
+    if np.iscomplexobj(image):
+        raise ValueError("image: complex values; expected a real grey-level frame")
     img = np.asarray(image, dtype=np.float64)
     if img.ndim != 2:
         raise ValueError(f"image: expected a 2-D (H, W) array, got shape {img.shape}")

@@ -360,3 +360,40 @@ def test_first_crossing_equals_its_one_edge_at_a_time_reference():
         if got is not None:
             assert got[:2] == ref[:2]
             np.testing.assert_allclose(got[2], ref[2], atol=1e-12)
+
+
+def test_degenerate_options_and_images_are_refused_by_name():
+    """A held-out review called the contour functions with degenerate values: they failed
+    as OverflowError, IndexError or ZeroDivisionError, or (a uniform image) returned a
+    contour shrunk from the clicks' radius 25 px to 3.5 px without a word."""
+    from reglib.contours import gradient_potential, resample_polygon, untangle_contour
+    from reglib.markers import identify_row
+    from reglib.xray_contours import refine_edge_profile
+
+    th = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    clicks = np.c_[50 + 25 * np.cos(th), 50 + 25 * np.sin(th)]
+    yy, xx = np.mgrid[:100, :100]
+    disc = np.where((xx - 50) ** 2 + (yy - 50) ** 2 < 400, 1000.0, 0.0)
+    ramp = np.tile(np.linspace(0, 200, 640), (480, 1))
+    xy = np.array([[300.0, 100.0], [300.0, 300.0]])
+    cases = [
+        (lambda: snake_contour(np.full((100, 100), 5.0), clicks), "uniform"),
+        (lambda: snake_contour(disc, clicks, spacing_px=0), "spacing_px must be a positive"),
+        (lambda: snake_contour(disc, clicks, alpha=float("nan")), "alpha must be a non-neg"),
+        (lambda: snake_contour(disc, clicks, margin_px=-50), "margin_px must be a non-neg"),
+        (lambda: resample_polygon(clicks, 0), "spacing must be a positive number of px"),
+        (lambda: gradient_potential(np.zeros((0, 0)), 1), "non-empty 2-D array"),
+        (lambda: gradient_potential(disc, 1, clip_percentile=200), r"clip_percentile must"),
+        (lambda: untangle_contour(np.zeros(5)), r"expected a \(K, 2\) contour"),
+        (lambda: identify_row(np.c_[np.arange(8.0) * 10, np.zeros(8)], np.zeros(8)),
+         "bead_positions_mm must be increasing"),
+        (lambda: refine_edge_profile(ramp, xy, sample_px=0), "sample_px must be a positive"),
+        (lambda: refine_edge_profile(ramp, xy[:1]), r"K >= 2, got shape \(1, 2\)"),
+        (lambda: refine_edge_profile(ramp, xy, sigmas_px=()), "at least one edge width"),
+    ]
+    for call, match in cases:
+        with pytest.raises(ValueError, match=match):
+            call()
+    # the same calls with sound values still work
+    assert len(snake_contour(disc, clicks)) >= 8
+    assert refine_edge_profile(ramp, xy).shape == (2, 2)

@@ -300,6 +300,65 @@ def test_xray_contours_trace_a_bright_disk_edge_and_name_bad_traces():
             match, con.problems[0]), con.problems
 
 
+def test_entries_of_the_wrong_kind_and_stages_given_are_named():
+    """A held-out review of the API (about 330 inputs): an entry of the wrong kind failed as
+    a KeyError, IndexError or TypeError deep in a stage; a complex one lost its imaginary
+    part with a warning and the estimate was accepted; NaN sweep frames were used; stages
+    handed to prepare failed as AttributeError."""
+    from reglib.pipeline import ViewCalibration, ViewContours, prepare
+
+    tri = (np.eye(3), np.array([[0, 1, 2]]))
+    sweep = {"plane": np.zeros(2, int), "beads_reported": np.zeros((2, 4, 3)),
+             "bead_positions_mm": np.arange(4.0) * 10}
+    good = {"meta": {"views": ["v"], "regions": ["distal"]},
+            "images": {"sweep_v": np.zeros((2, 32, 32), np.uint8),
+                       "xray_v": np.zeros((32, 32), np.uint8)},
+            "arrays": {"sweep_v": sweep, "ct_slices": {"slice2ct": np.zeros((2, 4, 4))},
+                       "ct_clicks_distal": {}, "xray_clicks_v": {}},
+            "volumes": {"ct": np.zeros((4, 4, 2))}}
+
+    def with_(group, name, value):
+        obs = {k: (dict(v) if isinstance(v, dict) else v) for k, v in good.items()}
+        obs[group][name] = value
+        return obs
+
+    cases = [
+        (with_("arrays", "ct_slices", {"z_mm": np.zeros(2)}), None,
+         r"arrays/ct_slices lacks 'slice2ct'"),
+        (with_("arrays", "ct_slices", np.zeros((2, 4, 4))), None,
+         r"arrays/ct_slices must be a table of named arrays .*got ndarray"),
+        (with_("arrays", "ct_clicks_distal", None), None,
+         r"arrays/ct_clicks_distal must be a table"),
+        (with_("arrays", "ct_slices", {"slice2ct": "abc"}), None,
+         r"arrays/ct_slices\['slice2ct'\]: expected real numbers, got <U3"),
+        (with_("volumes", "ct", np.zeros((4, 4, 2), complex)), None,
+         r"volumes/ct: expected real numbers, got complex128 \(complex\)"),
+        (with_("arrays", "sweep_v", None), {"distal": tri}, r"arrays/sweep_v must be a table"),
+        (with_("images", "sweep_v", [np.zeros((32, 32)), np.zeros((3, 3))]), {"distal": tri},
+         r"images/sweep_v: not an array of numbers"),
+        (with_("images", "sweep_v", np.full((2, 32, 32), np.nan)), {"distal": tri},
+         r"view v: sweep frames \[0, 1\] hold NaN or infinite values"),
+        (with_("images", "xray_v", np.zeros((32, 32), complex)), {"distal": tri},
+         r"images/xray_v: expected real numbers, got complex128"),
+        (with_("arrays", "xray_clicks_v", np.zeros((3, 2))), {"distal": tri},
+         r"arrays/xray_clicks_v must be a table"),
+    ]
+    for obs, surfaces, match in cases:
+        with pytest.raises(ValueError, match=match):
+            prepare(obs, surfaces=surfaces)
+    for kw, match in ((dict(calibrations={"v": None}), r"calibrations: the entries \['v'\] are "
+                                                        r"not ViewCalibration \(got NoneType\)"),
+                      (dict(calibrations={"v": ViewCalibration("v", None)}),
+                       r"\['v'\] are ok but hold no calibration"),
+                      (dict(contours={"v": {"xy": np.zeros((0, 2))}}),
+                       r"contours: the entries \['v'\] are not ViewContours \(got dict\)"),
+                      (dict(surfaces={"distal": None}), r"surfaces\['distal'\]: expected "
+                                                       r"\(vertices \(V, 3\) mm, faces")):
+        with pytest.raises(ValueError, match=match):
+            prepare(good, **kw)
+    assert ViewContours("v", np.zeros((0, 2)), np.zeros(0, bool)).xy.shape == (0, 2)
+
+
 def test_initial_and_observation_errors_say_what_is_wrong():
     obs = {"meta": {"views": ["v"]}, "images": {}, "arrays": {}, "volumes": {}}
     for bad, match in (("identity", "got str"), (np.full((4, 4), np.nan), "NaN or inf"),
