@@ -39,7 +39,7 @@ __all__ = [
     "snake_contour",
     "snake_scale",
     "snake_upsampling",
-    "positive_mm",
+    "positive_number",
     "resampling",
     "untangle_contour",
     "REFERENCE_CT_PIXEL_MM",
@@ -93,7 +93,7 @@ def resample_polygon(points_xy, spacing: float, *, closed: bool = True,
     -------
     (M, 2) array, ``min_points <= M <= max_points``.
     """
-    spacing = positive_mm(spacing, "resample_polygon: spacing", unit="px")
+    spacing = positive_number(spacing, "resample_polygon: spacing", unit="px")
     p, s = arc_length(points_xy, closed=closed)
     total = s[-1]
     if total <= 0:
@@ -124,7 +124,7 @@ def gradient_potential(image, sigma_px: float, *, clip_percentile: float = 98.0)
         raise ValueError(f"image must be a non-empty 2-D array (H, W), got shape {img.shape}")
     if not 0 < clip_percentile <= 100:
         raise ValueError(f"clip_percentile must lie in (0, 100], got {clip_percentile!r}")
-    g = ndimage.gaussian_gradient_magnitude(img, positive_mm(sigma_px, "sigma_px", unit="px"))
+    g = ndimage.gaussian_gradient_magnitude(img, positive_number(sigma_px, "sigma_px", unit="px"))
     q = float(np.percentile(g, clip_percentile))
     if q <= 0:
         q = float(g.max()) or 1.0
@@ -425,9 +425,9 @@ def snake_contour(
     for name, v in (("spacing_px", spacing_px), ("coarse_sigma_px", coarse_sigma_px),
                     ("fine_sigma_px", fine_sigma_px), ("search_px", search_px),
                     ("gamma", gamma)):
-        positive_mm(v, name, unit="px" if name.endswith("_px") else "")
+        positive_number(v, name, unit="px" if name.endswith("_px") else "")
     for name, v in (("margin_px", margin_px), ("alpha", alpha), ("beta", beta)):
-        positive_mm(v, name, unit="px" if name.endswith("_px") else "", zero=True)
+        positive_number(v, name, unit="px" if name.endswith("_px") else "", zero=True)
     if np.ptp(img) == 0:
         raise ValueError("image: uniform (every pixel equal); there is no edge to follow")
     for name, v in (("scale", scale), ("upsample", upsample)):
@@ -715,11 +715,11 @@ def snake_upsampling(pixel_mm: float) -> float:
     its lengths in px, 1.5 mm pixels gave it twice its reach: on ``experiment2`` (seed 2)
     contours near the distal pins leaked 20 mm out to the knee's skin and the registration
     ended 1.6 mm off (1.97 mm with 10 mm coarse slices), accepted."""
-    return resampling(positive_mm(pixel_mm) / REFERENCE_CT_PIXEL_MM)
+    return resampling(positive_number(pixel_mm) / REFERENCE_CT_PIXEL_MM)
 
 
-def positive_mm(value, what: str = "CT pixel size", *, unit: str = "mm",
-                zero: bool = False) -> float:
+def positive_number(value, what: str = "CT pixel size", *, unit: str = "mm",
+                    zero: bool = False) -> float:
     """``value`` as a float if it is a positive (``zero``: or zero), finite number (of
     ``unit``), else a ``ValueError`` naming ``what`` (text, booleans and None are refused,
     not converted)."""
@@ -749,7 +749,7 @@ def snake_scale(pixel_mm: float) -> float:
     from the true bone at their 95th percentile, and a registration ended 1.9 mm off,
     accepted; at this scale 1.1 / 0.2 mm (0.3 mm pixels: 4.7 / 4.6 -> 0.4 / 0.2 mm).
     Coarser pixels keep scale 1 (:func:`snake_upsampling` is theirs)."""
-    return resampling(REFERENCE_CT_PIXEL_MM / positive_mm(pixel_mm))
+    return resampling(REFERENCE_CT_PIXEL_MM / positive_number(pixel_mm))
 
 
 def _pixel_mm(slice2ct: np.ndarray) -> float:

@@ -722,10 +722,10 @@ def _xray_pixel_mm(meta) -> float | None:
     not a positive number of mm is refused naming the key."""
     if not isinstance(meta, Mapping) or meta.get("xray_pixel_mm") is None:
         return None
-    from reglib.contours import positive_mm
+    from reglib.contours import positive_number
 
     what = "observation: meta['xray_pixel_mm'] (the video's pixel at the intensifier's input)"
-    v = positive_mm(meta["xray_pixel_mm"], what)
+    v = positive_number(meta["xray_pixel_mm"], what)
     if v > 10:
         raise ValueError(f"{what} must be at most 10 mm, got {v:g}")
     return v

@@ -504,14 +504,14 @@ def bridge_loops(pts: np.ndarray, loops: list[np.ndarray], *, avoid=()) -> np.nd
     once and that are not in ``avoid`` (a set of vertex indices: the ends of the bridges
     the same contours got for the strip on their other side, which would otherwise be
     chosen again and give the bridge's edge four triangles) where such vertices exist."""
+    def usable(loop):   # positions of the loop's vertices a bridge may end at
+        _, inverse, counts = np.unique(loop, return_inverse=True, return_counts=True)
+        ok = (counts[inverse] == 1) & ~np.isin(loop, list(avoid))
+        return np.flatnonzero(ok) if ok.any() else np.arange(len(loop))
+
     rest = list(loops)
     out = rest.pop(0)
     while rest:
-        def usable(loop):
-            _, inverse, counts = np.unique(loop, return_inverse=True, return_counts=True)
-            ok = (counts[inverse] == 1) & ~np.isin(loop, list(avoid))
-            return np.flatnonzero(ok) if ok.any() else np.arange(len(loop))
-
         at_out = usable(out)
         tree = cKDTree(pts[out[at_out]])
         dist = [float(tree.query(pts[c[usable(c)]])[0].min()) for c in rest]

@@ -39,7 +39,7 @@ from typing import Literal
 import numpy as np
 from scipy import ndimage
 
-from reglib.contours import positive_mm, resampling, snake_contour
+from reglib.contours import positive_number, resampling, snake_contour
 from reglib.geometry import as_flags
 
 __all__ = ["REFERENCE_FIELD_PX", "REFERENCE_PIXEL_MM", "XrayContour", "field_of_view_mask",
@@ -154,8 +154,8 @@ def refine_edge_profile(image, contour_xy, *, closed: bool = False, half_width_p
     """
     for name, v in (("half_width_px", half_width_px), ("sample_px", sample_px),
                     ("search_px", search_px)):
-        positive_mm(v, f"refine_edge_profile: {name}", unit="px")
-    positive_mm(pre_sigma_px, "refine_edge_profile: pre_sigma_px", unit="px", zero=True)
+        positive_number(v, f"refine_edge_profile: {name}", unit="px")
+    positive_number(pre_sigma_px, "refine_edge_profile: pre_sigma_px", unit="px", zero=True)
     if not len(sigmas_px):
         raise ValueError("refine_edge_profile: sigmas_px must list at least one edge width (px)")
     shape = np.shape(contour_xy)
@@ -163,7 +163,7 @@ def refine_edge_profile(image, contour_xy, *, closed: bool = False, half_width_p
         raise ValueError(f"refine_edge_profile: contour_xy must be (K, 2) (x, y) px with K >= "
                          f"{3 if closed else 2}, got shape {shape}")
     for v in sigmas_px:
-        positive_mm(v, "refine_edge_profile: sigmas_px", unit="px")
+        positive_number(v, "refine_edge_profile: sigmas_px", unit="px")
     image = np.asarray(image, dtype=np.float64)
     c = np.asarray(contour_xy, dtype=np.float64)
     n = _normals(c, closed)
@@ -357,7 +357,7 @@ def pixel_scale(pixel_mm: float) -> float:
     not in pixels). Measured on ``experiment2`` with 2048 x 1536 video of 0.156 mm pixels
     (seed 1): with the reference's lengths the external contours lay 1.8-3.4 px from the
     true outline (median) and the registration ended 2.2 mm off, accepted."""
-    p = positive_mm(pixel_mm, "pixel_mm (the video's pixel at the intensifier's input)")
+    p = positive_number(pixel_mm, "pixel_mm (the video's pixel at the intensifier's input)")
     return resampling(REFERENCE_PIXEL_MM / p)
 
 
