@@ -726,9 +726,15 @@ def _xray_pixel_mm(meta) -> float | None:
 
     what = "observation: meta['xray_pixel_mm'] (the video's pixel at the intensifier's input)"
     v = positive_number(meta["xray_pixel_mm"], what)
-    if v > 10:
-        raise ValueError(f"{what} must be at most 10 mm, got {v:g}")
+    if not MIN_XRAY_PIXEL_MM <= v <= 10:
+        raise ValueError(f"{what} must lie in {MIN_XRAY_PIXEL_MM:g}-10 mm, got {v:g}")
     return v
+
+
+#: the finest video pixel at the intensifier's input that meta may state (mm): a 9-inch field
+#: 23 000 px across; finer, the X-ray tracing's lengths would shrink past its resampling
+#: limit (a held-out review gave 1e-9 mm, accepted)
+MIN_XRAY_PIXEL_MM = 0.01
 
 
 def _check_given(calibrations, contours, surfaces) -> None:

@@ -430,6 +430,6 @@ def test_the_video_pixel_in_meta_is_checked():
     assert _xray_pixel_mm({}) is None
     assert _xray_pixel_mm({"xray_pixel_mm": None}) is None
     assert _xray_pixel_mm({"xray_pixel_mm": 0.25}) == 0.25
-    for bad in (0, -0.5, float("nan"), "0.5", True, [0.5], 50.0):
+    for bad in (0, -0.5, float("nan"), "0.5", True, [0.5], 50.0, 1e-9):
         with pytest.raises(ValueError, match=r"meta\['xray_pixel_mm'\]"):
             _xray_pixel_mm({"xray_pixel_mm": bad})
