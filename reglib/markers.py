@@ -398,6 +398,13 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
 
 
 # --------------------------------------------------------------------------- identification
+def increasing_positions(s: np.ndarray, min_count: int) -> bool:
+    """Whether ``s`` is a 1-D array of at least ``min_count`` finite, strictly increasing
+    values (the beads' positions along the rod, mm)."""
+    return bool(s.ndim == 1 and len(s) >= min_count and np.all(np.isfinite(s))
+                and np.all(np.diff(s) > 0))
+
+
 def identify_row(xy_px, bead_positions_mm, *, tolerance: float = 0.15,
                  min_matched: int = 4, reference: bool = False) -> tuple[np.ndarray, float]:
     """Which bead of the rod each blob of one row is.
@@ -431,7 +438,7 @@ def identify_row(xy_px, bead_positions_mm, *, tolerance: float = 0.15,
     """
     xy = _as_xy(xy_px)
     s = np.asarray(bead_positions_mm, dtype=np.float64)
-    if s.ndim != 1 or len(s) < 2 or not np.all(np.isfinite(s)) or np.any(np.diff(s) <= 0):
+    if not increasing_positions(s, 2):
         raise ValueError(f"identify_row: bead_positions_mm must be increasing finite positions "
                          f"(mm along the rod), got {s.tolist()!r:.80}")
     K, n = len(xy), len(s)

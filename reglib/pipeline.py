@@ -422,7 +422,7 @@ def _view_names(observation) -> list[str]:
 def _sweep_data(view: str, frames, arrays: Mapping, fov):
     """The sweep's arrays checked against each other (``ValueError`` naming the view and the
     array: malformed input, not a calibration that cannot be made)."""
-    from reglib.markers import PLANE_NAMES, SweepData
+    from reglib.markers import PLANE_NAMES, SweepData, increasing_positions
 
     for key in ("plane", "beads_reported", "bead_positions_mm"):
         if key not in arrays:
@@ -450,7 +450,7 @@ def _sweep_data(view: str, frames, arrays: Mapping, fov):
     if bad:
         raise ValueError(f"view {view}: sweep 'plane' holds {bad}; expected codes "
                          f"{sorted(PLANE_NAMES)} ({', '.join(PLANE_NAMES.values())})")
-    if s.ndim != 1 or len(s) < 4 or not np.all(np.isfinite(s)) or np.any(np.diff(s) <= 0):
+    if not increasing_positions(s, 4):
         raise ValueError(f"view {view}: sweep 'bead_positions_mm' must be at least 4 "
                          f"increasing finite positions (mm along the rod), got {s.tolist()}")
     if beads.shape != (F, len(s), 3):

@@ -41,7 +41,8 @@ __all__ = ["CTScan", "CTSpec", "sample_hu_reference", "scan", "slice_schedule"]
 Spacing = Annotated[float, Field(ge=0.1, le=20.0)]
 
 
-#: the fields each slice schedule reads (any other CT field applies to every schedule)
+#: the fields each slice schedule reads, each read by one schedule only (any other CT field
+#: applies to every schedule)
 SCHEDULE_FIELDS = {
     "clinical": ("fine_spacing_mm", "fine_half_width_mm", "coarse_spacing_mm",
                  "distal_height_mm", "proximal_depth_mm", "distal_range_mm",
@@ -100,14 +101,13 @@ class CTSpec(Spec):
         # a field that only another schedule reads, set away from its default, would be
         # ignored without a word (the value, not whether it was written: a scene dumped
         # with every field, as the error budget's variants are, holds the defaults)
-        for name in sorted(n for names in SCHEDULE_FIELDS.values() for n in names):
-            used_by = [k for k, names in SCHEDULE_FIELDS.items() if name in names]
-            default = type(self).model_fields[name].default
-            if self.schedule not in used_by and getattr(self, name) != default:
-                only = " or ".join(repr(k) for k in used_by)
-                raise ValueError(f"{name} is only used by schedule {only} (this scene's is "
-                                 f"{self.schedule!r}): set schedule = {used_by[0]!r} or leave "
-                                 f"{name} out")
+        owner = {n: k for k, names in SCHEDULE_FIELDS.items() for n in names}
+        for name in sorted(owner):
+            if (owner[name] != self.schedule
+                    and getattr(self, name) != type(self).model_fields[name].default):
+                raise ValueError(f"{name} is only used by schedule {owner[name]!r} (this "
+                                 f"scene's is {self.schedule!r}): set schedule = "
+                                 f"{owner[name]!r} or leave {name} out")
         for name in ("distal_range_mm", "proximal_range_mm", "uniform_range_mm"):
             r = getattr(self, name)
             if r is not None and not r[0] < r[1]:
