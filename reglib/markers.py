@@ -42,6 +42,7 @@ __all__ = [
     "detect_markers",
     "identify_row",
     "find_markers",
+    "check_planes",
     "identify_by_paths",
 ]
 
@@ -747,6 +748,20 @@ def _relabel_plane(rows, blobs, names, beads, plane_of, problems, p: int) -> Non
             + (f"; {int((~good).sum())} blob(s) unmatched" if (~good).any() else ""))
 
 
+def check_planes(view: str, plane, n_frames: int) -> np.ndarray:
+    """``plane`` as (F,) integers, each a code of :data:`PLANE_NAMES`; else a ValueError
+    naming the view."""
+    plane = np.asarray(plane)
+    if plane.shape != (n_frames,) or not np.issubdtype(plane.dtype, np.integer):
+        raise ValueError(f"view {view}: sweep 'plane' must be ({n_frames},) integers (one per "
+                         f"frame), got {plane.dtype} {plane.shape}")
+    bad = sorted(set(plane.tolist()) - set(PLANE_NAMES))
+    if bad:
+        raise ValueError(f"view {view}: sweep 'plane' holds {bad}; expected codes "
+                         f"{sorted(PLANE_NAMES)} ({', '.join(PLANE_NAMES.values())})")
+    return plane
+
+
 def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int = 4,
                  **detect_kw) -> Markers:
     """Detect and identify every marker of a sweep (see :func:`detect_markers`,
@@ -765,6 +780,7 @@ def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int =
         raise ValueError(
             f"view {sweep.view}: frames {frames.shape}, plane {plane.shape} and beads_robot "
             f"{beads.shape} disagree (expected (F, H, W), (F,), (F, {len(s)}, 3))")
+    plane = check_planes(sweep.view, plane, F)
     rows = {k: [] for k in ("frame", "plane", "bead", "xy", "robot")}
     problems: list[str] = []
     weak = []  # rows too short to identify on their own: (frame, name, blobs, message)

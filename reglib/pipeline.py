@@ -422,7 +422,7 @@ def _view_names(observation) -> list[str]:
 def _sweep_data(view: str, frames, arrays: Mapping, fov):
     """The sweep's arrays checked against each other (``ValueError`` naming the view and the
     array: malformed input, not a calibration that cannot be made)."""
-    from reglib.markers import PLANE_NAMES, SweepData, increasing_positions
+    from reglib.markers import SweepData, check_planes, increasing_positions
 
     for key in ("plane", "beads_reported", "bead_positions_mm"):
         if key not in arrays:
@@ -443,13 +443,7 @@ def _sweep_data(view: str, frames, arrays: Mapping, fov):
         if bad_frames.size:
             raise ValueError(f"view {view}: sweep frames {bad_frames[:10].tolist()} hold NaN "
                              "or infinite values")
-    if plane.shape != (F,) or not np.issubdtype(plane.dtype, np.integer):
-        raise ValueError(f"view {view}: sweep 'plane' must be ({F},) integers (one per frame), "
-                         f"got {plane.dtype} {plane.shape}")
-    bad = sorted(set(plane.tolist()) - set(PLANE_NAMES))
-    if bad:
-        raise ValueError(f"view {view}: sweep 'plane' holds {bad}; expected codes "
-                         f"{sorted(PLANE_NAMES)} ({', '.join(PLANE_NAMES.values())})")
+    plane = check_planes(view, plane, F)
     if not increasing_positions(s, 4):
         raise ValueError(f"view {view}: sweep 'bead_positions_mm' must be at least 4 "
                          f"increasing finite positions (mm along the rod), got {s.tolist()}")

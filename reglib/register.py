@@ -465,6 +465,23 @@ def _check_values(o: dict) -> None:
         why = (f"{o['method']!r} cannot be used with residual='normal' or a fixed point "
                "(their solve is an IRLS); use 'robust' or 'linear'")
         raise OptionError("method", why, f"method {why}")
+    _solver_options(o["method"], so or {}, o["solver_iterations"], o["tukey_a"])
+
+
+def _solver_options(method, solver_options, solver_iterations, tukey_a) -> dict:
+    """The keyword options register passes to ``solve_pose``: ``solver_options`` with
+    register's ``solver_iterations`` and ``tukey_a`` as defaults; :class:`OptionError` for a
+    key ``solve_pose`` does not take or register sets itself, or a value it cannot use."""
+    opts = dict(solver_options)
+    try:
+        _check_solver_options(method, opts)
+        opts.setdefault("max_iterations", solver_iterations)
+        opts.setdefault("tukey_a", tukey_a)
+        _check_pose_options(method, **{k: opts.get(k, v) for k, v in _POSE_DEFAULTS.items()})
+    except ValueError as err:
+        why = str(err).removeprefix("solver_options: ")
+        raise OptionError("solver_options", why, f"solver_options: {why}") from None
+    return opts
 
 
 @functools.cache
@@ -605,18 +622,11 @@ def register(surfaces, views, initial: RigidTransform, *,
     fixed_robot = None
     if fixed_point_ct is not None:
         fixed_robot = initial.apply(np.asarray(fixed_point_ct, dtype=np.float64).reshape(3))
-    opts = dict(solver_options or {})
-    _check_solver_options(method, opts)
-    opts.setdefault("max_iterations", solver_iterations)
-    opts.setdefault("tukey_a", tukey_a)
+    opts = _solver_options(method, solver_options or {}, solver_iterations, tukey_a)
     if method == "ransac":
         # one generator for the whole loop: each iteration draws new samples, and the same
         # call gives the same result (seed ``solver_options["rng"]``, default 0)
         opts["rng"] = np.random.default_rng(opts.get("rng", 0))
-    try:
-        _check_pose_options(method, **{k: opts.get(k, v) for k, v in _POSE_DEFAULTS.items()})
-    except ValueError as err:
-        raise ValueError(f"solver_options: {err}") from None
     corners = _corners(tops)
 
     def fail(reason, T=initial, it=0, history=(), **kw):

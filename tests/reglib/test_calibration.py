@@ -517,6 +517,13 @@ def test_find_markers_checks_shapes():
     with pytest.raises(ValueError, match="view v: frames"):
         find_markers(SweepData("v", np.zeros((3, 8, 8)), np.zeros(2, int),
                                np.zeros((3, 8, 3)), BEADS))
+    # plane codes are checked as estimate checks them (called directly, find_markers took
+    # a code 5 or a float plane and dropped or mislabelled those frames' rows)
+    for plane, msg in ((np.array([-1, 0, 5]), r"view v: sweep 'plane' holds \[5\]"),
+                       (np.array([-1.0, 0.0, 1.0]), r"view v: sweep 'plane' must be \(3,\) "
+                                                    "integers")):
+        with pytest.raises(ValueError, match=msg):
+            find_markers(SweepData("v", np.zeros((3, 8, 8)), plane, np.zeros((3, 8, 3)), BEADS))
 
 
 def test_a_row_without_blobs_names_what_the_detector_needs():

@@ -387,6 +387,12 @@ def test_registration_options_are_checked_when_made():
         EstimateOptions(registration={"method": "nope"})
     with pytest.raises(ValueError, match=r"coarse\['residual'\]"):
         EstimateOptions(coarse={"residual": "plane"})
+    # solve_pose's options too (a bad key was found only when the registration started,
+    # about 4 s into an estimate)
+    with pytest.raises(ValueError, match=r"registration\['solver_options'\]: unknown option"):
+        EstimateOptions(registration={"solver_options": {"tolerance": 1e-8}})
+    with pytest.raises(ValueError, match=r"coarse\['solver_options'\]: max_iterations: expected"):
+        EstimateOptions(coarse={"solver_options": {"max_iterations": 0}})
     EstimateOptions(registration={"method": "lm", "residual": "line", "max_iterations": 5})
 
 

@@ -541,7 +541,10 @@ def test_view_fit_measures_each_view_against_the_nearest_apparent_contour(world)
                                  {"tukey_a": float("inf")}, {"solver_options": [1, 2]},
                                  {"min_inlier_fraction": 1.5}, {"closest": "fast"},
                                  {"method": "lm"}, {"fixed_point_ct": (0.0, np.inf, 0.0)},
-                                 {"max_rotation_deg": 0.0}])
+                                 {"max_rotation_deg": 0.0},
+                                 {"solver_options": {"bogus": 1}},
+                                 {"solver_options": {"tol": -1.0}},
+                                 {"solver_options": {"points": 1}}])
 def test_check_options_refuses_what_register_refuses(world, bad):
     """reglib.register.check_options (used by EstimateOptions when it is made) runs register's
     own checks: the same option refused with the same message, before any work."""
