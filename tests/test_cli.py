@@ -407,6 +407,10 @@ def test_bench_quick_prints_every_workload_with_value_unit_goal_reference():
     scaling = result["scaling_2_workers"]
     assert 0.7 * scaling["reference"] < scaling["value"] < 2.5, scaling
     assert result["run_cpu_s"]["value"] > result["run_cpu_s"]["reference"]  # above imports
+    # a trial registers starts: slower than its simulation alone (the row timed no
+    # registration until 2026-11-26, its rate equal to the simulation's)
+    capture = result["capture_trials_per_min"]
+    assert capture["value"] < 0.95 * capture["reference"], capture
 
 
 def test_json_output_has_no_nan_or_infinity():
