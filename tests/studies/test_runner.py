@@ -42,6 +42,8 @@ def toy_trial(trial: Trial) -> list[dict]:
     an exception (``fail``), malformed rows (``bad_rows``) or a dead worker (``die``)."""
     p = trial.params
     rng = trial.rng()
+    if p.get("pid_dir"):     # say which process runs it
+        (Path(p["pid_dir"]) / str(os.getpid())).touch()
     time.sleep(p.get("sleep_s", 0.0))
     if p.get("fail"):
         raise RuntimeError(f"trial {trial.index} was asked to fail")
@@ -379,6 +381,58 @@ def test_resume_after_sigkill_gives_the_rows_of_an_uninterrupted_run(tmp_path):
                        progress=False)
     pd.testing.assert_frame_equal(resumed, clean, check_exact=True)
     assert len(clean) == 5 * n
+
+
+@pytest.mark.slow
+def test_workers_end_when_the_study_is_killed(tmp_path):
+    """A study killed by SIGKILL (the OOM killer, a batch system's hard limit) cannot stop
+    its pool: its workers end by themselves within seconds (a review found them idle for
+    good, 0.8 GB each). The killed process is left unreaped, a zombie, as a parent that
+    does not wait leaves it."""
+    from studies.runner import PARENT_POLL_S, _process_alive
+
+    pids = tmp_path / "pids"
+    pids.mkdir()
+    script = tmp_path / "study.py"
+    script.write_text(textwrap.dedent(f"""
+        import sys
+        sys.path.insert(0, {str(HERE)!r})
+        from studies.runner import make_trials, run_trials
+        from test_runner import toy_trial
+
+        if __name__ == "__main__":
+            params = [{{"sleep_s": 120.0, "pid_dir": {str(pids)!r}}} for _ in range(4)]
+            trials = make_trials("points-lines", 5, params)
+            run_trials(toy_trial, trials, out_dir={str(tmp_path / "out")!r}, workers=2,
+                       progress=False)
+    """))
+    proc = subprocess.Popen([sys.executable, str(script)], cwd=ROOT,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 120
+        while len(list(pids.iterdir())) < 2:
+            assert proc.poll() is None, proc.stderr.read().decode()
+            assert time.monotonic() < deadline, "the workers never started their trials"
+            time.sleep(0.05)
+        workers = [int(f.name) for f in pids.iterdir()]
+        assert all(_process_alive(w) for w in workers)
+        os.kill(proc.pid, signal.SIGKILL)
+        time.sleep(0.5)
+        assert not _process_alive(proc.pid)       # a zombie counts as gone
+        deadline = time.monotonic() + 10 * PARENT_POLL_S + 5
+        while any(_process_alive(w) for w in workers):
+            assert time.monotonic() < deadline, "the workers outlived the killed study"
+            time.sleep(0.1)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait()
+        proc.stderr.close()
+        for f in pids.iterdir():
+            try:
+                os.kill(int(f.name), signal.SIGKILL)
+            except ProcessLookupError:
+                pass
 
 
 @pytest.mark.slow
