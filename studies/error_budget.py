@@ -196,15 +196,30 @@ def trial_params(scene_path, *, cases: int) -> list[dict]:
     return params
 
 
-def run(ctx) -> pd.DataFrame:
-    from studies.runner import Trial, run_trials
+def make_budget_trials(scene_path, seed: int, *, cases: int) -> list:
+    """The study's trials (:func:`trial_params`): every configuration of case ``i``
+    simulated from case ``i``'s seed (not the trial index's); a stored trial is reused only
+    for the same scene and ideal profile (their every field and the files they name), as
+    :func:`studies.runner.run_study_trials` keys its trials."""
+    from studies.runner import Trial, fingerprint, scene_fingerprint
+    from testbed.scene import load_scene
     from testbed.simulate import case_seed
 
-    n = QUICK_CASES if ctx.quick else CASES
-    params = trial_params(ctx.scene_path, cases=n)
-    # every configuration of case i is simulated from case i's seed (not the trial index's)
-    trials = [Trial.from_seed_sequence(i, str(ctx.scene_path), case_seed(ctx.seed, p["case"]),
-                                       p) for i, p in enumerate(params)]
+    params = trial_params(scene_path, cases=cases)
+    ideal = params[0]["ideal"]
+    digest = fingerprint(texts=[scene_fingerprint(load_scene(scene_path)),
+                                scene_fingerprint(load_scene(ideal)) if ideal else ""])
+    return [Trial.from_seed_sequence(i, str(scene_path), case_seed(seed, p["case"]), p, digest)
+            for i, p in enumerate(params)]
+
+
+def run(ctx) -> pd.DataFrame:
+    from studies.runner import run_trials
+    from testbed.scene import load_scene
+
+    trials = make_budget_trials(ctx.scene_path, int(ctx.seed),
+                                cases=QUICK_CASES if ctx.quick else CASES)
+    params = [t.params for t in trials]
     df = run_trials(trial, trials, out_dir=ctx.out, workers=int(ctx.workers),
                     scheduler=ctx.scheduler, retries=getattr(ctx, "retries", 2))
     pe = df[(df.metric == "pin_error")]
@@ -213,8 +228,6 @@ def run(ctx) -> pd.DataFrame:
         return df
     ideal = params[0]["ideal"]
     if ideal:
-        from testbed.scene import load_scene
-
         src = error_sources(ctx.scene, load_scene(ideal))
         ctx.report("Error sources", f"The clinic profile `{ctx.scene_path}` against its ideal "
                    f"profile `{ideal}`, field by field:\n\n" + markdown_table(pd.DataFrame(

@@ -1,5 +1,7 @@
 """The error budget's bookkeeping: sources found by comparing two profiles, variants, table."""
 
+import re
+
 import pandas as pd
 import pytest
 
@@ -90,3 +92,32 @@ def test_gap_table_gives_each_source_the_factor_that_would_reach_the_target():
     assert "1.50 mm (in quadrature) is missing" in gap_markdown(t)
     rows[0]["value"] = 2.0
     assert "no source has to change" in gap_markdown(source_table(pd.DataFrame(rows)))
+
+
+def test_a_stored_trial_is_not_reused_after_either_profile_changed(tmp_path):
+    """The trials' keys hold the scene's and its ideal profile's every field: an edit of
+    either runs the trials again (a review: an edited clinic scene reused the old pin errors
+    under the new scene's report)."""
+    from studies.error_budget import make_budget_trials
+
+    src = find_scene("experiment2").parent
+    for name in ("experiment2.toml", "experiment2-ideal.toml"):
+        (tmp_path / name).write_text((src / name).read_text())
+
+    def keys():
+        return [t.key for t in make_budget_trials(tmp_path / "experiment2.toml", 3, cases=1)]
+
+    before = keys()
+    assert before == keys() and len(set(before)) == len(before) > 2
+    for name in ("experiment2.toml", "experiment2-ideal.toml"):
+        p = tmp_path / name
+        text = p.read_text()
+        assert "[fluoroscope]\n" in text
+        edited = re.sub(r"(?m)^focal_spot_mm = .*$", "focal_spot_mm = 0.9", text)
+        if edited == text:
+            edited = text.replace("[fluoroscope]\n", "[fluoroscope]\nfocal_spot_mm = 0.9\n", 1)
+        p.write_text(edited)
+        after = keys()
+        assert not set(after) & set(before), name
+        p.write_text(text)
+    assert keys() == before
