@@ -56,7 +56,7 @@ def run_study(name: str, out: Path, *, scene=None, seed=None, quick=False, worke
     scene of another kind than the study's default scene (e.g. an operating room for
     ``fig9``), or workers asked of a serial study.
     """
-    from studies.common import finish_study, start_study
+    from studies.common import check_out_folder, finish_study, start_study
     from testbed.scene import find_scene, load_scene
 
     known = available_studies()
@@ -73,6 +73,7 @@ def run_study(name: str, out: Path, *, scene=None, seed=None, quick=False, worke
         if got != want:
             raise ValueError(f"{path}: [scene] kind = {got!r}, but study {name} needs a "
                              f"scene of kind {want!r} (e.g. {mod.DEFAULT_SCENE})")
+    check_out_folder(out, name)
     ctx = start_study(name, out, scene=scene or mod.DEFAULT_SCENE, seed=seed, quick=quick,
                       workers=workers, scheduler=scheduler)
     ctx.retries = int(retries)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import re
 import subprocess
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -66,6 +67,27 @@ class StudyContext:
         """Register a figure file (in ``out``) to be linked from the report; returns its path."""
         self.figures.append((filename, caption))
         return self.out / filename
+
+
+def check_out_folder(out, name: str) -> None:
+    """ValueError when folder ``out`` holds the report of another study than ``name`` (or a
+    ``report.md`` no study wrote): running there would replace that study's results and
+    report and leave its figures beside the new ones. The same study's folder resumes."""
+    report = Path(out) / "report.md"
+    if not report.is_file():
+        return
+    try:
+        with open(report, encoding="utf-8", errors="replace") as f:
+            first = f.readline().strip()
+    except OSError as exc:
+        raise ValueError(f"--out {out}: cannot read its report.md ({exc.strerror})") from None
+    m = re.fullmatch(r"# Study `(.+)`", first)
+    if m is None:
+        raise ValueError(f"--out {out}: holds a report.md that no study wrote (its first line "
+                         f"{first[:60]!r}); give another folder")
+    if m.group(1) != name:
+        raise ValueError(f"--out {out}: holds the results of {m.group(1)!r} (report.md), not "
+                         f"of {name!r}; give another folder, or the same command to resume")
 
 
 def start_study(name, out, *, scene, seed=None, quick=False, workers=1,

@@ -205,7 +205,7 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
                   scheduler=None, progress: bool = True) -> Path:
     """Score ``method`` on every case of ``dataset``; writes ``out/results.csv`` and
     ``out/report.md``; returns ``out``. Rerunning into the same ``out`` resumes."""
-    from studies.common import StudyContext, finish_study, markdown_table
+    from studies.common import StudyContext, check_out_folder, finish_study, markdown_table
     from studies.runner import fingerprint, make_trials, run_trials
     from testbed.dataset import list_cases
 
@@ -218,6 +218,7 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
                          "testbed generate")
     fn = load_method(method)  # refuse a bad --method before any work
     out = Path(out)
+    check_out_folder(out, f"score {method}")
     params = [{"case": c.name, "method": method} for c in cases]
     # what the scores read besides the names: the dataset's files that say what each case
     # is, and the method's source (a dataset regenerated, or a method edited, under the same

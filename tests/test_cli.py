@@ -65,6 +65,10 @@ def _one_error_line(err: str) -> str:
     (["study", "fig9", "--quick", "--scene", "experiment2", "--out", "{tmp}/s"], "kind"),
     (["study", "table1", "--workers", "2", "--out", "{tmp}/s"], "refused"),
     (["study", "no-such-study", "--out", "{tmp}/s"], "unknown study"),
+    # a folder of another study's results: replaced silently, its figures left beside
+    (["study", "fig9", "--quick", "--out", "{tmp}/other"],
+     "--out {tmp}/other: holds the results of 'table2' (report.md), not of 'fig9'"),
+    (["study", "fig9", "--quick", "--out", "{tmp}/mine"], "holds a report.md that no study"),
     (["render", "/no/such/dir/experiment2.toml", "--out", "{tmp}/r.png"], "no such scene"),
     (["run", "no-such-scene"], "no such scene"),
     (["score", "{tmp}/nothing", "--out", "{tmp}/s"], "no such dataset"),
@@ -90,11 +94,16 @@ def test_bad_command_lines_exit_2_with_one_line(tmp_path, capsys, argv, expect):
     (tmp_path / "afile").write_text("not a folder")
     (tmp_path / "case_0003").mkdir()
     (tmp_path / "case_0003" / "case.json").write_text("{}")
+    for folder, text in (("other", "# Study `table2`\n"), ("mine", "my notes\n")):
+        (tmp_path / folder).mkdir()
+        (tmp_path / folder / "report.md").write_text(text)
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
     code, _, err = _run(capsys, *argv)
     assert code == 2, err
     line = _one_error_line(err)
-    assert expect in line
+    assert expect.replace("{tmp}", str(tmp_path)) in line
+    for folder in ("other", "mine"):      # left as they were
+        assert [f.name for f in (tmp_path / folder).iterdir()] == ["report.md"]
     assert not (tmp_path / "pl").exists()  # refused before any folder is made
     assert not (tmp_path / "s").exists() or not any((tmp_path / "s").iterdir())
 
