@@ -295,13 +295,15 @@ def capture_range(s: pd.DataFrame, edges, *, rate: float = CAPTURE_RATE) -> dict
 
 
 def run(ctx) -> pd.DataFrame:
-    from studies.common import markdown_table
+    from studies.common import markdown_table, nothing_finished
     from studies.runner import run_study_trials
 
     size = QUICK_SIZE if ctx.quick else DEFAULT_SIZE
     bins = QUICK_BINS_MM if ctx.quick else BIN_EDGES_MM
     params = trial_params(bins=bins, **size)
     df = run_study_trials(ctx, trial, params)
+    if nothing_finished(ctx, df, "Capture range"):
+        return df
     failures = df.attrs.get("failures", {})
     ok = df[df.metric != "failed"]
     s = summary(ok)

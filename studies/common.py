@@ -101,6 +101,21 @@ def start_study(name, out, *, scene, seed=None, quick=False, workers=1,
                         quick=quick, workers=workers, scheduler=scheduler)
 
 
+def nothing_finished(ctx: StudyContext, df: pd.DataFrame, heading: str) -> bool:
+    """True when no trial of ``df`` finished (every row a failure, or no row): the report
+    then says so under ``heading`` with each trial's error, and the study writes no table
+    or figure (they would be made of nothing)."""
+    from studies.runner import FAILED_METRIC
+
+    if len(df) and (df["metric"] != FAILED_METRIC).any():
+        return False
+    failures = df.attrs.get("failures", {})
+    ctx.report(heading, "No trial finished." + (
+        "\n\n" + "\n".join(f"- trial {k}: {v}" for k, v in failures.items())
+        if failures else ""))
+    return True
+
+
 def check_results(df: pd.DataFrame) -> None:
     missing = [c for c in REQUIRED_COLUMNS if c not in df.columns]
     if missing:

@@ -221,7 +221,8 @@ def run(ctx) -> pd.DataFrame:
                                 cases=QUICK_CASES if ctx.quick else CASES)
     params = [t.params for t in trials]
     df = run_trials(trial, trials, out_dir=ctx.out, workers=int(ctx.workers),
-                    scheduler=ctx.scheduler, retries=getattr(ctx, "retries", 2))
+                    scheduler=ctx.scheduler, retries=getattr(ctx, "retries", 2),
+                    progress=bool(getattr(ctx, "progress", True)))
     pe = df[(df.metric == "pin_error")]
     if pe.empty:
         ctx.report("Pin errors (mm)", "No registration finished.")
