@@ -317,8 +317,11 @@ def run(ctx) -> pd.DataFrame:
         f"Largest initial mTRE (at the three pins) up to which >= {CAPTURE_RATE:.0%} of the "
         f"starts end with a final mTRE < {SUCCESS_MM:g} mm, per pose method "
         "(published capture ranges for 2-D/3-D registration: 4-11 mm):", "", *lines, "",
-        f"Cases: {size['cases']} random femurs (left or right, every shape parameter uniform "
-        "over its documented range), views re-aimed at each femur's anatomy, C-arm angles "
+        f"Cases: {ok.trial.nunique()} random femur(s)"
+        + (f" of {size['cases']}, the others failed (see 'Failed trials')"
+           if ok.trial.nunique() < size["cases"] else "")
+        + "; left or right, every shape parameter uniform "
+        "over its documented range, views re-aimed at each femur's anatomy, C-arm angles "
         f"jittered by up to {JITTER_DEG:g} deg, "
         f"{size['starts_per_bin']} start(s) per bin and case for {PRIMARY}, "
         f"{size['others_per_bin']} for the other methods; {len(failures)} failed trial(s)."

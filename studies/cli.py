@@ -288,6 +288,7 @@ def _failed_trials(out: Path) -> int:
         df = pd.read_csv(out / "results.csv", usecols=["trial", "metric"])
     except (OSError, ValueError):
         return 0
+    df = df[df.trial >= 0]        # a study's summary rows (trial -1) are no trial
     failed = df.loc[df.metric == "failed", "trial"].nunique()
     if not failed:
         return 0

@@ -173,7 +173,10 @@ def run(ctx) -> pd.DataFrame:
     wide["setup"] = wide["setup"].astype(str)
     c = confusion(wide)
     ctx.report("Verdict against the truth", "\n".join([
-        f"{len(wide)} registrations: {cases} case(s) of the scene, each registered from "
+        f"{len(wide)} registrations: {wide.trial.nunique()} case(s) of the scene"
+        + (f" (of {cases}; the others failed: see 'Failed trials')"
+           if wide.trial.nunique() < cases else "")
+        + ", each registered from "
         f"`testbed run`'s start with {len(order)} set-ups of its views. Success: final mTRE "
         f"< {SUCCESS_MM:g} mm. The verdict refuses, among others, a pose whose "
         f"`weak_motion_mm` exceeds {limit:g} mm.", "",

@@ -519,6 +519,12 @@ def test_a_trial_that_exits_is_a_failed_trial_and_the_command_says_so(tmp_path, 
     df.to_csv(tmp_path / "results.csv", index=False)
     assert _failed_trials(tmp_path) == 1
     assert "1 of 3 trial(s) failed" in capsys.readouterr().err
+    # a study's summary rows (trial -1: capture_range, the confusion counts) are no trial
+    summary = pd.DataFrame([{"trial": -1, "metric": "capture_range", "value": 30.0,
+                             "unit": "mm"}])
+    pd.concat([df, summary]).to_csv(tmp_path / "results.csv", index=False)
+    assert _failed_trials(tmp_path) == 1
+    assert "1 of 3 trial(s) failed" in capsys.readouterr().err
     df[df.metric != "failed"].to_csv(tmp_path / "results.csv", index=False)
     assert _failed_trials(tmp_path) == 0
 
