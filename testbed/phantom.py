@@ -41,6 +41,15 @@ __all__ = ["Phantom", "PhantomSpec", "PIN_NAMES", "make_phantom"]
 PIN_NAMES = ("proximal", "distal_1", "distal_2")
 
 
+#: the fields that only the procedural femur reads (a user mesh replaces them)
+PROCEDURAL_FIELDS = (
+    "length_mm", "head_radius_mm", "neck_length_mm", "neck_radius_mm", "neck_shaft_angle_deg",
+    "anteversion_deg", "shaft_diameter_mm", "cortical_thickness_mm", "end_cortex_mm",
+    "shaft_bow_mm", "condyle_width_mm", "notch_width_mm", "condyle_depth_mm",
+    "distal_joint_angle_deg", "thigh_radius_mm", "knee_radius_mm", "shape_variation",
+    "surface_detail_mm", "surface_detail_wavelength_mm")
+
+
 class PhantomSpec(Spec):
     """``[phantom]``: the femur phantom (procedural, or a user mesh), its pins and the thigh.
 
@@ -107,6 +116,19 @@ class PhantomSpec(Spec):
         if self.mesh_path is not None and not self.mesh_path.strip():
             raise ValueError("mesh_path is empty; give the femur mesh's file, or leave "
                              "mesh_path out for the procedural femur")
+        fields = type(self).model_fields
+        moved = [k for k in (PROCEDURAL_FIELDS if self.mesh_path is not None
+                             else ("mesh_margin_mm",))
+                 if getattr(self, k) != fields[k].default]
+        if moved and self.mesh_path is not None:
+            raise ValueError(f"{', '.join(moved)}: field(s) of the procedural femur, which the "
+                             f"user mesh (mesh_path) replaces, so they would be ignored; "
+                             "remove them (around a user mesh the thigh is its bounding box "
+                             "widened by mesh_margin_mm)")
+        if moved:
+            raise ValueError("mesh_margin_mm is only used around a user mesh (mesh_path); the "
+                             "procedural femur's thigh is set by thigh_radius_mm and "
+                             "knee_radius_mm")
         if self.notch_width_mm >= self.condyle_width_mm / 2:
             raise ValueError("notch_width_mm must be below half of condyle_width_mm")
         if self.mesh_pins_mm is not None:
@@ -559,10 +581,12 @@ _BUILT: dict = {}
 
 def _build_key(spec: PhantomSpec) -> PhantomSpec:
     """The spec that fixes the procedural phantom's geometry: ``spec`` itself, with
-    ``shape_seed`` set to 0 when ``shape_variation`` is 0 (the seed then draws nothing that
-    is used: the capture-range study's random femurs have their variation 0, and the
-    simulator gives every case its own seed, so their femur was built twice a trial)."""
-    if spec.shape_variation == 0 and spec.shape_seed != 0:
+    ``shape_seed`` set to 0 when neither ``shape_variation`` nor ``surface_detail_mm``
+    draws from it (the capture-range study's random femurs have their variation 0, and the
+    simulator gives every case its own seed, so their femur was built twice a trial). The
+    surface detail is drawn from the seed: with detail the seed stays (it was set to 0 too,
+    and every case and seed got the same detail)."""
+    if spec.shape_variation == 0 and spec.surface_detail_mm == 0 and spec.shape_seed != 0:
         return spec.model_copy(update={"shape_seed": 0})
     return spec
 

@@ -310,5 +310,9 @@ def test_surface_detail_moves_the_outer_surface_by_its_rms():
     assert a.femur.is_watertight and a.femur.is_winding_consistent
     # the nested bone is still inside, and the pins
     assert a.cancellous.contains(a.femur.vertices).sum() == 0
-    # shape_variation 0: the same femur, and so the same detail, whatever the seed
-    assert np.array_equal(c.femur.vertices, a.femur.vertices)
+    # shape_variation 0: the same femur under the detail, the detail drawn from the seed
+    # (every seed and case got seed 0's detail, a held-out review found)
+    assert c.femur.vertices.shape == a.femur.vertices.shape
+    assert np.abs(c.femur.vertices - a.femur.vertices).max() > 0.2
+    dc = surface_distances(c.femur.vertices, plain.femur.vertices, plain.femur.faces)
+    assert 0.4 < np.sqrt(np.mean(dc ** 2)) < 0.55

@@ -196,6 +196,11 @@ def test_unreadable_file(tmp_path):
     ("instrument = 'table'", "world's own bodies"),
     # pins of a user mesh without the mesh; an unknown pin
     ("mesh_pins = 'no mesh'", "without mesh_path"),
+    # the procedural femur's fields beside a user mesh, which replaces them (a held-out
+    # review: a thigh of 150 mm, a detail of 0.6 mm, ignored without a word); the mesh's
+    # margin without a mesh
+    ("mesh_path = 'thigh'", "thigh_radius_mm, surface_detail_mm: field(s) of the procedural"),
+    ("mesh_margin = 'no mesh'", "mesh_margin_mm is only used around a user mesh"),
     # the rod's materials are checked at load, as an instrument's are
     ("rod = 'unobtainium'", "unknown material 'unobtainium'"),
     # slice positions that the clinical schedule would ignore
@@ -227,6 +232,11 @@ def test_names_and_references_are_refused_at_load(tmp_path, edit, expect):
         text += "\n[ct]\nuniform_range_mm = [0.0, 100.0]\n"
     elif edit.startswith("ct"):
         text += "\n[ct]\nslice_z_mm = [100.0, 200.0]\n"
+    elif edit.startswith("mesh_path"):
+        text = text.replace('side = "right"', 'side = "right"\nmesh_path = "femur.stl"\n'
+                            "thigh_radius_mm = 150.0\nsurface_detail_mm = 0.6", 1)
+    elif edit.startswith("mesh_margin"):
+        text = text.replace('side = "right"', 'side = "right"\nmesh_margin_mm = 20.0', 1)
     elif edit.startswith("mesh_pins"):
         text = text.replace('side = "right"', 'side = "right"\nmesh_pins_mm = {proximal = '
                             '[0.0, 0.0, 1.0], distal_1 = [0.0, 1.0, 0.0], distal_2 = '
