@@ -551,6 +551,19 @@ def _terminate_as_interrupt() -> None:
         pass
 
 
+def _interrupt_of(exc):
+    from studies.runner import interrupt_of
+
+    return interrupt_of(exc)
+
+
+def _interrupted(exc: KeyboardInterrupt) -> int:
+    """The line and exit status of an interrupt (130) or a SIGTERM (143)."""
+    print(f"{PROG}: {'terminated' if isinstance(exc, Terminated) else 'interrupted'}",
+          file=sys.stderr)
+    return 143 if isinstance(exc, Terminated) else 130
+
+
 def main(argv=None) -> int:
     global _scene_path
     _scene_path = None
@@ -582,10 +595,11 @@ def main(argv=None) -> int:
         print(msg if msg.startswith(PROG) else f"{PROG}: {msg}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
-        print(f"{PROG}: {'terminated' if isinstance(exc, Terminated) else 'interrupted'}",
-              file=sys.stderr)
-        return 143 if isinstance(exc, Terminated) else 130
+        return _interrupted(exc)
     except OSError as exc:  # the disk or the file system, during the work
+        stop = _interrupt_of(exc)
+        if stop is not None:
+            return _interrupted(stop)
         if debug:
             raise
         where = f"{exc.filename}: " if exc.filename and str(exc.filename) not in str(exc) else ""
@@ -594,6 +608,9 @@ def main(argv=None) -> int:
     except Exception as exc:
         from testbed.spec import SceneError
 
+        stop = _interrupt_of(exc)   # Ctrl-C inside a compiled function: a SystemError
+        if stop is not None:
+            return _interrupted(stop)
         if debug:
             raise
         if isinstance(exc, SceneError | ValueError | FileNotFoundError):

@@ -82,6 +82,7 @@ __all__ = [
     "read_trials",
     "run_study_trials",
     "run_trials",
+    "interrupt_of",
 ]
 
 DB_NAME = "trials.sqlite"
@@ -284,8 +285,24 @@ def _check_rows(rows, trial: Trial) -> list[dict]:
     return out
 
 
+def interrupt_of(exc: BaseException) -> KeyboardInterrupt | None:
+    """The KeyboardInterrupt (Ctrl-C, or SIGTERM as :class:`studies.cli.Terminated`) behind
+    ``exc``, if any: one that arrives while a numba-compiled function runs surfaces as a
+    SystemError ("returned a result with an exception set") whose context is the interrupt,
+    an Exception that a trial's failure handler would otherwise take for the trial's own."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
 def execute_trial(trial_fn: Callable[[Trial], list[dict]], trial: Trial) -> TrialResult:
-    """Run one trial, catching its exceptions: the unit of work sent to a worker."""
+    """Run one trial, catching its exceptions: the unit of work sent to a worker. An
+    interrupt is no failure of the trial: it propagates (:func:`interrupt_of`), and the
+    trial is run again when the study resumes."""
     from studies.threads import freeze_worker, single_threaded_kernels
 
     single_threaded_kernels()       # workers parallelise by process
@@ -295,6 +312,9 @@ def execute_trial(trial_fn: Callable[[Trial], list[dict]], trial: Trial) -> Tria
         rows = _check_rows(trial_fn(trial), trial)
     except (Exception, SystemExit) as exc:  # a failing trial is recorded, not fatal (also a
         # user's method that calls sys.exit: it must not end the study without its results)
+        stop = interrupt_of(exc)
+        if stop is not None:
+            raise stop from None
         return TrialResult(trial.key, trial.index, "failed", (),
                            error=f"{type(exc).__name__}: {exc}",
                            traceback=traceback.format_exc(),

@@ -556,3 +556,36 @@ def test_every_study_reports_when_no_trial_finished(tmp_path, monkeypatch, capsy
         ran.append(name)
     assert len(ran) >= 8, ran
     assert "trials:" not in capsys.readouterr().err   # progress=False is kept by every study
+
+
+def _interrupted_in_a_kernel(trial):
+    try:
+        raise KeyboardInterrupt
+    except KeyboardInterrupt:   # as numba reports a Ctrl-C that arrived inside its code
+        raise SystemError("CPUDispatcher(<function quantum_counts>) returned a result with "
+                          "an exception set") from None
+
+
+def test_an_interrupt_inside_compiled_code_stops_the_study(tmp_path, monkeypatch, capsys):
+    """Ctrl-C while a numba function runs surfaces as a SystemError whose context is the
+    interrupt; it was recorded as the trial's failure (the study went on, and a resume never
+    ran that trial again: a review, table2 --quick interrupted at 7 s). It is an interrupt:
+    nothing is stored, and the command exits 130."""
+    import studies.cli as cli
+    from studies.runner import execute_trial, interrupt_of
+
+    (trial,) = make_trials("points-lines", 1, [{}])
+    with pytest.raises(KeyboardInterrupt):
+        execute_trial(_interrupted_in_a_kernel, trial)
+    with pytest.raises(KeyboardInterrupt):
+        run_trials(_interrupted_in_a_kernel, [trial], out_dir=tmp_path, workers=1,
+                   progress=False)
+    assert read_trials(tmp_path).empty if (tmp_path / DB_NAME).exists() else True
+    assert interrupt_of(ValueError("plain")) is None
+
+    def scenes(args):
+        _interrupted_in_a_kernel(None)
+
+    monkeypatch.setattr(cli, "cmd_scenes", scenes)
+    assert cli.main(["scenes"]) == 130
+    assert capsys.readouterr().err.strip() == "testbed: interrupted"
