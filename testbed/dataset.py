@@ -40,7 +40,6 @@ import os
 import re
 import shutil
 import tempfile
-import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -257,7 +256,9 @@ def _savez_fast(path: Path, arrs: dict) -> None:
             a = np.asanyarray(a)
             member: str | zipfile.ZipInfo = f"{key}.npy"
             if not _worth_deflating(a):
-                member = zipfile.ZipInfo(member, date_time=time.localtime()[:6])
+                # the zip's own default date (1980), as the deflated members get: with the
+                # write time a case written again from its seed differed from the first
+                member = zipfile.ZipInfo(member)
                 member.compress_type = zipfile.ZIP_STORED
             with zf.open(member, "w", force_zip64=True) as f:
                 np.lib.format.write_array(f, a, allow_pickle=False)
