@@ -20,6 +20,7 @@ reglib's method ``accepted`` and ``converged``) and ``OUT/report.md``.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import inspect
 import json
@@ -227,9 +228,13 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
         source = inspect.getsourcefile(fn) if fn is not None else None
     except TypeError:  # a compiled callable: its name alone
         source = None
-    trials = make_trials(str(dataset.resolve()), 0, params, fingerprint=fingerprint(
-        files=[dataset / "dataset.json", *(c / "case.json" for c in cases),
-               *([source] if source else [])]))
+    # ...each trial by its own case's record: a case added to the dataset, or one written
+    # again, is scored alone (one fingerprint of every case.json scored them all again)
+    method_files = [source] if source else []
+    trials = [dataclasses.replace(t, fingerprint=fingerprint(files=[c / "case.json",
+                                                                     *method_files]))
+              for t, c in zip(make_trials(str(dataset.resolve()), 0, params), cases,
+                              strict=True)]
     from testbed.dataset import load
 
     # the report's scene: from the first case that can be read (a broken case is a failed

@@ -351,6 +351,20 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path):
     report = (tmp_path / "s6" / "report.md").read_text()
     assert "Failed cases" in report and victim.name in report
     assert f"seed: {index['seed']}" in report
+    # a case added to the dataset is scored alone: the others are taken from trials.sqlite
+    # (one fingerprint of every case.json scored them all again)
+    from studies.runner import read_trials
+
+    before = read_trials(tmp_path / "s6").set_index("trial")
+    shutil.copytree(ds2 / "case_0001", ds2 / "case_0002")
+    index["cases"].append("case_0002")
+    index["case_json_sha256"]["case_0002"] = index["case_json_sha256"]["case_0001"]
+    (ds2 / "dataset.json").write_text(json.dumps(index))
+    score_dataset(ds2, tmp_path / "s6", progress=False)
+    after = read_trials(tmp_path / "s6").set_index("trial")
+    assert sorted(after.index) == [0, 1, 2]
+    assert after.loc[1, "finished_at"] == before.loc[1, "finished_at"]
+    assert after.loc[1, "key"] == before.loc[1, "key"]
 
     # the only case renamed: the refusal names the cases the index lists and the folder lacks
     ds3 = tmp_path / "ds3"
