@@ -39,3 +39,23 @@ def test_calibration_study_writes_validation_distances_per_view(tmp_path):
     assert set(df.experiment.dropna()) == {"smoothing", "beads", "rows"}
     report = (out / "report.md").read_text()
     assert "Validation distances per view" in report and "0.1-0.4 mm" in report
+
+
+def test_the_sensitivity_table_is_one_views():
+    """The worst view's rows, not the largest figure of each cell over the views (which put
+    one view's ray error beside another's validation distance)."""
+    import pandas as pd
+
+    from studies.calibration import sensitivity_table
+
+    rows = []
+    for view, val, ray in (("a", (0.30, 0.50), (0.60, 0.10)), ("b", (0.45, 0.40), (0.20, 0.30))):
+        for param, v, r in zip((4, 6), val, ray, strict=True):
+            rows += [{"view": view, "experiment": "beads", "param": param,
+                      "metric": "validation_max", "value": v},
+                     {"view": view, "experiment": "beads", "param": param,
+                      "metric": "ray_error_iso_mean", "value": r}]
+    worst, t = sensitivity_table(pd.DataFrame(rows))
+    assert worst == "b"     # mean validation 0.425 against 0.40
+    assert t[["param", "validation_max", "ray_error_iso_mean"]].values.tolist() == [
+        [4, 0.45, 0.20], [6, 0.40, 0.30]]
