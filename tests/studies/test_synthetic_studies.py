@@ -56,3 +56,18 @@ def test_unknown_study_and_bad_scene(tmp_path, capsys):
     assert main(["run", str(bad)]) == 2
     err = capsys.readouterr().err
     assert "bad.toml" in err and "synthetic.n_points" in err
+
+
+def test_fig9_reports_the_threshold_it_counted_with(tmp_path):
+    """The report and heatmaps state the scene's success_threshold (they said 0.1 while the
+    rates were counted against the scene's 0.5)."""
+    from testbed.scene import find_scene
+
+    text = find_scene("points-lines").read_text()
+    assert "success_threshold = 0.1" in text
+    scene = tmp_path / "pl.toml"
+    scene.write_text(text.replace("success_threshold = 0.1", "success_threshold = 0.5"))
+    assert main(["study", "fig9", "--quick", "--scene", str(scene), "--out",
+                 str(tmp_path / "o")]) == 0
+    report = (tmp_path / "o" / "report.md").read_text()
+    assert "below 0.5 (the scene's success_threshold)" in report and "below 0.1" not in report
