@@ -146,27 +146,10 @@ def _out_file(path: Path, suffix: str, option: str = "--out") -> Path:
 
 
 def _quiet_pybullet() -> None:
-    """Import pybullet with standard error silenced at the file-descriptor level: its C
-    module prints a build-time banner there on import, which would make an error report two
-    lines. A no-op when pybullet is already imported or not installed."""
-    if "pybullet" in sys.modules:
-        return
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except (OSError, ValueError):  # no real descriptor 2 (embedded interpreters)
-        return
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, 2)
-        try:
-            import pybullet  # noqa: F401
-        except ImportError:
-            pass
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-        os.close(devnull)
+    """pybullet imported without its banner (:func:`studies.threads.quiet_pybullet`)."""
+    from studies.threads import quiet_pybullet
+
+    quiet_pybullet()
 
 
 #: the scene file of the running command (set by _scene): named in an infeasible-scene error

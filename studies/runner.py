@@ -502,12 +502,17 @@ def _process_alive(pid: int) -> bool:
 
 
 def _end_with(parent_pid: int) -> None:
-    """Pool worker initializer: a daemon thread ends this worker when the study's process
-    ``parent_pid`` is gone. A study killed by SIGKILL, the OOM killer or a batch system's
+    """Pool worker initializer: pybullet imported without its banner (a study's workers
+    each printed it on stderr), and a daemon thread that ends this worker when the study's
+    process ``parent_pid`` is gone. A study killed by SIGKILL, the OOM killer or a batch system's
     hard limit cannot stop its pool, and the workers (each holding both ends of its call
     queue, so never reading EOF) lived on idle, 0.8 GB each; the study resumes from its
     database, so nothing they held is lost."""
     import threading
+
+    from studies.threads import quiet_pybullet
+
+    quiet_pybullet()
 
     def watch():
         while _process_alive(parent_pid):
@@ -543,7 +548,7 @@ def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str,
     if mp_context == "forkserver":
         # Workers fork from one server that has imported these once (no effect once the
         # server of this process runs); cheap worker (re)starts.
-        mods = ["studies.runner"]
+        mods = ["studies._quiet", "studies.runner"]
         if getattr(trial_fn, "__module__", "__main__") not in ("__main__", "__mp_main__"):
             mods.append(trial_fn.__module__)
         ctx.set_forkserver_preload(mods)

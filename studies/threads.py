@@ -86,3 +86,30 @@ def _freeze() -> None:
     gc.collect()
     gc.freeze()
     _frozen = True
+
+
+def quiet_pybullet() -> None:
+    """Import pybullet with standard error silenced at the file-descriptor level: its C
+    module prints a build-time banner there on import, which would make an error report two
+    lines (and a study's workers printed it each). A no-op when pybullet is already imported
+    or not installed."""
+    import sys
+
+    if "pybullet" in sys.modules:
+        return
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no real descriptor 2 (embedded interpreters)
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        try:
+            import pybullet  # noqa: F401
+        except ImportError:
+            pass
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)

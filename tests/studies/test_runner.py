@@ -589,3 +589,14 @@ def test_an_interrupt_inside_compiled_code_stops_the_study(tmp_path, monkeypatch
     monkeypatch.setattr(cli, "cmd_scenes", scenes)
     assert cli.main(["scenes"]) == 130
     assert capsys.readouterr().err.strip() == "testbed: interrupted"
+
+
+@pytest.mark.slow
+def test_workers_print_no_pybullet_banner(tmp_path):
+    """A study on workers prints no pybullet build-time banner on stderr: the forkserver
+    imported the study's modules, and with them pybullet, unsilenced."""
+    out = subprocess.run([sys.executable, "-m", "studies.cli", "study", "fig9", "--quick",
+                          "--workers", "2", "--out", str(tmp_path / "f9")], cwd=ROOT,
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert "pybullet build time" not in out.stderr + out.stdout, out.stderr
