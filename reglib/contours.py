@@ -758,6 +758,27 @@ def _pixel_mm(slice2ct: np.ndarray) -> float:
     return float(np.mean(np.linalg.norm(a[:, :3, :2], axis=1)))
 
 
+def _click_source(keys: np.ndarray, clicks_xy: Mapping, k: int) -> int:
+    """The clicked slice whose clicks seed slice ``k`` (``keys``: the clicked slices,
+    sorted): the nearest (ties: the lower), but between two clicked slices whose contour
+    counts differ, the lower one. The operator clicks again where the cross-sections change
+    (the condyles part), so the slices before that click still show what the previous
+    clicks outlined: the nearest clicks outlined both condyles as one there, until
+    2026-11-26 (a held-out review: a distal surface 20 mm off on 0.2 mm slices, accepted);
+    elsewhere the nearer clicks follow the shape better (the neck and trochanters change
+    quickly along the femur)."""
+    i = int(np.searchsorted(keys, k, side="right"))   # keys[i - 1] <= k < keys[i]
+    if i == 0:
+        return int(keys[0])
+    below = int(keys[i - 1])
+    if below == k or i == len(keys):
+        return below
+    above = int(keys[i])
+    if len(clicks_xy[below]) != len(clicks_xy[above]):
+        return below
+    return above if above - k < k - below else below
+
+
 def contours_from_ct(
     volume_hu,
     slice2ct,
@@ -776,7 +797,10 @@ def contours_from_ct(
     slice_indices : the slices to contour.
     clicks_xy : slice index -> list of click polygons ((K, 2) arrays, (x, y) px), one per
         contour on that slice (one for the femur, two at the condyles). A slice without clicks
-        reuses those of the nearest clicked slice (by index; ties go to the lower index).
+        reuses those of the nearest clicked slice (by index; ties go to the lower index),
+        except where the number of contours changes: between clicked slices of different
+        counts, the slices take the lower one's (an operator clicks anew where the
+        cross-sections part or join, going up the slices).
     snake_options : keyword options of :func:`snake_contour`; ``polarity`` defaults to
         ``"bright_inside"`` (bone on CT), ``search_px`` to 5 (beyond a cortical shell),
         ``normal_sigma`` to 1 and ``neighbour_edges`` to True (no vertex left off the edge:
@@ -811,7 +835,7 @@ def contours_from_ct(
         k = int(k)
         if not 0 <= k < vol.shape[0]:
             raise ValueError(f"slice index {k} outside the volume (0..{vol.shape[0] - 1})")
-        src = int(keys[np.argmin(np.abs(keys - k))])
+        src = _click_source(keys, clicks_xy, k)
         polys = clicks_xy[src]
         if len(polys) == 0:
             raise ValueError(f"clicks_xy[{src}] holds no click polygon")

@@ -686,6 +686,7 @@ def surface_from_ct(volume_hu, slice2ct, slice_indices: Sequence[int],
 
     Raises ``ValueError`` when fewer than 2 slices keep a contour to tile.
     """
+    slice_indices = spaced_slices(slice2ct, slice_indices)
     contours = contours_from_ct(volume_hu, slice2ct, slice_indices, clicks_xy,
                                 **(snake_options or {}))
     contours = sorted(contours, key=lambda s: s.z_mm)
@@ -696,6 +697,38 @@ def surface_from_ct(volume_hu, slice2ct, slice_indices: Sequence[int],
                          "surface needs 2")
     surf = surface_from_contours(kept, quality=quality, simplify_tol_mm=simplify_tol_mm)
     return surf, contours
+
+
+def spaced_slices(slice2ct, slice_indices: Sequence[int]) -> list[int]:
+    """The slices to contour: from the lowest up, each at least one in-plane pixel (the
+    slices' mean pixel size) above the last one kept, and the highest slice. A contour
+    lies within a fraction of a pixel of the outline across it; tiled between slices much
+    closer than a pixel, that error tilts the surface's normals far from the bone's, and
+    the apparent contours the registration matches follow the noise (a held-out review:
+    0.2 mm slices of 0.8 mm pixels gave poses 2.6-2.9 mm off, accepted; 0.4-2 mm slices
+    were fine). Slices a pixel or more apart are all kept."""
+    from reglib.contours import _pixel_mm
+
+    aff = np.asarray(slice2ct, dtype=np.float64)
+    ks = [int(k) for k in slice_indices]
+    if len(ks) < 3:
+        return ks
+    if aff.shape == (4, 4):
+        z = [float((aff @ [0.0, 0.0, k, 1.0])[2]) for k in ks]
+    else:
+        z = [float(aff[k, 2, 3]) for k in ks]
+    order = np.argsort(z, kind="stable")
+    gap = _pixel_mm(aff)
+    kept = [int(order[0])]
+    for i in order[1:-1]:
+        if z[i] - z[kept[-1]] >= gap * (1 - 1e-9):
+            kept.append(int(i))
+    last = int(order[-1])
+    if z[last] - z[kept[-1]] < gap * (1 - 1e-9) and len(kept) > 1:
+        kept[-1] = last     # the highest slice is the surface's end: it stays
+    else:
+        kept.append(last)
+    return [ks[i] for i in sorted(kept)]
 
 
 #: the smallest cross-section (mm^2) a CT contour must enclose to be tiled: a snake on the

@@ -45,7 +45,8 @@ ENTRY_DOC = {
                                   "slices (S,) the slices to contour, clicks_xy (P, 2) px "
                                   "(x, y) = (col, row), slice (P,) and contour (P,) the slice "
                                   "and the cross-section of each click; slices without clicks "
-                                  "reuse the nearest clicked slice's"),
+                                  "reuse the nearest clicked slice's, except between clicked "
+                                  "slices of different counts: the lower one's"),
     "images/xray_{view}": ("observation", "the X-ray frame of the view, 8-bit video (H, W)"),
     "arrays/xray_fov_{view}": ("observation", "(H, W) bool, the circular field of view"),
     "arrays/xray_clicks_{view}": ("observation", "npz, the operator's traces on the frame: "

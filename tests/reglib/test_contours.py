@@ -120,31 +120,44 @@ def test_bad_clicks_raise():
 
 def test_contours_from_ct_reuses_clicks_and_maps_to_ct_mm():
     rng = np.random.default_rng(11)
-    # Two slices of a cylinder of radius 15 px, then two slices with two discs.
-    vol = np.stack([_ellipse_image((70, 90), 45.0, 35.0, 15.0, 15.0, 0.0)] * 2
+    # Three slices of a cylinder of radius 15 px, then two slices with two discs (the
+    # condyles parting): the operator clicks one outline on slice 0 and two where the discs
+    # appear (slice 3). Slice 2 lies nearer slice 3's clicks but shows the cylinder: it
+    # reuses slice 0's, as the counts change at slice 3 (the nearest clicks, taken there
+    # until 2026-11-26, outlined it as two).
+    vol = np.stack([_ellipse_image((70, 90), 45.0, 35.0, 15.0, 15.0, 0.0)] * 3
                    + [_ellipse_image((70, 90), 25.0, 35.0, 9.0, 9.0, 0.0)
                       + _ellipse_image((70, 90), 65.0, 35.0, 9.0, 9.0, 0.0)] * 2)
     vol = vol + rng.normal(0, 20.0, vol.shape)
-    z = np.array([0.0, 1.0, 7.0, 13.0])
-    slice2ct = np.tile(np.eye(4), (4, 1, 1))
+    z = np.array([0.0, 1.0, 6.0, 7.0, 13.0])
+    slice2ct = np.tile(np.eye(4), (5, 1, 1))
     slice2ct[:, 0, 0] = slice2ct[:, 1, 1] = 0.8          # 0.8 mm pixels
-    slice2ct[:, :3, 3] = np.column_stack([np.full(4, -10.0), np.full(4, 5.0), z])
-    clicks = {0: [_ellipse_points(45.0, 35.0, 15.0, 15.0, 0.3, 5) + 1.0],
-              3: [_ellipse_points(25.0, 35.0, 9.0, 9.0, 0.0, 5),
-                  _ellipse_points(65.0, 35.0, 9.0, 9.0, 0.0, 5)]}
-    out = contours_from_ct(vol, slice2ct, [0, 1, 2, 3], clicks)
-    assert [len(s.contours_ct) for s in out] == [1, 1, 2, 2]
+    slice2ct[:, :3, 3] = np.column_stack([np.full(5, -10.0), np.full(5, 5.0), z])
+    one = _ellipse_points(45.0, 35.0, 15.0, 15.0, 0.3, 5) + 1.0
+    clicks = {0: [one], 3: [_ellipse_points(25.0, 35.0, 9.0, 9.0, 0.0, 5),
+                            _ellipse_points(65.0, 35.0, 9.0, 9.0, 0.0, 5)]}
+    out = contours_from_ct(vol, slice2ct, [0, 1, 2, 3, 4], clicks)
+    assert [len(s.contours_ct) for s in out] == [1, 1, 1, 2, 2]
     for s, zk in zip(out, z, strict=True):
         assert s.z_mm == pytest.approx(zk)
-    c = out[1].contours_ct[0]
     centre = np.array([-10.0 + 45.0 * 0.8, 5.0 + 35.0 * 0.8])
-    r = np.linalg.norm(c[:, :2] - centre, axis=1)
-    assert abs(r.mean() - 15.0 * 0.8) < 0.3
-    for c, cx in zip(out[2].contours_ct, (25.0, 65.0), strict=True):
+    for k in (1, 2):
+        r = np.linalg.norm(out[k].contours_ct[0][:, :2] - centre, axis=1)
+        assert abs(r.mean() - 15.0 * 0.8) < 0.3
+    for c, cx in zip(out[4].contours_ct, (25.0, 65.0), strict=True):
         r = np.linalg.norm(c[:, :2] - [-10.0 + cx * 0.8, 5.0 + 35.0 * 0.8], axis=1)
         assert abs(r.mean() - 9.0 * 0.8) < 0.3
+    # slices before the first clicked slice take its clicks
+    first = contours_from_ct(vol, slice2ct, [0, 1], {1: [one]})
+    assert [len(s.contours_ct) for s in first] == [1, 1]
+    # elsewhere the nearest clicks (the shape changes along the slices): counts 1, 2, 2
+    from reglib.contours import _click_source
+
+    keys, by = np.array([0, 3, 10]), {0: [one], 3: [one, one], 10: [one, one]}
+    assert [_click_source(keys, by, k) for k in (0, 1, 2, 3, 4, 6, 7, 8, 12)] == \
+        [0, 0, 0, 3, 3, 3, 10, 10, 10]
     with pytest.raises(ValueError, match="outside the volume"):
-        contours_from_ct(vol, slice2ct, [4], clicks)
+        contours_from_ct(vol, slice2ct, [5], clicks)
 
 
 def _cortical_slice(px_mm, rng, a_mm=14.0, b_mm=11.0, shell_mm=2.5, ang=0.3):

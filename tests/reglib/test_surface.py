@@ -400,3 +400,50 @@ def test_bad_faces_methods_and_counts_are_named():
     with pytest.raises(ValueError, match=r"p3l_solutions: expected three points and three "
                                          r"lines"):
         p3l_solutions(v[:2], np.zeros((2, 3)), d)
+
+
+def test_slices_closer_than_a_pixel_are_thinned_to_a_pixel_apart():
+    """reglib.surface.spaced_slices: from the lowest slice up, each kept slice at least one
+    in-plane pixel above the last, and the highest kept; slices a pixel or more apart are
+    all kept."""
+    from reglib.surface import spaced_slices
+
+    def affines(z, px=0.8):
+        a = np.tile(np.eye(4), (len(z), 1, 1))
+        a[:, 0, 0] = a[:, 1, 1] = px
+        a[:, 2, 3] = z
+        return a
+
+    z = np.round(np.arange(0.0, 3.01, 0.2), 6)
+    kept = spaced_slices(affines(z), range(len(z)))
+    assert [float(z[k]) for k in kept] == [0.0, 0.8, 1.6, 3.0]
+    coarse = np.array([0.0, 1.0, 2.0, 8.0, 14.0])
+    assert spaced_slices(affines(coarse), range(5)) == [0, 1, 2, 3, 4]
+    assert spaced_slices(affines(z), [2, 3]) == [2, 3]
+
+
+def test_a_cylinder_from_slices_much_closer_than_a_pixel_keeps_its_normals():
+    """CT slices 0.2 mm apart with 0.8 mm pixels (a held-out scene): each snake contour lies
+    a fraction of a pixel off the outline, and tiled 0.2 mm apart those errors tilted the
+    wall's normals far out of the slice plane (the registration matches the surface's
+    apparent contours, which follow the normals). Thinned to a pixel apart, a vertical
+    wall's normals stay near the plane."""
+    from reglib.surface import surface_from_ct
+    from tests.reglib.test_contours import _ellipse_image
+
+    rng = np.random.default_rng(4)
+    z = np.round(np.arange(0.0, 12.01, 0.2), 6)
+    img = _ellipse_image((70, 70), 35.0, 35.0, 18.0, 14.0, 0.3, level=1200.0)
+    vol = np.stack([img + rng.normal(0.0, 150.0, img.shape) for _ in z])
+    s2c = np.tile(np.eye(4), (len(z), 1, 1))
+    s2c[:, 0, 0] = s2c[:, 1, 1] = 0.8
+    s2c[:, 2, 3] = z
+    clicks = {0: [np.column_stack([35 + 17 * np.cos(t), 35 + 13 * np.sin(t)])
+                  for t in [np.linspace(0.3, 0.3 + 2 * np.pi, 6, endpoint=False)]]}
+    surf, contours = surface_from_ct(vol, s2c, range(len(z)), clicks, simplify_tol_mm=None)
+    assert len(contours) == 16                     # 61 slices, one per 0.8 mm, and the top
+    tri = surf.vertices[surf.faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    # tilt out of the slice plane (every slice tiled: median 0.30, half the faces > 0.3)
+    assert np.median(np.abs(n[:, 2])) < 0.12 and np.mean(np.abs(n[:, 2]) > 0.3) < 0.05
