@@ -44,7 +44,14 @@ def _one_line(msg: str) -> str:
 MAX_CASES = 10_000
 
 
-def _int_at_least(lo: int, what: str, at_most: int | None = None):
+#: the most runs more of a trial whose worker was lost (a trial that kills its worker
+#: every time would otherwise be run alone as often as asked, e.g. 1e12 times)
+MAX_RETRIES = 100
+_CASES_WHY = ("a case is about 60 MB of disk and 10 s of CPU; split the work over several "
+              "--out folders")
+
+
+def _int_at_least(lo: int, what: str, at_most: int | None = None, why: str = _CASES_WHY):
     def parse(text):
         try:
             v = int(text)
@@ -55,8 +62,7 @@ def _int_at_least(lo: int, what: str, at_most: int | None = None):
             raise argparse.ArgumentTypeError(f"expected an integer >= {lo} for {what}, got {v}")
         if at_most is not None and v > at_most:
             raise argparse.ArgumentTypeError(
-                f"expected at most {at_most} for {what}, got {v} (a case is about 60 MB of "
-                "disk and 10 s of CPU; split the work over several --out folders)")
+                f"expected at most {at_most} for {what}, got {v} ({why})")
         return v
     return parse
 
@@ -435,7 +441,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="worker processes")
     s.add_argument("--scheduler", default=None,
                    help="run trials on a Dask cluster: scheduler address tcp://HOST:PORT")
-    s.add_argument("--retries", type=_int_at_least(0, "--retries"), default=2,
+    s.add_argument("--retries", type=_int_at_least(
+                       0, "--retries", MAX_RETRIES, "each retry runs a trial whose worker "
+                       "died once more, alone"), default=2,
                    help="runs more of a trial whose worker was lost (default 2)")
     s.add_argument("--list", action="store_true", help="list the studies")
     s.set_defaults(func=cmd_study)

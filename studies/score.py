@@ -267,12 +267,17 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
     if not pe.empty:
         t = pe.groupby("pin")["value"].agg(["mean", "median", "max"]).reset_index()
         per_case = pe.pivot_table(index="case", columns="pin", values="value").reset_index()
-        ctx.report("Pin errors (mm)", f"Method `{method}` on {len(cases)} case(s) of "
-                   f"`{dataset}`; starts as `testbed run` draws them.\n\n"
+        scored = pe["case"].nunique()
+        ctx.report("Pin errors (mm)", f"Method `{method}` on {scored} case(s) of "
+                   f"`{dataset}`" + (f" ({len(cases) - scored} of {len(cases)} failed: see "
+                                    "'Failed cases')" if scored < len(cases) else "")
+                   + "; starts as `testbed run` draws them.\n\n"
                    + markdown_table(t, ".3f") + "\n\n" + markdown_table(per_case, ".3f"))
     failures = df.attrs.get("failures", {})
     if failures:
-        ctx.report("Failed cases", "\n".join(f"- trial {k}: {v}" for k, v in failures.items()))
+        ctx.report("Failed cases", "\n".join(
+            f"- {cases[k].name if 0 <= k < len(cases) else f'trial {k}'}: {v}"
+            for k, v in failures.items()))
     missing = missing_cases(dataset)
     if missing:
         ctx.report("Missing cases", f"`dataset.json` lists {len(missing)} case(s) that the "

@@ -100,6 +100,17 @@ def confusion(wide: pd.DataFrame) -> dict[str, int]:
             "true refusals": int(np.sum(~acc & ~good))}
 
 
+def closing_line(c: dict[str, int]) -> str:
+    """The verdict's last line: the price of its refusals when it accepted no wrong pose,
+    else the false accepts (the same reassurance was printed beside false accepts)."""
+    if c["false accepts"] == 0:
+        return ("A false refusal of a loosely determined pose is the price of never accepting "
+                "one that the views cannot vouch for: its error was small by chance, not by "
+                "design.")
+    return (f"**{c['false accepts']} false accept(s)**: the verdict accepted a pose "
+            f"{SUCCESS_MM:g} mm or more off (see the per set-up table).")
+
+
 def summary(wide: pd.DataFrame) -> pd.DataFrame:
     """Per set-up: registrations, accepted, mTRE median and max, weak_motion_mm median and
     range, and the verdict's mistakes."""
@@ -181,8 +192,7 @@ def run(ctx) -> pd.DataFrame:
         f"< {SUCCESS_MM:g} mm. The verdict refuses, among others, a pose whose "
         f"`weak_motion_mm` exceeds {limit:g} mm.", "",
         *(f"- {k}: **{v}**" for k, v in c.items()), "",
-        "A false refusal of a loosely determined pose is the price of never accepting one "
-        "that the views cannot vouch for: its error was small by chance, not by design."]))
+        closing_line(c)]))
     ctx.report("Per set-up", markdown_table(summary(wide), ".3g"))
     if failures:
         ctx.report("Failed trials", "\n".join(f"- trial {k}: {v}" for k, v in failures.items()))

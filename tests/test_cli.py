@@ -65,6 +65,8 @@ def _one_error_line(err: str) -> str:
     (["study", "fig9", "--quick", "--scene", "experiment2", "--out", "{tmp}/s"], "kind"),
     (["study", "table1", "--workers", "2", "--out", "{tmp}/s"], "refused"),
     (["study", "no-such-study", "--out", "{tmp}/s"], "unknown study"),
+    (["study", "fig9", "--quick", "--retries", "1000000000000", "--out", "{tmp}/s"],
+     "expected at most 100 for --retries"),
     # a folder of another study's results: replaced silently, its figures left beside
     (["study", "fig9", "--quick", "--out", "{tmp}/other"],
      "--out {tmp}/other: holds the results of 'table2' (report.md), not of 'fig9'"),

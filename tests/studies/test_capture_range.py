@@ -55,3 +55,18 @@ def test_testbed_run_warns_of_a_mislabelled_view():
     views[2] = views[2].model_copy(update={"region": "proximal"})
     (w,) = _region_label_warnings(scene.model_copy(update={"views": tuple(views)}))
     assert "views[2].region" in w and "does not use the label" in w
+
+
+def test_the_capture_range_is_the_farthest_start_tried():
+    """Not the passing bins' upper edge, which with few starts per bin claimed more than any
+    start tried (30 mm reported, 21.7 mm the farthest start)."""
+    import pandas as pd
+
+    from studies.capture_range import capture_range
+
+    s = pd.DataFrame({"method": ["m"] * 3, "bin": [0, 1, 2],
+                      "success_rate": [1.0, 1.0, 0.5],
+                      "start_mtre_max": [8.0, 17.5, 29.0]})
+    assert capture_range(s, [0.0, 10.0, 20.0, 30.0]) == {"m": 17.5}
+    s.loc[0, "success_rate"] = 0.0
+    assert capture_range(s, [0.0, 10.0, 20.0, 30.0]) == {"m": 0.0}

@@ -40,3 +40,32 @@ def test_surfaces_study_quick(tmp_path):
     assert np.all(df[df.metric == "time"].value > 0)
     assert (out / "surfaces_distance.png").stat().st_size > 10_000
     assert "Distance to the true femur surface" in (out / "report.md").read_text()
+
+
+def test_a_failed_first_case_costs_only_itself(tmp_path, monkeypatch):
+    """The figure is drawn from the first case that finished: it re-simulated case 0, which
+    failed again and lost the other cases' results (a review)."""
+    import studies.surfaces as su
+
+    def trial(tr):
+        if tr.index == 0:
+            raise RuntimeError("case 0 cannot be simulated")
+        return [dict(metric="surface_distance", value=0.2, unit="mm", surface=s,
+                     statistic=st, method=m) for s in ("proximal", "distal")
+                for st in ("mean", "p95", "max") for m in ("contours", "marching_cubes")] + [
+            dict(metric="triangles", value=100.0, unit="count", surface=s, statistic="",
+                 method=m) for s in ("proximal", "distal") for m in ("contours", "marching_cubes")]
+
+    drawn = []
+
+    def case(tr, quick):
+        drawn.append(tr.index)
+        raise RuntimeError("stop after choosing the case")
+
+    monkeypatch.setattr(su, "trial", trial)
+    monkeypatch.setattr(su, "_case", case)
+    monkeypatch.setattr(su, "QUICK_CASES", 3)
+    with pytest.raises(RuntimeError, match="stop after choosing"):
+        run_study("surfaces", tmp_path / "out", scene=_scene(tmp_path), seed=3, quick=True,
+                  progress=False)
+    assert drawn == [1]

@@ -46,3 +46,11 @@ def test_quick_study_refuses_one_view_per_end_and_accepts_all_views(tmp_path):
     assert counts["false_accepts"] == 0 and counts.sum() == 3
     report = (tmp_path / "report.md").read_text()
     assert "false accepts" in report and (tmp_path / "view_setups.png").is_file()
+
+
+def test_the_closing_line_names_false_accepts():
+    from studies.view_setups import closing_line
+
+    assert "price of never accepting" in closing_line({"false accepts": 0})
+    line = closing_line({"false accepts": 2})
+    assert line.startswith("**2 false accept(s)**") and "price" not in line

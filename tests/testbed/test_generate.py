@@ -350,6 +350,8 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path):
         list(from_disk.values()), abs=1e-12)
     report = (tmp_path / "s6" / "report.md").read_text()
     assert "Failed cases" in report and victim.name in report
+    # the failed case by its name, and the figures' count of the cases they are over
+    assert "- case_0000: " in report and "on 1 case(s)" in report and "(1 of 2 failed" in report
     assert f"seed: {index['seed']}" in report
     # a case added to the dataset is scored alone: the others are taken from trials.sqlite
     # (one fingerprint of every case.json scored them all again)
