@@ -711,8 +711,8 @@ def spaced_slices(slice2ct, slice_indices: Sequence[int]) -> list[int]:
 
     aff = np.asarray(slice2ct, dtype=np.float64)
     ks = [int(k) for k in slice_indices]
-    if len(ks) < 3:
-        return ks
+    if len(ks) < 3 or (aff.ndim == 3 and not all(0 <= k < len(aff) for k in ks)):
+        return ks    # too few to thin, or indices contours_from_ct refuses, naming them
     if aff.shape == (4, 4):
         z = [float((aff @ [0.0, 0.0, k, 1.0])[2]) for k in ks]
     else:

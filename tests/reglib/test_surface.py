@@ -420,6 +420,9 @@ def test_slices_closer_than_a_pixel_are_thinned_to_a_pixel_apart():
     coarse = np.array([0.0, 1.0, 2.0, 8.0, 14.0])
     assert spaced_slices(affines(coarse), range(5)) == [0, 1, 2, 3, 4]
     assert spaced_slices(affines(z), [2, 3]) == [2, 3]
+    # indices outside the volume are left for contours_from_ct to refuse, naming them
+    assert spaced_slices(affines(z), [0, 1, 99]) == [0, 1, 99]
+    assert spaced_slices(affines(z), [-1, 0, 1]) == [-1, 0, 1]
 
 
 def test_a_cylinder_from_slices_much_closer_than_a_pixel_keeps_its_normals():
