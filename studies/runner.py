@@ -501,7 +501,7 @@ def _process_alive(pid: int) -> bool:
         return True
 
 
-def _end_with(parent_pid: int) -> None:
+def _worker_start(parent_pid: int) -> None:
     """Pool worker initializer: pybullet imported without its banner (a study's workers
     each printed it on stderr), and a daemon thread that ends this worker when the study's
     process ``parent_pid`` is gone. A study killed by SIGKILL, the OOM killer or a batch system's
@@ -558,7 +558,7 @@ def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str,
         if suspects:
             trial = suspects.pop(0)
             for attempt in range(retries + 1):
-                with cf.ProcessPoolExecutor(1, mp_context=ctx, initializer=_end_with,
+                with cf.ProcessPoolExecutor(1, mp_context=ctx, initializer=_worker_start,
                                             initargs=(os.getpid(),)) as ex:
                     try:
                         res = ex.submit(execute_trial, trial_fn, trial).result()
@@ -568,7 +568,7 @@ def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str,
                                     f"{attempt + 1} attempt(s) alone")
             record(trial, res)
             continue
-        ex = cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_end_with,
+        ex = cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_start,
                                     initargs=(os.getpid(),))
         running: dict[cf.Future, Trial] = {}
         try:
