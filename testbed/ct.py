@@ -108,6 +108,16 @@ class CTSpec(Spec):
                 raise ValueError(f"{name} is only used by schedule {owner[name]!r} (this "
                                  f"scene's is {self.schedule!r}): set schedule = "
                                  f"{owner[name]!r} or leave {name} out")
+        # ...and fields another field switches off (a held-out review: both ignored silently)
+        fields = type(self).model_fields
+        if not self.metal_streaks and self.streak_hu != fields["streak_hu"].default:
+            raise ValueError("streak_hu is only used with metal_streaks = true: set "
+                             "metal_streaks = true or leave streak_hu out")
+        if (self.slice_thickness_mm is not None
+                and self.max_slice_thickness_mm != fields["max_slice_thickness_mm"].default):
+            raise ValueError("max_slice_thickness_mm caps the thickness only when "
+                             "slice_thickness_mm is not given (the thickness is then as "
+                             "given): leave one of them out")
         for name in ("distal_range_mm", "proximal_range_mm", "uniform_range_mm"):
             r = getattr(self, name)
             if r is not None and not r[0] < r[1]:

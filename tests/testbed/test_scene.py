@@ -207,6 +207,9 @@ def test_unreadable_file(tmp_path):
     ("ct = slices", "only used by schedule 'explicit'"),
     # ...and the uniform schedule's range (held-out review: read by nothing, accepted)
     ("ct = uniform", "uniform_range_mm is only used by schedule 'uniform'"),
+    # fields that another field switches off
+    ("ct = streaks", "streak_hu is only used with metal_streaks = true"),
+    ("ct = thickness", "max_slice_thickness_mm caps the thickness only when"),
     # instruments whose mesh files in a dataset would be one file (the second overwrote the
     # first without a word), or one file on a case-insensitive disk
     ("instruments = 'retractor x', 'retractor_x'", "gives the same file name as"),
@@ -230,6 +233,10 @@ def test_names_and_references_are_refused_at_load(tmp_path, edit, expect):
         text += '\n[[instruments]]\nname = "table"\nkind = "clamp"\n'
     elif edit == "ct = uniform":
         text += "\n[ct]\nuniform_range_mm = [0.0, 100.0]\n"
+    elif edit == "ct = streaks":
+        text += "\n[ct]\nmetal_streaks = false\nstreak_hu = 1500.0\n"
+    elif edit == "ct = thickness":
+        text += "\n[ct]\nslice_thickness_mm = 3.0\nmax_slice_thickness_mm = 2.0\n"
     elif edit.startswith("ct"):
         text += "\n[ct]\nslice_z_mm = [100.0, 200.0]\n"
     elif edit.startswith("mesh_path"):
