@@ -37,7 +37,7 @@ from __future__ import annotations
 import itertools
 import operator
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import fast_simplification
@@ -686,9 +686,16 @@ def surface_from_ct(volume_hu, slice2ct, slice_indices: Sequence[int],
 
     Raises ``ValueError`` when fewer than 2 slices keep a contour to tile.
     """
-    slice_indices = spaced_slices(slice2ct, slice_indices)
-    contours = contours_from_ct(volume_hu, slice2ct, slice_indices, clicks_xy,
-                                **(snake_options or {}))
+    slabs = slice_slabs(slice2ct, slice_indices)
+    slabbed = None if all(len(s) == 1 for s in slabs) else _slab_volume(
+        volume_hu, slice2ct, slabs, clicks_xy)
+    if slabbed is None:     # every slice its own (or slabs that cannot be averaged: thinned)
+        contours = contours_from_ct(volume_hu, slice2ct, [s[0] for s in slabs], clicks_xy,
+                                    **(snake_options or {}))
+    else:                   # each slab's contours named by its lowest slice
+        vol, aff, clicks = slabbed
+        contours = [replace(c, slice_index=slabs[c.slice_index][0]) for c in contours_from_ct(
+            vol, aff, range(len(slabs)), clicks, **(snake_options or {}))]
     contours = sorted(contours, key=lambda s: s.z_mm)
     kept = tileable_contours([s.contours_ct for s in contours])
     if len(kept) < 2:
@@ -699,36 +706,72 @@ def surface_from_ct(volume_hu, slice2ct, slice_indices: Sequence[int],
     return surf, contours
 
 
-def spaced_slices(slice2ct, slice_indices: Sequence[int]) -> list[int]:
-    """The slices to contour: from the lowest up, each at least one in-plane pixel (the
-    slices' mean pixel size) above the last one kept, and the highest slice. A contour
-    lies within a fraction of a pixel of the outline across it; tiled between slices much
-    closer than a pixel, that error tilts the surface's normals far from the bone's, and
-    the apparent contours the registration matches follow the noise (a held-out review:
-    0.2 mm slices of 0.8 mm pixels gave poses 2.6-2.9 mm off, accepted; 0.4-2 mm slices
-    were fine). Slices a pixel or more apart are all kept."""
+#: the least distance (mm) between the CT slices whose contours are tiled: the paper's
+#: finest spacing (about 1 mm near the pins, NOTES.md s2). A contour lies a fraction of a
+#: pixel (0.1-0.3 mm) off the outline across it; tiled between slices much closer than
+#: that error allows, it tilts the surface's normals far from the bone's, and the apparent
+#: contours the registration matches follow the noise (a held-out review: 0.15-0.2 mm
+#: slices gave poses 2.2-2.9 mm off, accepted). Closer slices are averaged into slabs of
+#: about this thickness, as a radiologist reformats thin slices, which also lowers their
+#: noise by the square root of their count.
+MIN_SLICE_GAP_MM = 1.0
+
+
+def _per_slice_affine(aff: np.ndarray, k: int) -> np.ndarray:
+    """(4, 4): ``(col, row, 0, 1)`` of slice ``k`` to ct mm, from a (K, 4, 4) stack of such
+    matrices or one (4, 4) voxel affine of ``(col, row, slice, 1)``."""
+    if aff.ndim == 3:
+        return aff[k]
+    a = aff.copy()
+    a[:, 3] = aff @ [0.0, 0.0, float(k), 1.0]
+    return a
+
+
+def slice_slabs(slice2ct, slice_indices: Sequence[int]) -> list[list[int]]:
+    """The slices grouped into slabs to contour: from the lowest up, each slab the slices
+    (by z) within :data:`MIN_SLICE_GAP_MM` (or one in-plane pixel, if larger) of its lowest
+    one. Slices that far apart or farther are a slab each (the shipped schedules' 1 mm and
+    coarser slices are all their own). Indices outside the volume are left alone, for
+    :func:`reglib.contours.contours_from_ct` to refuse naming them."""
     from reglib.contours import _pixel_mm
 
     aff = np.asarray(slice2ct, dtype=np.float64)
     ks = [int(k) for k in slice_indices]
-    if len(ks) < 3 or (aff.ndim == 3 and not all(0 <= k < len(aff) for k in ks)):
-        return ks    # too few to thin, or indices contours_from_ct refuses, naming them
-    if aff.shape == (4, 4):
-        z = [float((aff @ [0.0, 0.0, k, 1.0])[2]) for k in ks]
-    else:
-        z = [float(aff[k, 2, 3]) for k in ks]
-    order = np.argsort(z, kind="stable")
-    gap = _pixel_mm(aff)
-    kept = [int(order[0])]
-    for i in order[1:-1]:
-        if z[i] - z[kept[-1]] >= gap * (1 - 1e-9):
-            kept.append(int(i))
-    last = int(order[-1])
-    if z[last] - z[kept[-1]] < gap * (1 - 1e-9) and len(kept) > 1:
-        kept[-1] = last     # the highest slice is the surface's end: it stays
-    else:
-        kept.append(last)
-    return [ks[i] for i in sorted(kept)]
+    if len(ks) < 2 or (aff.ndim == 3 and not all(0 <= k < len(aff) for k in ks)):
+        return [[k] for k in ks]
+    z = [float(_per_slice_affine(aff, k)[2, 3]) for k in ks]
+    gap = max(MIN_SLICE_GAP_MM, _pixel_mm(aff))
+    slabs: list[list[int]] = []
+    z0 = -np.inf
+    for i in np.argsort(z, kind="stable"):
+        if z[i] - z0 < gap * (1 - 1e-9):
+            slabs[-1].append(ks[i])
+        else:
+            slabs.append([ks[i]])
+            z0 = z[i]
+    return slabs
+
+
+def _slab_volume(volume_hu, slice2ct, slabs, clicks_xy):
+    """``(volume (S, rows, cols), affines (S, 4, 4), clicks by slab)``: each slab's slices
+    averaged, at their mean affine; a slab's clicks are those of its lowest clicked slice.
+    None when the slices of a slab differ in-plane (then they cannot be averaged)."""
+    vol = np.asarray(volume_hu)
+    aff = np.asarray(slice2ct, dtype=np.float64)
+    images, affines, clicks = [], [], {}
+    for j, slab in enumerate(slabs):
+        a = np.stack([_per_slice_affine(aff, k) for k in slab])
+        if np.abs(a[:, :, :2] - a[0, :, :2]).max() > 1e-6 \
+                or np.abs(a[:, :2, 3] - a[0, :2, 3]).max() > 1e-6:
+            return None
+        images.append(vol[slab].astype(np.float64).mean(axis=0))
+        affines.append(a.mean(axis=0))
+        clicked = [k for k in sorted(slab) if k in clicks_xy]
+        if clicked:
+            clicks[j] = clicks_xy[clicked[0]]
+    if not clicks:
+        return None
+    return np.stack(images), np.stack(affines), clicks
 
 
 #: the smallest cross-section (mm^2) a CT contour must enclose to be tiled: a snake on the

@@ -402,11 +402,11 @@ def test_bad_faces_methods_and_counts_are_named():
         p3l_solutions(v[:2], np.zeros((2, 3)), d)
 
 
-def test_slices_closer_than_a_pixel_are_thinned_to_a_pixel_apart():
-    """reglib.surface.spaced_slices: from the lowest slice up, each kept slice at least one
-    in-plane pixel above the last, and the highest kept; slices a pixel or more apart are
-    all kept."""
-    from reglib.surface import spaced_slices
+def test_slices_closer_than_a_millimetre_are_grouped_into_slabs():
+    """reglib.surface.slice_slabs: from the lowest slice up, each slab the slices within
+    MIN_SLICE_GAP_MM (1 mm, or a pixel if larger) of its lowest; slices 1 mm apart or more
+    are a slab each."""
+    from reglib.surface import slice_slabs
 
     def affines(z, px=0.8):
         a = np.tile(np.eye(4), (len(z), 1, 1))
@@ -415,22 +415,23 @@ def test_slices_closer_than_a_pixel_are_thinned_to_a_pixel_apart():
         return a
 
     z = np.round(np.arange(0.0, 3.01, 0.2), 6)
-    kept = spaced_slices(affines(z), range(len(z)))
-    assert [float(z[k]) for k in kept] == [0.0, 0.8, 1.6, 3.0]
-    coarse = np.array([0.0, 1.0, 2.0, 8.0, 14.0])
-    assert spaced_slices(affines(coarse), range(5)) == [0, 1, 2, 3, 4]
-    assert spaced_slices(affines(z), [2, 3]) == [2, 3]
+    slabs = slice_slabs(affines(z), range(len(z)))
+    assert [[float(z[k]) for k in s] for s in slabs] == [
+        [0.0, 0.2, 0.4, 0.6, 0.8], [1.0, 1.2, 1.4, 1.6, 1.8], [2.0, 2.2, 2.4, 2.6, 2.8], [3.0]]
+    coarse = np.array([0.0, 1.0, 2.0, 8.0, 14.0])      # the clinical schedule's kind
+    assert slice_slabs(affines(coarse), range(5)) == [[0], [1], [2], [3], [4]]
+    assert slice_slabs(affines(coarse, px=1.5), range(5)) == [[0, 1], [2], [3], [4]]
     # indices outside the volume are left for contours_from_ct to refuse, naming them
-    assert spaced_slices(affines(z), [0, 1, 99]) == [0, 1, 99]
-    assert spaced_slices(affines(z), [-1, 0, 1]) == [-1, 0, 1]
+    assert slice_slabs(affines(z), [0, 1, 99]) == [[0], [1], [99]]
+    assert slice_slabs(affines(z), [-1, 0, 1]) == [[-1], [0], [1]]
 
 
 def test_a_cylinder_from_slices_much_closer_than_a_pixel_keeps_its_normals():
     """CT slices 0.2 mm apart with 0.8 mm pixels (a held-out scene): each snake contour lies
     a fraction of a pixel off the outline, and tiled 0.2 mm apart those errors tilted the
     wall's normals far out of the slice plane (the registration matches the surface's
-    apparent contours, which follow the normals). Thinned to a pixel apart, a vertical
-    wall's normals stay near the plane."""
+    apparent contours, which follow the normals). Averaged into 1 mm slabs, a vertical
+    wall's normals stay near the plane, and the contours lie on the outline."""
     from reglib.surface import surface_from_ct
     from tests.reglib.test_contours import _ellipse_image
 
@@ -444,7 +445,15 @@ def test_a_cylinder_from_slices_much_closer_than_a_pixel_keeps_its_normals():
     clicks = {0: [np.column_stack([35 + 17 * np.cos(t), 35 + 13 * np.sin(t)])
                   for t in [np.linspace(0.3, 0.3 + 2 * np.pi, 6, endpoint=False)]]}
     surf, contours = surface_from_ct(vol, s2c, range(len(z)), clicks, simplify_tol_mm=None)
-    assert len(contours) == 16                     # 61 slices, one per 0.8 mm, and the top
+    assert len(contours) == 13                     # 61 slices in slabs of 1 mm
+    assert [c.slice_index for c in contours] == list(range(0, 61, 5))
+    # the slabs' contours on the ellipse (semi-axes 18 x 14 px of 0.8 mm, turned 0.3 rad)
+    c, sn = np.cos(0.3), np.sin(0.3)
+    for sc in contours:
+        p = sc.contours_ct[0][:, :2] / 0.8 - 35.0
+        u, v = c * p[:, 0] + sn * p[:, 1], -sn * p[:, 0] + c * p[:, 1]
+        r = np.sqrt((u / 18.0) ** 2 + (v / 14.0) ** 2)
+        assert np.abs(r - 1.0).mean() < 0.02
     tri = surf.vertices[surf.faces]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     n /= np.linalg.norm(n, axis=1, keepdims=True)
