@@ -26,17 +26,18 @@ def add_section(tri, zmin, zmax, sign, z, y_rows, dy, x0, px, width, weight, par
     """
     n_rows = y_rows.shape[0]
     y0 = y_rows[0]
-    hi = np.searchsorted(zmin, z, side="left")      # zmin < z (a vertex at z is below)
+    hi = np.searchsorted(zmin, z, side="left")      # zmin < z (a vertex at z is above:
+    #                                                  the plane just below z, as the reference)
     pa = np.empty(2)
     pb = np.empty(2)
     for i in range(hi):
-        if not zmax[i] > z:
+        if not zmax[i] >= z:
             continue
         n_above = 0
         first_above = -1
         first_below = -1
         for v in range(3):
-            if tri[i, v, 2] > z:
+            if tri[i, v, 2] >= z:
                 n_above += 1
                 if first_above < 0:
                     first_above = v

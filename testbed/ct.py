@@ -269,12 +269,17 @@ class _MeshSlicer:
 
     def segments(self, z: float):
         """Section segments (S, 2, 2) (x, y) mm and their entry sign (+1 entering along +x)."""
-        hi = np.searchsorted(self.zmin, z, side="left")   # zmin < z  (a vertex == z is below)
-        cand = np.flatnonzero(self.zmax[:hi] > z)
+        # the plane just below z: a vertex at z counts as above it, on every triangle alike.
+        # (It counted as below: the triangles between a ring of vertices at z and the ring
+        # below it then crossed nothing, nor did those above, and the section lost that
+        # stretch of its outline; the femur's rings at z = 18 and 24 mm filled rows out to
+        # the thigh with bone on 0.15-0.6 mm slice grids, found by a held-out review.)
+        hi = np.searchsorted(self.zmin, z, side="left")   # zmin < z
+        cand = np.flatnonzero(self.zmax[:hi] >= z)
         if len(cand) == 0:
             return np.zeros((0, 2, 2)), np.zeros(0)
         t = self.tri[cand]
-        above = t[:, :, 2] > z
+        above = t[:, :, 2] >= z
         n_above = above.sum(axis=1)
         keep = (n_above == 1) | (n_above == 2)
         t, above, n_above, cand = t[keep], above[keep], n_above[keep], cand[keep]
