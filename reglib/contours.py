@@ -763,10 +763,10 @@ def _click_source(keys: np.ndarray, clicks_xy: Mapping, k: int) -> int:
     sorted): the nearest (ties: the lower), but between two clicked slices whose contour
     counts differ, the lower one. The operator clicks again where the cross-sections change
     (the condyles part), so the slices before that click still show what the previous
-    clicks outlined: the nearest clicks outlined both condyles as one there, until
-    2026-11-26 (a held-out review: a distal surface 20 mm off on 0.2 mm slices, accepted);
-    elsewhere the nearer clicks follow the shape better (the neck and trochanters change
-    quickly along the femur)."""
+    clicks outlined (the nearest clicks, until 2026-11-26, gave them the new count: the
+    shipped clinic scene outlined four slices below the parting with one contour); elsewhere
+    the nearer clicks follow the shape better (the neck and trochanters change quickly
+    along the femur)."""
     i = int(np.searchsorted(keys, k, side="right"))   # keys[i - 1] <= k < keys[i]
     if i == 0:
         return int(keys[0])

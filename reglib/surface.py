@@ -709,11 +709,11 @@ def surface_from_ct(volume_hu, slice2ct, slice_indices: Sequence[int],
 #: the least distance (mm) between the CT slices whose contours are tiled: the paper's
 #: finest spacing (about 1 mm near the pins, NOTES.md s2). A contour lies a fraction of a
 #: pixel (0.1-0.3 mm) off the outline across it; tiled between slices much closer than
-#: that error allows, it tilts the surface's normals far from the bone's, and the apparent
-#: contours the registration matches follow the noise (a held-out review: 0.15-0.2 mm
-#: slices gave poses 2.2-2.9 mm off, accepted). Closer slices are averaged into slabs of
-#: about this thickness, as a radiologist reformats thin slices, which also lowers their
-#: noise by the square root of their count.
+#: that, it tilts the surface's normals far from the bone's, and the apparent contours the
+#: registration matches follow the noise (a cylinder of 0.2 mm slices in the tests: half
+#: its wall's faces tilted more than 0.3 out of plane). Closer slices are averaged into
+#: slabs of about this thickness, as a radiologist reformats thin slices, which also lowers
+#: their noise by the square root of their count.
 MIN_SLICE_GAP_MM = 1.0
 
 
