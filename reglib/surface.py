@@ -719,12 +719,16 @@ MIN_SLICE_GAP_MM = 1.0
 
 def _per_slice_affine(aff: np.ndarray, k: int) -> np.ndarray:
     """(4, 4): ``(col, row, 0, 1)`` of slice ``k`` to ct mm, from a (K, 4, 4) stack of such
-    matrices or one (4, 4) voxel affine of ``(col, row, slice, 1)``."""
-    if aff.ndim == 3:
-        return aff[k]
-    a = aff.copy()
-    a[:, 3] = aff @ [0.0, 0.0, float(k), 1.0]
-    return a
+    matrices or one (4, 4) voxel affine of ``(col, row, slice, 1)``
+    (:func:`reglib.contours._slice_affine` with the slice coordinate folded in)."""
+    from reglib.contours import _slice_affine
+
+    a, kk = _slice_affine(aff, k)
+    if kk == 0.0:
+        return a
+    out = a.copy()
+    out[:, 3] = a @ [0.0, 0.0, kk, 1.0]
+    return out
 
 
 def slice_slabs(slice2ct, slice_indices: Sequence[int]) -> list[list[int]]:
