@@ -186,18 +186,26 @@ def _region_label_warnings(scene, phantom=None) -> list[str]:
     return []
 
 
+def _centres(sim) -> dict | None:
+    """The region centres of the case's femur (:func:`studies.common.region_centres`), or
+    None when its phantom has neither landmarks nor a usable mesh."""
+    from studies.common import region_centres
+
+    try:
+        return region_centres(sim.world.phantom)
+    except (KeyError, ValueError):
+        return None
+
+
 def _aim_warnings(case: Case) -> list[str]:
     """A view whose field of view misses the anatomy of its region (the centre of
     :func:`studies.common.region_centres`, seen through the view's C-arm, beyond the
     field's radius): one warning each. Such a view sees bone the CT surfaces of its region
     do not cover, and the verdict refuses it as a view that does not fit (a femur of 550 mm
     under views aimed for one of 450 mm: 9-10 % of its X-ray paths near the surfaces)."""
-    from studies.common import region_centres
-
     sim = case.sim
-    try:
-        centres = region_centres(sim.world.phantom)
-    except (KeyError, ValueError):
+    centres = _centres(sim)
+    if centres is None:
         return []
     T = sim.world.ct2robot
     out = []
@@ -214,6 +222,45 @@ def _aim_warnings(case: Case) -> list[str]:
                        f"misses the {v.region} anatomy (its centre lies {rho:.1f} field radii "
                        f"from the field's centre); aim views[{i}].isocenter_mm at it")
     return out
+
+
+def ct_coverage_warnings(views, centres_ct, z_mm, groups) -> list[str]:
+    """A view whose region's anatomy lies outside every scanned stretch of the CT: one
+    warning each. ``views``: the scene's ``[[views]]``; ``centres_ct``: region -> (3,) ct mm
+    (:func:`studies.common.region_centres`); ``z_mm`` (S,) the CT slices' z; ``groups``: the
+    slice indices of each contoured stretch (a region's clicked slices). Such a view shows
+    bone that no CT surface covers, and the verdict refuses it as a view that does not fit
+    without naming the CT (a held-out review: only the knee scanned, the proximal views kept,
+    refused with a pin 6.8 mm off and no word of the missing slices)."""
+    z = np.asarray(z_mm, dtype=np.float64)
+    spans = [(float(z[g].min()), float(z[g].max())) for g in groups if len(g)]
+    out = []
+    for i, v in enumerate(views):
+        c = centres_ct.get(v.region)
+        if c is None:
+            continue
+        zc = float(c[2])
+        if any(lo <= zc <= hi for lo, hi in spans):
+            continue
+        scanned = ", ".join(f"{lo:.0f} to {hi:.0f}" for lo, hi in spans) or "none"
+        out.append(f"views[{i}] ({v.name!r}, region {v.region!r}): the CT has no slices at "
+                   f"its anatomy (z = {zc:.0f} mm in the ct frame; contoured stretches z "
+                   f"{scanned} mm), so no CT surface covers what the view shows: scan it "
+                   "([ct] schedule and its ranges)")
+    return out
+
+
+def _ct_warnings(case: Case) -> list[str]:
+    """:func:`ct_coverage_warnings` of a prepared case."""
+    sim = case.sim
+    centres = _centres(sim)
+    if centres is None:
+        return []
+    arrays = sim.observation.arrays
+    groups = [np.asarray(arrays[f"ct_clicks_{r}"]["slices"], dtype=np.int64)
+              for r in sim.observation.meta.get("regions", [])
+              if f"ct_clicks_{r}" in arrays]
+    return ct_coverage_warnings(sim.scene.views, centres, arrays["ct_slices"]["z_mm"], groups)
 
 
 def run_case(scene, *, seed: int, progress: bool = False):
@@ -237,7 +284,7 @@ def run_case(scene, *, seed: int, progress: bool = False):
     timings["total"] = time.perf_counter() - t_all
     meta = case.sim.truth.meta
     label_warnings = [*_region_label_warnings(case.sim.scene, case.sim.world.phantom),
-                      *_aim_warnings(case)]
+                      *_aim_warnings(case), *_ct_warnings(case)]
     acq = float(sum(meta["sweep_time_s"].values()))
     dose = float(sum(meta["dose_mrem"].values()))
     result = {

@@ -32,3 +32,35 @@ def test_views_aimed_for_a_shorter_femur_are_named():
         assert w.startswith(f"views[{i}] ({scene.views[i].name!r}, region 'proximal'): the "
                             "field of view misses the proximal anatomy"), w
         assert f"aim views[{i}].isocenter_mm at it" in w
+
+
+def _coverage(scene):
+    from studies.common import region_centres
+    from studies.end_to_end import ct_coverage_warnings
+    from testbed.ct import slice_schedule
+
+    phantom = build_world(scene, np.random.default_rng(0)).phantom
+    z, regions = slice_schedule(phantom, scene.ct)
+    return ct_coverage_warnings(scene.views, region_centres(phantom), z,
+                                list(regions.values()))
+
+
+def test_views_of_a_region_the_ct_did_not_scan_are_named():
+    """Only the knee scanned (a uniform CT from -2 to 120 mm of a 450 mm femur) with the
+    proximal views kept: each proximal view is named with the missing stretch, the distal
+    ones are not; the shipped clinical schedule and a uniform CT of the whole femur cover
+    every view."""
+    scene = load_scene(find_scene("experiment2"))
+    assert _coverage(scene) == []
+    whole = scene.model_copy(update={"ct": scene.ct.model_copy(
+        update={"schedule": "uniform", "uniform_spacing_mm": 10.0})})
+    assert _coverage(whole) == []
+    knee = scene.model_copy(update={"ct": whole.ct.model_copy(
+        update={"uniform_range_mm": (-2.0, 120.0)})})
+    warnings = _coverage(knee)
+    proximal = [i for i, v in enumerate(scene.views) if v.region == "proximal"]
+    assert len(proximal) == 2 and len(warnings) == len(proximal), warnings
+    for i, w in zip(proximal, warnings, strict=True):
+        assert w.startswith(f"views[{i}] ({scene.views[i].name!r}, region 'proximal'): the CT "
+                            "has no slices at its anatomy"), w
+        assert "contoured stretches z -2 to 118 mm" in w, w
