@@ -313,3 +313,25 @@ def test_a_touched_point_is_reported_with_the_robots_own_error():
         assert checked >= 2
     with Robot(RobotSpec(), rng=0) as robot:
         assert robot.digitize([1e5, 0.0, 0.0]) is None   # far out of reach
+
+
+def test_placed_cylinders_equal_trimesh_made_and_moved():
+    """The rod's cylinders are made once per size and moved per frame: the same vertices
+    and faces, bit for bit, as trimesh's cylinder made anew and moved by apply_transform
+    (the reference), on random rigid poses; the cached arrays stay untouched."""
+    import trimesh
+
+    from reglib.geometry import RigidTransform
+    from testbed.robot import _cylinder_arrays, _placed_cylinder
+
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        r, h, n = rng.uniform(0.5, 8.0), rng.uniform(5.0, 400.0), int(rng.integers(8, 64))
+        pose = RigidTransform.from_rotvec(rng.normal(size=3), rng.uniform(-900, 900, 3))
+        ref = trimesh.creation.cylinder(radius=r, height=h, sections=n)
+        ref.apply_transform(pose.as_matrix())
+        got = _placed_cylinder(r, h, n, pose.as_matrix())
+        assert np.array_equal(got.vertices, ref.vertices)
+        assert np.array_equal(got.faces, ref.faces)
+        got.faces[0] = got.faces[0][::-1]                # a user's edit stays in its mesh
+        assert np.array_equal(_cylinder_arrays(r, h, n)[1][0], ref.faces[0])
