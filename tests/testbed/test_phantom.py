@@ -222,6 +222,16 @@ def test_robot_imperfections_have_upper_bounds():
             RobotSpec(**{field: 1e6})
 
 
+def test_pins_too_small_to_implant_are_refused():
+    """Pins of 0.1 mm were accepted (a held-out review); from a K-wire's 1 mm up."""
+    from pydantic import ValidationError
+
+    for field, value in (("pin_diameter_mm", 0.1), ("pin_length_mm", 0.1)):
+        with pytest.raises(ValidationError, match=field):
+            PhantomSpec(**{field: value})
+    PhantomSpec(pin_diameter_mm=1.0, pin_length_mm=2.0)
+
+
 def test_phantoms_are_remembered_but_handed_out_as_copies():
     """make_phantom builds a procedural femur once per spec and hands out copies: equal
     meshes and pins, and changing one copy leaves the next untouched."""
