@@ -438,6 +438,10 @@ def _check_closed(mesh: trimesh.Trimesh, what: str) -> None:
 #: 0; the procedural femur and four random ones 4.1-5.6 mm, their head and condyles off the
 #: shaft's axis)
 MIN_AXIAL_ASYMMETRY_MM = 1.0
+#: how far (mm) a user mesh's lowest point may lie from z = 0, where the ct frame's
+#: convention puts the condyles' lowest point (a mesh in a scanner's coordinates, 1000 mm
+#: up, was refused only at its first view, as a femur outside the field)
+MAX_MESH_BASE_MM = 50.0
 #: :func:`_axial_symmetry` of the user meshes read, by (file, modification time, size)
 _SYMMETRY: dict = {}
 
@@ -511,6 +515,14 @@ def _user_phantom(spec: PhantomSpec) -> Phantom:
             f"phantom.mesh_path: the femur in {str(path)!r} must lie along the ct frame's z "
             "axis (proximal up, the lowest point of the condyles near z = 0, mm); its extents "
             f"are x {ext[0]:.0f}, y {ext[1]:.0f}, z {ext[2]:.0f} mm")
+    z0 = float(mesh.bounds[0, 2])
+    if abs(z0) > MAX_MESH_BASE_MM:
+        raise ValueError(
+            f"phantom.mesh_path: the femur in {str(path)!r} has its lowest point at z = "
+            f"{z0:.0f} mm; the ct frame puts the condyles' lowest point near z = 0 (within "
+            f"{MAX_MESH_BASE_MM:g} mm: the scene's views and [patient] position_mm place that "
+            f"frame), as a mesh in a CT scanner's coordinates does not: translate the mesh and "
+            f"mesh_pins_mm by (0, 0, {-z0:.0f}) mm")
     lo, hi = field_bounds("length_mm")
     if not lo <= ext[2] <= hi:
         raise ValueError(

@@ -189,6 +189,21 @@ def test_user_mesh(tmp_path):
     metres.export(m_path)
     with pytest.raises(ValueError, match="units must be millimetres"):
         make_phantom(PhantomSpec(mesh_path=str(m_path), mesh_pins_mm=pins))
+    # A mesh in a CT scanner's coordinates, 1000 mm up (a review: refused only at its
+    # first view, as a femur outside the field), is refused naming the translation; 30 mm
+    # off is within the convention
+    up = good.copy().apply_translation([0.0, 0.0, 1000.0])
+    up_path = tmp_path / "scanner.stl"
+    up.export(up_path)
+    with pytest.raises(ValueError, match=r"lowest point at z = 1000 mm.*translate the mesh "
+                                         r"and mesh_pins_mm by \(0, 0, -1000\) mm"):
+        make_phantom(PhantomSpec(mesh_path=str(up_path), mesh_pins_mm={
+            k: (v[0], v[1], v[2] + 1000.0) for k, v in pins.items()}))
+    near = good.copy().apply_translation([0.0, 0.0, 30.0])
+    near_path = tmp_path / "near.stl"
+    near.export(near_path)
+    make_phantom(PhantomSpec(mesh_path=str(near_path), mesh_pins_mm={
+        k: (v[0], v[1], v[2] + 30.0) for k, v in pins.items()}))
     # A mesh far shorter than a femur (a review: 68 mm, failed later in the CT's regions)
     short = trimesh.creation.capsule(height=120.0, radius=15.0)
     short.apply_translation([0, 0, 75.0])
