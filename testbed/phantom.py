@@ -549,6 +549,19 @@ def _user_phantom(spec: PhantomSpec) -> Phantom:
     if not np.all(inside):
         bad = [k for k, ok in zip(PIN_NAMES, inside, strict=True) if not ok]
         raise ValueError(f"phantom.mesh_pins_mm: pins {bad} are not inside the user mesh")
+    # the proximal pin in the upper half, the distal ones in the lower: a mesh turned head
+    # down (with its pins) was registered with every label swapped and said nothing
+    z_lo, z_hi = (float(v) for v in mesh.bounds[:, 2])
+    mid = 0.5 * (z_lo + z_hi)
+    wrong = [k for k in PIN_NAMES if (pins[k][2] < mid) == (k == "proximal")]
+    if wrong:
+        raise ValueError(
+            f"phantom.mesh_pins_mm: pin(s) {wrong} lie in the wrong half of the femur (z "
+            f"{z_lo:.0f} to {z_hi:.0f} mm; " + ", ".join(f"{k} at z = {pins[k][2]:.0f}"
+                                                         for k in wrong)
+            + "): the proximal pin goes in the upper half, the distal ones in the lower; is "
+            "the mesh upside down (the ct frame puts the femoral head up), or are the pins' "
+            "names swapped?")
     n = spec.segments
     pin_meshes = {k: _pin_mesh(p, (1.0, 0.0, 0.0), spec.pin_diameter_mm, spec.pin_length_mm, n)
                   for k, p in pins.items()}

@@ -204,6 +204,18 @@ def test_user_mesh(tmp_path):
     near.export(near_path)
     make_phantom(PhantomSpec(mesh_path=str(near_path), mesh_pins_mm={
         k: (v[0], v[1], v[2] + 30.0) for k, v in pins.items()}))
+    # A femur turned head down with its pins, or pins whose names are swapped, is refused
+    down = good.copy().apply_transform(trimesh.transformations.rotation_matrix(np.pi, [1, 0, 0]))
+    down.apply_translation([0.0, 0.0, -down.bounds[0, 2]])
+    down_path = tmp_path / "down.stl"
+    down.export(down_path)
+    flipped = {k: (v[0], -v[1], good.bounds[1, 2] - v[2]) for k, v in pins.items()}
+    with pytest.raises(ValueError, match=r"pin\(s\) \['proximal', 'distal_1', 'distal_2'\] "
+                                         r"lie in the wrong half.*upside down"):
+        make_phantom(PhantomSpec(mesh_path=str(down_path), mesh_pins_mm=flipped))
+    swapped = {**pins, "proximal": pins["distal_1"], "distal_1": pins["proximal"]}
+    with pytest.raises(ValueError, match=r"\['proximal', 'distal_1'\] lie in the wrong half"):
+        make_phantom(PhantomSpec(mesh_path=str(path), mesh_pins_mm=swapped))
     # A mesh far shorter than a femur (a review: 68 mm, failed later in the CT's regions)
     short = trimesh.creation.capsule(height=120.0, radius=15.0)
     short.apply_translation([0, 0, 75.0])
