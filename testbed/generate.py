@@ -227,8 +227,10 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
         sim = simulate(scene, case_seed(int(seed), i), truth_rays=True, progress=progress,
                        prepared=first if i == 0 else None)
         case, truth = case_entries(sim)
-        case["meta"].update(case_index=i, dataset_seed=int(seed), scene_path=str(scene_path),
-                            timings_s=sim.timings)
+        case["meta"].update(case_index=i, dataset_seed=int(seed), timings_s=sim.timings)
+        # the scene file holds the patient's placement, i.e. the true ct2robot: truth only
+        # (it was in the observation's meta: a method that parsed it scored 0 mm)
+        case["meta"]["truth"]["scene_path"] = str(scene_path)
         write_case(case_dir, case, truth=truth, overwrite=True)
         hashes[case_dir.name] = hashlib.sha256((case_dir / CASE_FILE).read_bytes()).hexdigest()
         write_index()

@@ -61,6 +61,9 @@ def test_generated_case_round_trips_exactly_and_splits_truth(tmp_path):
     assert truth.meta["case_index"] == 0 and truth.meta["dataset_seed"] == 3
     assert tmeta["scene"]["phantom"]["shape_seed"] != scene.phantom.shape_seed
     assert obs.meta["views"] == ["distal_ap"]
+    # the scene file (the patient's placement: the true ct2robot) is named to the truth only
+    assert tmeta["scene_path"] == "small.toml" and "scene_path" not in obs.meta
+    assert "small.toml" not in json.dumps(obs.meta, default=str)
 
     # roles: nothing of the truth in the observation
     roles = {"observation": obs, "truth": truth}
