@@ -75,6 +75,12 @@ def check_out_folder(out, name: str) -> None:
     report and leave its figures beside the new ones. The same study's folder resumes."""
     report = Path(out) / "report.md"
     if not report.is_file():
+        # a results.csv beside no report and no trial database is no study's: a user's file
+        # that the study would replace (a review: score --out on a folder of one's own
+        # results overwrote them); a study interrupted before its report keeps its database
+        if (Path(out) / "results.csv").is_file() and not (Path(out) / "trials.sqlite").exists():
+            raise ValueError(f"--out {out}: holds a results.csv that no study wrote (no "
+                             "report.md, no trials.sqlite beside it); give another folder")
         return
     try:
         with open(report, encoding="utf-8", errors="replace") as f:

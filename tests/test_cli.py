@@ -71,6 +71,8 @@ def _one_error_line(err: str) -> str:
     (["study", "fig9", "--quick", "--out", "{tmp}/other"],
      "--out {tmp}/other: holds the results of 'table2' (report.md), not of 'fig9'"),
     (["study", "fig9", "--quick", "--out", "{tmp}/mine"], "holds a report.md that no study"),
+    # a user's own results.csv, no study's: score (the same check) replaced it (a review)
+    (["study", "fig9", "--quick", "--out", "{tmp}/csv"], "holds a results.csv that no study"),
     (["render", "/no/such/dir/experiment2.toml", "--out", "{tmp}/r.png"], "no such scene"),
     (["run", "no-such-scene"], "no such scene"),
     (["score", "{tmp}/nothing", "--out", "{tmp}/s"], "no such dataset"),
@@ -99,6 +101,8 @@ def test_bad_command_lines_exit_2_with_one_line(tmp_path, capsys, argv, expect):
     for folder, text in (("other", "# Study `table2`\n"), ("mine", "my notes\n")):
         (tmp_path / folder).mkdir()
         (tmp_path / folder / "report.md").write_text(text)
+    (tmp_path / "csv").mkdir()
+    (tmp_path / "csv" / "results.csv").write_text("my precious,results\n")
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
     code, _, err = _run(capsys, *argv)
     assert code == 2, err
@@ -106,6 +110,8 @@ def test_bad_command_lines_exit_2_with_one_line(tmp_path, capsys, argv, expect):
     assert expect.replace("{tmp}", str(tmp_path)) in line
     for folder in ("other", "mine"):      # left as they were
         assert [f.name for f in (tmp_path / folder).iterdir()] == ["report.md"]
+    assert (tmp_path / "csv" / "results.csv").read_text() == "my precious,results\n"
+    assert [f.name for f in (tmp_path / "csv").iterdir()] == ["results.csv"]
     assert not (tmp_path / "pl").exists()  # refused before any folder is made
     assert not (tmp_path / "s").exists() or not any((tmp_path / "s").iterdir())
 
