@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
+import shutil
 import sys
 from pathlib import Path
 
@@ -29,6 +31,9 @@ __all__ = ["ENTRY_DOC", "GENERATOR_VERSION", "case_entries", "case_seed", "gener
 
 #: what the generator writes: 3 since 2026-11-26 (the truth's points/pins_robot_digitized);
 #: a dataset resumed by another version is refused, so its cases are never mixed
+#: the hidden folder of a case being written (testbed.dataset.write_case: mkdtemp with
+#: the prefix ".case_NNNN.")
+_WRITING = re.compile(r"\.case_\d{4,}\.[A-Za-z0-9_]+")
 GENERATOR_VERSION = 3
 
 #: entry name pattern -> (role, description); ``{view}`` is a view's name, ``{region}`` a CT
@@ -206,6 +211,12 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
                              f"{CASE_FILE}); move it away, or choose another folder")
     first = checked_world(scene, case_seed(int(seed), 0))      # case 0 reuses it
     out.mkdir(parents=True, exist_ok=True)
+    # a case is written in a hidden folder and renamed into place when complete
+    # (testbed.dataset.write_case); a run killed meanwhile (SIGKILL) left that folder, one
+    # per interruption, which no rerun removed (a review: 9.5 MB and 1.1 MB)
+    for leftover in out.glob(".case_*"):
+        if leftover.is_dir() and _WRITING.fullmatch(leftover.name):
+            shutil.rmtree(leftover, ignore_errors=True)
     hashes = dict(old.get("case_json_sha256", {}))
 
     def write_index():

@@ -142,10 +142,14 @@ def test_generated_case_round_trips_exactly_and_splits_truth(tmp_path):
     assert np.allclose(zk, sl["z_mm"])
     assert v1.data.shape[2] == len(sl["z_mm"])
 
-    # a rerun keeps the complete case (resume) and bad input is refused clearly
+    # a rerun keeps the complete case (resume) and bad input is refused clearly; the hidden
+    # folder of a case whose writing was killed (SIGKILL) goes, anything else stays
     mtime = (dirs[0] / "case.json").stat().st_mtime_ns
+    (out / ".case_0001.x8_k2abq" / "arrays").mkdir(parents=True)
+    (out / ".notes").mkdir()
     generate_command(scene, scene_path="small.toml", cases=1, out=out, seed=3, progress=False)
     assert (dirs[0] / "case.json").stat().st_mtime_ns == mtime
+    assert not (out / ".case_0001.x8_k2abq").exists() and (out / ".notes").is_dir()
     # a damaged case is not called complete: a rerun simulates it again, the same case
     from testbed.dataset import case_problem
 
