@@ -69,11 +69,21 @@ def _as_pose(value, spec: str):
     from reglib.geometry import RigidTransform
 
     m = value.as_matrix() if isinstance(value, RigidTransform) else value
+    what = (f"method {spec}: returned {type(value).__name__}, expected a (4, 4) ct2robot "
+            "array")
     try:
-        m = np.asarray(m, dtype=np.float64)
+        raw = np.asarray(m)
     except (TypeError, ValueError):
-        raise ValueError(f"method {spec}: returned {type(value).__name__}, expected a (4, 4) "
-                         "ct2robot array") from None
+        raise ValueError(what) from None
+    if raw.ndim == 0:           # None, a number, a string: no array at all
+        raise ValueError(what)
+    if np.iscomplexobj(raw):    # float64 would drop the imaginary part (a review)
+        raise ValueError(f"method {spec}: returned complex values, expected a real (4, 4) "
+                         "ct2robot array")
+    try:
+        m = raw.astype(np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(what) from None
     if m.shape != (4, 4):
         raise ValueError(f"method {spec}: returned shape {m.shape}, expected a (4, 4) ct2robot "
                          "array")

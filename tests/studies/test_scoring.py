@@ -180,3 +180,22 @@ def test_a_stored_scene_with_a_removed_field_is_still_read():
                                  transforms={"ct2robot": TRUTH})
     assert np.allclose(pin_reference(pins_array, 0).t, pin_reference(
         SimpleNamespace(points={"pins_ct": PINS}, transforms={"ct2robot": TRUTH}), 0).t)
+
+
+def test_a_methods_result_that_is_no_rigid_pose_is_named():
+    """score's reading of a method's result: a complex matrix lost its imaginary part and
+    was scored (a review), None was 'shape ()'; each is now named; a pose in any real
+    form is read as it is."""
+    from studies.score import _as_pose
+
+    pose = RigidTransform.from_rotvec([0.1, -0.2, 0.3], [10.0, 20.0, 30.0])
+    m = pose.as_matrix()
+    for value in (m, m.tolist(), pose, m.astype(np.float32).astype(np.float64)):
+        assert np.allclose(_as_pose(value, "x").as_matrix(), m)
+    for value, match in ((m.astype(complex) + 1j, "returned complex values"),
+                         (m.astype(complex), "returned complex values"),
+                         (None, "returned NoneType, expected a .4, 4. ct2robot"),
+                         ("pose", "returned str"), (m[:3], r"shape \(3, 4\)"),
+                         (m * 2.0, "not a rigid transform")):
+        with pytest.raises(ValueError, match=match):
+            _as_pose(value, "x")
