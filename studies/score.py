@@ -24,6 +24,7 @@ import dataclasses
 import importlib
 import inspect
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -267,6 +268,17 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
                             + ", which the folder lacks (renamed or removed?)" if gone else ""))
     df = run_trials(trial, trials, out_dir=out, workers=workers, scheduler=scheduler,
                     progress=progress)
+    reused = int(df.attrs.get("skipped", 0))
+    reuse_note = ""
+    if reused:
+        # a method's source and the cases' files are in the trials' keys; what else the
+        # method reads (an estimates file, a helper module, a model's weights) is not, and a
+        # review's estimates file changed under it was scored from the database silently
+        reuse_note = (f"{reused} of {len(cases)} case(s) taken from {out / 'trials.sqlite'}, "
+                      "scored before with the same case files and method source; what the "
+                      "method reads elsewhere is not compared: delete that file to score them "
+                      "again")
+        print(f"testbed score: {reuse_note}", file=sys.stderr)
     try:
         seed = int(json.loads((dataset / "dataset.json").read_text()).get("seed", 0))
     except (OSError, ValueError, TypeError, AttributeError):
@@ -281,7 +293,9 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
         ctx.report("Pin errors (mm)", f"Method `{method}` on {scored} case(s) of "
                    f"`{dataset}`" + (f" ({len(cases) - scored} of {len(cases)} failed: see "
                                     "'Failed cases')" if scored < len(cases) else "")
-                   + "; starts as `testbed run` draws them.\n\n"
+                   + "; starts as `testbed run` draws them."
+                   + (f" {reuse_note[0].upper()}{reuse_note[1:]}." if reuse_note else "")
+                   + "\n\n"
                    + markdown_table(t, ".3f") + "\n\n" + markdown_table(per_case, ".3f"))
     failures = df.attrs.get("failures", {})
     if failures:

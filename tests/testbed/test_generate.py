@@ -224,7 +224,7 @@ def test_case_streams_never_spawn_from_the_case_seed():
 
 
 @pytest.mark.slow
-def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path):
+def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path, capsys):
     """The same scene and seed: a generated case, loaded from disk and given to
     reglib.estimate, scores exactly as ``testbed run`` does in memory."""
     import reglib
@@ -304,6 +304,17 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path):
     assert df2[df2.metric == "mtre"]["value"].item() == pytest.approx(result["start_mtre_mm"])
     df3 = pd.read_csv(tmp_path / "s3" / "results.csv")
     assert list(df3.metric) == ["failed"]
+    # the same method again: its case taken from trials.sqlite, and said so (what the method
+    # reads besides its source is not compared: a review's estimates file changed unseen)
+    capsys.readouterr()
+    sys.path.insert(0, str(tmp_path))
+    try:
+        score_dataset(tmp_path / "ds", tmp_path / "s2", method="mymethods:stay", progress=False)
+    finally:
+        sys.path.remove(str(tmp_path))
+    note = "1 of 1 case(s) taken from"
+    assert note in capsys.readouterr().err
+    assert note in (tmp_path / "s2" / "report.md").read_text()
     # the same names, another method's source: scored again, not taken from trials.sqlite
     (tmp_path / "mymethods.py").write_text(
         "import numpy as np\n"
