@@ -252,8 +252,11 @@ class RigidTransform:
                              f"expected the millimetres of a scene (|t| <= "
                              f"{MAX_COORDINATE_MM:g})")
         err = np.abs(R.T @ R - np.eye(3)).max()
-        if err > 1e-6 or np.linalg.det(R) < 0:
-            raise ValueError(f"RigidTransform: R is not a proper rotation (|RtR - I| = {err:.2e})")
+        det = np.linalg.det(R)
+        if err > 1e-6 or det < 0:
+            raise ValueError(f"RigidTransform: R is not a proper rotation (|RtR - I| = "
+                             f"{err:.2e}, det {det:.3g}" + ("; a reflection" if det < 0 else "")
+                             + ")")
         R.setflags(write=False)
         t.setflags(write=False)
         object.__setattr__(self, "R", R)
@@ -340,6 +343,9 @@ class RigidTransform:
     def apply(self, points) -> np.ndarray:
         """Map points ``(N, 3)`` (or a single ``(3,)``) from source to target frame."""
         p = np.asarray(points, dtype=np.float64)
+        if p.ndim == 0 or p.shape[-1] != 3:
+            raise ValueError(f"RigidTransform.apply: points: expected (N, 3) or (3,) mm, got "
+                             f"shape {p.shape}")
         return p @ self.R.T + self.t
 
     __call__ = apply

@@ -55,8 +55,13 @@ def test_rigid_transform_algebra():
     assert_transform_close(RigidTransform.from_dict(a.to_dict()), a, mm=1e-12, deg=1e-10)
     with pytest.raises(AssertionError):
         assert_transform_close(a, b, mm=1.0, deg=1.0)
-    with pytest.raises(ValueError, match="proper rotation"):
+    with pytest.raises(ValueError, match=r"proper rotation \(\|RtR - I\| = 0.00e\+00, det -1; "
+                                         r"a reflection\)"):
         RigidTransform(np.diag([1.0, 1.0, -1.0]), np.zeros(3))
+    # points of the wrong shape are named, not left to numpy's matmul message
+    for bad in (np.zeros((4, 2)), 5.0, np.zeros(2)):
+        with pytest.raises(ValueError, match=r"RigidTransform.apply: points: expected \(N, 3\)"):
+            a.apply(bad)
 
 
 def test_lines_and_center_of_perspective():
