@@ -296,7 +296,8 @@ def cmd_generate(args) -> int:
 
     dirs = generate_command(scene, scene_path=path, cases=args.cases, out=out, seed=args.seed,
                             progress=sys.stderr.isatty())
-    print(f"wrote {len(dirs)} case(s) in {out}")
+    # (a rerun keeps the complete cases: it may write none of them)
+    print(f"{len(dirs)} case(s) complete in {out}")
     return 0
 
 
