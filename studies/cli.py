@@ -298,6 +298,11 @@ def cmd_generate(args) -> int:
                             progress=sys.stderr.isatty())
     # (a rerun keeps the complete cases: it may write none of them)
     print(f"{len(dirs)} case(s) complete in {out}")
+    if len(dirs) > 1 and not scene.patient.varies:
+        print(f"testbed generate: every case lies where {path.name}'s [patient] puts it (one "
+              "ct2robot for all: a method that returns that placement scores 0 mm); set "
+              "[patient] position_sd_mm and rotation_sd_deg for a dataset whose truth varies "
+              "from case to case", file=sys.stderr)
     return 0
 
 

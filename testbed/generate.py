@@ -29,12 +29,14 @@ import numpy as np
 __all__ = ["ENTRY_DOC", "GENERATOR_VERSION", "case_entries", "case_seed", "generate_command",
            "scene_digest"]
 
-#: what the generator writes: 3 since 2026-11-26 (the truth's points/pins_robot_digitized);
-#: a dataset resumed by another version is refused, so its cases are never mixed
 #: the hidden folder of a case being written (testbed.dataset.write_case: mkdtemp with
 #: the prefix ".case_NNNN.")
 _WRITING = re.compile(r"\.case_\d{4,}\.[A-Za-z0-9_]+")
-GENERATOR_VERSION = 3
+#: what the generator writes: 3 since 2026-11-26 (the truth's points/pins_robot_digitized),
+#: 4 since its seventh session (the scene file's path in the truth's meta only, the
+#: patient's placement drawn per case where the scene asks); a dataset resumed by another
+#: version is refused, so its cases are never mixed
+GENERATOR_VERSION = 4
 
 #: entry name pattern -> (role, description); ``{view}`` is a view's name, ``{region}`` a CT
 #: region's (``proximal``, ``distal``).

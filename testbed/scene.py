@@ -134,11 +134,32 @@ class PatientSpec(Spec):
 
     ``ct2robot`` = rotation ``rotation_deg`` (extrinsic x-y-z Euler angles, deg) then
     translation ``position_mm``. ``on_table``: an OR table and foam lie under the limb.
+
+    ``position_sd_mm`` and ``rotation_sd_deg`` (robot x, y, z; default 0): where each case's
+    patient lies about that placement, drawn per case from its seed (normal, clipped at
+    2.5 standard deviations; the turn about the femur's middle, ``phantom.length_mm / 2`` up
+    the ct frame's z axis), so that the truth varies from case to case as patients' limbs
+    do on the table. With both 0 every case of a scene shares one ``ct2robot`` (the
+    paper's one cadaver, and the shipped scenes): a dataset to benchmark a method should set
+    them, or a method that returns the scene's placement scores 0 mm. The views stay where
+    the scene aims them, so draws far beyond a few centimetres and degrees can take the
+    anatomy out of their fields.
     """
 
     position_mm: Vec3 = (0.0, 0.0, 0.0)
     rotation_deg: Vec3 = (0.0, 0.0, 0.0)
     on_table: bool = True
+    position_sd_mm: tuple[Annotated[float, Field(ge=0, le=50)],
+                          Annotated[float, Field(ge=0, le=50)],
+                          Annotated[float, Field(ge=0, le=50)]] = (0.0, 0.0, 0.0)
+    rotation_sd_deg: tuple[Annotated[float, Field(ge=0, le=15)],
+                           Annotated[float, Field(ge=0, le=15)],
+                           Annotated[float, Field(ge=0, le=15)]] = (0.0, 0.0, 0.0)
+
+    @property
+    def varies(self) -> bool:
+        """True when each case draws its own placement (a standard deviation above 0)."""
+        return any(v > 0 for v in (*self.position_sd_mm, *self.rotation_sd_deg))
 
     def ct2robot(self):
         from scipy.spatial.transform import Rotation

@@ -60,7 +60,11 @@ SEED_STREAMS = ("shape", "world", "ct", "operator", "robot", "xray")
 #: streams had when the stages drew them by successive ``spawn()`` calls on the case seed
 #: (robot and X-ray from the first 6 children, shape and world from the second 6, CT and
 #: operator from the third), kept so that every case and dataset stays what it was.
-STREAM_KEYS = {"shape": 6, "world": 7, "ct": 14, "operator": 15, "robot": 4, "xray": 5}
+STREAM_KEYS = {"shape": 6, "world": 7, "ct": 14, "operator": 15, "robot": 4, "xray": 5,
+               "placement": 16}
+#: a case's placement draw is clipped at this many standard deviations ([patient]
+#: position_sd_mm, rotation_sd_deg)
+PLACEMENT_CLIP_SD = 2.5
 #: the phantom bodies whose outline is the femur's outline on an X-ray frame
 FEMUR_BODIES = ("femur",)
 
@@ -123,6 +127,34 @@ def _case_scene(scene, shape_ss: np.random.SeedSequence):
     return scene.model_copy(update={"phantom": phantom})
 
 
+def _case_placement(scene, placement_ss: np.random.SeedSequence):
+    """The case's scene with its patient's placement drawn ([patient] ``position_sd_mm``,
+    ``rotation_sd_deg``: normal per robot axis, clipped at :data:`PLACEMENT_CLIP_SD`; the
+    turn about the femur's middle, ``phantom.length_mm / 2`` up the ct frame's z axis), its
+    standard deviations then 0: the resolved scene is the case's, and simulating it again
+    gives the same case. The scene as it is when both are 0."""
+    from scipy.spatial.transform import Rotation
+
+    p = scene.patient
+    if not p.varies:
+        return scene
+    z = np.clip(np.random.default_rng(placement_ss).standard_normal(6),
+                -PLACEMENT_CLIP_SD, PLACEMENT_CLIP_SD)
+    shift = z[:3] * np.asarray(p.position_sd_mm, dtype=np.float64)
+    turn = Rotation.from_rotvec(np.radians(z[3:] * np.asarray(p.rotation_sd_deg,
+                                                               dtype=np.float64)))
+    T = p.ct2robot()
+    middle = T.apply(np.array([0.0, 0.0, 0.5 * float(scene.phantom.length_mm)]))
+    R = turn.as_matrix() @ T.R
+    t = turn.apply(T.t - middle) + middle + shift
+    patient = p.model_copy(update={
+        "position_mm": tuple(float(x) for x in t),
+        "rotation_deg": tuple(float(x) for x in Rotation.from_matrix(R).as_euler(
+            "xyz", degrees=True)),
+        "position_sd_mm": (0.0, 0.0, 0.0), "rotation_sd_deg": (0.0, 0.0, 0.0)})
+    return scene.model_copy(update={"patient": patient})
+
+
 #: the spawn key, under the robot stream, of the case's one robot (its imperfections and
 #: every move's encoder error); the views' children take keys 0, 1, ... (their frames' noise)
 ROBOT_KEY = 1 << 20
@@ -166,7 +198,7 @@ def case_world(scene, seed=0, *, index: int = 0):
     from testbed.world import build_world
 
     streams = case_streams(seed, index)
-    scene = _case_scene(scene, streams["shape"])
+    scene = _case_placement(_case_scene(scene, streams["shape"]), streams["placement"])
     return scene, build_world(scene, np.random.default_rng(streams["world"]))
 
 

@@ -509,3 +509,24 @@ def test_study_refuses_a_malformed_scene_before_making_its_out_folder(tmp_path, 
     # a refusal after the folder was made (an unknown scheduler) leaves no empty folder
     assert main(["study", "table2", "--scheduler", "tcp://nohost:1", "--out", str(out)]) == 2
     assert not out.exists()
+
+
+def test_generate_says_when_every_case_shares_one_placement(tmp_path, capsys, monkeypatch):
+    """A dataset of a scene without [patient] position_sd_mm / rotation_sd_deg has one
+    ct2robot for all its cases (a review: a method returning the scene's placement scored
+    0 mm): generate says so, and says nothing when the placement varies."""
+    import testbed.generate as gen
+
+    monkeypatch.setattr(gen, "generate_command", lambda scene, **kw: [
+        Path(kw["out"]) / "case_0000", Path(kw["out"]) / "case_0001"])
+    scene = (ROOT / "scenes" / "experiment2.toml").read_text()
+    varied = tmp_path / "varied.toml"
+    varied.write_text(scene.replace("on_table = true", "on_table = true\n"
+                                    "position_sd_mm = [10.0, 10.0, 0.0]", 1))
+    code, out, err = _run(capsys, "generate", "experiment2", "--cases", "2", "--out",
+                          str(tmp_path / "d"))
+    assert code == 0 and "2 case(s) complete" in out
+    assert "one ct2robot for all" in err and "position_sd_mm" in err
+    code, out, err = _run(capsys, "generate", str(varied), "--cases", "2", "--out",
+                          str(tmp_path / "d2"))
+    assert code == 0 and "ct2robot" not in err

@@ -5,6 +5,7 @@ import re
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from testbed.scene import parse_scene
 
@@ -203,6 +204,51 @@ def test_case_seeds_and_shapes_differ_per_case():
         case_seed(7, 2, 2)
 
 
+def test_each_case_draws_its_patients_placement_when_asked():
+    """[patient] position_sd_mm / rotation_sd_deg: every case lies elsewhere (a review: one
+    ct2robot for every case of a dataset, so a method returning the scene's placement scored
+    0 mm), reproducibly from its seed, within the clip of 2.5 SD, turned about the femur's
+    middle; the resolved scene is the case's (simulating it again moves nothing); without
+    them every case keeps the scene's placement, and no other stream moves."""
+    import numpy as np
+
+    from testbed.generate import case_seed
+    from testbed.simulate import _case_placement, case_streams
+
+    scene = parse_scene(SMALL)
+    assert not scene.patient.varies
+    same = [_case_placement(scene, case_streams(case_seed(7, i, 3))["placement"])
+            for i in range(3)]
+    assert all(s is scene for s in same)
+    sd_mm, sd_deg = (10.0, 20.0, 0.0), (2.0, 0.0, 4.0)
+    varied = scene.model_copy(update={"patient": scene.patient.model_copy(
+        update={"position_sd_mm": sd_mm, "rotation_sd_deg": sd_deg})})
+    T0 = scene.patient.ct2robot()
+    middle_ct = np.array([0.0, 0.0, 0.5 * scene.phantom.length_mm])
+    poses = []
+    for i in range(12):
+        ss = case_streams(case_seed(7, i, 12))["placement"]
+        case = _case_placement(varied, ss)
+        assert not case.patient.varies
+        assert _case_placement(case, ss) is case
+        again = _case_placement(varied, case_streams(case_seed(7, i, 12))["placement"])
+        assert again.patient.position_mm == case.patient.position_mm
+        T = case.patient.ct2robot()
+        dR = T.R @ T0.R.T
+        turn_deg = np.degrees(Rotation.from_matrix(dR).as_rotvec())
+        assert np.all(np.abs(turn_deg) <= 2.5 * np.asarray(sd_deg) + 1e-9), turn_deg
+        # the femur's middle moves by the shift alone
+        shift = T.apply(middle_ct) - T0.apply(middle_ct)
+        assert np.all(np.abs(shift) <= 2.5 * np.asarray(sd_mm) + 1e-9), shift
+        poses.append(np.concatenate([shift, turn_deg]))
+    poses = np.array(poses)
+    assert np.all(poses[:, [0, 1, 3, 5]].std(axis=0) > 0.3 * np.array([10, 20, 2, 4]))
+    assert np.allclose(poses[:, [2, 4]], 0.0, atol=1e-9)
+    # the other streams are what they were
+    a = case_streams(case_seed(7, 0, 1))
+    assert set(a) >= {"shape", "world", "ct", "operator", "robot", "xray", "placement"}
+
+
 def test_case_streams_never_spawn_from_the_case_seed():
     """Each stream is the case seed's child of a fixed spawn key, built without spawning:
     asking twice, or handing simulate a SeedSequence object, gives the same streams (it
@@ -214,7 +260,7 @@ def test_case_streams_never_spawn_from_the_case_seed():
     css = case_seed(7, 3)
     a, b = case_streams(css), case_streams(css)
     assert css.n_children_spawned == 0
-    kids = np.random.SeedSequence(7, spawn_key=(3,)).spawn(16)
+    kids = np.random.SeedSequence(7, spawn_key=(3,)).spawn(max(STREAM_KEYS.values()) + 1)
     for name, k in STREAM_KEYS.items():
         want = kids[k].generate_state(4)
         assert np.array_equal(a[name].generate_state(4), want)
