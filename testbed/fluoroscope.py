@@ -157,6 +157,10 @@ class FluoroscopeSpec(Spec):
     s_shift_mm_per_uT: Annotated[float, Field(ge=-1, le=1)] = 0.04
     noise: bool = True
     photons_per_pixel: Annotated[float, Field(ge=1.0, le=1e7)] = 5000.0
+    """Detected quanta per pixel of the unattenuated beam, used only without automatic
+    brightness control (``abc_photons_per_pixel = 0``, the ideal profile); under it (the
+    clinic default) ``abc_photons_per_pixel`` sets the quanta and this field has no effect
+    (a review changed it tenfold in experiment2 and saw nothing)."""
     glare_fraction: Annotated[float, Field(ge=0, lt=1)] = 0.12
     glare_sigma_px: Annotated[float, Field(gt=0, le=500)] = 30.0
     vignetting: Annotated[float, Field(ge=0, lt=1)] = 0.25
