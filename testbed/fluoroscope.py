@@ -911,6 +911,12 @@ def _field_fans(carm: CArm, n_sub: int) -> list[FanRays]:
     if key not in carm._cache:
         fans = []
         for _o, d, tm, _ in _field_rays(carm, n_sub):
+            if len(d) == 0:   # (FanRays.of would average no rays and call the field wide)
+                raise ValueError(
+                    f"view {carm.name!r}: no pixel of the {carm.width_px} x {carm.height_px} "
+                    "image lies in the intensifier's field of view; the field is centred "
+                    "where [fluoroscope] principal_offset_px puts the beam axis (and "
+                    "distorted about distortion_center_px): bring it into the image")
             fan = FanRays.of(carm.source_robot, np.ascontiguousarray(d), tm)
             if fan is None:  # a field wider than 160 degrees: not a fluoroscope
                 raise ValueError(f"view {carm.name!r}: the field of view is too wide to "

@@ -268,3 +268,23 @@ def test_render_command_shows_the_femur_that_run_simulates(tmp_path):
     assert np.array_equal(img, run_frame.image_u8)
     as_written = render_view(scene, 0, seed=3)   # the phantom as written: another femur
     assert not np.array_equal(run_frame.bone_mask, as_written.bone_mask)
+
+
+def test_a_field_of_view_off_the_image_is_named():
+    """principal_offset_px of a whole image width (allowed by its bound) leaves no pixel in
+    the field: it read 'the field of view is too wide to rasterise' after numpy's warnings
+    on an empty mean (a review); now it names the field and the fix."""
+    import warnings
+
+    from testbed.fluoroscope import FluoroscopeSpec, _field_fans, make_carm
+    from testbed.scene import find_scene, load_scene
+
+    scene = load_scene(find_scene("experiment2"))
+    fluoro = FluoroscopeSpec(**{**scene.fluoroscope.model_dump(),
+                                "principal_offset_px": (640.0, 0.0)})
+    carm = make_carm(fluoro, scene.views[0], view_index=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match=r"no pixel of the 640 x 480 image lies in the "
+                                             r"intensifier's field of view.*principal_offset"):
+            _field_fans(carm, 1)
