@@ -477,11 +477,12 @@ SYMMETRY_MAX_FACES = 20_000
 def _symmetry_proxy(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     """The mesh :func:`_axial_symmetry` is measured on: ``mesh`` itself up to
     :data:`SYMMETRY_MAX_FACES` faces, else a copy decimated to that many (quadric
-    decimation, fast_simplification through trimesh), or the mesh where decimation fails.
-    The closest-point queries grow with the faces: a CT-derived femur of 222,000 faces took
-    11.9 s (3.5 s decimated, 1.4 s of it the decimation), its figure 4.83 mm RMS exact and
-    4.46 mm on the copy; a capsule of 131,000 faces 0.0003 mm on the copy. The test is a
-    gate at :data:`MIN_AXIAL_ASYMMETRY_MM`, which those differences do not cross
+    decimation, fast_simplification through trimesh), or the mesh where decimation
+    fails. The closest-point queries grow with the faces: a femur of 222,000 faces (the
+    procedural one subdivided twice, as fine as a CT segmentation's) took 11.9 s (3.5 s
+    decimated, 1.4 s of it the decimation), its figure 4.83 mm RMS exact and 4.46 mm on
+    the copy; a capsule of 131,000 faces 0.0003 mm on the copy. The test is a gate at
+    :data:`MIN_AXIAL_ASYMMETRY_MM`, which those differences do not cross
     (tests/testbed/test_phantom.py compares the two on subdivided random femurs)."""
     if len(mesh.faces) <= SYMMETRY_MAX_FACES:
         return mesh

@@ -23,7 +23,8 @@ i.e. child ``index`` of ``SeedSequence(seed).spawn(n)`` for any ``n > index``; `
 run --seed S`` simulates case 0 of ``S``, the same case as ``case_0000`` of ``testbed
 generate --seed S``. Each stream of a case (:data:`SEED_STREAMS`: the femur's shape, the
 world, the CT scanner, the operator, the robot (one child per view: arm errors, then sweep
-image noise), the X-ray frames (one child per view)) is the case seed's child of spawn key
+image noise), the X-ray frames (one child per view), the patient's placement where the
+scene draws one) is the case seed's child of spawn key
 :data:`STREAM_KEYS` ``[name]``, built directly (:func:`case_streams`): a case seed is never
 spawned from, so the same seed gives the same streams however often and in whatever order
 the stages ask for them.
@@ -55,11 +56,12 @@ __all__ = [
 ]
 
 #: the streams of a case
-SEED_STREAMS = ("shape", "world", "ct", "operator", "robot", "xray")
+SEED_STREAMS = ("shape", "world", "ct", "operator", "robot", "xray", "placement")
 #: the child (spawn key) of the case seed behind each stream. The numbers are those the
 #: streams had when the stages drew them by successive ``spawn()`` calls on the case seed
 #: (robot and X-ray from the first 6 children, shape and world from the second 6, CT and
-#: operator from the third), kept so that every case and dataset stays what it was.
+#: operator from the third), kept so that every case and dataset stays what it was; the
+#: placement's (2026-11-26) a new key, so that no earlier stream moved.
 STREAM_KEYS = {"shape": 6, "world": 7, "ct": 14, "operator": 15, "robot": 4, "xray": 5,
                "placement": 16}
 #: a case's placement draw is clipped at this many standard deviations ([patient]
