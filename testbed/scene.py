@@ -294,8 +294,24 @@ def _describe(err: dict) -> str:
 
 
 def _validation_message(path: str, exc: ValidationError) -> str:
-    lines = [f"{path}: invalid scene ({exc.error_count()} problem(s))"]
-    for err in exc.errors(include_url=False):
+    errors = exc.errors(include_url=False)
+    # a list of fixed length given too few items: pydantic reports each missing index
+    # ("rotation_sd_deg[2]: missing", a review); said once per list, with the count expected
+    short: dict[tuple, list[int]] = {}
+    for err in errors:
+        loc = tuple(err.get("loc") or ())
+        if err.get("type") == "missing" and loc and isinstance(loc[-1], int):
+            short.setdefault(loc[:-1], []).append(loc[-1])
+    lines = [f"{path}: invalid scene ({len(errors) - sum(len(v) - 1 for v in short.values())}"
+             " problem(s))"]
+    for err in errors:
+        loc = tuple(err.get("loc") or ())
+        if loc[:-1] in short and err.get("type") == "missing" and isinstance(loc[-1], int):
+            missing = short[loc[:-1]]
+            if loc[-1] == min(missing):
+                lines.append(f"  {path}: field '{_field_path(loc[:-1])}': expected "
+                             f"{max(missing) + 1} values, got {min(missing)}")
+            continue
         lines.append(f"  {path}: field '{_field_path(err['loc'])}': {_describe(err)}")
     return "\n".join(lines)
 

@@ -88,7 +88,10 @@ def test_syntax_error_names_file(tmp_path):
         ("synthetic", "n_points", 3, "greater than or equal to 4"),
         ("synthetic", "landmarks", [], "at least 1 item"),
         ("synthetic", "noise_std", -0.1, "greater than or equal to 0"),
-        ("synthetic", "center_of_perspective", [1.0, 2.0], "too few items"),
+        # a list of fixed length: said once, with the count (it named each missing index)
+        ("synthetic", "center_of_perspective", [1.0, 2.0],
+         "field 'synthetic.center_of_perspective': expected 3 values, got 2"),
+        ("synthetic", "center_of_perspective", [1.0], "expected 3 values, got 1"),
         ("synthetic", "nosie_std", 0.1, "unknown key"),
         ("scene", "kind", "hospital", "synthetic"),
         ("ct", "pixel_mm", "0.8", "valid number"),
