@@ -381,6 +381,20 @@ def _entry(group: Mapping, name: str, what: str, *, table: tuple[str, ...] | Non
     return value
 
 
+def _xray_frame(images: Mapping, view: str) -> np.ndarray:
+    """The observation's X-ray frame of ``view``: one (H, W) frame of finite real numbers,
+    else a ValueError naming the entry, as a bad sweep frame is (an RGB or NaN frame left
+    its view out with a warning, a review: a caller's fault, not a view the clinic lost)."""
+    name = f"images/xray_{view}"
+    a = _real(_entry(images, f"xray_{view}", "images"), f"observation: {name}")
+    if a.ndim != 2:
+        raise ValueError(f"observation: {name}: expected one (H, W) grey-level frame, got "
+                         f"shape {a.shape}")
+    if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+        raise ValueError(f"observation: {name}: the frame holds NaN or inf")
+    return a
+
+
 def _real(value, label: str) -> np.ndarray:
     """``value`` as an array of real numbers (bool, integers, floats), else a ValueError
     naming ``label``."""
@@ -817,7 +831,7 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
         if contours is not None and v in contours:
             con = contours[v]
         else:
-            con = xray_contours(v, _entry(images, f"xray_{v}", "images", numeric=True),
+            con = xray_contours(v, _xray_frame(images, v),
                                 _entry(arrays, f"xray_clicks_{v}", "arrays", table=()),
                                 pixel_mm=pixel_mm)
         conts[v] = con

@@ -439,3 +439,23 @@ def test_the_video_pixel_in_meta_is_checked():
     for bad in (0, -0.5, float("nan"), "0.5", True, [0.5], 50.0, 1e-9):
         with pytest.raises(ValueError, match=r"meta\['xray_pixel_mm'\]"):
             _xray_pixel_mm({"xray_pixel_mm": bad})
+
+
+def test_a_malformed_xray_frame_is_refused_naming_the_entry():
+    """An RGB or NaN X-ray frame left its view out with a warning where a bad sweep frame
+    raised (a review): both are the caller's fault; a good frame passes as it is."""
+    from reglib.pipeline import _xray_frame
+
+    good = np.zeros((48, 64), np.uint8)
+    assert _xray_frame({"xray_a": good}, "a") is not None
+    assert np.array_equal(_xray_frame({"xray_a": good.tolist()}, "a"), good)
+    nan = np.zeros((48, 64))
+    nan[3, 4] = np.nan
+    for bad, match in ((np.zeros((48, 64, 3), np.uint8), r"expected one \(H, W\) grey-level "
+                        r"frame, got shape \(48, 64, 3\)"),
+                       (nan, "holds NaN or inf"), (np.zeros((48, 64), complex), "complex"),
+                       ("frame", "images/xray_a")):
+        with pytest.raises(ValueError, match=match):
+            _xray_frame({"xray_a": bad}, "a")
+    with pytest.raises(ValueError, match="missing entry images/xray_b"):
+        _xray_frame({"xray_a": good}, "b")
