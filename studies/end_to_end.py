@@ -224,14 +224,24 @@ def _aim_warnings(case: Case) -> list[str]:
     return out
 
 
+#: how far (mm) a view's anatomy centre may lie beyond the CT's contoured stretches before
+#: :func:`ct_coverage_warnings` names it: the anatomy spans centimetres about its centre,
+#: and the operator contours a femoral head only up to its last slice of one section (a
+#: review: a centre 4 mm above the last contoured slice, the pose accepted 0.9 mm off,
+#: was warned of)
+CT_COVERAGE_MARGIN_MM = 30.0
+
+
 def ct_coverage_warnings(views, centres_ct, z_mm, groups) -> list[str]:
-    """A view whose region's anatomy lies outside every scanned stretch of the CT: one
-    warning each. ``views``: the scene's ``[[views]]``; ``centres_ct``: region -> (3,) ct mm
-    (:func:`studies.common.region_centres`); ``z_mm`` (S,) the CT slices' z; ``groups``: the
-    slice indices of each contoured stretch (a region's clicked slices). Such a view shows
-    bone that no CT surface covers, and the verdict refuses it as a view that does not fit
-    without naming the CT (a held-out review: only the knee scanned, the proximal views kept,
-    refused with a pin 6.8 mm off and no word of the missing slices)."""
+    """A view whose region's anatomy lies more than :data:`CT_COVERAGE_MARGIN_MM` outside
+    every scanned stretch of the CT: one warning each. ``views``: the scene's
+    ``[[views]]``; ``centres_ct``: region -> (3,) ct mm
+    (:func:`studies.common.region_centres`); ``z_mm`` (S,) the CT slices' z; ``groups``:
+    the slice indices of each contoured stretch (a region's clicked slices). Such a view
+    shows bone that no CT surface covers, and the verdict refuses it as a view that does
+    not fit without naming the CT (a held-out review: only the knee scanned, the
+    proximal views kept, refused with a pin 6.8 mm off and no word of the missing
+    slices)."""
     z = np.asarray(z_mm, dtype=np.float64)
     spans = [(float(z[g].min()), float(z[g].max())) for g in groups if len(g)]
     out = []
@@ -240,7 +250,8 @@ def ct_coverage_warnings(views, centres_ct, z_mm, groups) -> list[str]:
         if c is None:
             continue
         zc = float(c[2])
-        if any(lo <= zc <= hi for lo, hi in spans):
+        if any(lo - CT_COVERAGE_MARGIN_MM <= zc <= hi + CT_COVERAGE_MARGIN_MM
+               for lo, hi in spans):
             continue
         scanned = ", ".join(f"{lo:.0f} to {hi:.0f}" for lo, hi in spans) or "none"
         out.append(f"views[{i}] ({v.name!r}, region {v.region!r}): the CT has no slices at "

@@ -64,3 +64,16 @@ def test_views_of_a_region_the_ct_did_not_scan_are_named():
         assert w.startswith(f"views[{i}] ({scene.views[i].name!r}, region 'proximal'): the CT "
                             "has no slices at its anatomy"), w
         assert "contoured stretches z -2 to 118 mm" in w, w
+    # an anatomy centre a few mm beyond the last contoured slice (the operator stops at a
+    # femoral head's last slice of one section) is no missing stretch (a review)
+    from studies.common import region_centres
+    from studies.end_to_end import CT_COVERAGE_MARGIN_MM, ct_coverage_warnings
+
+    phantom = build_world(scene, np.random.default_rng(0)).phantom
+    zc = float(region_centres(phantom)["proximal"][2])
+    z = np.array([0.0, 50.0, zc - 40.0, zc - 4.0])
+    views = scene.views
+    assert ct_coverage_warnings(views, region_centres(phantom), z, [[0, 1], [2, 3]]) == []
+    z_far = np.array([0.0, 50.0, zc - 80.0, zc - CT_COVERAGE_MARGIN_MM - 1.0])
+    assert len(ct_coverage_warnings(views, region_centres(phantom), z_far,
+                                    [[0, 1], [2, 3]])) == 2
