@@ -276,9 +276,7 @@ def _describe(err: dict) -> str:
     got = err.get("input")
     if typ == "extra_forbidden":
         return "unknown key (not part of the schema; check the spelling)"
-    if typ == "missing":
-        if err.get("loc") and isinstance(err["loc"][-1], int):
-            return "too few items in this list (it has a fixed length)"
+    if typ == "missing":     # (a list's missing items: _validation_message counts them)
         return "required field is missing"
     shown = repr(got)
     if len(shown) > 60:
@@ -306,7 +304,8 @@ def _validation_message(path: str, exc: ValidationError) -> str:
              " problem(s))"]
     for err in errors:
         loc = tuple(err.get("loc") or ())
-        if loc[:-1] in short and err.get("type") == "missing" and isinstance(loc[-1], int):
+        if (err.get("type") == "missing" and loc and isinstance(loc[-1], int)
+                and loc[:-1] in short):
             missing = short[loc[:-1]]
             if loc[-1] == min(missing):
                 lines.append(f"  {path}: field '{_field_path(loc[:-1])}': expected "
