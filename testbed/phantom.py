@@ -440,7 +440,8 @@ def _check_closed(mesh: trimesh.Trimesh, what: str) -> None:
 MIN_AXIAL_ASYMMETRY_MM = 1.0
 #: how far (mm) a user mesh's lowest point may lie from z = 0, where the ct frame's
 #: convention puts the condyles' lowest point (a mesh in a scanner's coordinates, 1000 mm
-#: up, was refused only at its first view, as a femur outside the field)
+#: up, was refused only at its first view, as a femur outside the field), and its bounding
+#: box's centre from the z axis (one 100 mm off in x ran with warnings to re-aim the views)
 MAX_MESH_BASE_MM = 50.0
 #: :func:`_axial_symmetry` of the user meshes read, by (file, modification time, size)
 _SYMMETRY: dict = {}
@@ -542,6 +543,15 @@ def _user_phantom(spec: PhantomSpec) -> Phantom:
             f"phantom.mesh_path: the femur in {str(path)!r} must lie along the ct frame's z "
             "axis (proximal up, the lowest point of the condyles near z = 0, mm); its extents "
             f"are x {ext[0]:.0f}, y {ext[1]:.0f}, z {ext[2]:.0f} mm")
+    centre_xy = 0.5 * (mesh.bounds[0, :2] + mesh.bounds[1, :2])
+    if float(np.hypot(*centre_xy)) > MAX_MESH_BASE_MM:
+        raise ValueError(
+            f"phantom.mesh_path: the femur in {str(path)!r} lies with its bounding box's "
+            f"centre at x = {centre_xy[0]:.0f}, y = {centre_xy[1]:.0f} mm; the ct frame "
+            f"puts the femur along its z axis (that centre within {MAX_MESH_BASE_MM:g} mm "
+            f"of it: the scene's views and [patient] position_mm place that frame): "
+            f"translate the mesh and mesh_pins_mm by ({-centre_xy[0]:.0f}, "
+            f"{-centre_xy[1]:.0f}, 0) mm")
     z0 = float(mesh.bounds[0, 2])
     if abs(z0) > MAX_MESH_BASE_MM:
         raise ValueError(

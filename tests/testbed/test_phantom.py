@@ -199,6 +199,13 @@ def test_user_mesh(tmp_path):
                                          r"and mesh_pins_mm by \(0, 0, -1000\) mm"):
         make_phantom(PhantomSpec(mesh_path=str(up_path), mesh_pins_mm={
             k: (v[0], v[1], v[2] + 1000.0) for k, v in pins.items()}))
+    aside = good.copy().apply_translation([100.0, 0.0, 0.0])
+    aside_path = tmp_path / "aside.stl"
+    aside.export(aside_path)
+    with pytest.raises(ValueError, match=r"centre at x = 89, y = -3 mm.*translate the mesh and "
+                                         r"mesh_pins_mm by \(-89, 3, 0\) mm"):
+        make_phantom(PhantomSpec(mesh_path=str(aside_path), mesh_pins_mm={
+            k: (v[0] + 100.0, v[1], v[2]) for k, v in pins.items()}))
     near = good.copy().apply_translation([0.0, 0.0, 30.0])
     near_path = tmp_path / "near.stl"
     near.export(near_path)
