@@ -190,27 +190,22 @@ def test_user_mesh(tmp_path):
     with pytest.raises(ValueError, match="units must be millimetres"):
         make_phantom(PhantomSpec(mesh_path=str(m_path), mesh_pins_mm=pins))
     # A mesh in a CT scanner's coordinates, 1000 mm up (a review: refused only at its
-    # first view, as a femur outside the field), is refused naming the translation; 30 mm
-    # off is within the convention
-    up = good.copy().apply_translation([0.0, 0.0, 1000.0])
-    up_path = tmp_path / "scanner.stl"
-    up.export(up_path)
-    with pytest.raises(ValueError, match=r"lowest point at z = 1000 mm.*translate the mesh "
-                                         r"and mesh_pins_mm by \(0, 0, -1000\) mm"):
-        make_phantom(PhantomSpec(mesh_path=str(up_path), mesh_pins_mm={
-            k: (v[0], v[1], v[2] + 1000.0) for k, v in pins.items()}))
-    aside = good.copy().apply_translation([100.0, 0.0, 0.0])
-    aside_path = tmp_path / "aside.stl"
-    aside.export(aside_path)
-    with pytest.raises(ValueError, match=r"centre at x = 89, y = -3 mm.*translate the mesh and "
-                                         r"mesh_pins_mm by \(-89, 3, 0\) mm"):
-        make_phantom(PhantomSpec(mesh_path=str(aside_path), mesh_pins_mm={
-            k: (v[0] + 100.0, v[1], v[2]) for k, v in pins.items()}))
-    near = good.copy().apply_translation([0.0, 0.0, 30.0])
-    near_path = tmp_path / "near.stl"
-    near.export(near_path)
-    make_phantom(PhantomSpec(mesh_path=str(near_path), mesh_pins_mm={
-        k: (v[0], v[1], v[2] + 30.0) for k, v in pins.items()}))
+    # first view, as a femur outside the field), or 100 mm aside of the z axis (run with
+    # warnings to re-aim the views), is refused naming the translation; 30 mm up is within
+    # the convention
+    def moved(shift, name):
+        mesh_path = tmp_path / name
+        good.copy().apply_translation(shift).export(mesh_path)
+        return PhantomSpec(mesh_path=str(mesh_path), mesh_pins_mm={
+            k: tuple(np.asarray(v) + shift) for k, v in pins.items()})
+
+    for shift, match in (([0.0, 0.0, 1000.0], r"lowest point at z = 1000 mm.*translate the "
+                          r"mesh and mesh_pins_mm by \(0, 0, -1000\) mm"),
+                         ([100.0, 0.0, 0.0], r"centre at x = 89, y = -3 mm.*translate the "
+                          r"mesh and mesh_pins_mm by \(-89, 3, 0\) mm")):
+        with pytest.raises(ValueError, match=match):
+            make_phantom(moved(np.array(shift), "moved.stl"))
+    make_phantom(moved(np.array([0.0, 0.0, 30.0]), "near.stl"))
     # A femur turned head down with its pins, or pins whose names are swapped, is refused
     down = good.copy().apply_transform(trimesh.transformations.rotation_matrix(np.pi, [1, 0, 0]))
     down.apply_translation([0.0, 0.0, -down.bounds[0, 2]])
