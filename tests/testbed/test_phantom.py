@@ -128,6 +128,15 @@ def test_fifty_variations_are_closed_manifolds_with_pins_in_bone():
         assert ph.soft_tissue.contains(ph.femur.vertices[::4]).all(), seed
 
 
+def _shallow_pin(mesh, z):
+    """A point 2 mm under the mesh's surface at height z, on its +x side (a pin there
+    crosses the 3 mm cortex's inner surface)."""
+    o = np.array([[500.0, 0.0, z]])
+    hit, _, _ = mesh.ray.intersects_location(o, np.array([[-1.0, 0.0, 0.0]]))
+    x = hit[np.argmax(hit[:, 0]), 0]
+    return (float(x) - 2.0, 0.0, float(z))
+
+
 def test_user_mesh(tmp_path):
     femur = make_phantom(PhantomSpec(segments=24))
     good = femur.femur.copy()
@@ -136,6 +145,21 @@ def test_user_mesh(tmp_path):
     pins = {k: tuple(v.tolist()) for k, v in femur.pins.items()}
     ph = make_phantom(PhantomSpec(mesh_path=str(path), mesh_pins_mm=pins))
     assert ph.canal is None and _closed(ph.femur)
+    # cancellous bone within a cortex (it was solid cortical bone: a review's wide femurs lost
+    # their distal views' validation beads), closed, inside the femur, holding the pins
+    assert _closed(ph.cancellous) and ph.femur.contains(ph.cancellous.vertices).all()
+    assert 0.5 < ph.cancellous.volume / ph.femur.volume < 0.85
+    assert ph.pin_inside == {k: "cancellous" for k in PIN_NAMES}
+    assert [b.name for b in ph.bodies()][:3] == ["soft_tissue", "femur", "cancellous"]
+    # the cortex: about 2 mm (the depth cut at 3 mm between voxel centres, the surface
+    # half a voxel out of them), never nothing
+    d = trimesh.proximity.signed_distance(ph.femur, ph.cancellous.vertices[::5])
+    assert d.min() > 0.2 and 1.5 < np.median(d) < 3.0, (d.min(), np.median(d))
+    # a pin across the cortex's inner surface: no nesting holds, the femur stays solid
+    z_top = float(good.bounds[1, 2])
+    shallow = {**pins, "proximal": _shallow_pin(good, z_top - 60.0)}
+    ph2 = make_phantom(PhantomSpec(mesh_path=str(path), mesh_pins_mm=shallow))
+    assert ph2.cancellous is None and set(ph2.pin_inside.values()) == {"femur"}
     assert ph.soft_tissue.contains(ph.femur.vertices).all()
     assert [b.name for b in ph.bodies()][:2] == ["soft_tissue", "femur"]
     # A mesh with a hole is refused, naming the problem.
