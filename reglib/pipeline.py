@@ -667,7 +667,12 @@ def xray_contours(view: str, image, clicks: Mapping, *, pixel_mm=None) -> ViewCo
     tracing's lengths in px (:func:`reglib.xray_contours.pixel_scale`); None: from the field
     of view's size.
     """
-    from reglib.xray_contours import field_of_view_mask, prepare_xray, xray_contour
+    from reglib.xray_contours import (
+        field_of_view_mask,
+        frame_noise_sd,
+        prepare_xray,
+        xray_contour,
+    )
 
     def failed(why: str) -> ViewContours:
         return ViewContours(view, np.zeros((0, 2)), np.zeros(0, bool), (f"view {view}: {why}",))
@@ -709,12 +714,13 @@ def xray_contours(view: str, image, clicks: Mapping, *, pixel_mm=None) -> ViewCo
         filled = prepare_xray(img, fov_mask=mask)
     except ValueError as exc:      # no field of view: no trace can be followed
         return failed(str(exc))
+    noise = frame_noise_sd(img, mask)
     pts, flags, problems = [], [], []
     for t in range(len(ext)):
         try:
             c = xray_contour(img, xy[tr == t], fov_mask=mask, filled=filled,
                              label="external" if ext[t] else "internal", closed=bool(closed[t]),
-                             pixel_mm=pixel_mm)
+                             pixel_mm=pixel_mm, noise_sd=noise)
         except ValueError as exc:
             problems.append(f"view {view}: trace {t}: {exc}")
             continue
