@@ -20,6 +20,8 @@ import re
 import sys
 from pathlib import Path
 
+from studies import numerics
+
 __all__ = ["UsageError", "build_parser", "main"]
 
 PROG = "testbed"
@@ -501,8 +503,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 #: BLAS/OpenMP thread counts set to 1 unless the environment sets them (read by the BLAS
-#: when numpy is first imported, which the lazy imports leave until after this)
-SINGLE_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+#: when numpy is first imported, which the lazy imports leave until after this;
+#: studies.numerics sets them with the rest of the numeric environment)
+SINGLE_THREAD_VARS = numerics.SINGLE_THREAD_VARS
 #: commands whose process simulates or estimates and then exits: their imports are frozen
 #: out of the garbage collector's scans (studies.threads.freeze_work_modules); not when
 #: main() is called in a longer-lived process (``argv`` given)
@@ -564,11 +567,9 @@ def _interrupted(exc: KeyboardInterrupt) -> int:
 def main(argv=None) -> int:
     global _scene_path
     _scene_path = None
-    # One BLAS thread: a multithreaded BLAS sums in an order that depends on its thread
-    # count, so the same seed gave another result on another machine (the default run:
-    # mTRE 0.692 mm with one thread, 0.734 mm with two); studies parallelise by process.
-    for var in SINGLE_THREAD_VARS:
-        os.environ.setdefault(var, "1")
+    # One BLAS thread, and the AVX2 code on an x86 CPU that has more: the same seed gave
+    # another result on another machine (studies.numerics); studies parallelise by process.
+    numerics.apply()
     debug = bool(os.environ.get("TESTBED_DEBUG"))
     _terminate_as_interrupt()
     try:

@@ -8,7 +8,7 @@ OpenCV parallelises its filters over a thread pool whose threads wait actively b
 calls: measured on this 2-core machine, a 33-tap Gaussian of a 480 x 544 float32 image took
 0.61 ms of wall time either way, and 1.24 ms of CPU time with OpenCV's default 2 threads
 (0.85 ms with 1 thread, 0.61 ms with threading off). BLAS threads are set through the
-environment before numpy is imported (``studies.cli.SINGLE_THREAD_VARS``).
+environment before numpy is imported (``studies.numerics``).
 
 A process that imports numpy, scipy, trimesh, numba and pybullet holds a few hundred
 thousand long-lived objects, which every full collection of the garbage collector scans
