@@ -110,6 +110,18 @@ VIEW_FIT_MM = 2.0
 #: experiment1 and experiment2, 0.61-0.66 on experiment2-ideal; a held-out review (58 runs)
 #: found 0.39-1.0 where the patient was turned at most 12 deg, moved or the views re-aimed.
 MIN_CONTOUR_SHARE = 0.25
+#: a view's X-ray frame against its sweep's reference frame (the same C-arm pose, the rod
+#: parked, the patient in the beam; :func:`reglib.xray_contours.frame_agreement`): the
+#: least correlation of their edge bands, and the largest shift of its peak (px at the
+#: reference pixel, scaled with the tracing's lengths). A review (2026-11-26) gave views
+#: frames shifted by 20 px, mirrored, turned 180 deg or of another view: 8 estimates were
+#: accepted 2.0-13 mm off (pins to 19 mm), every verdict figure inside its limit, the pose
+#: taking up the wrong frame. Measured on experiment1, experiment2, experiment2-ideal and
+#: experiment2 at 20 quanta per pixel (seeds 1-3, 43 views): the frame's own peak 0.54-1.00,
+#: at no shift; mirrored, turned or another view's frames 0.35 at most (seed 1, 66 frames),
+#: mostly at shifts of 8-32 px; a frame shifted by s px peaks at s, as high as its own.
+MIN_SWEEP_AGREEMENT = 0.4
+MAX_SWEEP_SHIFT_PX = 1.5
 #: the verdict's test that the images single out one pose, when more than one start was
 #: tried (the restarts, or the fine stage run from the start as well as from the coarse
 #: pose): a pose is refused when another try ended farther than AMBIGUOUS_POSE_MM from it
@@ -165,7 +177,9 @@ class EstimateOptions:
     (``weak_motion_mm`` of :func:`match_quality`; inf: not checked);
     ``accept_min_view_fit``: its limit on the worst view's share of X-ray paths that the
     surfaces' apparent contours explain (``worst_view_fit``, :func:`view_fit`; 0: not
-    checked); ``accept_min_contour_share``: its limit on the view that shows least of the
+    checked); ``min_sweep_agreement``: a view whose X-ray frame agrees less than this with
+    its sweep's reference frame, or at a shift, is left out (:func:`sweep_agreement`; 0:
+    not checked); ``accept_min_contour_share``: its limit on the view that shows least of the
     bone (its contour paths over the median of the views'; 0: not checked);
     ``accept_max_alternative_mm``: when several starts were tried, how far (mm, RMS over the
     surfaces) another try that fits about as well may end from the pose
@@ -191,6 +205,7 @@ class EstimateOptions:
     accept_min_view_fit: float = MIN_VIEW_FIT
     accept_min_contour_share: float = MIN_CONTOUR_SHARE
     accept_max_alternative_mm: float = AMBIGUOUS_POSE_MM
+    min_sweep_agreement: float = MIN_SWEEP_AGREEMENT
 
     def __post_init__(self):
         from reglib.register import is_real
@@ -206,7 +221,7 @@ class EstimateOptions:
             if not (is_real(v) and v > 0):
                 raise ValueError(f"EstimateOptions.{name}: expected a number > 0, got {v!r}")
         for name in ("accept_min_inlier_fraction", "accept_min_view_fit",
-                     "accept_min_contour_share"):
+                     "accept_min_contour_share", "min_sweep_agreement"):
             v = getattr(self, name)
             if not (is_real(v) and 0.0 <= v <= 1.0):
                 raise ValueError(f"EstimateOptions.{name}: expected a value in [0, 1], got "
@@ -731,6 +746,50 @@ def xray_contours(view: str, image, clicks: Mapping, *, pixel_mm=None) -> ViewCo
     return ViewContours(view, np.vstack(pts), np.concatenate(flags), tuple(problems))
 
 
+def sweep_agreement(view: str, frame, sweep_frames, sweep_arrays, min_agreement: float, *,
+                    pixel_mm=None) -> str:
+    """Whether the X-ray frame of ``view`` was taken from where its sweep calibrated: "" when
+    it agrees with the sweep's last reference frame (``plane == -1``: the rod parked) in the
+    edge band by at least ``min_agreement`` at a shift of at most
+    :data:`MAX_SWEEP_SHIFT_PX`, or when there is no sweep (its calibration given), the sweep
+    has no reference frame or either frame no field; else why not, naming the view."""
+    if sweep_frames is None or not isinstance(sweep_arrays, Mapping):
+        return ""
+    from reglib.xray_contours import (
+        field_of_view_mask,
+        field_scale,
+        frame_agreement,
+        pixel_scale,
+    )
+
+    plane = np.asarray(sweep_arrays.get("plane", ()), dtype=float).reshape(-1)
+    frames = np.asarray(sweep_frames, dtype=np.float64)
+    refs = np.flatnonzero(plane == -1)
+    if not len(refs) or frames.ndim != 3 or len(frames) != len(plane) \
+            or frames.shape[1:] != np.shape(frame):
+        return ""
+    ref = frames[refs[-1]]
+    try:
+        mask = field_of_view_mask(frame) & field_of_view_mask(ref)
+    except ValueError:
+        return ""
+    m = pixel_scale(pixel_mm) if pixel_mm is not None else field_scale(mask)
+    ncc, (dx, dy) = frame_agreement(frame, ref, mask, reach_px=int(32 * m), scale=m)
+    if not np.isfinite(ncc):
+        return ""
+    where = (f"view {view}: its X-ray frame and its sweep's reference frame (the same C-arm "
+             f"pose, the rod parked)")
+    if ncc < min_agreement:
+        return (f"{where} do not show the same scene: their edges correlate by {ncc:.2f} at "
+                f"best (at least {min_agreement:g} expected); a frame of another view, "
+                "mirrored or turned, or a patient who moved?")
+    if np.hypot(dx, dy) > MAX_SWEEP_SHIFT_PX * m:
+        return (f"{where} agree only shifted by ({dx:+d}, {dy:+d}) px (x, y): was the C-arm "
+                "or the video moved after the sweep? The calibration does not hold for "
+                "this frame")
+    return ""
+
+
 def _xray_pixel_mm(meta) -> float | None:
     """The observation's ``meta["xray_pixel_mm"]`` (mm), None when absent; a value that is
     not a positive number of mm is refused naming the key."""
@@ -845,6 +904,15 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
         if not cal.ok:
             failed[v] = cal.message
             continue
+        if options.min_sweep_agreement > 0:
+            t0 = time.perf_counter()
+            why = sweep_agreement(v, _xray_frame(images, v), images.get(f"sweep_{v}"),
+                                  arrays.get(f"sweep_{v}"), options.min_sweep_agreement,
+                                  pixel_mm=pixel_mm)
+            timings["agreement"] = timings.get("agreement", 0.0) + time.perf_counter() - t0
+            if why:
+                failed[v] = why
+                continue
         if len(con.xy) == 0:
             failed[v] = ("no bone contour could be traced on the X-ray frame"
                          + (f" ({'; '.join(con.problems)[:300]})" if con.problems else ""))

@@ -18,6 +18,8 @@ rounded up), written beside it; a change that makes a stage worse than that fail
 that are better than measured pass: tighten the thresholds when reglib improves.
 """
 
+import re
+
 import numpy as np
 import pytest
 
@@ -141,6 +143,37 @@ def test_a_view_of_grey_noise_traces_nothing(case):
             assert len(con.xy) == 0, (v, sd)
             assert len(con.problems) == len(clicks["external"])
             assert all("above the frame's noise" in p for p in con.problems), con.problems
+
+
+def test_a_frame_not_taken_where_its_view_was_calibrated_leaves_the_view_out(case):
+    """A review gave views frames shifted by 20 px, mirrored, turned or of another view:
+    8 estimates were accepted 2-13 mm off. Each view's frame is now compared with its
+    sweep's reference frame (the same C-arm pose): its own frame passes; shifted (with the
+    operator's clicks shifted alike), turned, or the other view's, the view is left out
+    and named, and with one view left the estimate is refused."""
+    import dataclasses
+
+    from reglib.pipeline import prepare, sweep_agreement
+
+    obs = case.sim.observation
+    views = list(case.sim.carms)
+    for v in views:
+        assert sweep_agreement(v, obs.images[f"xray_{v}"], obs.images[f"sweep_{v}"],
+                               obs.arrays[f"sweep_{v}"], 0.4) == ""
+    v, other = views
+    x = np.asarray(obs.images[f"xray_{v}"])
+    clicks = dict(obs.arrays[f"xray_clicks_{v}"])
+    moved = {**clicks, "clicks_xy": np.asarray(clicks["clicks_xy"]) + [20.0, 0.0]}
+    for frame, cl, why in ((np.roll(x, 20, axis=1), moved, r"shifted by \(\+20, \+0\) px"),
+                           (x[::-1, ::-1], clicks, "do not show the same scene"),
+                           (obs.images[f"xray_{other}"], obs.arrays[f"xray_clicks_{other}"],
+                            "do not show the same scene")):
+        o = dataclasses.replace(obs, images={**obs.images, f"xray_{v}": frame},
+                                arrays={**obs.arrays, f"xray_clicks_{v}": cl})
+        st = prepare(o, options=case.options, surfaces=case.stages.surfaces,
+                     calibrations=case.stages.calibrations)
+        assert [w.name for w in st.views] == [other]
+        assert re.search(why, st.failed[v]), st.failed[v]
 
 
 def test_registration_pin_errors_with_true_inputs(case):

@@ -8,9 +8,11 @@ from scipy.spatial import cKDTree
 
 from reglib.xray_contours import (
     XrayContour,
+    _frame_agreement_direct,
     _near_mask,
     field_of_view_mask,
     field_scale,
+    frame_agreement,
     frame_noise_sd,
     pixel_scale,
     refine_edge_profile,
@@ -269,3 +271,32 @@ def test_the_scale_follows_the_pixel_not_the_field():
     for bad in (0.0, -0.25, float("nan"), None, "0.25", [0.25]):
         with pytest.raises(ValueError, match="pixel_mm"):
             pixel_scale(bad)
+
+
+def test_frame_agreement_by_fft_equals_the_direct_sum():
+    """The FFT correlation of the edge bands against direct sums over the reference's
+    window at every shift within reach, on random textured frames with a known shift and
+    random fields (the band at half its widths, for small frames): the same peak, where
+    the shift applied put it."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(12)
+    yy, xx = np.mgrid[0:120, 0:160]
+    for _ in range(5):
+        base = ndimage.gaussian_filter(rng.normal(0.0, 40.0, (120, 160)), rng.uniform(1, 3))
+        mask = np.hypot(xx - 80 + rng.uniform(-5, 5), yy - 60) < rng.uniform(52, 58)
+        dx, dy = (int(v) for v in rng.integers(-6, 7, 2))
+        ref = base + rng.normal(0.0, 0.5, base.shape)
+        frame = np.roll(base, (dy, dx), (0, 1)) + rng.normal(0.0, 0.5, base.shape)
+        ncc, shift = frame_agreement(frame, ref, mask, reach_px=8, scale=0.5)
+        grid = [(a, b) for b in range(-8, 9) for a in range(-8, 9)]
+        direct = _frame_agreement_direct(frame, ref, mask, grid, reach_px=8, scale=0.5)
+        k = int(np.argmax(direct))
+        assert grid[k] == shift == (dx, dy)
+        assert direct[k] == pytest.approx(ncc, abs=1e-9) and 0.5 < ncc <= 1.0
+    # a flat band or an empty window: no figure; frames of other shapes: named
+    flat = np.full((120, 160), 50.0)
+    assert np.isnan(frame_agreement(flat, flat, np.ones((120, 160), bool))[0])
+    assert np.isnan(frame_agreement(base, base, np.zeros((120, 160), bool))[0])
+    with pytest.raises(ValueError, match="shapes differ"):
+        frame_agreement(flat, flat[:5], np.ones((120, 160), bool))
