@@ -495,6 +495,8 @@ AGREEMENT_SIGMAS_PX = (2.0, 6.0)
 
 
 def _agreement_band(image, window, m: float) -> np.ndarray:
+    """The image's edge band (:data:`AGREEMENT_SIGMAS_PX` times ``m``) inside ``window``,
+    its mean there taken off, 0 outside: (H, W)."""
     img = np.asarray(image, dtype=np.float64)
     s1, s2 = (m * s for s in AGREEMENT_SIGMAS_PX)
     b = ndimage.gaussian_filter(img, s1) - ndimage.gaussian_filter(img, s2)
