@@ -50,6 +50,11 @@ PROCEDURAL_FIELDS = (
     "surface_detail_mm", "surface_detail_wavelength_mm")
 
 
+#: the thickest cortex of the procedural femur's shaft, as a share of its diameter: a canal
+#: of at least 30 % of the diameter stays (the capture-range study draws within it too)
+MAX_CORTEX_SHARE = 0.35
+
+
 class PhantomSpec(Spec):
     """``[phantom]``: the femur phantom (procedural, or a user mesh), its pins and the thigh.
 
@@ -134,6 +139,14 @@ class PhantomSpec(Spec):
                              "knee_radius_mm")
         if self.notch_width_mm >= self.condyle_width_mm / 2:
             raise ValueError("notch_width_mm must be below half of condyle_width_mm")
+        if self.cortical_thickness_mm >= MAX_CORTEX_SHARE * self.shaft_diameter_mm:
+            # a review: 9 mm in an 18 mm shaft (no canal) stopped the CT scan with a
+            # TypeError; 10 mm (a canal of -1 mm radius) was simulated as one of +1 mm
+            raise ValueError(
+                f"cortical_thickness_mm ({self.cortical_thickness_mm:g}) must be below "
+                f"{MAX_CORTEX_SHARE:g} x shaft_diameter_mm ({self.shaft_diameter_mm:g}) = "
+                f"{MAX_CORTEX_SHARE * self.shaft_diameter_mm:.3g} mm, which leaves the shaft "
+                "a marrow canal of at least 30 % of its diameter")
         if self.mesh_pins_mm is not None:
             if self.mesh_path is None:
                 raise ValueError("mesh_pins_mm is given without mesh_path: the pins of a user "

@@ -406,3 +406,16 @@ def test_symmetry_of_a_large_mesh_is_measured_on_a_decimated_copy():
     capsule = trimesh.creation.capsule(height=300.0, radius=15.0, count=[64, 64]).subdivide()
     assert len(capsule.faces) > SYMMETRY_MAX_FACES
     assert _axial_symmetry(_symmetry_proxy(capsule))[1] < 0.1 * MIN_AXIAL_ASYMMETRY_MM
+
+
+def test_a_cortex_that_leaves_no_canal_is_refused_naming_both_fields():
+    """A review: cortical_thickness_mm = 9 in an 18 mm shaft (no canal) stopped the CT scan
+    with a TypeError, and 10 (a canal of -1 mm radius) was simulated as one of +1 mm. Both
+    are refused with the fields and the limit; just under the limit builds a closed femur."""
+    for cortex in (9.0, 10.0, 6.3):
+        with pytest.raises(ValueError, match=r"cortical_thickness_mm \(.*\) must be below "
+                                             r"0\.35 x shaft_diameter_mm \(18\) = 6\.3 mm"):
+            PhantomSpec(shaft_diameter_mm=18.0, cortical_thickness_mm=cortex)
+    spec = PhantomSpec(shaft_diameter_mm=18.0, cortical_thickness_mm=6.2)
+    ph = make_phantom(spec)
+    assert ph.femur.is_watertight
