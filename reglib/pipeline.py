@@ -893,10 +893,12 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
         cals[v] = cal
         timings["calibration"] = timings.get("calibration", 0.0) + time.perf_counter() - t0
         t0 = time.perf_counter()
+        frame = None     # the view's X-ray frame, read once where a stage needs it
         if contours is not None and v in contours:
             con = contours[v]
         else:
-            con = xray_contours(v, _xray_frame(images, v),
+            frame = _xray_frame(images, v)
+            con = xray_contours(v, frame,
                                 _entry(arrays, f"xray_clicks_{v}", "arrays", table=()),
                                 pixel_mm=pixel_mm)
         conts[v] = con
@@ -906,7 +908,9 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
             continue
         if options.min_sweep_agreement > 0:
             t0 = time.perf_counter()
-            why = sweep_agreement(v, _xray_frame(images, v), images.get(f"sweep_{v}"),
+            if frame is None:
+                frame = _xray_frame(images, v)
+            why = sweep_agreement(v, frame, images.get(f"sweep_{v}"),
                                   arrays.get(f"sweep_{v}"), options.min_sweep_agreement,
                                   pixel_mm=pixel_mm)
             timings["agreement"] = timings.get("agreement", 0.0) + time.perf_counter() - t0

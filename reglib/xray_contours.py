@@ -336,7 +336,8 @@ def xray_contour(
                             spacing_px=spacing_px, scale=m, **snake_options)
     if profile_fit:
         pts_out = refine_edge_profile(filled, pts_out, closed=closed, **_profile_lengths(m))
-    step, span = _edge_step(filled, pts_out, closed), float(np.ptp(filled[mask]))
+    changes = _changes_across(filled, pts_out, closed)
+    step, span = _edge_step(changes), float(np.ptp(filled[mask]))
     if not step >= MIN_EDGE_STEP * span:
         raise ValueError(f"no edge along the traced outline: the image changes by "
                          f"{step:.3g} across it (median over its points), under "
@@ -344,7 +345,7 @@ def xray_contour(
                          "are the clicks near the bone's outline?")
     if noise_sd is None:
         noise_sd = frame_noise_sd(img, mask)
-    z = _edge_z(filled, pts_out, closed, float(noise_sd))
+    z = _edge_z(changes, float(noise_sd))
     if not z >= MIN_EDGE_Z:
         raise ValueError(f"no edge along the traced outline above the frame's noise: the "
                          f"image's signed change across it is {z:.2g} standard errors of its "
@@ -415,10 +416,12 @@ MIN_EDGE_STEP = 0.01
 MIN_EDGE_Z = 5.0
 
 
-def _across(filled, pts, closed: bool) -> np.ndarray:
+def _changes_across(filled, pts, closed: bool) -> np.ndarray:
     """The change of ``filled`` across the contour ``pts`` (N, 2) px, signed along its
     normals: the value 3 px to the normal's side minus the value 3 px to the other (bilinear),
-    (N,)."""
+    (N,); empty for fewer than 2 points."""
+    if len(pts) < 2:
+        return np.zeros(0)
     n = _normals(pts, closed)
     a, b = pts + 3.0 * n, pts - 3.0 * n
     va = ndimage.map_coordinates(filled, [a[:, 1], a[:, 0]], order=1, mode="nearest")
@@ -426,24 +429,25 @@ def _across(filled, pts, closed: bool) -> np.ndarray:
     return va - vb
 
 
-def _edge_step(filled, pts, closed: bool) -> float:
-    """The median absolute change of ``filled`` across the contour ``pts`` (N, 2) px: between
-    the points 3 px to either side along its normals (bilinear)."""
-    if len(pts) < 2:
+def _edge_step(changes: np.ndarray) -> float:
+    """The median absolute change across a contour (:func:`_changes_across`); nan for
+    none."""
+    if not len(changes):
         return float("nan")
-    return float(np.median(np.abs(_across(filled, pts, closed))))
+    return float(np.median(np.abs(changes)))
 
 
-def _edge_z(filled, pts, closed: bool, noise_sd: float) -> float:
-    """How far the contour ``pts`` is from lying on no edge, in standard errors: the median
-    of the signed change across it (:func:`_across`; a bone's outline keeps one side the
+def _edge_z(changes: np.ndarray, noise_sd: float) -> float:
+    """How far a contour is from lying on no edge, in standard errors: the median of the
+    signed changes across it (:func:`_changes_across`; a bone's outline keeps one side the
     darker, noise does not) over the standard error of that median for a difference of two
     pixels of noise ``noise_sd`` each at every point (1.2533 * sqrt(2) * noise_sd /
-    sqrt(N)). ``inf`` for a noiseless frame with a change, 0 with none."""
-    if len(pts) < 2:
+    sqrt(N)). ``inf`` for a noiseless frame with a change, 0 with none, nan for no
+    points."""
+    if not len(changes):
         return float("nan")
-    med = abs(float(np.median(_across(filled, pts, closed))))
-    se = 1.2533 * np.sqrt(2.0) * noise_sd / np.sqrt(len(pts))
+    med = abs(float(np.median(changes)))
+    se = 1.2533 * np.sqrt(2.0) * noise_sd / np.sqrt(len(changes))
     if se <= 0:
         return float("inf") if med > 0 else 0.0
     return med / se

@@ -111,7 +111,7 @@ def random_femur(base, rng):
     """A ``PhantomSpec`` of ``base`` with a random side and every shape parameter drawn over
     its documented range, rejecting implausible femurs (the phantom cannot be built, or the
     thigh does not enclose the bone). Returns ``(spec, phantom)``."""
-    from testbed.phantom import make_phantom
+    from testbed.phantom import MAX_CORTEX_SHARE, make_phantom
 
     last = None
     for _ in range(MAX_SHAPE_DRAWS):
@@ -120,7 +120,7 @@ def random_femur(base, rng):
         upd["shape_variation"] = 0.0
         if upd["neck_radius_mm"] >= 0.9 * upd["head_radius_mm"] \
                 or upd["notch_width_mm"] >= 0.45 * upd["condyle_width_mm"] \
-                or upd["cortical_thickness_mm"] >= 0.35 * upd["shaft_diameter_mm"]:
+                or upd["cortical_thickness_mm"] >= MAX_CORTEX_SHARE * upd["shaft_diameter_mm"]:
             continue
         # the thigh and knee envelopes grow with the bone, as they do in patients
         upd["thigh_radius_mm"] = max(base.thigh_radius_mm, upd["shaft_diameter_mm"] + 45.0)
