@@ -693,6 +693,7 @@ def run_trials(
     retry_failed: bool = False,
     mp_context: Literal["spawn", "forkserver"] | None = None,
     retries: int = 2,
+    isolate: bool = False,
 ) -> pd.DataFrame:
     """Run ``trials`` with ``trial_fn``, storing each result as it finishes; return all rows.
 
@@ -708,8 +709,13 @@ def run_trials(
     out_dir : path
         Folder of the study; the database is ``out_dir/trials.sqlite`` (created if needed).
     workers : int
-        1: run in this process. More: a process pool of that many workers. Ignored when
-        ``scheduler`` is given.
+        1: run in this process (unless ``isolate``). More: a process pool of that many
+        workers. Ignored when ``scheduler`` is given.
+    isolate : bool
+        Run one worker in a process of its own too, so that a trial which ends its process
+        (``os._exit``, a crash in compiled code) is recorded as failed, as in a pool, where
+        in this process it ended the command with no results (code that is not the
+        project's own: ``testbed score --method``).
     scheduler : str, dask.distributed.Client or cluster, optional
         Run on Dask: an address ``tcp://HOST:PORT`` (a client is opened and closed here), a
         ``Client`` (used as is), or a cluster such as ``LocalCluster``.
@@ -757,7 +763,8 @@ def run_trials(
     if mp_context not in ("spawn", "forkserver"):
         raise ValueError(f"mp_context: expected 'spawn' or 'forkserver', got {mp_context!r}")
 
-    if scheduler is None and workers > 1:
+    pooled = workers > 1 or bool(isolate)
+    if scheduler is None and pooled:
         try:
             pickle.dumps(trial_fn)
         except Exception as exc:  # PicklingError, AttributeError, TypeError...
@@ -793,7 +800,7 @@ def run_trials(
                 pass
             elif scheduler is not None:
                 _run_dask(trial_fn, todo, record, scheduler=scheduler, retries=retries)
-            elif workers == 1:
+            elif not pooled:
                 _run_local(trial_fn, todo, record)
             else:
                 _run_pool(trial_fn, todo, record, workers=int(workers), mp_context=mp_context,

@@ -81,10 +81,11 @@ def _as_pose(value, spec: str):
     if np.iscomplexobj(raw):    # float64 would drop the imaginary part (a review)
         raise ValueError(f"method {spec}: returned complex values, expected a real (4, 4) "
                          "ct2robot array")
-    try:
-        m = raw.astype(np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(what) from None
+    if raw.dtype.kind not in "iuf":   # strings and booleans cast to numbers (a review:
+        #                                 np.eye(4, dtype=bool) was scored, 853 mm off)
+        raise ValueError(f"method {spec}: returned an array of {raw.dtype}, expected a (4, 4) "
+                         "ct2robot array of numbers")
+    m = raw.astype(np.float64)
     if m.shape != (4, 4):
         raise ValueError(f"method {spec}: returned shape {m.shape}, expected a (4, 4) ct2robot "
                          "array")
@@ -266,8 +267,13 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
                          + (f"; dataset.json lists {', '.join(gone[:5])}"
                             + (f" and {len(gone) - 5} more" if len(gone) > 5 else "")
                             + ", which the folder lacks (renamed or removed?)" if gone else ""))
+    # another's method runs in a worker process even alone: one that calls os._exit or
+    # crashes ended the command with exit 0 (or 139) and no results (a review). Its workers
+    # are spawned, which start from this process's sys.path (where load_method found the
+    # method's module), not forked from a server started before it
+    user = method != DEFAULT_METHOD
     df = run_trials(trial, trials, out_dir=out, workers=workers, scheduler=scheduler,
-                    progress=progress)
+                    progress=progress, isolate=user, mp_context="spawn" if user else None)
     reused = int(df.attrs.get("skipped", 0))
     reuse_note = ""
     if reused:

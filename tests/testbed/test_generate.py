@@ -335,7 +335,10 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path, capsys):
         "    assert 'ct2robot' not in observation.transforms\n"
         "    return np.asarray(initial)\n"
         "def broken(observation, initial):\n"
-        "    return np.eye(3)\n")
+        "    return np.eye(3)\n"
+        "def leaves(observation, initial):\n"
+        "    import os\n"
+        "    os._exit(0)\n")
     import sys
 
     sys.path.insert(0, str(tmp_path))
@@ -343,8 +346,14 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path, capsys):
         score_dataset(tmp_path / "ds", tmp_path / "s2", method="mymethods:stay", progress=False)
         score_dataset(tmp_path / "ds", tmp_path / "s3", method="mymethods:broken",
                       progress=False)
+        # a method that ends its process is a failed case, also on one worker (it ended
+        # the command with exit 0 and no results.csv, a review)
+        score_dataset(tmp_path / "ds", tmp_path / "s_exit", method="mymethods:leaves",
+                      progress=False)
     finally:
         sys.path.remove(str(tmp_path))
+    assert list(pd.read_csv(tmp_path / "s_exit" / "results.csv").metric) == ["failed"]
+    assert "worker" in (tmp_path / "s_exit" / "report.md").read_text()
     df2 = pd.read_csv(tmp_path / "s2" / "results.csv")
     # a method that keeps the start scores the start's error
     assert df2[df2.metric == "mtre"]["value"].item() == pytest.approx(result["start_mtre_mm"])
