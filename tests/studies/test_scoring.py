@@ -196,6 +196,14 @@ def test_a_methods_result_that_is_no_rigid_pose_is_named():
                          (m.astype(complex), "returned complex values"),
                          (None, "returned NoneType, expected a .4, 4. ct2robot"),
                          ("pose", "returned str"), (m[:3], r"shape \(3, 4\)"),
-                         (m * 2.0, "not a rigid transform")):
+                         (m * 2.0, "not a rigid transform"),
+                         # a review: booleans and strings were cast and scored (853 mm off)
+                         (np.eye(4, dtype=bool), "returned an array of bool"),
+                         (m.astype(str), "returned an array of <U"),
+                         (np.asarray(m, dtype=object), "returned an array of object")):
         with pytest.raises(ValueError, match=match):
             _as_pose(value, "x")
+    # whole numbers are numbers
+    eye = np.eye(4, dtype=np.int64)
+    eye[:3, 3] = (1, 2, 3)
+    assert np.allclose(_as_pose(eye, "x").t, (1, 2, 3))
