@@ -526,7 +526,10 @@ def _check_index(case_dir: Path) -> None:
         idx = json.loads(index.read_text())
     except (OSError, ValueError) as exc:
         raise ValueError(f"{index}: unreadable dataset index ({exc})") from None
-    hashes = idx.get("case_json_sha256") if isinstance(idx, dict) else None
+    if not isinstance(idx, dict):     # (a list was said to hold no checksum of the case)
+        raise ValueError(f"{index}: expected a JSON object (the dataset's index that testbed "
+                         f"generate writes), got a {type(idx).__name__}")
+    hashes = idx.get("case_json_sha256")
     if not isinstance(hashes, dict) or case_dir.name not in hashes:
         raise ValueError(f"{case_dir / CASE_FILE}: {index} holds no checksum of this case; "
                          "the case was not written by testbed generate into this dataset")

@@ -259,6 +259,10 @@ def test_tampered_cases_are_refused_naming_the_file(tmp_path):
     (case_dir.parent / "dataset.json").write_text(json.dumps({"case_json_sha256": {}}))
     with pytest.raises(ValueError, match="holds no checksum of this case"):
         load(case_dir)
+    # an index that is not an object (a review: a list was said to lack the case's checksum)
+    (case_dir.parent / "dataset.json").write_text("[1, 2, 3]")
+    with pytest.raises(ValueError, match=r"dataset\.json: expected a JSON object .* got a list"):
+        load(case_dir)
 
 
 def _mutations(doc):
