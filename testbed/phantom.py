@@ -158,6 +158,17 @@ class PhantomSpec(Spec):
             if extra:
                 raise ValueError(f"mesh_pins_mm: unknown pin(s) {sorted(extra)}; the pins are "
                                  f"{list(PIN_NAMES)}")
+            # two pins where one is (a review: distal_1 = distal_2 was run, accepted and
+            # scored with the pin counted twice): their steel would overlap
+            for i, a in enumerate(PIN_NAMES):
+                for b in PIN_NAMES[i + 1:]:
+                    gap = float(np.linalg.norm(np.subtract(self.mesh_pins_mm[a],
+                                                           self.mesh_pins_mm[b])))
+                    if gap < self.pin_length_mm:
+                        raise ValueError(
+                            f"mesh_pins_mm: pins {a!r} and {b!r} lie {gap:.3g} mm apart, "
+                            f"closer than a pin is long (pin_length_mm = "
+                            f"{self.pin_length_mm:g}): place each pin where it is")
         return self
 
 
@@ -166,11 +177,12 @@ class Phantom:
     """The phantom in the ct frame (mm).
 
     ``femur``: outer bone surface (cortical bone); ``canal``: medullary canal (marrow), inside
-    the femur; ``cancellous``: cancellous bone at both ends, inside the femur (None for a user
-    mesh); ``soft_tissue``: thigh envelope around the femur; ``pins``: name -> (3,) centre;
-    ``pin_meshes``: name -> steel cylinder; ``landmarks``: name -> (3,) anatomical points
-    (``head_center``, ``neck_base``, ``lesser_trochanter``, ``greater_trochanter``,
-    ``medial_condyle``, ``lateral_condyle``); ``spec``: the resolved dimensions.
+    the femur; ``cancellous``: cancellous bone at both ends, inside the femur (a user mesh's
+    within its cortex, :func:`_user_interior`, or None); ``soft_tissue``: thigh envelope
+    around the femur; ``pins``: name -> (3,) centre; ``pin_meshes``: name -> steel
+    cylinder; ``landmarks``: name -> (3,) anatomical points (``head_center``,
+    ``neck_base``, ``lesser_trochanter``, ``greater_trochanter``, ``medial_condyle``,
+    ``lateral_condyle``); ``spec``: the resolved dimensions.
     """
 
     femur: trimesh.Trimesh

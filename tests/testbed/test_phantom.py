@@ -145,6 +145,13 @@ def test_user_mesh(tmp_path):
     pins = {k: tuple(v.tolist()) for k, v in femur.pins.items()}
     ph = make_phantom(PhantomSpec(mesh_path=str(path), mesh_pins_mm=pins))
     assert ph.canal is None and _closed(ph.femur)
+    # two pins at one place (a review: accepted and scored with a pin counted twice), or
+    # closer than a pin is long: refused naming them
+    for gap in (0.0, 5.0):
+        near = {**pins, "distal_2": tuple(np.add(pins["distal_1"], (0.0, gap, 0.0)))}
+        with pytest.raises(ValueError, match=r"pins 'distal_1' and 'distal_2' lie .* mm apart, "
+                                             r"closer than a pin is long"):
+            PhantomSpec(mesh_path=str(path), mesh_pins_mm=near)
     # cancellous bone within a cortex (it was solid cortical bone: a review's wide femurs lost
     # their distal views' validation beads), closed, inside the femur, holding the pins
     assert _closed(ph.cancellous) and ph.femur.contains(ph.cancellous.vertices).all()
