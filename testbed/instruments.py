@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 from reglib.geometry import RigidTransform
 from testbed.bodies import Body
 from testbed.materials import material
-from testbed.spec import NAME_MAX, Spec, Vec3
+from testbed.spec import NAME_MAX, Angles3, Spec, Vec3
 
 __all__ = ["InstrumentSpec", "instrument_mesh", "make_instrument", "scene_instruments"]
 
@@ -51,7 +51,7 @@ class InstrumentSpec(Spec):
     name: str = "retractor"
     kind: Literal["retractor", "clamp"] = "retractor"
     position_mm: Vec3 = (0.0, 0.0, 0.0)
-    rotation_deg: Vec3 = (0.0, 0.0, 0.0)
+    rotation_deg: Angles3 = (0.0, 0.0, 0.0)
     material: str = "steel"
 
     @field_validator("material")

@@ -43,7 +43,7 @@ from scipy.spatial.transform import Rotation
 
 from reglib.geometry import RigidTransform
 from testbed.bodies import Body
-from testbed.spec import Positive, Spec
+from testbed.spec import Positive, Spec, TurnDeg
 
 __all__ = [
     "JOINT_NAMES",
@@ -126,6 +126,10 @@ class RodSpec(Spec):
 
     @model_validator(mode="after")
     def _check(self):
+        for name in ("material", "bead_material", "tip_material"):
+            if getattr(self, name) == "air":   # (a review: an invisible rod was swept)
+                raise ValueError(f"{name} = 'air': the rod's parts must show on the X-ray "
+                                 "frames (the default: an ULTEM rod, steel beads and tip)")
         if len(self.bead_spacings_mm) < 3:
             raise ValueError("bead_spacings_mm: at least 3 gaps (4 beads) are needed")
         if min(self.bead_spacings_mm) <= 3 * self.bead_diameter_mm:
@@ -224,12 +228,12 @@ class SweepSpec(Spec):
     near_fraction: Annotated[float, Field(gt=0.05, lt=0.99)] = 0.76
     far_fraction: Annotated[float, Field(gt=0.05, lt=0.99)] = 0.94
     tilt_deg: Annotated[float, Field(ge=-45, le=45)] = 0.0
-    rod_angle_deg: float = 0.0
+    rod_angle_deg: TurnDeg = 0.0
     rows_per_plane: Annotated[int, Field(ge=3, le=50)] = 9
     coverage: Annotated[float, Field(ge=0.25, le=1.2)] = 0.9
     reference_frames: Literal["first", "each"] = "first"
     validation_fraction: Annotated[float, Field(gt=0.05, lt=0.99)] = 0.85
-    validation_angle_deg: float = 30.0
+    validation_angle_deg: TurnDeg = 30.0
     validation_offset_mm: Annotated[float, Field(ge=-100.0, le=100.0)] = 5.0
     """The validation row's centre from the beam's axis, across it (mm): inside the field
     (a 9-inch field is 97 mm in radius at 0.85 of the SID)."""
@@ -259,6 +263,11 @@ class SweepSpec(Spec):
                 f"{MIN_VALIDATION_OFFSET:g} of the planes' gap off both, or it cannot test "
                 "the paths between them")
         return self
+
+
+#: the farthest end of the robot's linear slide from its base (mm, either way): a slide
+#: beside an OR table (the default -900 to 300 mm)
+MAX_SLIDE_MM = 5000.0
 
 
 class RobotSpec(Spec):
@@ -308,6 +317,10 @@ class RobotSpec(Spec):
         lo, hi = self.slide_range_mm
         if not lo < hi:
             raise ValueError("slide_range_mm: expected (low, high) with low < high")
+        if max(abs(lo), abs(hi)) > MAX_SLIDE_MM:   # (+-1e9 mm was taken, a review)
+            raise ValueError(f"slide_range_mm: expected ends within +-{MAX_SLIDE_MM:g} mm of "
+                             f"the robot's base (a slide beside an OR table), got ({lo:g}, "
+                             f"{hi:g})")
         return self
 
     def ideal(self) -> RobotSpec:

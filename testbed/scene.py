@@ -41,7 +41,7 @@ from testbed.instruments import RESERVED_NAMES, InstrumentSpec, file_key
 from testbed.operator import OperatorSpec
 from testbed.phantom import PhantomSpec
 from testbed.robot import RobotSpec
-from testbed.spec import NAME_MAX, SceneError, Spec, Vec3
+from testbed.spec import NAME_MAX, Angles3, SceneError, Spec, Vec3
 from testbed.spec import Positive as Pos
 from testbed.workspace import WorkspaceSpec
 
@@ -147,7 +147,7 @@ class PatientSpec(Spec):
     """
 
     position_mm: Vec3 = (0.0, 0.0, 0.0)
-    rotation_deg: Vec3 = (0.0, 0.0, 0.0)
+    rotation_deg: Angles3 = (0.0, 0.0, 0.0)
     on_table: bool = True
     position_sd_mm: tuple[Annotated[float, Field(ge=0, le=50)],
                           Annotated[float, Field(ge=0, le=50)],

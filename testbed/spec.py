@@ -7,8 +7,8 @@ from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-__all__ = ["SceneError", "Spec", "Vec2", "Vec3", "Positive", "NonNegative",
-           "MIN_MAGNITUDE", "MAX_MAGNITUDE"]
+__all__ = ["SceneError", "Spec", "Vec2", "Vec3", "TurnDeg", "Angles3", "Positive",
+           "NonNegative", "MIN_MAGNITUDE", "MAX_MAGNITUDE"]
 
 #: every non-zero float of a scene (also inside vectors and tables) has a magnitude in
 #: [MIN_MAGNITUDE, MAX_MAGNITUDE]: no scene quantity (mm, deg, s, HU, quanta, ...) is
@@ -58,6 +58,10 @@ class Spec(BaseModel):
 
 Vec2 = tuple[float, float]
 Vec3 = tuple[float, float, float]
+#: an angle (deg) of one turn at most either way: 810 deg was taken as 90 (a review)
+TurnDeg = Annotated[float, Field(ge=-360, le=360)]
+#: three such angles (Euler angles, deg)
+Angles3 = tuple[TurnDeg, TurnDeg, TurnDeg]
 
 #: the longest scene, view or instrument name (names become file and folder names)
 NAME_MAX = 64

@@ -335,3 +335,10 @@ def test_placed_cylinders_equal_trimesh_made_and_moved():
         assert np.array_equal(got.faces, ref.faces)
         got.faces[0] = got.faces[0][::-1]                # a user's edit stays in its mesh
         assert np.array_equal(_cylinder_arrays(r, h, n)[1][0], ref.faces[0])
+
+
+def test_a_slide_beyond_an_operating_room_is_refused():
+    """A bad-input review: slide_range_mm = (-1e9, 1e9) was taken; ends within 5 m stay."""
+    with pytest.raises(ValueError, match=r"slide_range_mm: expected ends within \+-5000 mm"):
+        RobotSpec(slide_range_mm=(-1e9, 1e9))
+    assert RobotSpec(slide_range_mm=(-5000.0, 5000.0)).slide_range_mm == (-5000.0, 5000.0)

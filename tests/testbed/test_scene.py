@@ -100,6 +100,8 @@ def test_syntax_error_names_file(tmp_path):
         ("fluoroscope", "earth_field_uT", [0.0, 1e8, -44.0], "less than or equal to 200"),
         ("robot", "encoder_noise_deg", 1e8, "less than or equal to 1"),
         ("operator", "ct_click_noise_px", 1e6, "less than or equal to 50"),
+        # a bad-input review: these were taken (810 deg as 90, an invisible rod swept)
+        ("patient", "rotation_deg", [810.0, 0.0, 0.0], "less than or equal to 360"),
     ],
 )
 def test_specific_errors_name_file_and_field(tmp_path, section, key, value, expect):
@@ -305,6 +307,13 @@ def test_a_relative_mesh_path_is_read_from_the_scene_files_folder(tmp_path, monk
      r"1,073,741,824 rays per frame; at most 16,777,216"),
     ({"[fluoroscope]": "[synthetic]\nn_points = 20\n\n[fluoroscope]"},
      r"scene.kind is 'operating_room': its \[synthetic\] table would be ignored"),
+    # a bad-input review: taken before (720 deg as 0, an invisible rod swept)
+    ({"[robot.sweep]": "[robot.sweep]\nvalidation_angle_deg = 720.0"},
+     r"field 'robot.sweep.validation_angle_deg': Input should be less than or equal to 360"),
+    ({"[robot.sweep]": "[robot.sweep]\nrod_angle_deg = 1e8"},
+     r"field 'robot.sweep.rod_angle_deg': Input should be less than or equal to 360"),
+    ({"[robot.sweep]": "[robot.rod]\nmaterial = \"air\"\n\n[robot.sweep]"},
+     r"field 'robot.rod': material = 'air': the rod's parts must show on the X-ray"),
 ])
 def test_scenes_absurd_as_a_whole_are_refused_by_field(tmp_path, edits, message):
     """Fields each in range that together make an absurd scene (a frame of a billion rays:
