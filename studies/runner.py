@@ -508,10 +508,14 @@ def _worker_start(parent_pid: int) -> None:
     hard limit cannot stop its pool, and the workers (each holding both ends of its call
     queue, so never reading EOF) lived on idle, 0.8 GB each; the study resumes from its
     database, so nothing they held is lost."""
+    import signal
     import threading
 
     from studies.threads import quiet_pybullet
 
+    # Ctrl-C raises KeyboardInterrupt here as in any Python process (the fork server this
+    # worker came from ignores it: studies._forkserver)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     quiet_pybullet()
 
     def watch():
@@ -548,7 +552,7 @@ def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str,
     if mp_context == "forkserver":
         # Workers fork from one server that has imported these once (no effect once the
         # server of this process runs); cheap worker (re)starts.
-        mods = ["studies._quiet", "studies.runner"]
+        mods = ["studies._forkserver", "studies._quiet", "studies.runner"]
         if getattr(trial_fn, "__module__", "__main__") not in ("__main__", "__mp_main__"):
             mods.append(trial_fn.__module__)
         ctx.set_forkserver_preload(mods)

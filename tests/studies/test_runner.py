@@ -600,3 +600,28 @@ def test_workers_print_no_pybullet_banner(tmp_path):
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert "pybullet build time" not in out.stderr + out.stdout, out.stderr
+
+
+def test_the_fork_server_ignores_ctrl_c_and_says_nothing_of_a_pool_gone():
+    """A review: a Ctrl-C in a study's first seconds printed the fork server's traceback
+    (a KeyboardInterrupt inside its preloads, or a starting worker's FileNotFoundError from
+    the pool's removed semaphores) after "interrupted". The server's first preload
+    (studies._forkserver, run here in a process of its own) ignores SIGINT and keeps that
+    one error quiet; any other error of a starting worker is still printed."""
+    code = textwrap.dedent("""
+        import signal, sys
+        import studies._forkserver
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+        ns = {}
+        exec(compile("def __setstate__():\\n    raise FileNotFoundError(2, 'gone')\\n",
+                     "/usr/lib/python3/multiprocessing/synchronize.py", "exec"), ns)
+        for fn in (ns["__setstate__"], lambda: 1 / 0):
+            try:
+                fn()
+            except Exception:
+                sys.excepthook(*sys.exc_info())
+        """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert "FileNotFoundError" not in out.stderr and "ZeroDivisionError" in out.stderr
