@@ -143,3 +143,24 @@ def glare_vignetting(img, glare, g, vignetting, floor):
             img[r, c] = v
             out[r, c] = max(v, floor)
     return out
+
+
+@njit(cache=True)
+def band_of(values, lo, hi):
+    """One pass over ``values``: the count below ``lo``, the values within ``[lo, hi]`` (in
+    their order) and the count of NaNs (a NaN is neither below nor within)."""
+    n = values.shape[0]
+    band = np.empty(n)
+    below = 0
+    nb = 0
+    nans = 0
+    for i in range(n):
+        v = values[i]
+        if v < lo:
+            below += 1
+        elif v <= hi:
+            band[nb] = v
+            nb += 1
+        elif v != v:
+            nans += 1
+    return below, band[:nb].copy(), nans

@@ -348,3 +348,48 @@ def block_boxes(uv, block):
             lo[b, 1] = min(lo[b, 1], uv[i, 1])
             hi[b, 1] = max(hi[b, 1], uv[i, 1])
     return lo, hi
+
+
+@njit(cache=True)
+def hull_equations(pts, flat_area):
+    """Half-planes ``(E, 3)`` rows ``(nx, ny, offset)`` of the convex hull of ``pts (K, 2)``
+    sorted by x then y (Andrew's monotone chain, counter-clockwise): outward unit normals,
+    ``n . x + offset <= 0`` inside, as ``scipy.spatial.ConvexHull(pts).equations`` (its
+    reference; the rows in another order). No rows (a flat hull, whose bounding box the
+    caller uses) when the hull's area is at most ``flat_area``."""
+    k = pts.shape[0]
+    hull = np.empty(2 * k + 1, np.int64)
+    m = 0
+    for i in range(k):                       # lower chain
+        while m >= 2 and _cross(pts, hull[m - 2], hull[m - 1], i) <= 0.0:
+            m -= 1
+        hull[m] = i
+        m += 1
+    low = m + 1
+    for i in range(k - 2, -1, -1):           # upper chain
+        while m >= low and _cross(pts, hull[m - 2], hull[m - 1], i) <= 0.0:
+            m -= 1
+        hull[m] = i
+        m += 1
+    m -= 1                                   # the first point closes the chain
+    area = 0.0
+    for j in range(m):
+        a, b = hull[j], hull[(j + 1) % m]
+        area += pts[a, 0] * pts[b, 1] - pts[b, 0] * pts[a, 1]
+    if m < 3 or 0.5 * area <= flat_area:
+        return np.zeros((0, 3))
+    eq = np.empty((m, 3))
+    for j in range(m):
+        a, b = hull[j], hull[(j + 1) % m]
+        dx, dy = pts[b, 0] - pts[a, 0], pts[b, 1] - pts[a, 1]
+        norm = np.sqrt(dx * dx + dy * dy)
+        nx, ny = dy / norm, -dx / norm         # outward of a counter-clockwise edge
+        eq[j, 0], eq[j, 1] = nx, ny
+        eq[j, 2] = -(nx * pts[a, 0] + ny * pts[a, 1])
+    return eq
+
+
+@njit(cache=True, inline="always")
+def _cross(pts, o, a, b):
+    return ((pts[a, 0] - pts[o, 0]) * (pts[b, 1] - pts[o, 1])
+            - (pts[a, 1] - pts[o, 1]) * (pts[b, 0] - pts[o, 0]))

@@ -354,16 +354,55 @@ def _check_spr(spr: float) -> None:
 def _median(values: np.ndarray) -> float:
     """``np.median(values)`` (the same number), partitioning one rank instead of two: for an
     even count the lower middle value is the largest below the upper one. Reorders
-    ``values``."""
+    ``values``. Of many values, only those in a band around a subsample's median are
+    partitioned (:func:`_median_banded`; 4x faster on a frame's field)."""
     n = len(values)
     if n == 0:
         return float("nan")
+    if n >= _BANDED_MEDIAN_FROM:
+        med = _median_banded(values)
+        if med is not None:
+            return med
     k = n // 2
     values.partition(k)
     upper = values[k]
     if n % 2:
         return float(upper)
     return float((values[:k].max() + upper) / 2.0)
+
+
+#: from this many values :func:`_median` first tries :func:`_median_banded`
+_BANDED_MEDIAN_FROM = 4096
+#: the subsample's stride, and the band's half width in standard errors of its median's rank
+_BANDED_STRIDE = 16
+_BANDED_Z = 6.0
+
+
+def _median_banded(values: np.ndarray) -> float | None:
+    """``np.median(values)`` from the values between two ranks of a strided subsample that
+    bracket the median with a margin of :data:`_BANDED_Z` standard errors: one compiled pass
+    counts those below the band and gathers those in it, and only the band is partitioned
+    (the same ranks, so the same number). None when the band misses a middle rank (about
+    never) or the values hold NaNs: the caller then partitions them all."""
+    from testbed._detector_numba import band_of
+
+    n = len(values)
+    sample = values[::_BANDED_STRIDE].copy()
+    m = len(sample)
+    half = int(_BANDED_Z * 0.5 * np.sqrt(m)) + 2
+    k_lo, k_hi = max(m // 2 - half, 0), min(m // 2 + half, m - 1)
+    sample.partition((k_lo, k_hi))
+    lo, hi = float(sample[k_lo]), float(sample[k_hi])
+    below, band, nans = band_of(np.ascontiguousarray(values, dtype=np.float64), lo, hi)
+    k = n // 2
+    ranks = (k,) if n % 2 else (k - 1, k)
+    if nans or below > ranks[0] or below + len(band) <= ranks[-1]:
+        return None
+    at = [r - below for r in ranks]
+    band.partition(at)
+    if n % 2:
+        return float(band[at[0]])
+    return float((band[at[0]] + band[at[1]]) / 2.0)
 
 
 def abc_photons(fluence: np.ndarray, fov: np.ndarray, target_photons: float, *,

@@ -1036,6 +1036,7 @@ class SweepRenderer:
     """
 
     HULL_MARGIN_PX = 0.5
+    FLAT_HULL_PX2 = 1e-6   # a hull of this area (px^2) or less is flat: its box is used
     CULL_BLOCK = 64      # rays per block of the culling's bounding boxes
 
     def __init__(self, carm: CArm, fluoro: FluoroscopeSpec, bodies: list[Body]):
@@ -1075,6 +1076,10 @@ class SweepRenderer:
             self._local = field
             self._sources0 = detector._sources(self._static_box, self._fov_box, fluoro,
                                                self._magnification)
+            for a in self._sources0:
+                a.flags.writeable = False
+            # what each frame changes near the rod, restored after it (no copy per frame)
+            self._work = tuple(a.copy() for a in self._sources0)
             self._focal_r = detector._focal_radius_px(fluoro, self._magnification)
 
     def _hull_px(self, rod: list[Body]) -> np.ndarray:
@@ -1094,26 +1099,31 @@ class SweepRenderer:
     def _inside_hull(cls, uv, pts: np.ndarray, *, reference: bool = False,
                      blocks=None) -> np.ndarray:
         """Indices (ascending) of the points ``uv`` (M, 2) within the margin of the convex
-        hull of ``pts`` (K, 2); compiled (:func:`testbed._fan_numba.points_in_hull`;
-        ``blocks``: ``(block_lo, block_hi, block)`` of ``uv`` from
-        :func:`testbed._fan_numba.block_boxes`, so that blocks outside the hull's box are
-        skipped). ``reference=True``: the same tests in numpy (compared in tests)."""
-        from scipy.spatial import ConvexHull, QhullError
-
+        hull of ``pts`` (K, 2); compiled (the hull by :func:`testbed._fan_numba.hull_equations`,
+        the points by :func:`testbed._fan_numba.points_in_hull`; ``blocks``: ``(block_lo,
+        block_hi, block)`` of ``uv`` from :func:`testbed._fan_numba.block_boxes`, so that
+        blocks outside the hull's box are skipped). ``reference=True``: scipy's convex hull
+        and the same tests in numpy (compared in tests)."""
         m = cls.HULL_MARGIN_PX
         lo, hi = pts.min(axis=0) - m, pts.max(axis=0) + m
-        try:
-            # rows (nx, ny, offset), outward unit normals; inside: n.x + off <= 0
-            equations = ConvexHull(pts).equations
-        except QhullError:   # flat (a rod seen end-on): its bounding box is conservative
-            equations = np.zeros((0, 3))
         if not reference:
-            from testbed._fan_numba import points_in_hull, points_in_hull_blocks
+            from testbed._fan_numba import hull_equations, points_in_hull, points_in_hull_blocks
 
+            # rows (nx, ny, offset), outward unit normals; inside: n.x + off <= 0; none when
+            # flat (a rod seen end-on): its bounding box is conservative
+            order = np.lexsort((pts[:, 1], pts[:, 0]))
+            equations = hull_equations(np.ascontiguousarray(pts[order], dtype=np.float64),
+                                       cls.FLAT_HULL_PX2)
             if blocks is not None:
                 return points_in_hull_blocks(uv, *blocks, lo, hi,
                                              np.ascontiguousarray(equations), m)
             return points_in_hull(uv, lo, hi, np.ascontiguousarray(equations), m)
+        from scipy.spatial import ConvexHull, QhullError
+
+        try:
+            equations = ConvexHull(pts).equations
+        except QhullError:
+            equations = np.zeros((0, 3))
         x, y = uv[:, 0], uv[:, 1]
         cand = np.flatnonzero((x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1]))
         # one edge at a time on the survivors: most candidates fall at the first few edges
@@ -1150,15 +1160,13 @@ class SweepRenderer:
     def _transmission_box(self, rod: list[Body]) -> tuple[np.ndarray, np.ndarray | None]:
         """:meth:`transmission` on the image chain's box (``self._box``), and the box's flat
         indices of the pixels that differ from the static frame (None with oversampling)."""
-        weights = attenuation_weights(self.bodies + list(rod))[len(self.bodies):]
-        _check_source_outside(self.carm, list(rod))
-        pts = self._hull_px(rod)
         k = len(self._static)
         if k == 1:    # the static frame, changed at the rays the rod can meet
+            px, e = self._rod_rays(rod)
             box = self._static_box.copy()
-            idx, e = self._with_rod(0, rod, pts, weights)
-            box.flat[self._field_px[idx]] = e
-            return box, self._field_px[idx]
+            box.flat[px] = e
+            return box, px
+        weights, pts = self._rod_setup(rod)
         trans = np.zeros(len(self._static[0]))
         for fan in range(k):
             e = self._static_exp[fan].copy()
@@ -1169,47 +1177,72 @@ class SweepRenderer:
         box[self._fov_box] = trans
         return box, None
 
-    def _local_sources(self, trans: np.ndarray, px: np.ndarray
-                       ) -> tuple[np.ndarray, np.ndarray]:
-        """The chain's scatter sources (:func:`testbed.detector._sources`) of the box's
-        transmission ``trans``, which differs from the static frame at the flat pixels
-        ``px``: the static frame's, redone on those pixels' box grown by the focal kernel's
-        radius (computed on it grown by twice the radius, so that the kept part never sees
-        the window's edge)."""
-        p, src = (a.copy() for a in self._sources0)
+    def _rod_setup(self, rod: list[Body]) -> tuple[np.ndarray, np.ndarray]:
+        """The rod's attenuation weights and the undistorted pixels of its vertices."""
+        weights = attenuation_weights(self.bodies + list(rod))[len(self.bodies):]
+        _check_source_outside(self.carm, list(rod))
+        return weights, self._hull_px(rod)
+
+    def _rod_rays(self, rod: list[Body]) -> tuple[np.ndarray, np.ndarray]:
+        """Without oversampling: the box's flat indices of the rays the rod can meet, and
+        their transmission (the static frame holds everywhere else)."""
+        weights, pts = self._rod_setup(rod)
+        idx, e = self._with_rod(0, rod, pts, weights)
+        return self._field_px[idx], e
+
+    def _local_sources(self, px: np.ndarray, e: np.ndarray):
+        """The chain's scatter sources (:func:`testbed.detector._sources`) of the static
+        frame changed to the transmission ``e`` at the box's flat pixels ``px``: the static
+        frame's, redone on those pixels' box grown by the focal kernel's radius (computed on
+        it grown by twice the radius, so that the kept part never sees the window's edge).
+        Written into the renderer's working copies of the static sources, which are
+        returned with the window written (None when ``px`` is empty): the caller restores
+        it (:meth:`_restore`) once the frame is made."""
+        p, src = self._work
         if not len(px):
-            return p, src
+            return p, src, None
         r = self._focal_r
-        H, W = trans.shape
+        H, W = self._fov_box.shape
         rows, cols = np.divmod(px, W)
         lo = np.array([rows.min(), cols.min()])
         hi = np.array([rows.max(), cols.max()]) + 1
         o_lo, o_hi = np.maximum(lo - 2 * r, 0), np.minimum(hi + 2 * r, (H, W))
         i_lo, i_hi = np.maximum(lo - r, 0), np.minimum(hi + r, (H, W))
         outer = (slice(o_lo[0], o_hi[0]), slice(o_lo[1], o_hi[1]))
-        ps, ss = detector._sources(trans[outer], self._fov_box[outer], self.fluoro,
+        window = self._static_box[outer].copy()
+        window[rows - o_lo[0], cols - o_lo[1]] = e
+        ps, ss = detector._sources(window, self._fov_box[outer], self.fluoro,
                                    self._magnification)
         inner = (slice(i_lo[0], i_hi[0]), slice(i_lo[1], i_hi[1]))
         sub = (slice(i_lo[0] - o_lo[0], i_hi[0] - o_lo[0]),
                slice(i_lo[1] - o_lo[1], i_hi[1] - o_lo[1]))
         p[inner] = ps[sub]
         src[inner] = ss[sub]
-        return p, src
+        return p, src, inner
+
+    def _restore(self, inner) -> None:
+        """The working copies of the static sources back to them in the window ``inner``."""
+        if inner is not None:
+            for work, static in zip(self._work, self._sources0, strict=True):
+                work[inner] = static[inner]
 
     def render(self, rod: list[Body], *, rng=None, noise: bool | None = None) -> np.ndarray:
         """The 8-bit video frame (H, W) uint8 with ``rod`` in the beam; ``rng`` as in
         :func:`render` (the same draws)."""
         use_noise = self.fluoro.noise if noise is None else bool(noise)
         rng = np.random.default_rng(rng)
-        trans, px = self._transmission_box(rod)
         if self._local is None:
+            trans, _ = self._transmission_box(rod)
             _, video = form_image(trans, self.fov, self.carm._field()[2], self.fluoro,
                                   magnification=self._magnification, noise=use_noise,
                                   rng=rng, intensity=False)
             return video
-        p, src = self._local_sources(trans, px)
-        _, video_box = detector._after_sources(p, src, self._local, self.fluoro,
-                                               noise=use_noise, rng=rng)
+        p, src, inner = self._local_sources(*self._rod_rays(rod))
+        try:
+            _, video_box = detector._after_sources(p, src, self._local, self.fluoro,
+                                                   noise=use_noise, rng=rng)
+        finally:
+            self._restore(inner)
         video = np.zeros(self.fov.shape, dtype=np.uint8)
         video[self._box] = video_box
         return video

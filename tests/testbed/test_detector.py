@@ -240,6 +240,37 @@ def test_one_rank_median_equals_numpy_median():
     assert math.isnan(detector._median(np.zeros(0)))
 
 
+def test_banded_median_equals_numpy_median_on_random_cases():
+    """The band around a subsample's median gives np.median's number; where the subsample
+    misleads (every 16th value far off) or NaNs are present it declines and the full
+    partition gives it."""
+    rng = np.random.default_rng(11)
+    taken = 0
+    for trial in range(40):
+        n = int(rng.integers(4096, 300_000))
+        kind = trial % 4
+        if kind == 0:
+            values = rng.normal(0.3, 0.1, n)
+        elif kind == 1:
+            values = rng.integers(0, 50, n).astype(float) / 7.0   # many ties
+        elif kind == 2:
+            values = np.sort(rng.exponential(1.0, n))               # ordered
+        else:
+            values = rng.uniform(0, 1, n)
+            values[::16] += 10.0                                    # a misleading subsample
+        band = detector._median_banded(values.copy())
+        if kind == 3:
+            assert band is None
+        else:
+            assert band == np.median(values), (trial, n)
+            taken += 1
+        assert detector._median(values.copy()) == np.median(values), (trial, n)
+    assert taken == 30
+    values = rng.normal(0, 1, 10_000)
+    values[5] = np.nan
+    assert detector._median_banded(values.copy()) is None
+
+
 def test_wide_blur_matches_scipy_reference():
     rng = np.random.default_rng(5)
     img = gaussian_filter(rng.uniform(0, 1, (96, 128)), 6)

@@ -282,6 +282,33 @@ def test_compiled_hull_culling_equals_the_numpy_reference(seed):
     assert len(SweepRenderer._inside_hull(uv, pts)) > 10
 
 
+def test_compiled_hull_equations_equal_scipys_convex_hull():
+    """The monotone chain's half-planes against scipy's ConvexHull on random clouds (many
+    points inside, collinear points on an edge, a few points), and none for a flat cloud."""
+    from scipy.spatial import ConvexHull
+
+    from testbed._fan_numba import hull_equations
+
+    rng = np.random.default_rng(21)
+    for trial in range(30):
+        k = int(rng.integers(3, 300))
+        pts = rng.normal(0, 1, (k, 2)) @ rng.normal(0, 50, (2, 2)) + rng.uniform(0, 640, 2)
+        if trial % 3 == 0:     # a square's corners and points on its edges
+            t = rng.uniform(0, 1, (k, 1))
+            pts = np.vstack([[[0.0, 0], [10, 0], [10, 10], [0, 10]], t * [[10.0, 0]],
+                             [0.0, 10] + t * [[10.0, 0]]]) + 100.0
+        order = np.lexsort((pts[:, 1], pts[:, 0]))
+        got = hull_equations(np.ascontiguousarray(pts[order]), 1e-6)
+        ref = ConvexHull(pts).equations
+        assert len(got) == len(ref), trial
+        key = lambda e: np.round(e, 9).tolist()   # noqa: E731
+        np.testing.assert_allclose(sorted(got, key=key), sorted(ref, key=key),
+                                   rtol=0, atol=1e-9)
+    line = 50.0 + np.outer(rng.uniform(-100, 100, 12), [1.0, 0.5])
+    order = np.lexsort((line[:, 1], line[:, 0]))
+    assert hull_equations(np.ascontiguousarray(line[order]), 1e-6).shape == (0, 3)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("oversample", [1, 2])
 def test_sweep_renderer_gives_the_frames_of_a_full_render(oversample):
