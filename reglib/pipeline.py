@@ -763,12 +763,15 @@ def sweep_agreement(view: str, frame, sweep_frames, sweep_arrays, min_agreement:
     )
 
     plane = np.asarray(sweep_arrays.get("plane", ()), dtype=float).reshape(-1)
-    frames = np.asarray(sweep_frames, dtype=np.float64)
     refs = np.flatnonzero(plane == -1)
-    if not len(refs) or frames.ndim != 3 or len(frames) != len(plane) \
-            or frames.shape[1:] != np.shape(frame):
+    try:   # only the reference frame is read (a sweep's frames as one float array: 49 MB)
+        if not len(refs) or len(sweep_frames) != len(plane):
+            return ""
+        ref = np.asarray(sweep_frames[int(refs[-1])], dtype=np.float64)
+    except (TypeError, ValueError, IndexError, KeyError):
         return ""
-    ref = frames[refs[-1]]
+    if ref.ndim != 2 or ref.shape != np.shape(frame):
+        return ""
     try:
         mask = field_of_view_mask(frame) & field_of_view_mask(ref)
     except ValueError:

@@ -66,24 +66,49 @@ class XrayContour:
             raise ValueError(f"label: expected 'external' or 'internal', got {self.label!r}")
 
 
-def field_of_view_mask(image, *, dark_level: float = 2.0, erode_px: int = 3) -> np.ndarray:
+def field_of_view_mask(image, *, dark_level: float = 2.0, erode_px: int = 3,
+                       reference: bool = False) -> np.ndarray:
     """The image's field of view: the largest bright connected region, eroded, ``(H, W)``.
 
     Video frames of an image intensifier are dark (near 0) outside a circular field. Pixels
     above ``dark_level`` belong to it; the largest connected part is kept and eroded by
-    ``erode_px`` so that the blurred rim is excluded.
+    ``erode_px`` so that the blurred rim is excluded. Computed with OpenCV's labelling and
+    erosion (5x faster); ``reference=True``: scipy.ndimage's, the same mask (compared in
+    tests).
     """
     img = np.asarray(image, dtype=np.float64)
     lit = img > dark_level
-    lab, n = ndimage.label(lit)
+    if reference:
+        lab, n = ndimage.label(lit)
+        if n == 0:
+            raise ValueError(_NO_FIELD)
+        sizes = ndimage.sum(lit, lab, index=np.arange(1, n + 1))
+        mask = lab == (1 + int(np.argmax(sizes)))
+        mask = ndimage.binary_fill_holes(mask)  # black objects (metal) stay in the field
+        if erode_px > 0:
+            mask = ndimage.binary_erosion(mask, iterations=erode_px)
+        return mask
+    import cv2
+
+    from reglib.markers import _label
+
+    lab, n = _label(lit, reference=False)       # scipy's labels, in the same order
     if n == 0:
-        raise ValueError("image: no pixel above the dark level; is this an X-ray frame?")
-    sizes = ndimage.sum(lit, lab, index=np.arange(1, n + 1))
+        raise ValueError(_NO_FIELD)
+    sizes = np.bincount(lab.ravel(), minlength=n + 1)[1:]
     mask = lab == (1 + int(np.argmax(sizes)))
-    mask = ndimage.binary_fill_holes(mask)  # black objects (metal) stay in the field
-    if erode_px > 0:
-        mask = ndimage.binary_erosion(mask, iterations=erode_px)
+    # holes: the parts of the rest (4-connected, as scipy's filling) that touch no border
+    rest, _ = _label(~mask, reference=False)
+    edge = np.unique(np.concatenate([rest[0], rest[-1], rest[:, 0], rest[:, -1]]))
+    mask |= (rest > 0) & ~np.isin(rest, edge)
+    if erode_px > 0:   # scipy's cross, outside the image counted as background
+        cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+        mask = cv2.erode(mask.view(np.uint8), cross, iterations=int(erode_px),
+                         borderType=cv2.BORDER_CONSTANT, borderValue=0).view(bool)
     return mask
+
+
+_NO_FIELD = "image: no pixel above the dark level; is this an X-ray frame?"
 
 
 def prepare_xray(image, *, fov_mask=None) -> np.ndarray:
@@ -498,13 +523,21 @@ def xray_contours(image, traces: Sequence[dict], *, fov_mask=None) -> list[XrayC
 AGREEMENT_SIGMAS_PX = (2.0, 6.0)
 
 
-def _agreement_band(image, window, m: float) -> np.ndarray:
+def _agreement_band(image, window, m: float, *, reference: bool = False) -> np.ndarray:
     """The image's edge band (:data:`AGREEMENT_SIGMAS_PX` times ``m``) inside ``window``,
-    its mean there taken off, 0 outside: (H, W)."""
+    its mean there taken off, 0 outside: (H, W) float64. The Gaussians are OpenCV's in
+    float32 (:func:`reglib.markers._gaussian`, 4x faster); a band below their rounding
+    (1e-6 of the image's largest value) is flat, all 0. ``reference=True``: scipy's in
+    float64 (compared in tests)."""
+    from reglib.markers import _gaussian
+
     img = np.asarray(image, dtype=np.float64)
     s1, s2 = (m * s for s in AGREEMENT_SIGMAS_PX)
-    b = ndimage.gaussian_filter(img, s1) - ndimage.gaussian_filter(img, s2)
+    b = (_gaussian(img, s1, reference).astype(np.float64)
+         - _gaussian(img, s2, reference))
     b = np.where(window, b, 0.0)
+    if not reference and np.abs(b).max(initial=0.0) <= 1e-6 * max(1.0, np.abs(img).max()):
+        b[:] = 0.0
     b[window] -= b[window].mean()
     return b
 

@@ -8,6 +8,7 @@ from scipy.spatial import cKDTree
 
 from reglib.xray_contours import (
     XrayContour,
+    _agreement_band,
     _frame_agreement_direct,
     _near_mask,
     field_of_view_mask,
@@ -273,6 +274,27 @@ def test_the_scale_follows_the_pixel_not_the_field():
             pixel_scale(bad)
 
 
+def test_field_of_view_mask_equals_scipys_on_random_frames():
+    """OpenCV's labelling, hole filling and erosion against scipy.ndimage's: the same mask
+    on random fields with dark objects inside, bright specks outside and dark notches
+    reaching the field's rim (which are not holes), and the same refusal of a dark frame."""
+    rng = np.random.default_rng(31)
+    yy, xx = np.mgrid[0:96, 0:128]
+    for trial in range(12):
+        img = np.where(np.hypot(xx - 64 + rng.uniform(-20, 20), yy - 48)
+                       < rng.uniform(30, 70), rng.uniform(20, 200, xx.shape), 0.0)
+        for _ in range(int(rng.integers(0, 6))):    # metal inside, specks and notches
+            cx, cy, r = rng.uniform(0, 128), rng.uniform(0, 96), rng.uniform(1, 8)
+            img[np.hypot(xx - cx, yy - cy) < r] = rng.choice([0.0, 150.0])
+        for erode in (0, 1, 3):
+            np.testing.assert_array_equal(
+                field_of_view_mask(img, erode_px=erode),
+                field_of_view_mask(img, erode_px=erode, reference=True), err_msg=str(trial))
+    for ref in (False, True):
+        with pytest.raises(ValueError, match="no pixel above the dark level"):
+            field_of_view_mask(np.zeros((40, 40)), reference=ref)
+
+
 def test_frame_agreement_by_fft_equals_the_direct_sum():
     """The FFT correlation of the edge bands against direct sums over the reference's
     window at every shift within reach, on random textured frames with a known shift and
@@ -294,6 +316,11 @@ def test_frame_agreement_by_fft_equals_the_direct_sum():
         k = int(np.argmax(direct))
         assert grid[k] == shift == (dx, dy)
         assert direct[k] == pytest.approx(ncc, abs=1e-9) and 0.5 < ncc <= 1.0
+        # the band's float32 Gaussians against scipy's in float64
+        outer = np.ones(base.shape, bool)
+        fast = _agreement_band(frame, outer, 0.5)
+        exact = _agreement_band(frame, outer, 0.5, reference=True)
+        assert np.abs(fast - exact).max() < 1e-5 * np.abs(exact).max()
     # a flat band or an empty window: no figure; frames of other shapes: named
     flat = np.full((120, 160), 50.0)
     assert np.isnan(frame_agreement(flat, flat, np.ones((120, 160), bool))[0])
