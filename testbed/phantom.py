@@ -285,6 +285,11 @@ def _resolve(spec: PhantomSpec) -> _Dims:
         lo, hi = _BOUNDS[name]
         return float(np.clip(value, scale * lo, scale * hi))
 
+    shaft_r = within("shaft_diameter_mm", spec.shaft_diameter_mm / 2 * s_wid * (1 + 0.05 * z[7]),
+                     0.5)
+    # a drawn cortex leaves a canal as a given one must (MAX_CORTEX_SHARE of the diameter)
+    cortex = min(within("cortical_thickness_mm", spec.cortical_thickness_mm * (1 + 0.08 * z[8])),
+                 MAX_CORTEX_SHARE * 2.0 * shaft_r)
     return _Dims(
         L=within("length_mm", spec.length_mm * s_len),
         head_r=within("head_radius_mm", spec.head_radius_mm * s_wid * (1 + 0.04 * z[2])),
@@ -292,9 +297,8 @@ def _resolve(spec: PhantomSpec) -> _Dims:
         neck_r=within("neck_radius_mm", spec.neck_radius_mm * s_wid * (1 + 0.05 * z[4])),
         nsa=np.clip(spec.neck_shaft_angle_deg + 4.5 * z[5], 112, 145),
         antev=np.clip(spec.anteversion_deg + 6.0 * z[6], -5, 35),
-        shaft_r=within("shaft_diameter_mm", spec.shaft_diameter_mm / 2 * s_wid
-                       * (1 + 0.05 * z[7]), 0.5),
-        cortex=within("cortical_thickness_mm", spec.cortical_thickness_mm * (1 + 0.08 * z[8])),
+        shaft_r=shaft_r,
+        cortex=cortex,
         end_cortex=spec.end_cortex_mm,
         bow=max(0.0, spec.shaft_bow_mm * (1 + 0.3 * z[9])),
         condyle_w=within("condyle_width_mm", spec.condyle_width_mm * s_wid * (1 + 0.04 * z[10])),

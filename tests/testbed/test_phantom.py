@@ -426,3 +426,23 @@ def test_a_cortex_that_leaves_no_canal_is_refused_naming_both_fields():
     spec = PhantomSpec(shaft_diameter_mm=18.0, cortical_thickness_mm=6.2)
     ph = make_phantom(spec)
     assert ph.femur.is_watertight
+
+
+def test_a_drawn_cortex_leaves_a_canal():
+    """shape_variation = 3 drew, for seed 5, a 7.7 mm cortex in an 18.8 mm shaft (0.41 of
+    it, beyond what a given cortex may be); the draw is held to MAX_CORTEX_SHARE, the
+    femur's canal is built, and a draw within it is unchanged."""
+    from testbed.phantom import MAX_CORTEX_SHARE, _resolve
+
+    d = _resolve(PhantomSpec(shape_variation=3.0, shape_seed=5))
+    assert d.cortex == pytest.approx(MAX_CORTEX_SHARE * 2 * d.shaft_r)
+    assert 18.0 < 2 * d.shaft_r < 19.5
+    ph = make_phantom(PhantomSpec(shape_variation=3.0, shape_seed=5))
+    assert ph.femur.is_watertight and ph.canal is not None and ph.canal.volume > 0
+    d1 = _resolve(PhantomSpec(shape_variation=1.0, shape_seed=5))
+    assert d1.cortex == pytest.approx(6.5 * (1 + 0.08 * d1_z8(5)))
+
+
+def d1_z8(seed: int) -> float:
+    """The cortex's draw of ``shape_seed`` at shape_variation 1."""
+    return float(np.clip(np.random.default_rng(seed).standard_normal(13), -2.5, 2.5)[8])
