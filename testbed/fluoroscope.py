@@ -1080,6 +1080,9 @@ class SweepRenderer:
                 a.flags.writeable = False
             # what each frame changes near the rod, restored after it (no copy per frame)
             self._work = tuple(a.copy() for a in self._sources0)
+            # the scatter's wide blur, redone per frame only for the rod's window
+            self._scatter_blur = detector.WideBlurUpdate(
+                self._sources0[1], fluoro.scatter_sigma_mm / float(fluoro.pixel_mm))
             self._focal_r = detector._focal_radius_px(fluoro, self._magnification)
 
     def _hull_px(self, rod: list[Body]) -> np.ndarray:
@@ -1240,7 +1243,8 @@ class SweepRenderer:
         p, src, inner = self._local_sources(*self._rod_rays(rod))
         try:
             _, video_box = detector._after_sources(p, src, self._local, self.fluoro,
-                                                   noise=use_noise, rng=rng)
+                                                   noise=use_noise, rng=rng,
+                                                   low=self._scatter_blur.blur(src, inner))
         finally:
             self._restore(inner)
         video = np.zeros(self.fov.shape, dtype=np.uint8)

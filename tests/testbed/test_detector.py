@@ -280,6 +280,30 @@ def test_wide_blur_matches_scipy_reference():
         assert np.abs(got - ref).max() < 0.02 * ref.max()
 
 
+def test_wide_blur_update_equals_the_whole_blur_on_random_windows():
+    """The blur of a base changed in a window, from the base's coarse grid and the window's
+    change, against wide_blur of the whole changed image: windows inside, at the edges
+    (whole and partial blocks) and none, images whose sides are not multiples of the
+    coarse factor, and a sigma without coarsening."""
+    rng = np.random.default_rng(17)
+    for trial in range(12):
+        H, W = int(rng.integers(60, 140)), int(rng.integers(60, 140))
+        sigma = (80.0, 40.0, 20.0, 6.0)[trial % 4]
+        base = gaussian_filter(rng.uniform(0, 1, (H, W)), 3)
+        update = detector.WideBlurUpdate(base, sigma)
+        np.testing.assert_allclose(update.blur(base, None), detector.wide_blur(base, sigma),
+                                   rtol=1e-12, atol=1e-15)
+        r0, c0 = int(rng.integers(0, H - 5)), int(rng.integers(0, W - 5))
+        if trial % 3 == 0:
+            r0, c0 = 0, W - int(rng.integers(1, 9))           # at the corner, partial blocks
+        win = (slice(r0, min(H, r0 + int(rng.integers(1, 40)))),
+               slice(c0, min(W, c0 + int(rng.integers(1, 40)))))
+        img = base.copy()
+        img[win] += rng.uniform(-0.5, 0.5, img[win].shape)
+        np.testing.assert_allclose(update.blur(img, win), detector.wide_blur(img, sigma),
+                                   rtol=1e-12, atol=1e-15)
+
+
 # --------------------------------------------------------------------------- distortion
 VIEW = ViewSpec(name="ap", isocenter_mm=(800.0, 0.0, 200.0))
 
