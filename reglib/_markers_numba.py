@@ -16,16 +16,24 @@ from numba import njit
 def centred_difference(a, b, mask, sign, max_abs):
     """``d = sign * (a - b)`` less its median over ``mask`` (integer frames: the median by
     counting, the two middle values' mean for an even count), 0 outside ``mask``. Returns
-    ``(d float64, d float32, pixels in mask)``; ``max_abs`` bounds ``|a - b|`` (255 for 8-bit
-    frames). The arrays may be views (a crop of a frame)."""
+    ``(d float32, pixels in mask)``: ``d`` is a multiple of 0.5 below ``2 max_abs + 1`` in
+    magnitude, exact in float32 for frames of at most 16 bits (``np.float64(d)`` is the
+    float64 difference); ``max_abs`` bounds ``|a - b|`` (255 for 8-bit frames). The arrays
+    may be views (a crop of a frame)."""
     H, W = a.shape
+    # four histograms, a pixel's by its column: runs of equal values (the noise's few
+    # levels) do not wait on one counter
+    counts4 = np.zeros((4, 2 * max_abs + 1), dtype=np.int64)
+    for r in range(H):
+        ar, br, mr = a[r], b[r], mask[r]
+        for c in range(W):
+            if mr[c]:
+                counts4[c & 3, sign * (np.int64(ar[c]) - np.int64(br[c])) + max_abs] += 1
     counts = np.zeros(2 * max_abs + 1, dtype=np.int64)
     n = 0
-    for r in range(H):
-        for c in range(W):
-            if mask[r, c]:
-                counts[sign * (np.int64(a[r, c]) - np.int64(b[r, c])) + max_abs] += 1
-                n += 1
+    for v in range(counts.shape[0]):
+        counts[v] = counts4[0, v] + counts4[1, v] + counts4[2, v] + counts4[3, v]
+        n += counts[v]
     med = 0.0
     if n > 0:
         hi_rank = n // 2
@@ -43,38 +51,140 @@ def centred_difference(a, b, mask, sign, max_abs):
                 hi_v = v
                 break
         med = ((lo_v - max_abs) + (hi_v - max_abs)) / 2.0
-    d = np.zeros((H, W))
-    d32 = np.zeros((H, W), dtype=np.float32)
+    d = np.empty((H, W), dtype=np.float32)
+    # in float32, exactly: the frames' values (at most 16 bits), their difference and the
+    # half-integer median are exact there, and so is the result (at most 19 of its 24 bits)
+    med32 = np.float32(med)
+    sign32 = np.float32(sign)
     for r in range(H):
         for c in range(W):
-            if mask[r, c]:
-                v = sign * (np.float64(a[r, c]) - np.float64(b[r, c])) - med
-                d[r, c] = v
-                d32[r, c] = v
-    return d, d32, n
+            v = sign32 * (np.float32(a[r, c]) - np.float32(b[r, c])) - med32
+            d[r, c] = v if mask[r, c] else np.float32(0.0)
+    return d, n
 
 
 @njit(cache=True)
-def band(g1, g2, mask, n):
-    """``ds = g1 - g2`` (float32); its values in ``mask`` (``n`` pixels; all of them if
-    ``n`` is 0), row-major; then ``ds`` where ``g1 > 0.5 ds`` and 0 elsewhere, and its
-    maximum. Returns ``(ds after the rim test, the masked values before it, the maximum)``."""
+def band(g1, g2):
+    """``ds = g1 - g2`` (float32) where ``g1 > 0.5 ds``, 0 elsewhere (the rim test; as
+    ``2 g1 > ds``, exact in float32), in one vectorised pass (its maximum is numpy's: a
+    maximum does not vectorise here)."""
     H, W = g1.shape
-    use_all = n == 0
-    vals = np.empty(H * W if use_all else n, dtype=np.float32)
     ds = np.empty((H, W), dtype=np.float32)
-    peak = -np.inf
-    j = 0
     for r in range(H):
         for c in range(W):
             v = g1[r, c] - g2[r, c]
-            if use_all or mask[r, c]:
-                vals[j] = v
-                j += 1
-            v = v if g1[r, c] > 0.5 * v else np.float32(0.0)
-            ds[r, c] = v
-            peak = max(peak, v)
-    return ds, vals, peak
+            ds[r, c] = v if g1[r, c] + g1[r, c] > v else np.float32(0.0)
+    return ds
+
+
+@njit(cache=True)
+def _select(x, n, k, tmp):
+    """The value of rank ``k`` (0-based) among ``x[:n]`` (no NaN): quickselect with the
+    median of three as pivot, each step a branchless three-way partition into the other
+    buffer (the less and the greater values; those equal to the pivot are not moved), so
+    that no branch waits on a comparison of the data (2.5x faster than an in-place
+    partition on fresh blocks). ``x`` and ``tmp`` (``n`` values each) are overwritten."""
+    src = x
+    dst = tmp
+    off = 0
+    m = n
+    while m > 1:
+        a = src[off]
+        b = src[off + m // 2]
+        c = src[off + m - 1]
+        pivot = max(min(a, b), min(max(a, b), c))
+        nl = 0
+        ng = 0
+        for j in range(m):
+            v = src[off + j]
+            dst[nl] = v           # kept if less, else overwritten
+            nl += v < pivot
+            dst[m - 1 - ng] = v   # kept if greater
+            ng += v > pivot
+        if k < nl:
+            off = 0
+            m = nl
+        elif k >= m - ng:
+            k -= m - ng
+            off = m - ng
+            m = ng
+        else:
+            return pivot
+        src, dst = dst, src
+    return src[off]
+
+
+@njit(cache=True)
+def small_median(x, n, work, tmp):
+    """``np.median(x[:n])`` (``n >= 1``, no NaN): the middle value, or the two middle
+    values' mean for an even ``n``; ``x`` unchanged, ``work`` and ``tmp`` (``n`` values each)
+    scratch space."""
+    for j in range(n):
+        work[j] = x[j]
+    k = n // 2
+    hi_v = _select(work, n, k, tmp)
+    if n % 2:
+        return hi_v
+    # the value of rank k - 1: hi_v itself when fewer than k values lie below it, else the
+    # largest of those below it (two running maxima: shorter chains)
+    less = 0
+    m0 = -np.inf
+    m1 = -np.inf
+    for j in range(0, n - 1, 2):
+        v0 = x[j]
+        v1 = x[j + 1]
+        less += (v0 < hi_v) + (v1 < hi_v)
+        m0 = max(m0, v0 if v0 < hi_v else -np.inf)
+        m1 = max(m1, v1 if v1 < hi_v else -np.inf)
+    if less < k:
+        return hi_v
+    return (max(m0, m1) + hi_v) / 2.0
+
+
+@njit(cache=True, fastmath={"reassoc", "nsz"})
+def _clipped_sums(buf, m, centre, lo, hi):
+    """Count, sum and sum of squares of ``buf[:m] - centre`` over the values within
+    ``[lo, hi]``, in any order (vectorised)."""
+    n = 0
+    s1 = 0.0
+    s2 = 0.0
+    for j in range(m):
+        x = buf[j]
+        keep = (x >= lo) & (x <= hi)
+        dx = x - centre if keep else 0.0
+        n += 1 if keep else 0
+        s1 += dx
+        s2 += dx * dx
+    return n, s1, s2
+
+
+@njit(cache=True)
+def _block_noise(buf, m, sub, start_step, clip, passes, scale):
+    """The noise figure of one block from its ``m`` values ``buf[:m]`` (:func:`tile_noise`);
+    ``sub`` is scratch space of ``3 m`` values at least."""
+    k = 0
+    for j in range(0, m, start_step):
+        sub[k] = buf[j]
+        k += 1
+    work = sub[k:2 * k]
+    tmp = sub[2 * k:3 * k]
+    mean = small_median(sub, k, work, tmp)
+    for j in range(k):
+        sub[j] = abs(sub[j] - mean)
+    sd = 1.4826 * small_median(sub, k, work, tmp)
+    if not sd > 0:   # most values equal (clipped video): the plain deviation
+        _, s1, _ = _clipped_sums(buf, m, 0.0, -np.inf, np.inf)
+        mean = s1 / m
+        _, _, s2 = _clipped_sums(buf, m, mean, -np.inf, np.inf)
+        sd = np.sqrt(s2 / m)
+    for _ in range(passes):
+        n, s1, s2 = _clipped_sums(buf, m, mean, mean - clip * sd, mean + clip * sd)
+        if n == 0:
+            break
+        shift = s1 / n
+        mean = mean + shift
+        sd = np.sqrt(max(s2 / n - shift * shift, 0.0))
+    return scale * sd
 
 
 @njit(cache=True)
@@ -87,13 +197,15 @@ def tile_noise(g1, g2, mask, tile, step, min_count, start_step, clip, passes, sc
     ``passes`` times the mean and standard deviation of the values within ``clip``
     deviations of the centre, times ``scale``; NaN for a block with fewer than
     ``min_count`` values. Returns ``(rows of blocks, columns of blocks)`` float64 (the
-    reference: :func:`reglib.markers._clipped_std`)."""
+    reference: :func:`reglib.markers._clipped_std`, equal to rounding: the sums here are
+    taken in one vectorised pass about the previous centre, not in order about the mean).
+    Block by block; :func:`band_noise` computes the same in one pass with the band."""
     H, W = g1.shape
     ny = (H + tile - 1) // tile
     nx = (W + tile - 1) // tile
     out = np.full((ny, nx), np.nan)
     buf = np.empty(tile * tile)
-    sub = np.empty(tile * tile)
+    sub = np.empty(3 * tile * tile)
     for by in range(ny):
         for bx in range(nx):
             m = 0
@@ -102,44 +214,71 @@ def tile_noise(g1, g2, mask, tile, step, min_count, start_step, clip, passes, sc
                     if mask[r, c]:
                         buf[m] = np.float64(g1[r, c]) - np.float64(g2[r, c])
                         m += 1
-            if m < min_count:
-                continue
-            k = 0
-            for j in range(0, m, start_step):
-                sub[k] = buf[j]
-                k += 1
-            mean = np.median(sub[:k])
-            for j in range(k):
-                sub[j] = abs(sub[j] - mean)
-            sd = 1.4826 * np.median(sub[:k])
-            if not sd > 0:   # most values equal (clipped video): the plain deviation
-                s1 = 0.0
-                for j in range(m):
-                    s1 += buf[j]
-                mean = s1 / m
-                s2 = 0.0
-                for j in range(m):
-                    s2 += (buf[j] - mean) ** 2
-                sd = np.sqrt(s2 / m)
-            for _ in range(passes):
-                lo = mean - clip * sd
-                hi = mean + clip * sd
-                n = 0
-                s1 = 0.0
-                for j in range(m):
-                    if buf[j] >= lo and buf[j] <= hi:
-                        s1 += buf[j]
-                        n += 1
-                if n == 0:
-                    break
-                mean = s1 / n
-                s2 = 0.0
-                for j in range(m):
-                    if buf[j] >= lo and buf[j] <= hi:
-                        s2 += (buf[j] - mean) ** 2
-                sd = np.sqrt(s2 / n)
-            out[by, bx] = scale * sd
+            if m >= min_count:
+                out[by, bx] = _block_noise(buf, m, sub, start_step, clip, passes, scale)
     return out
+
+
+@njit(cache=True)
+def band_noise(g1, g2, mask, tile, step, min_count, start_step, clip, passes, scale):
+    """:func:`band` and :func:`tile_noise` in one pass over ``g1`` and ``g2`` (row by row:
+    each row's samples go to its blocks' buffers, a row of blocks is measured when its last
+    row is read), the same values. Returns ``(ds, tiles)``."""
+    H, W = g1.shape
+    ny = (H + tile - 1) // tile
+    nx = (W + tile - 1) // tile
+    ds = np.empty((H, W), dtype=np.float32)
+    out = np.full((ny, nx), np.nan)
+    bufs = np.empty((nx, tile * tile))
+    count = np.zeros(nx, dtype=np.int64)
+    sub = np.empty(3 * tile * tile)
+    for r in range(H):
+        for c in range(W):
+            v = g1[r, c] - g2[r, c]
+            ds[r, c] = v if g1[r, c] + g1[r, c] > v else np.float32(0.0)
+        by = r // tile
+        if (r - by * tile) % step == 0:
+            for bx in range(nx):
+                m = count[bx]
+                for c in range(bx * tile, min((bx + 1) * tile, W), step):
+                    if mask[r, c]:
+                        bufs[bx, m] = np.float64(g1[r, c]) - np.float64(g2[r, c])
+                        m += 1
+                count[bx] = m
+        if r == H - 1 or (r + 1) % tile == 0:     # the row of blocks is complete
+            for bx in range(nx):
+                if count[bx] >= min_count:
+                    out[by, bx] = _block_noise(bufs[bx], count[bx], sub, start_step, clip,
+                                               passes, scale)
+                count[bx] = 0
+    return ds, out
+
+
+@njit(cache=True)
+def spread_tiles(tiles, inside, ds, tile):
+    """The largest figure of each block and its 8 neighbours (NaN blocks do not count; the
+    numpy reference: ``ndimage.maximum_filter`` in :func:`reglib.markers._noise_tiles`);
+    -inf where none has a figure. Returns ``(spread, need)``: ``need`` whether such a block
+    holds a pixel in ``inside`` or with ``ds != 0`` (it then needs the field's figure)."""
+    ny, nx = tiles.shape
+    H, W = ds.shape
+    out = np.full((ny, nx), -np.inf)
+    need = False
+    for by in range(ny):
+        for bx in range(nx):
+            v = -np.inf
+            for y in range(max(by - 1, 0), min(by + 2, ny)):
+                for x in range(max(bx - 1, 0), min(bx + 2, nx)):
+                    t = tiles[y, x]
+                    if np.isfinite(t) and t > v:
+                        v = t
+            out[by, bx] = v
+            if v == -np.inf and not need:
+                for r in range(by * tile, min((by + 1) * tile, H)):
+                    for c in range(bx * tile, min((bx + 1) * tile, W)):
+                        if inside[r, c] or ds[r, c] != 0:
+                            need = True
+    return out, need
 
 
 @njit(cache=True, inline="always")
@@ -152,37 +291,68 @@ def _low(tiles, tile, r, c, n_sigma, low_floor):
 @njit(cache=True)
 def above_noise(ds, tiles, tile, n_sigma, low_floor):
     """``ds > low`` per pixel (uint8, for the labelling), ``low`` from the blocks' figures
-    ``tiles`` (:func:`_low`)."""
+    ``tiles`` (:func:`_low`); and the bounding box of the pixels above it, rows ``[r0, r1)``
+    and columns ``[c0, c1)`` (none: ``r1 == 0``)."""
     H, W = ds.shape
-    out = np.zeros((H, W), dtype=np.uint8)
+    out = np.empty((H, W), dtype=np.uint8)
+    low = np.empty(W)   # float64: the comparison of the reference
+    r0, r1, c0, c1 = H, 0, W, 0
     for r in range(H):
+        if r % tile == 0:    # the row of blocks' thresholds, per column
+            for c in range(W):
+                low[c] = max(n_sigma * tiles[r // tile, c // tile], low_floor)
+        row = ds[r]
+        o = out[r]
+        hits = 0
         for c in range(W):
-            if ds[r, c] > _low(tiles, tile, r, c, n_sigma, low_floor):
-                out[r, c] = 1
-    return out
+            v = row[c] > low[c]
+            o[c] = v
+            hits += v
+        if hits:
+            r0, r1 = min(r0, r), r + 1
+            for c in range(W):
+                if o[c]:
+                    c0 = min(c0, c)
+                    break
+            for c in range(W - 1, -1, -1):
+                if o[c]:
+                    c1 = max(c1, c + 1)
+                    break
+    if r1 == 0:
+        return out, 0, 0, 0, 0
+    return out, r0, r1, c0, c1
 
 
 @njit(cache=True)
 def above_region_thresholds(regions, n_regions, ds, tiles, tile, n_sigma, low_floor,
-                            base_floor, rel):
+                            base_floor, rel, r_off, c_off):
     """The pixels of a labelled region above ``max(base, rel * the region's peak of ds)``,
-    ``base = max(low, base_floor)`` per pixel (:func:`_low`)."""
-    H, W = ds.shape
+    ``base = max(low, base_floor)`` per pixel (:func:`_low`). ``regions`` covers rows
+    ``r_off...`` and columns ``c_off...`` of ``ds`` (the blocks' frame). Returns ``(uint8
+    pixels, r0, r1, c0, c1)``: their bounding box in ``regions`` (as :func:`above_noise`)."""
+    H, W = regions.shape
     peak = np.zeros(n_regions + 1)
     for r in range(H):
         for c in range(W):
             k = regions[r, c]
-            if k > 0 and ds[r, c] > peak[k]:
-                peak[k] = ds[r, c]
-    out = np.zeros((H, W), dtype=np.bool_)
+            if k > 0 and ds[r + r_off, c + c_off] > peak[k]:
+                peak[k] = ds[r + r_off, c + c_off]
+    out = np.zeros((H, W), dtype=np.uint8)
+    r0, r1, c0, c1 = H, 0, W, 0
     for r in range(H):
         for c in range(W):
             k = regions[r, c]
             if k > 0:
-                base = max(_low(tiles, tile, r, c, n_sigma, low_floor), base_floor)
+                base = max(_low(tiles, tile, r + r_off, c + c_off, n_sigma, low_floor),
+                           base_floor)
                 t = max(base, rel * peak[k])
-                out[r, c] = ds[r, c] > t
-    return out
+                if ds[r + r_off, c + c_off] > t:
+                    out[r, c] = 1
+                    r0, r1 = min(r0, r), max(r1, r + 1)
+                    c0, c1 = min(c0, c), max(c1, c + 1)
+    if r1 == 0:
+        return out, 0, 0, 0, 0
+    return out, r0, r1, c0, c1
 
 
 @njit(cache=True)
@@ -213,9 +383,11 @@ def label_boxes(labels, n):
 
 
 @njit(cache=True)
-def blob_centroid(d, labels, k, r0, r1, c0, c1, area, max_elongation, centroid_floor):
+def blob_centroid(d, labels, k, r0, r1, c0, c1, lr, lc, area, max_elongation,
+                  centroid_floor):
     """The sub-pixel centroid of blob ``k`` (its pixels: ``labels == k`` within rows
-    ``r0:r1`` and columns ``c0:c1``), as the detector's Python loop computes it: rejected
+    ``r0:r1`` and columns ``c0:c1`` of ``d``; ``labels`` covers ``d`` from row ``lr`` and
+    column ``lc``), as the detector's Python loop computes it: rejected
     (``ok`` False) when not round (the 2x2 sample covariance of its pixels has a
     non-positive eigenvalue or an axis ratio above ``max_elongation``); else the mean over a
     disc about the blob of ``d`` above a floor (the median of a ring around the disc plus
@@ -227,7 +399,7 @@ def blob_centroid(d, labels, k, r0, r1, c0, c1, area, max_elongation, centroid_f
     sx = sy = sxx = syy = sxy = 0.0
     for r in range(r0, r1):
         for c in range(c0, c1):
-            if labels[r, c] == k:
+            if labels[r - lr, c - lc] == k:
                 u = float(c - c0)
                 v = float(r - r0)
                 n += 1
@@ -270,12 +442,12 @@ def blob_centroid(d, labels, k, r0, r1, c0, c1, area, max_elongation, centroid_f
                         for j in range(m):  # not a slice copy: see testbed._distortion_numba
                             bigger[j] = ring[j]
                         ring = bigger
-                    ring[m] = d[r, c]
+                    ring[m] = np.float64(d[r, c])
                     m += 1
                 if rr <= r_in:
                     any_inner = True
                     if d[r, c] > top:
-                        top = d[r, c]
+                        top = np.float64(d[r, c])
         bg = np.median(ring[:m]) if m > 0 else 0.0
         floor = bg + centroid_floor * (top - bg) if any_inner else bg
         sw = 0.0
@@ -284,7 +456,7 @@ def blob_centroid(d, labels, k, r0, r1, c0, c1, area, max_elongation, centroid_f
         for r in range(y0, y1):
             for c in range(x0, x1):
                 if np.hypot(c - cx, r - cy) <= r_in:
-                    w = max(d[r, c] - floor, 0.0)
+                    w = max(np.float64(d[r, c]) - floor, 0.0)
                     sw += w
                     swx += w * c
                     swy += w * r
@@ -293,6 +465,47 @@ def blob_centroid(d, labels, k, r0, r1, c0, c1, area, max_elongation, centroid_f
         cx = swx / sw
         cy = swy / sw
     return True, cx, cy, x0, x1, y0, y1
+
+
+@njit(cache=True)
+def blob_centroids(d, labels, n, lr, lc, ds, mask, use_mask, min_area, max_area,
+                   max_elongation, centroid_floor):
+    """The detector's blob loop: each of the labels 1..n (``labels`` covers ``d`` from row
+    ``lr`` and column ``lc``) of ``min_area..max_area`` pixels that :func:`blob_centroid`
+    accepts, and (with ``use_mask``) whose last centroid window lies in ``mask``: its
+    centroid (x, y) and the largest ``ds`` over its pixels, in label order. Returns
+    ``(xy (K, 2), strength (K,))``."""
+    areas, boxes = label_boxes(labels, n)
+    xy = np.empty((n, 2))
+    strength = np.empty(n)
+    K = 0
+    for k in range(n):
+        if not (min_area <= areas[k] <= max_area):
+            continue
+        r0, r1 = boxes[k, 0] + lr, boxes[k, 1] + lr
+        c0, c1 = boxes[k, 2] + lc, boxes[k, 3] + lc
+        ok, cx, cy, x0, x1, y0, y1 = blob_centroid(d, labels, k + 1, r0, r1, c0, c1, lr, lc,
+                                                   areas[k], max_elongation, centroid_floor)
+        if not ok:
+            continue
+        if use_mask:
+            cut = False
+            for r in range(y0, y1):
+                for c in range(x0, x1):
+                    if not mask[r, c]:
+                        cut = True
+            if cut:
+                continue     # cut by the edge of the field
+        top = -np.inf
+        for r in range(r0, r1):
+            for c in range(c0, c1):
+                if labels[r - lr, c - lc] == k + 1 and ds[r, c] > top:
+                    top = np.float64(ds[r, c])
+        xy[K, 0] = cx
+        xy[K, 1] = cy
+        strength[K] = top
+        K += 1
+    return xy[:K], strength[:K]
 
 
 @njit(cache=True)

@@ -105,9 +105,29 @@ def _label(binary: np.ndarray, reference: bool) -> tuple[np.ndarray, int]:
         return ndimage.label(binary)
     import cv2
 
-    n, labels = cv2.connectedComponents(np.ascontiguousarray(binary, dtype=np.uint8),
-                                        connectivity=4, ltype=cv2.CV_32S)
+    threads = _serial_cv2(cv2)
+    try:
+        n, labels = cv2.connectedComponents(np.ascontiguousarray(binary, dtype=np.uint8),
+                                            connectivity=4, ltype=cv2.CV_32S)
+    finally:
+        _restore_cv2(cv2, threads)
     return labels, n - 1
+
+
+def _serial_cv2(cv2) -> int:
+    """Run OpenCV's next calls on the calling thread alone; returns the thread count to
+    restore (:func:`_restore_cv2`). On a frame (0.25 Mpx) its pool costs more CPU than it
+    saves wall time: the detection's CPU per sweep frame 0.5-0.7 ms more with its 2 threads
+    (a 2-core VM), its wall time within 0.1 ms."""
+    n = cv2.getNumThreads()
+    if n != 1:
+        cv2.setNumThreads(1)
+    return n
+
+
+def _restore_cv2(cv2, n: int) -> None:
+    if n != 1:
+        cv2.setNumThreads(n)
 
 
 def _gaussian(img, sigma_px: float, reference: bool) -> np.ndarray:
@@ -120,8 +140,13 @@ def _gaussian(img, sigma_px: float, reference: bool) -> np.ndarray:
     import cv2
 
     r = int(4.0 * sigma_px + 0.5)
-    return cv2.GaussianBlur(np.ascontiguousarray(img, dtype=np.float32), (2 * r + 1, 2 * r + 1),
-                            sigmaX=sigma_px, sigmaY=sigma_px, borderType=cv2.BORDER_REFLECT)
+    threads = _serial_cv2(cv2)
+    try:
+        return cv2.GaussianBlur(np.ascontiguousarray(img, dtype=np.float32),
+                                (2 * r + 1, 2 * r + 1), sigmaX=sigma_px, sigmaY=sigma_px,
+                                borderType=cv2.BORDER_REFLECT)
+    finally:
+        _restore_cv2(cv2, threads)
 
 
 def _clipped_std(x: np.ndarray) -> float:
@@ -145,8 +170,8 @@ def _clipped_std(x: np.ndarray) -> float:
     return float(NOISE_SCALE * sd)
 
 
-def _noise_tiles(g1, g2, inside, field_noise, mode: str, reference: bool, ds=None
-                 ) -> np.ndarray:
+def _noise_tiles(g1, g2, inside, field_noise, mode: str, reference: bool, ds=None,
+                 raw=None) -> np.ndarray:
     """(ny, nx) the noise of the band-pass ``g1 - g2`` per block of :data:`NOISE_TILE_PX`
     px (the blocks from the frame's corner, the last ones cut by its edge): the clipped
     standard deviation (:func:`_clipped_std`) of the block's values within ``inside``, on
@@ -159,7 +184,9 @@ def _noise_tiles(g1, g2, inside, field_noise, mode: str, reference: bool, ds=Non
     of the whole field), called only when a block needs it. With ``ds`` (the band-pass
     after the rim test) given, a block without a figure whose pixels are all outside
     ``inside`` with ``ds == 0`` does not need it (no pixel there can pass a positive
-    threshold) and gets ``inf``, which gives the same detections."""
+    threshold) and gets ``inf``, which gives the same detections. ``raw``: the blocks'
+    figures before the neighbours' maximum, when the caller has them
+    (``reglib._markers_numba.band_noise``)."""
     H, W = g1.shape
     T, S = NOISE_TILE_PX, NOISE_STEP_PX
     ny, nx = -(-H // T), -(-W // T)
@@ -179,8 +206,15 @@ def _noise_tiles(g1, g2, inside, field_noise, mode: str, reference: bool, ds=Non
     else:
         from reglib import _markers_numba as mk
 
-        tiles = mk.tile_noise(g1, g2, inside, T, S, min_count, NOISE_START_STEP, NOISE_CLIP,
-                              NOISE_PASSES, NOISE_SCALE)
+        tiles = raw if raw is not None else mk.tile_noise(
+            g1, g2, inside, T, S, min_count, NOISE_START_STEP, NOISE_CLIP, NOISE_PASSES,
+            NOISE_SCALE)
+        if ds is not None:   # the steps below compiled (reglib._markers_numba.spread_tiles)
+            tiles, need = mk.spread_tiles(tiles, inside, ds, T)
+            none = ~np.isfinite(tiles)
+            if none.any():
+                tiles[none] = figure() if need else np.inf
+            return tiles
     # the largest of the block and its 8 neighbours (blocks without a figure, outside the
     # field or beyond the frame, do not count): a block across the edge of the limb
     # measures its quiet part (the clipping takes the noisy part for outliers), and the
@@ -285,15 +319,24 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
 
         top = max(int(np.iinfo(a.dtype).max) - min(int(np.iinfo(b.dtype).min), 0),
                   int(np.iinfo(b.dtype).max) - min(int(np.iinfo(a.dtype).min), 0))
-        d, d32, n_in = mk.centred_difference(a, b, inside, -1 if polarity == "bright" else 1,
-                                             top)
-        g1 = _gaussian(d32, BLOB_SIGMA_PX, False)
-        g2 = _gaussian(d32, BACKGROUND_SIGMA_PX, False)
-        ds, dsi, peak = mk.band(g1, g2, inside, n_in)
+        # d in float32 holds the float64 difference exactly (half-integers)
+        d, n_in = mk.centred_difference(a, b, inside, -1 if polarity == "bright" else 1, top)
+        g1 = _gaussian(d, BLOB_SIGMA_PX, False)
+        g2 = _gaussian(d, BACKGROUND_SIGMA_PX, False)
+        if noise_mode == "block":     # the band-pass and its blocks' noise in one pass
+            ds, raw_tiles = mk.band_noise(g1, g2, inside, NOISE_TILE_PX, NOISE_STEP_PX,
+                                          (NOISE_TILE_PX // NOISE_STEP_PX) ** 2 // 4,
+                                          NOISE_START_STEP, NOISE_CLIP, NOISE_PASSES,
+                                          NOISE_SCALE)
+        else:
+            ds, raw_tiles = mk.band(g1, g2), None
+        peak = float(ds.max())
 
         def noise():     # the field's figure, computed only if a block needs it
+            dsi = (g1 - g2)[inside] if n_in else (g1 - g2).ravel()
             return 1.4826 * _median(np.abs(dsi - _median(dsi, False)), False)
     else:
+        raw_tiles = None
         d = _log_image(a, response) - _log_image(b, response)
         if polarity == "bright":
             d = -d
@@ -335,34 +378,31 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
         # (ndimage.maximum sorts all labels: 45 ms on a noisy frame)
         from reglib import _markers_numba as mk
 
-        tiles = _noise_tiles(g1, g2, inside, noise, noise_mode, False, ds=ds)
+        tiles = _noise_tiles(g1, g2, inside, noise, noise_mode, False, ds=ds, raw=raw_tiles)
         low_floor, base_floor = 0.02 * peak, 0.5 * rel_threshold * peak
-        regions, n_regions = _label(mk.above_noise(ds, tiles, NOISE_TILE_PX, n_sigma,
-                                                   low_floor), False)
-        labels, n = _label(mk.above_region_thresholds(regions, n_regions, ds, tiles,
-                                                      NOISE_TILE_PX, n_sigma, low_floor,
-                                                      base_floor, rel_threshold), False)
+        # each labelling on the bounding box of its pixels: the same labels (raster order)
+        above, r0, r1, c0, c1 = mk.above_noise(ds, tiles, NOISE_TILE_PX, n_sigma, low_floor)
+        if r1 == 0:
+            return np.zeros((0, 2)), np.zeros(0)
+        regions, n_regions = _label(above[r0:r1, c0:c1], False)
+        sel, s0, s1, t0, t1 = mk.above_region_thresholds(
+            regions, n_regions, ds, tiles, NOISE_TILE_PX, n_sigma, low_floor, base_floor,
+            rel_threshold, r0, c0)
+        if s1 == 0:
+            return np.zeros((0, 2)), np.zeros(0)
+        labels, n = _label(sel[s0:s1, t0:t1], False)
+        xy, strength = mk.blob_centroids(
+            d, labels, n, r0 + s0, c0 + t0, ds, inside, mask is not None, float(min_area_px),
+            float(max_area_px), float(max_elongation), float(centroid_floor))
+        return xy + [x_off, y_off], strength
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0)
-    if reference:
-        areas = ndimage.sum_labels(np.ones_like(ds), labels, np.arange(1, n + 1))
-        slices = ndimage.find_objects(labels)
-    else:
-        areas, boxes = mk.label_boxes(labels, n)
-        slices = [(slice(b[0], b[1]), slice(b[2], b[3])) for b in boxes.tolist()]
+    areas = ndimage.sum_labels(np.ones_like(ds), labels, np.arange(1, n + 1))
+    slices = ndimage.find_objects(labels)
     H, W = d.shape
     out, strength = [], []
     for k, sl in enumerate(slices):
         if sl is None or not (min_area_px <= areas[k] <= max_area_px):
-            continue
-        if not reference:    # the same steps compiled (reglib._markers_numba.blob_centroid)
-            ok, cx, cy, x0, x1, y0, y1 = mk.blob_centroid(
-                d, labels, k + 1, sl[0].start, sl[0].stop, sl[1].start, sl[1].stop,
-                float(areas[k]), float(max_elongation), float(centroid_floor))
-            if not ok or (mask is not None and not mask[y0:y1, x0:x1].all()):
-                continue
-            out.append((cx, cy))
-            strength.append(float(ds[sl][labels[sl] == k + 1].max()))
             continue
         sub = labels[sl] == k + 1
         ys, xs = np.nonzero(sub)

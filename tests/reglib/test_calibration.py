@@ -577,11 +577,20 @@ def test_integer_median_equals_numpy_median():
             mask[rng.choice(a.size, n, replace=False)] = True
             mask = mask.reshape(a.shape)
             v = a[mask].astype(np.float64) - b[mask]
-            d, _, n_in = centred_difference(a, b, mask, 1, 255)
-            assert n_in == n
+            d, n_in = centred_difference(a, b, mask, 1, 255)
+            assert n_in == n and d.dtype == np.float32
             assert v[0] - d[mask][0] == np.median(v), n
-            np.testing.assert_array_equal(d[mask], v - np.median(v))
+            np.testing.assert_array_equal(d[mask], v - np.median(v))   # float32, exactly
             assert not d[~mask].any()
+            d, _ = centred_difference(a, b, mask, -1, 255)     # bright markers
+            np.testing.assert_array_equal(d[mask], -v - np.median(-v))
+    # 16-bit frames: still exact in float32
+    a = rng.integers(0, 65536, (50, 60)).astype(np.uint16)
+    b = rng.integers(0, 65536, (50, 60)).astype(np.uint16)
+    mask = rng.random(a.shape) < 0.5
+    v = a[mask].astype(np.float64) - b[mask]
+    d, _ = centred_difference(a, b, mask, 1, 65535)
+    np.testing.assert_array_equal(d[mask], v - np.median(v))
 
 
 @pytest.mark.slow

@@ -1,0 +1,181 @@
+"""The compiled passes of the fast marker detector (reglib._markers_numba) against their numpy
+and scipy.ndimage references, on random cases; the detector as a whole against its reference
+is in test_calibration.py."""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from reglib import _markers_numba as mk
+from reglib import markers as M
+
+
+def _noise_args():
+    T, S = M.NOISE_TILE_PX, M.NOISE_STEP_PX
+    return (T, S, (T // S) ** 2 // 4, M.NOISE_START_STEP, M.NOISE_CLIP, M.NOISE_PASSES,
+            M.NOISE_SCALE)
+
+
+def _random_band(rng, shape):
+    """Blurred random differences as the detector's Gaussians give them (float32), with
+    blob-like outliers and a field mask."""
+    d = rng.normal(0, rng.uniform(0.5, 3.0), shape)
+    hot = rng.random(shape) < 0.01
+    d[hot] += rng.uniform(5, 40, hot.sum())
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]]
+    mask = np.hypot(yy - shape[0] / 2, xx - shape[1] / 2) < rng.uniform(5, 1.2 * max(shape))
+    d = np.where(mask, d, 0.0)
+    g1 = ndimage.gaussian_filter(d, 1.0).astype(np.float32)
+    g2 = ndimage.gaussian_filter(d, 4.0).astype(np.float32)
+    return g1, g2, mask
+
+
+def test_small_median_equals_numpy_median():
+    """The branchless quickselect median of the block noise against np.median: odd and even
+    counts, ties, runs of equal values, sorted and reversed input, one element; the input
+    is left as it was."""
+    rng = np.random.default_rng(7)
+    for n in (1, 2, 3, 4, 5, 8, 15, 16, 63, 64, 65, 256):
+        work, tmp = np.empty(n), np.empty(n)
+        for trial in range(60):
+            x = rng.normal(size=n)
+            if trial % 4 == 1:
+                x = np.round(x * 2) / 2                 # few distinct values
+            elif trial % 4 == 2 and n > 1:
+                x[rng.random(n) < 0.6] = 0.25            # most values equal
+            elif trial % 4 == 3:
+                x = np.sort(x)[:: rng.choice([-1, 1])]
+            before = x.copy()
+            assert mk.small_median(x, n, work, tmp) == np.median(x), (n, trial)
+            np.testing.assert_array_equal(x, before)
+        assert mk.small_median(np.full(n, 3.0), n, work, tmp) == 3.0
+
+
+def test_band_noise_equals_band_and_tile_noise():
+    """The one-pass band-pass and block noise against the two separate passes (the same
+    values, bit for bit), and the band against numpy's rim test, on random sizes (blocks cut
+    by the edges) and masks; the block noise against its numpy reference per block."""
+    rng = np.random.default_rng(5)
+    args = _noise_args()
+    for _ in range(15):
+        shape = tuple(int(v) for v in rng.integers(20, 170, 2))
+        g1, g2, mask = _random_band(rng, shape)
+        ds, tiles = mk.band_noise(g1, g2, mask, *args)
+        ds_np = g1 - g2
+        np.testing.assert_array_equal(ds, np.where(g1 > 0.5 * ds_np, ds_np, np.float32(0.0)))
+        np.testing.assert_array_equal(ds, mk.band(g1, g2))
+        np.testing.assert_array_equal(tiles, mk.tile_noise(g1, g2, mask, *args))
+        T, S, min_count = args[:3]
+        v = g1.astype(np.float64) - g2
+        for by in range(tiles.shape[0]):
+            for bx in range(tiles.shape[1]):
+                sl = (slice(by * T, (by + 1) * T, S), slice(bx * T, (bx + 1) * T, S))
+                x = v[sl][mask[sl]]
+                if len(x) < min_count:
+                    assert np.isnan(tiles[by, bx])
+                else:
+                    assert tiles[by, bx] == pytest.approx(M._clipped_std(x), rel=1e-9)
+
+
+def test_spread_tiles_equals_the_maximum_filter():
+    """The neighbours' maximum of the block figures and the need of the field's figure
+    against scipy.ndimage.maximum_filter and the numpy test of _noise_tiles."""
+    rng = np.random.default_rng(6)
+    T = M.NOISE_TILE_PX
+    for _ in range(40):
+        ny, nx = (int(v) for v in rng.integers(1, 9, 2))
+        tiles = rng.uniform(0.1, 3.0, (ny, nx))
+        tiles[rng.random((ny, nx)) < rng.uniform(0, 0.9)] = np.nan
+        H, W = ny * T - int(rng.integers(0, T)), nx * T - int(rng.integers(0, T))
+        inside = np.zeros((H, W), bool)
+        ds = np.zeros((H, W), np.float32)
+        if rng.random() < 0.5:
+            inside[rng.integers(0, H), rng.integers(0, W)] = True
+        if rng.random() < 0.5:
+            ds[rng.integers(0, H), rng.integers(0, W)] = 1.0
+        ref = ndimage.maximum_filter(np.where(np.isfinite(tiles), tiles, -np.inf), size=3,
+                                     mode="constant", cval=-np.inf)
+        none = ~np.isfinite(ref)
+        need = any(inside[by * T:(by + 1) * T, bx * T:(bx + 1) * T].any()
+                   or (ds[by * T:(by + 1) * T, bx * T:(bx + 1) * T] != 0).any()
+                   for by, bx in zip(*np.nonzero(none), strict=True))
+        got, got_need = mk.spread_tiles(tiles, inside, ds, T)
+        np.testing.assert_array_equal(got, ref)
+        assert got_need == need
+
+
+def test_thresholds_on_the_bounding_boxes_equal_the_whole_frame():
+    """The pixels above the noise with their bounding box, and the pixels above their
+    region's threshold labelled on that box, against the numpy steps of the reference
+    detector on the whole frame (ndimage.label and ndimage.maximum): the same labels."""
+    rng = np.random.default_rng(9)
+    T = M.NOISE_TILE_PX
+    for trial in range(30):
+        shape = tuple(int(v) for v in rng.integers(30, 200, 2))
+        g1, g2, mask = _random_band(rng, shape)
+        ds = mk.band(g1, g2)
+        if trial % 5 == 0:
+            ds[:] = 0.0                               # nothing above the noise
+        ny, nx = -(-shape[0] // T), -(-shape[1] // T)
+        tiles = rng.uniform(0.2, 2.0, (ny, nx))
+        peak = float(ds.max())
+        n_sigma, rel = 4.5, 0.35
+        low_floor, base_floor = 0.02 * peak, 0.5 * rel * peak
+        noise_px = np.repeat(np.repeat(tiles, T, axis=0), T, axis=1)[:shape[0], :shape[1]]
+        low = np.maximum(n_sigma * noise_px, low_floor)
+        above, r0, r1, c0, c1 = mk.above_noise(ds, tiles, T, n_sigma, low_floor)
+        np.testing.assert_array_equal(above.astype(bool), ds > low)
+        if not (ds > low).any():
+            assert r1 == 0
+            continue
+        rows, cols = np.nonzero(ds > low)
+        assert (r0, r1, c0, c1) == (rows.min(), rows.max() + 1, cols.min(), cols.max() + 1)
+        regions_ref, n_ref = ndimage.label(ds > low)
+        regions, n_regions = M._label(above[r0:r1, c0:c1], False)
+        assert n_regions == n_ref
+        np.testing.assert_array_equal(regions, regions_ref[r0:r1, c0:c1])
+        base = np.maximum(low, base_floor)
+        region_peak = np.zeros(n_ref + 1)
+        region_peak[1:] = ndimage.maximum(ds, regions_ref, np.arange(1, n_ref + 1))
+        thr = np.maximum(base, rel * region_peak[regions_ref])
+        sel_ref = (ds > thr) & (regions_ref > 0)
+        sel, s0, s1, t0, t1 = mk.above_region_thresholds(
+            regions, n_regions, ds, tiles, T, n_sigma, low_floor, base_floor, rel, r0, c0)
+        np.testing.assert_array_equal(sel.astype(bool), sel_ref[r0:r1, c0:c1])
+        labels_ref, n_lab = ndimage.label(sel_ref)
+        if s1 == 0:
+            assert n_lab == 0
+            continue
+        labels, n = M._label(sel[s0:s1, t0:t1], False)
+        assert n == n_lab
+        np.testing.assert_array_equal(labels, labels_ref[r0 + s0:r0 + s1, c0 + t0:c0 + t1])
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_fast_detector_equals_the_reference_in_its_other_modes(seed):
+    """Bright markers, the field's single noise figure, 16-bit frames and 32-bit ones (the
+    numpy difference, then the compiled passes): the fast detector against its scipy.ndimage
+    reference (the same blobs, centroids to 1e-6 px)."""
+    rng = np.random.default_rng(40 + seed)
+    shape = (150, 190)
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]]
+    centres = rng.uniform(20, 130, (6, 2)) * [1.2, 1.0]
+    bead = sum(np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / 4.0) for cx, cy in centres)
+    base = rng.uniform(100, 150)
+    mask = np.hypot(xx - 95, yy - 75) < 80
+    for dtype, scale, polarity, mode in ((np.uint8, 1, "dark", "field"),
+                                         (np.uint8, 1, "bright", "block"),
+                                         (np.uint16, 200, "dark", "block"),
+                                         (np.int32, 1, "dark", "block")):   # numpy steps
+        sign = 1 if polarity == "bright" else -1
+        prev = base * scale + rng.normal(0, 1.0 * scale, shape)
+        cur = (base + sign * 40 * bead) * scale + rng.normal(0, 1.0 * scale, shape)
+        prev, cur = (np.clip(np.rint(v), 0, min(np.iinfo(dtype).max, 65535)).astype(dtype)
+                     for v in (prev, cur))
+        for m in (None, mask):
+            kw = dict(polarity=polarity, noise_mode=mode, mask=m)
+            fast = M.detect_markers(prev, cur, **kw)
+            ref = M.detect_markers(prev, cur, reference=True, **kw)
+            assert fast[0].shape == ref[0].shape and len(ref[0]) >= 3
+            assert np.abs(fast[0] - ref[0]).max() < 1e-6
+            assert np.abs(fast[1] - ref[1]).max() < 1e-6 * ref[1].max()
