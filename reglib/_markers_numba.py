@@ -551,3 +551,93 @@ def row_hypotheses(t, s, tolerance):
                             count[h] += 1
                     h += 1
     return jb, e, inl, count
+
+
+@njit(cache=True, error_model="numpy")
+def resolve_assignments(j, e, inl, top, s, t, tolerance):
+    """The candidates of :func:`reglib.markers.identify_row` (hypotheses ``top`` of
+    :func:`row_hypotheses`): the first hypothesis of each distinct assignment, that
+    assignment with two blobs on one bead resolved (the closer keeps it, the lower index on
+    a tie), the distinct results in order of first appearance, and an approximate score
+    (its count less the RMS of a line fit of ``t`` on ``s`` in units of ``0.2 tolerance
+    |slope|`` times the smallest gap; summed in order, not as numpy sums: the caller
+    rescores the leaders with numpy). Returns
+    ``(assignments (C, K), score (C,), hypothesis (C,))``."""
+    K = j.shape[1]
+    n = s.shape[0]
+    min_gap = np.inf
+    for q in range(n - 1):
+        min_gap = min(min_gap, s[q + 1] - s[q])
+    C = top.shape[0]
+    finals = np.empty((C, K), dtype=np.int64)
+    score = np.empty(C)
+    which = np.empty(C, dtype=np.int64)
+    nc = 0
+    for ih in range(C):
+        # the first hypothesis of each assignment before the doubles are resolved (the
+        # reference's np.unique): a later one with the same assignment is not looked at
+        h = top[ih]
+        seen = False
+        for ih2 in range(ih):
+            h2 = top[ih2]
+            same = True
+            for i in range(K):
+                if (inl[h, i] != inl[h2, i]) or (inl[h, i] and j[h, i] != j[h2, i]):
+                    same = False
+                    break
+            if same:
+                seen = True
+                break
+        if seen:
+            continue
+        for i in range(K):
+            keep = inl[h, i]
+            if keep:
+                for i2 in range(K):
+                    if (i2 != i and inl[h, i2] and j[h, i2] == j[h, i]
+                            and (e[h, i2] < e[h, i] or (e[h, i2] == e[h, i] and i2 < i))):
+                        keep = False
+                        break
+            finals[nc, i] = j[h, i] if keep else -1
+        dup = False
+        for q in range(nc):
+            same = True
+            for i in range(K):
+                if finals[q, i] != finals[nc, i]:
+                    same = False
+                    break
+            if same:
+                dup = True
+                break
+        if dup:
+            continue
+        cnt = 0
+        xm = 0.0
+        ym = 0.0
+        for i in range(K):
+            if finals[nc, i] >= 0:
+                cnt += 1
+                xm += s[finals[nc, i]]
+                ym += t[i]
+        xm /= cnt
+        ym /= cnt
+        sxy = 0.0
+        sxx = 0.0
+        for i in range(K):
+            if finals[nc, i] >= 0:
+                dx = s[finals[nc, i]] - xm
+                sxy += dx * (t[i] - ym)
+                sxx += dx * dx
+        slope = sxy / sxx
+        icpt = ym - slope * xm
+        r2 = 0.0
+        for i in range(K):
+            if finals[nc, i] >= 0:
+                r = t[i] - (slope * s[finals[nc, i]] + icpt)
+                r2 += r * r
+        rms = np.sqrt(r2 / cnt)
+        unit = 0.2 * tolerance * abs(slope) * min_gap
+        score[nc] = cnt - rms / unit
+        which[nc] = h
+        nc += 1
+    return finals[:nc], score[:nc], which[:nc]

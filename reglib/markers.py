@@ -520,22 +520,41 @@ def identify_row(xy_px, bead_positions_mm, *, tolerance: float = 0.15,
     # minus its refit RMS in units of (tolerance * gap / 5): a stray blob that happens to fall
     # near a bead cannot outvote a tight fit of fewer blobs
     top = np.flatnonzero(count >= max(min_matched, count.max() - 1))
-    assign = np.where(inl[top], j[top], -1)
-    _, first = np.unique(assign, axis=0, return_index=True)
-    scored, seen = [], set()
-    for k in top[first]:
-        m = inl[k].copy()
-        for bead_idx in np.unique(j[k][m]):  # two blobs on one bead: keep the closer
-            claim = np.flatnonzero(m & (j[k] == bead_idx))
-            m[claim[np.argsort(e[k][claim])[1:]]] = False
-        inl[k] = m
-        final = tuple(np.where(m, j[k], -1).tolist())
-        if final in seen:  # the same assignment once the doubles are resolved
-            continue
-        seen.add(final)
-        slope, _, rms = _line_fit(s[j[k][m]], t[m])
-        unit = 0.2 * tolerance * abs(slope) * np.min(np.diff(s))
-        scored.append((m.sum() - rms / unit, rms, k))
+    scored = None
+    if not reference:
+        # the doubles resolved, the distinct assignments and their approximate scores
+        # compiled (reglib._markers_numba.resolve_assignments); only those that can come
+        # first or second (within 0.5 of the best, with a margin for the rounding of the
+        # sums) are rescored as below: the same scores, winner and runner-up
+        from reglib._markers_numba import resolve_assignments
+
+        finals, approx, which = resolve_assignments(j, e, inl, top, s, t, float(tolerance))
+        if np.all(np.isfinite(approx)):
+            scored = []
+            for a_k, h in zip(finals[approx >= approx.max() - 0.5 - 1e-6],
+                              which[approx >= approx.max() - 0.5 - 1e-6], strict=True):
+                m = a_k >= 0
+                inl[h] = m
+                slope, _, rms = _line_fit(s[a_k[m]], t[m])
+                unit = 0.2 * tolerance * abs(slope) * np.min(np.diff(s))
+                scored.append((m.sum() - rms / unit, rms, h))
+    if scored is None:
+        assign = np.where(inl[top], j[top], -1)
+        _, first = np.unique(assign, axis=0, return_index=True)
+        scored, seen = [], set()
+        for k in top[first]:
+            m = inl[k].copy()
+            for bead_idx in np.unique(j[k][m]):  # two blobs on one bead: keep the closer
+                claim = np.flatnonzero(m & (j[k] == bead_idx))
+                m[claim[np.argsort(e[k][claim])[1:]]] = False
+            inl[k] = m
+            final = tuple(np.where(m, j[k], -1).tolist())
+            if final in seen:  # the same assignment once the doubles are resolved
+                continue
+            seen.add(final)
+            slope, _, rms = _line_fit(s[j[k][m]], t[m])
+            unit = 0.2 * tolerance * abs(slope) * np.min(np.diff(s))
+            scored.append((m.sum() - rms / unit, rms, k))
     scored.sort(reverse=True)
     score, rms, k = scored[0]
     if len(scored) > 1 and scored[1][0] > score - 0.5:
