@@ -105,29 +105,9 @@ def _label(binary: np.ndarray, reference: bool) -> tuple[np.ndarray, int]:
         return ndimage.label(binary)
     import cv2
 
-    threads = _serial_cv2(cv2)
-    try:
-        n, labels = cv2.connectedComponents(np.ascontiguousarray(binary, dtype=np.uint8),
-                                            connectivity=4, ltype=cv2.CV_32S)
-    finally:
-        _restore_cv2(cv2, threads)
+    n, labels = cv2.connectedComponents(np.ascontiguousarray(binary, dtype=np.uint8),
+                                        connectivity=4, ltype=cv2.CV_32S)
     return labels, n - 1
-
-
-def _serial_cv2(cv2) -> int:
-    """Run OpenCV's next calls on the calling thread alone; returns the thread count to
-    restore (:func:`_restore_cv2`). On a frame (0.25 Mpx) its pool costs more CPU than it
-    saves wall time: the detection's CPU per sweep frame 0.5-0.7 ms more with its 2 threads
-    (a 2-core VM), its wall time within 0.1 ms."""
-    n = cv2.getNumThreads()
-    if n != 1:
-        cv2.setNumThreads(1)
-    return n
-
-
-def _restore_cv2(cv2, n: int) -> None:
-    if n != 1:
-        cv2.setNumThreads(n)
 
 
 def _gaussian(img, sigma_px: float, reference: bool) -> np.ndarray:
@@ -140,13 +120,8 @@ def _gaussian(img, sigma_px: float, reference: bool) -> np.ndarray:
     import cv2
 
     r = int(4.0 * sigma_px + 0.5)
-    threads = _serial_cv2(cv2)
-    try:
-        return cv2.GaussianBlur(np.ascontiguousarray(img, dtype=np.float32),
-                                (2 * r + 1, 2 * r + 1), sigmaX=sigma_px, sigmaY=sigma_px,
-                                borderType=cv2.BORDER_REFLECT)
-    finally:
-        _restore_cv2(cv2, threads)
+    return cv2.GaussianBlur(np.ascontiguousarray(img, dtype=np.float32), (2 * r + 1, 2 * r + 1),
+                            sigmaX=sigma_px, sigmaY=sigma_px, borderType=cv2.BORDER_REFLECT)
 
 
 def _clipped_std(x: np.ndarray) -> float:
