@@ -195,7 +195,8 @@ def _polygon_area(p) -> float:
 
 
 def _one_section_run(sections: dict, slice_z_mm) -> dict:
-    """The longest run of consecutive slices that show one section each.
+    """The longest run (in mm along the slices) of consecutive slices that show one section
+    each.
 
     On the proximal femur the user outlines the shaft, trochanters and neck as one bone and
     leaves out the femoral head where it separates from the neck, as in the paper. A slice
@@ -229,7 +230,9 @@ def _one_section_run(sections: dict, slice_z_mm) -> dict:
         last = k
     if run:
         runs.append(run)
-    best = max(runs, key=len) if runs else []
+    # the longest in mm (slices of 1 mm near a pin, 6 mm elsewhere: a count favours the fine
+    # part); of equal extents the one of more slices
+    best = max(runs, key=lambda r: (z[r[-1]] - z[r[0]], len(r))) if runs else []
     return {k: sections[k] for k in best}
 
 

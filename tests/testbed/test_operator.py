@@ -192,3 +192,22 @@ def test_proximal_clicks_pass_over_a_one_slice_island_and_stop_at_the_head():
     for polys in got.clicks.values():
         assert len(polys) == 1
         assert np.all(np.abs(np.hypot(polys[0][:, 0] - 50, polys[0][:, 1] - 40) - 14) < 1.5)
+
+
+def test_proximal_clicks_keep_the_longest_run_in_mm_not_in_slices():
+    """The clinical schedule's slices: 6 mm apart below a pin, 1 mm within its 15 mm. A
+    second section on four fine slices (the head's underside beside the neck, seen on a
+    held-out femur) splits the single-section slices into 8 coarse slices (42 mm) and 12
+    fine ones above (11 mm); the bone proper is the longer in mm, not the one of more
+    slices (which had kept 11 mm of bone and lost the registration)."""
+    z = np.r_[np.arange(8) * 6.0, 43.0 + np.arange(4), 47.0 + np.arange(12)]
+    n, shape = len(z), (80, 120)
+    vol = np.full((n, *shape), 30.0)
+    for k in range(n):
+        vol[k][_disk(shape, (50, 40), 14)] = 1200.0      # the shaft and neck
+    for k in range(8, 12):
+        vol[k][_disk(shape, (95, 40), 10)] = 1200.0      # a second section, 4 fine slices
+    spec = OperatorSpec(ct_click_noise_px=0.0)
+    got = ct_clicks(vol, z, {"proximal": np.arange(n)}, pixel_mm=1.0, spec=spec,
+                    rng=np.random.default_rng(0))["proximal"]
+    assert got.slices.tolist() == list(range(8))
