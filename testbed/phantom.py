@@ -257,6 +257,7 @@ class _Dims:
     condyle_d: float
     n: int
     aldfa: float = 90.0
+    width_scale: float = 1.0    # the draw's common scale of the widths (s_wid)
 
 
 def field_bounds(name: str) -> tuple[float, float]:
@@ -306,6 +307,7 @@ def _resolve(spec: PhantomSpec) -> _Dims:
         condyle_d=within("condyle_depth_mm", spec.condyle_depth_mm * s_wid),
         n=int(spec.segments),
         aldfa=float(np.clip(spec.distal_joint_angle_deg + 2.0 * z[12], 75.0, 90.0)),
+        width_scale=float(s_wid),
     )
 
 
@@ -429,8 +431,12 @@ def _pin_mesh(center, axis, diameter, length, n) -> trimesh.Trimesh:
     return m
 
 
-def _soft_tissue(bounds_lo, bounds_hi, spec: PhantomSpec, g: dict | None, n: int):
-    """A thigh: lofts of ellipses from below the knee to above the hip, around the bone."""
+def _soft_tissue(bounds_lo, bounds_hi, spec: PhantomSpec, g: dict | None, n: int,
+                 scales: tuple[float, float] = (1.0, 1.0)):
+    """A thigh: lofts of ellipses from below the knee to above the hip, around the bone;
+    ``scales``: factors (at least 1) of the knee's and the thigh's radii, by which a femur
+    drawn wider than the spec's (``shape_variation``) widens them (:func:`_tissue_scales`;
+    in the default thigh such a femur reached out of it)."""
     ex, ey, _ = np.eye(3)
     zlo, zhi = bounds_lo[2] - 40.0, bounds_hi[2] + 30.0
     if g is None:
@@ -442,7 +448,8 @@ def _soft_tissue(bounds_lo, bounds_hi, spec: PhantomSpec, g: dict | None, n: int
         t = (zs - zlo) / (zhi - zlo)
         head_x = g["head_c"][0]
         cx = 0.55 * head_x * t ** 1.5
-        ra = spec.knee_radius_mm + (spec.thigh_radius_mm - spec.knee_radius_mm) * t
+        knee, thigh = spec.knee_radius_mm * scales[0], spec.thigh_radius_mm * scales[1]
+        ra = knee + (thigh - knee) * t
         rb = 0.9 * ra
         rings = [_ring((x, 0.0, z), ex, ey, a, b, n)
                  for x, z, a, b in zip(cx, zs, ra, rb, strict=True)]
@@ -452,6 +459,13 @@ def _soft_tissue(bounds_lo, bounds_hi, spec: PhantomSpec, g: dict | None, n: int
     if spec.hip_mm > 0:
         rings.append(rings[-1] + [0.0, 0.0, spec.hip_mm])
     return mf.Manifold.batch_boolean(_loft(rings), mf.OpType.Add)
+
+
+def _tissue_scales(spec: PhantomSpec, d: _Dims) -> tuple[float, float]:
+    """How much wider than the spec's the drawn femur is at the knee (its condyles) and at
+    the hip (its widths' common scale), at least 1 each: the soft tissue's scales."""
+    knee = max(1.0, d.condyle_w / spec.condyle_width_mm, d.condyle_d / spec.condyle_depth_mm)
+    return knee, max(1.0, d.width_scale)
 
 
 def _check_closed(mesh: trimesh.Trimesh, what: str) -> None:
@@ -825,7 +839,7 @@ def _procedural_phantom(spec: PhantomSpec) -> Phantom:
     slab_hi = mf.Manifold.cube((big, big, big), True).translate((0.0, 0.0, hi_cut + big / 2))
     canc_m = (inner ^ (slab_lo + slab_hi)) - canal_m
     bb = np.asarray(femur_m.bounding_box())
-    soft_m = _soft_tissue(bb[:3], bb[3:], spec, g, d.n)
+    soft_m = _soft_tissue(bb[:3], bb[3:], spec, g, d.n, _tissue_scales(spec, d))
     mirror = spec.side == "left"
     if mirror:
         femur_m, canc_m, canal_m, soft_m = (m.mirror((1.0, 0.0, 0.0))

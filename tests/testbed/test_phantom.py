@@ -446,3 +446,18 @@ def test_a_drawn_cortex_leaves_a_canal():
 def d1_z8(seed: int) -> float:
     """The cortex's draw of ``shape_seed`` at shape_variation 1."""
     return float(np.clip(np.random.default_rng(seed).standard_normal(13), -2.5, 2.5)[8])
+
+
+def test_a_femur_drawn_wider_widens_its_thigh():
+    """shape_variation = 3, shape_seed = 9 (a held-out review's scene) drew condyles wider
+    than the default knee's soft tissue and the scene was refused; the knee's and thigh's
+    radii now grow with the drawn widths (never shrink), so the femur lies within its thigh.
+    The mean femur keeps the spec's radii."""
+    from testbed.phantom import _resolve, _tissue_scales
+
+    spec = PhantomSpec(shape_variation=3.0, shape_seed=9)
+    knee, thigh = _tissue_scales(spec, _resolve(spec))
+    assert knee > 1.0 and thigh >= 1.0
+    ph = make_phantom(spec)
+    assert ph.soft_tissue.contains(ph.femur.vertices).all()
+    assert _tissue_scales(PhantomSpec(), _resolve(PhantomSpec())) == (1.0, 1.0)
