@@ -294,25 +294,51 @@ def test_identify_row_compiled_hypotheses_equal_the_numpy_reference():
     rng = np.random.default_rng(12)
     outcomes = set()
     for _ in range(200):
-        ang = rng.uniform(0, np.pi)
-        t = rng.uniform(1.5, 3.0) * BEADS + rng.uniform(-150, 0)
-        pts = 240 + t[:, None] * np.r_[np.cos(ang), np.sin(ang)] + rng.normal(0, 0.1, (8, 2))
+        pts = _random_row(rng, 0.1)
         xy = np.vstack([pts[rng.random(8) < 0.8], rng.uniform(0, 480, (rng.integers(0, 3), 2))])
-        got = ref = None
+        outcomes.add(_identify_row_as_reference(xy))
+    assert outcomes == {"error", "labels"}
+
+
+def _random_row(rng, noise_px: float) -> np.ndarray:
+    """The 8 beads of BEADS imaged as a row (8, 2) px: a random direction, scale and offset,
+    and Gaussian noise of ``noise_px`` on each centroid."""
+    ang = rng.uniform(0, np.pi)
+    t = rng.uniform(1.5, 3.0) * BEADS + rng.uniform(-150, 0)
+    return 240 + t[:, None] * np.r_[np.cos(ang), np.sin(ang)] + rng.normal(0, noise_px, (8, 2))
+
+
+def _identify_row_as_reference(xy) -> str:
+    """identify_row on ``xy`` (rows of BEADS) by the compiled path and by the reference:
+    asserts the same labels and RMS, or the same error; returns which ("labels", "error")."""
+    results = []
+    for reference in (True, False):
         try:
-            ref = identify_row(xy, BEADS, reference=True)
+            results.append(identify_row(xy, BEADS, reference=reference))
         except ValueError as exc:
-            ref = str(exc)
-        try:
-            got = identify_row(xy, BEADS)
-        except ValueError as exc:
-            got = str(exc)
-        if isinstance(ref, str):
-            assert got == ref
-            outcomes.add("error")
-        else:
-            assert np.array_equal(got[0], ref[0]) and got[1] == ref[1]
-            outcomes.add("labels")
+            results.append(str(exc))
+    ref, got = results
+    if isinstance(ref, str):
+        assert got == ref
+        return "error"
+    assert np.array_equal(got[0], ref[0]) and got[1] == ref[1]
+    return "labels"
+
+
+def test_identify_row_compiled_candidates_equal_the_reference():
+    """The compiled candidate scoring of identify_row (reglib._markers_numba.
+    resolve_assignments, the leaders rescored in numpy) against the reference's loop, on
+    random rows with missing beads, strays and doubles (two blobs near one bead, which
+    different hypotheses resolve differently): the same labels and RMS, or the same error."""
+    rng = np.random.default_rng(21)
+    outcomes = set()
+    for _ in range(600):
+        pts = _random_row(rng, 0.3)
+        xy = pts[rng.random(8) < 0.8]
+        doubles = pts[rng.choice(8, rng.integers(0, 3))] + rng.normal(0, 2.0, (1, 2))
+        xy = np.vstack([xy, doubles, rng.uniform(0, 480, (rng.integers(0, 3), 2))])
+        xy = xy[rng.permutation(len(xy))]
+        outcomes.add(_identify_row_as_reference(xy))
     assert outcomes == {"error", "labels"}
 
 

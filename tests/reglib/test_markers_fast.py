@@ -1,6 +1,6 @@
 """The compiled passes of the fast marker detector (reglib._markers_numba) against their numpy
-and scipy.ndimage references, on random cases; the detector as a whole against its reference
-is in test_calibration.py."""
+and scipy.ndimage references, on random cases; the detector as a whole, and identify_row's
+compiled hypotheses and candidates, against their references are in test_calibration.py."""
 
 import numpy as np
 import pytest
@@ -180,34 +180,3 @@ def test_fast_detector_equals_the_reference_in_its_other_modes(seed):
             assert np.abs(fast[0] - ref[0]).max() < 1e-6
             assert np.abs(fast[1] - ref[1]).max() < 1e-6 * ref[1].max()
 
-
-def test_identify_row_compiled_candidates_equal_the_reference():
-    """The compiled candidate scoring of identify_row (reglib._markers_numba.
-    resolve_assignments, the leaders rescored in numpy) against the reference's loop, on
-    random rows with missing beads, strays and doubles (two blobs near one bead, which
-    different hypotheses resolve differently): the same labels and RMS, or the same error."""
-    beads = np.r_[0.0, np.cumsum([14.0, 27.0, 16.0, 12.0, 30.0, 21.0, 24.0])]
-    rng = np.random.default_rng(21)
-    outcomes = set()
-    for _ in range(600):
-        ang = rng.uniform(0, np.pi)
-        t = rng.uniform(1.5, 3.0) * beads + rng.uniform(-150, 0)
-        pts = 240 + t[:, None] * np.r_[np.cos(ang), np.sin(ang)] + rng.normal(0, 0.3, (8, 2))
-        xy = pts[rng.random(8) < 0.8]
-        doubles = pts[rng.choice(8, rng.integers(0, 3))] + rng.normal(0, 2.0, (1, 2))
-        xy = np.vstack([xy, doubles, rng.uniform(0, 480, (rng.integers(0, 3), 2))])
-        xy = xy[rng.permutation(len(xy))]
-        results = []
-        for reference in (True, False):
-            try:
-                results.append(M.identify_row(xy, beads, reference=reference))
-            except ValueError as exc:
-                results.append(str(exc))
-        ref, got = results
-        if isinstance(ref, str):
-            assert got == ref
-            outcomes.add("error")
-        else:
-            assert np.array_equal(got[0], ref[0]) and got[1] == ref[1]
-            outcomes.add("labels")
-    assert outcomes == {"error", "labels"}
