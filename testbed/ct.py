@@ -18,7 +18,8 @@ Image formation, independent of any registration code:
   A brute-force reference (:func:`sample_hu_reference`, point-in-mesh tests on a grid of
   sub-voxel points) is kept beside it for the tests.
 - Gaussian noise (HU), an optional model of metal streaks around the pins, and the scanner's
-  range [-1024, 3071] HU.
+  stored values: whole HU in the range [-1024, 3071] (12 bits, as a CT image's pixels are
+  stored integers; ``volume_hu`` keeps them in float32).
 """
 
 from __future__ import annotations
@@ -490,7 +491,7 @@ def scan(phantom, spec: CTSpec | None = None, rng=None, *, bodies: list[Body] | 
                 img += _streaks(img.shape, origin, px, metal, spec.streak_hu, rng)
         if spec.noise_hu > 0:
             img += rng.normal(0.0, spec.noise_hu, img.shape)
-        vol[k] = np.clip(img, -1024.0, 3071.0)
+        vol[k] = np.rint(np.clip(img, -1024.0, 3071.0))
     return CTScan(volume_hu=vol, slice_z_mm=z, slice_thickness_mm=thick, pixel_mm=px,
                   origin_xy_mm=np.asarray(origin, dtype=np.float64), regions=regions)
 

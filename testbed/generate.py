@@ -34,14 +34,15 @@ __all__ = ["ENTRY_DOC", "GENERATOR_VERSION", "case_entries", "case_seed", "gener
 _WRITING = re.compile(r"\.case_\d{4,}\.[A-Za-z0-9_]+")
 #: what the generator writes: 3 since 2026-11-26 (the truth's points/pins_robot_digitized),
 #: 4 since its seventh session (the scene file's path in the truth's meta only, the
-#: patient's placement drawn per case where the scene asks); a dataset resumed by another
-#: version is refused, so its cases are never mixed
-GENERATOR_VERSION = 4
+#: patient's placement drawn per case where the scene asks), 5 since its tenth (the CT in
+#: whole HU, stored as int16); a dataset resumed by another version is refused, so its
+#: cases are never mixed
+GENERATOR_VERSION = 5
 
 #: entry name pattern -> (role, description); ``{view}`` is a view's name, ``{region}`` a CT
 #: region's (``proximal``, ``distal``).
 ENTRY_DOC = {
-    "volumes/ct": ("observation", "CT volume in HU (float32), data[i, j, k] = (column, row, "
+    "volumes/ct": ("observation", "CT volume in whole HU (int16), data[i, j, k] = (column, row, "
                    "slice), NIfTI order; reglib reads it as [slice, row, col] after "
                    "transposing; voxel2ct maps (i, j, k, 1) to ct mm (exact only when the "
                    "slices are equally spaced, see arrays/ct_slices)"),

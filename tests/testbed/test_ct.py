@@ -36,6 +36,8 @@ def test_expected_hu_per_material(cylinders):
     spec = CTSpec(schedule="explicit", slice_z_mm=(30.0, 50.0), noise_hu=0.0)
     ct = scan(cylinders, spec, rng=0)
     assert ct.volume_hu.dtype == np.float32 and ct.volume_hu.shape[0] == 2
+    # a CT image's pixels are stored integers: whole HU, within 12 bits
+    assert np.array_equal(ct.volume_hu, np.rint(ct.volume_hu))
     n = ct.volume_hu.shape[1]
     yy, xx = np.mgrid[0:n, 0:n]
     pts = ct.pixel_to_ct(np.column_stack([xx.ravel(), yy.ravel()]), 1)

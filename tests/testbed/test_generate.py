@@ -98,6 +98,7 @@ def test_generated_case_round_trips_exactly_and_splits_truth(tmp_path):
 
     # every array and transform round-trips exactly
     v0, v1 = case["volumes"]["ct"], obs.volumes["ct"]
+    assert v1.data.dtype == np.int16     # a CT image's stored pixels: whole HU
     _same(v1.data, v0.data, "ct data")
     _same(v1.voxel2ct, v0.voxel2ct, "voxel2ct")
     for name, img in case["images"].items():
