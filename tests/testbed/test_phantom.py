@@ -461,3 +461,41 @@ def test_a_femur_drawn_wider_widens_its_thigh():
     ph = make_phantom(spec)
     assert ph.soft_tissue.contains(ph.femur.vertices).all()
     assert _tissue_scales(PhantomSpec(), _resolve(PhantomSpec())) == (1.0, 1.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_cached_csg_meshes_equal_the_built_ones(seed, tmp_path, monkeypatch):
+    """The disk cache of the procedural femur's booleans (testbed.phantom._csg_meshes)
+    against its reference, the booleans evaluated: the same vertices and faces to the bit,
+    on a cold cache (built and stored) and a warm one (read), for random femurs of both
+    sides; a file cut short is built again and replaced, and an empty cache folder setting
+    stores nothing."""
+    from testbed import phantom as P
+
+    rng = np.random.default_rng(seed)
+    spec = PhantomSpec(shape_variation=float(rng.uniform(0.5, 2.0)),
+                       shape_seed=int(rng.integers(1, 1000)),
+                       side=("right", "left")[seed % 2])
+    d = P._resolve(spec)
+    g = P._geometry(d)
+    mirror = spec.side == "left"
+    ref = P._build_csg_meshes(spec, d, g, mirror)
+    monkeypatch.setenv(P.CACHE_ENV, str(tmp_path))
+
+    def same(meshes):
+        assert len(meshes) == 4
+        for m, r in zip(meshes, ref, strict=True):
+            assert m.vertices.dtype == r.vertices.dtype and m.faces.dtype == r.faces.dtype
+            assert np.array_equal(m.vertices, r.vertices)
+            assert np.array_equal(m.faces, r.faces)
+
+    same(P._csg_meshes(spec, d, g, mirror))             # cold: built, stored
+    (path,) = tmp_path.glob("csg-*.npz")
+    same(P._csg_meshes(spec, d, g, mirror))             # warm: read
+    path.write_bytes(path.read_bytes()[:1000])          # a write cut short
+    same(P._csg_meshes(spec, d, g, mirror))
+    assert path.stat().st_size > 100_000                # replaced by a whole one
+    other = spec.model_copy(update={"shape_seed": spec.shape_seed + 1})
+    assert P._cache_file(other) != path                 # another femur, another file
+    monkeypatch.setenv(P.CACHE_ENV, "")
+    assert P._cache_file(spec) is None
