@@ -106,3 +106,31 @@ def test_an_sdist_carries_the_build_backend(tmp_path):
         members = {m.split("/", 1)[1] for m in tar.getnames() if "/" in m}
     assert {"tools/build_backend.py", "tools/precompile.py", "tools/numba_signatures.txt",
             "pyproject.toml"} <= members
+
+
+def test_the_editable_build_writes_the_packages_bytecode(tmp_path):
+    """tools/build_backend._bytecode compiles every module of the packages to the .pyc that
+    the interpreter then imports, even where PYTHONDONTWRITEBYTECODE keeps Python itself from
+    writing them."""
+    import importlib.util
+
+    import build_backend
+
+    mods = []
+    for pkg in build_backend.PACKAGES:
+        (tmp_path / pkg / "sub").mkdir(parents=True)
+        for rel in ("__init__.py", "a.py", "sub/__init__.py", "sub/b.py"):
+            (tmp_path / pkg / rel).write_text(f"VALUE = {len(mods)}\n")
+            mods.append(tmp_path / pkg / rel)
+    build_backend._bytecode(tmp_path)
+    for m in mods:
+        assert Path(importlib.util.cache_from_source(str(m))).is_file(), m
+    # and the interpreter takes them: no module of the packages compiled from source
+    out = subprocess.run(
+        [sys.executable, "-v", "-c", "; ".join(f"import {p}.sub.b, {p}.a"
+                                                 for p in build_backend.PACKAGES)],
+        cwd=tmp_path, env=dict(os.environ, PYTHONDONTWRITEBYTECODE="1"),
+        capture_output=True, text=True, check=True).stderr
+    loaded = [ln for ln in out.splitlines() if ln.startswith("# code object from")
+              and str(tmp_path) in ln]
+    assert len(loaded) == len(mods) and all(".pyc" in ln for ln in loaded), loaded
