@@ -512,7 +512,7 @@ def identify_row(xy_px, bead_positions_mm, *, tolerance: float = 0.15,
                 inl[h] = m
                 slope, _, rms = _line_fit(s[a_k[m]], t[m])
                 unit = 0.2 * tolerance * abs(slope) * np.min(np.diff(s))
-                scored.append((m.sum() - rms / unit, rms, h))
+                scored.append((m.sum() - rms / unit, rms, h, a_k))
     if scored is None:
         assign = np.where(inl[top], j[top], -1)
         _, first = np.unique(assign, axis=0, return_index=True)
@@ -529,12 +529,16 @@ def identify_row(xy_px, bead_positions_mm, *, tolerance: float = 0.15,
             seen.add(final)
             slope, _, rms = _line_fit(s[j[k][m]], t[m])
             unit = 0.2 * tolerance * abs(slope) * np.min(np.diff(s))
-            scored.append((m.sum() - rms / unit, rms, k))
-    scored.sort(reverse=True)
-    score, rms, k = scored[0]
-    if len(scored) > 1 and scored[1][0] > score - 0.5:
+            scored.append((m.sum() - rms / unit, rms, k, np.array(final)))
+    scored.sort(key=lambda c: c[:3], reverse=True)
+    score, rms, k, best = scored[0]
+    # a rival is an assignment that labels a blob otherwise: one that only leaves out some
+    # of the best's blobs (the intensifier's distortion bends the row, and dropping its end
+    # blob straightens the line fit) agrees with it and is no rival
+    rival = next((c for c in scored[1:] if _conflicting(best, c[3])), None)
+    if rival is not None and rival[0] > score - 0.5:
         raise ValueError(f"identify_row: ambiguous (two bead assignments fit {K} blobs about "
-                         f"as well: RMS {rms:.2f} and {scored[1][1]:.2f} px)")
+                         f"as well: RMS {rms:.2f} and {rival[1]:.2f} px)")
     bead = np.where(inl[k], j[k], -1)
     m = bead >= 0
     tol_px = tolerance * abs(_line_fit(s[bead[m]], t[m])[0]) * np.min(np.diff(s))
@@ -547,16 +551,60 @@ def identify_row(xy_px, bead_positions_mm, *, tolerance: float = 0.15,
         if keep.sum() < min_matched:
             raise ValueError(f"identify_row: {int((m & ~keep).sum())} of the blobs that fit "
                              "the spacing lie off the row's line; too few left")
-        slope, icpt, _ = _line_fit(s[bead[keep]], t[keep])
-        w_slope, w_icpt, _ = _line_fit(t[keep], w[keep])
-        for i in np.flatnonzero(bead < 0):
-            p = int(np.argmin(np.abs(slope * s + icpt - t[i])))
-            if (abs(slope * s[p] + icpt - t[i]) < tol_px and p not in bead
-                    and abs(w[i] - (w_slope * t[i] + w_icpt)) < ACROSS_ROW_TOLERANCES * tol_px):
-                bead[i] = p
+    # an unmatched blob on the row at a free bead's place takes its label: a blob whose bead
+    # a stray had taken, or an end blob that the intensifier's distortion moved beyond the
+    # straight line's tolerance
+    if _label_the_rest(bead, s, t, w, tol_px) or (keep != m).any():
         m = bead >= 0
         rms = _line_fit(s[bead[m]], t[m])[2]
     return bead, rms
+
+
+def _label_the_rest(bead: np.ndarray, s: np.ndarray, t: np.ndarray, w: np.ndarray,
+                    tol_px: float) -> bool:
+    """Label, in place, the unmatched blobs of a row (``bead`` -1) that lie within
+    ``tol_px`` along the row of a free bead's place and on the row across it, one at a time,
+    the nearest first. The places come from a fit of the labelled blobs' ``t`` (px along
+    the row) to their beads' ``s`` (mm): a line through four blobs, a parabola through
+    five, a cubic through six or more (the intensifier's pincushion stretches the row
+    towards the field's edge, as ``r (1 + k r^2)``: at the row's ends, where a blob lies
+    beyond the fitted ones, a straight line missed it by 7-13 px against a tolerance of
+    about 4 px); across the row, a line through the
+    blobs' ``w`` (px) within ``ACROSS_ROW_TOLERANCES * tol_px``. Returns whether any blob
+    was labelled."""
+    added = False
+    while np.any(bead < 0):
+        m = bead >= 0
+        deg = int(min(3, max(1, m.sum() - 3)))
+        place = np.polyval(np.polyfit(s[bead[m]], t[m], deg), s)        # (n,) px
+        w_slope, w_icpt, _ = _line_fit(t[m], w[m])
+        free = np.setdiff1d(np.arange(len(s)), bead[m])
+        if not free.size:
+            break
+        best = None
+        for i in np.flatnonzero(~m):
+            if abs(w[i] - (w_slope * t[i] + w_icpt)) >= ACROSS_ROW_TOLERANCES * tol_px:
+                continue
+            off = np.abs(place[free] - t[i])
+            p = int(np.argmin(off))
+            if off[p] < tol_px and (best is None or off[p] < best[0]):
+                best = (off[p], i, int(free[p]))
+        if best is None:
+            break
+        bead[best[1]] = best[2]
+        added = True
+    return added
+
+
+def _conflicting(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two assignments of a row's blobs to beads (-1: none) contradict each other:
+    a blob labelled by both with different beads, or one bead given to two blobs."""
+    both = (a >= 0) & (b >= 0)
+    if np.any(a[both] != b[both]):
+        return True
+    union = np.where(a >= 0, a, b)
+    union = union[union >= 0]
+    return len(np.unique(union)) < len(union)
 
 
 def _line_fit(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
