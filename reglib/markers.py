@@ -432,7 +432,9 @@ def identify_row(xy_px, bead_positions_mm, *, tolerance: float = 0.15,
     map; the one that places most blobs within ``tolerance`` times the smallest predicted gap
     of a bead wins, ties broken by the RMS of a least-squares refit on its blobs. The beads'
     unequal gaps make the answer unique; beads outside the field or hidden are simply
-    missing, stray blobs are left unmatched.
+    missing, stray blobs are left unmatched. A runner-up that labels no blob otherwise (the
+    same labels, some blobs left out) is no rival; the blobs still unlabelled then take the
+    labels of free beads at their places along the row (:func:`_label_the_rest`).
 
     Parameters
     ----------
@@ -569,9 +571,8 @@ def _label_the_rest(bead: np.ndarray, s: np.ndarray, t: np.ndarray, w: np.ndarra
     five, a cubic through six or more (the intensifier's pincushion stretches the row
     towards the field's edge, as ``r (1 + k r^2)``: at the row's ends, where a blob lies
     beyond the fitted ones, a straight line missed it by 7-13 px against a tolerance of
-    about 4 px); across the row, a line through the
-    blobs' ``w`` (px) within ``ACROSS_ROW_TOLERANCES * tol_px``. Returns whether any blob
-    was labelled."""
+    about 4 px); across the row, a line through the blobs' ``w`` (px) within
+    ``ACROSS_ROW_TOLERANCES * tol_px``. Returns whether any blob was labelled."""
     added = False
     while np.any(bead < 0):
         m = bead >= 0
