@@ -81,6 +81,14 @@ def _workers(text):
     return v
 
 
+def _path(text: str) -> Path:
+    """A path argument (``--out``, a dataset folder): an empty one was taken as the current
+    folder, and a review's ``--out ""`` wrote a study's files into the repository."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("expected a path, got an empty string")
+    return Path(text)
+
+
 def _max_workers() -> int:
     return max(64, 8 * (os.cpu_count() or 1))
 
@@ -435,13 +443,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("scene", nargs="?", default=None, help="scene file or name")
     r.add_argument("--json", action="store_true", help="print one JSON object")
     r.add_argument("--seed", type=seed, default=None, help="override the scene's seed")
-    r.add_argument("--out", type=Path, default=None,
+    r.add_argument("--out", type=_path, default=None,
                    help="folder for the overlay figures (none without it)")
     r.set_defaults(func=cmd_run)
 
     s = sub.add_parser("study", help="run a study and write results.csv, report.md, figures")
     s.add_argument("name", nargs="?", help="study name (see --list)")
-    s.add_argument("--out", type=Path, help="output folder")
+    s.add_argument("--out", type=_path, help="output folder")
     s.add_argument("--scene", default=None, help="scene file or name (study default if none)")
     s.add_argument("--seed", type=seed, default=None, help="override the study's seed")
     s.add_argument("--quick", action="store_true", help="a small version (for smoke tests)")
@@ -461,7 +469,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="scene file or name (default: experiment2)")
     g.add_argument("--cases", type=_int_at_least(1, "--cases", at_most=MAX_CASES), default=1,
                    help="number of cases (default 1); a rerun resumes")
-    g.add_argument("--out", required=True, type=Path,
+    g.add_argument("--out", required=True, type=_path,
                    help="the dataset folder (new, empty, or a dataset of the same scene and "
                    "seed)")
     g.add_argument("--seed", type=seed, default=None,
@@ -469,11 +477,11 @@ def build_parser() -> argparse.ArgumentParser:
     g.set_defaults(func=cmd_generate)
 
     c = sub.add_parser("score", help="score a registration method on a generated dataset")
-    c.add_argument("dataset", type=Path, help="a folder written by testbed generate")
+    c.add_argument("dataset", type=_path, help="a folder written by testbed generate")
     c.add_argument("--method", default="reglib",
                    help="pkg.module:function (Observation, initial 4x4) -> 4x4 ct2robot; "
                    "default: reglib.estimate")
-    c.add_argument("--out", required=True, type=Path, help="output folder (outside the "
+    c.add_argument("--out", required=True, type=_path, help="output folder (outside the "
                    "dataset)")
     c.add_argument("--workers", type=_workers, default=1, help="worker processes")
     c.add_argument("--scheduler", default=None,
@@ -484,7 +492,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("scene", nargs="?", default=None)
     d.add_argument("--view", type=_int_at_least(0, "--view"), default=0,
                    help="view index (0-based)")
-    d.add_argument("--out", required=True, type=Path, help="a .png file")
+    d.add_argument("--out", required=True, type=_path, help="a .png file")
     d.add_argument("--seed", type=seed, default=None,
                    help="the case seed (default: the scene's); the world of testbed run "
                    "--seed with the same value, its femur included")

@@ -618,11 +618,15 @@ def _client(address: str):
 
     from distributed import Client
 
-    u = urlparse(address)
-    if u.scheme not in ("tcp", "tls") or not u.hostname or not u.port:
+    try:    # a malformed address raises in urlparse ("Invalid IPv6 URL") or in .port
+        u = urlparse(address)
+        host, port = u.hostname, u.port
+    except ValueError:
+        host = port = None
+    if host is None or not port or u.scheme not in ("tcp", "tls"):
         raise ValueError(f"--scheduler {address!r}: expected an address tcp://HOST:PORT")
     try:
-        with socket.create_connection((u.hostname, u.port), timeout=SCHEDULER_TIMEOUT_S):
+        with socket.create_connection((host, port), timeout=SCHEDULER_TIMEOUT_S):
             pass
     except OSError as exc:
         raise ValueError(f"--scheduler {address}: no scheduler answers there "

@@ -32,7 +32,7 @@ from pydantic import Field, model_validator
 
 from testbed.bodies import Body
 from testbed.materials import material
-from testbed.spec import NonNegative, Positive, Spec, Vec2
+from testbed.spec import Spec, Vec2
 
 __all__ = ["CTScan", "CTSpec", "sample_hu_reference", "scan", "slice_schedule"]
 
@@ -78,10 +78,10 @@ class CTSpec(Spec):
     fov_mm: Annotated[float, Field(ge=50.0, le=700.0)] | None = None
     schedule: Literal["clinical", "uniform", "explicit"] = "clinical"
     fine_spacing_mm: Spacing = 1.0
-    fine_half_width_mm: NonNegative = 15.0
+    fine_half_width_mm: Annotated[float, Field(ge=0, le=100)] = 15.0
     coarse_spacing_mm: Spacing = 6.0
-    distal_height_mm: Positive = 100.0
-    proximal_depth_mm: Positive = 120.0
+    distal_height_mm: Annotated[float, Field(ge=20, le=400)] = 100.0
+    proximal_depth_mm: Annotated[float, Field(ge=20, le=400)] = 120.0
     distal_range_mm: Vec2 | None = None
     proximal_range_mm: Vec2 | None = None
     uniform_spacing_mm: Spacing = 2.0

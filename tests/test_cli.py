@@ -83,6 +83,15 @@ def _one_error_line(err: str) -> str:
     (["run", ""], "an empty name"),
     (["bench", "--only"], "expected at least one argument"),
     (["score", "{tmp}", "--scheduler", "tcp://nohost", "--out", "{tmp}/s"], "--scheduler"),
+    # malformed addresses gave urllib's bare "Invalid IPv6 URL" and "Port could not be cast
+    # to integer value" (a review)
+    (["study", "fig9", "--scheduler", "tcp://[::1", "--out", "{tmp}/s"],
+     "--scheduler 'tcp://[::1': expected an address tcp://HOST:PORT"),
+    (["study", "fig9", "--scheduler", "tcp://host:notaport", "--out", "{tmp}/s"],
+     "expected an address tcp://HOST:PORT"),
+    # an empty --out was the current folder: a study wrote its files there
+    (["study", "fig9", "--quick", "--out", ""], "argument --out: expected a path, got an empty"),
+    (["run", "experiment2", "--json", "--out", ""], "expected a path, got an empty string"),
     (["study", "fig9", "--workers", "2", "--scheduler", "tcp://127.0.0.1:1", "--out", "{tmp}/s"],
      "not both"),
     (["frobnicate"], "invalid choice"),

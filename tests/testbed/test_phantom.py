@@ -178,6 +178,16 @@ def test_user_mesh(tmp_path):
         make_phantom(PhantomSpec(mesh_path=str(bad), mesh_pins_mm=pins))
     with pytest.raises(ValueError, match="no such file"):
         make_phantom(PhantomSpec(mesh_path=str(tmp_path / "missing.ply"), mesh_pins_mm=pins))
+    # a mesh finer than any CT resolves is refused before any work (3.67 million triangles
+    # hung a run): the limit lowered to below this mesh's count
+    import testbed.phantom as P
+
+    limit, P.MAX_USER_FACES = P.MAX_USER_FACES, len(good.faces) - 1
+    try:
+        with pytest.raises(ValueError, match=r"mesh_path.*triangles; at most .*decimate"):
+            make_phantom(PhantomSpec(mesh_path=str(path), mesh_pins_mm=pins))
+    finally:
+        P.MAX_USER_FACES = limit
     with pytest.raises(ValueError, match="not inside"):
         make_phantom(PhantomSpec(mesh_path=str(path),
                                  mesh_pins_mm={**pins, "proximal": (0.0, 0.0, 600.0)}))
