@@ -840,7 +840,7 @@ def _csg_meshes(spec: PhantomSpec, d, g: dict, mirror: bool) -> tuple[trimesh.Tr
     """The procedural femur's CSG: the outer bone (before any surface detail), the soft
     tissue, the canal and the cancellous bone, from the disk cache when it holds them
     (:func:`_cache_file`; the booleans take 0.5-0.6 s of CPU a phantom, the cached meshes
-    about 10 ms to read) and built (:func:`_build_csg_meshes`) and stored otherwise."""
+    about 15 ms to read) and built (:func:`_build_csg_meshes`) and stored otherwise."""
     import zipfile
 
     path = _cache_file(spec)
@@ -881,7 +881,7 @@ def _build_csg_meshes(spec: PhantomSpec, d, g: dict, mirror: bool
 #: the environment variable naming the folder of the phantom cache; empty: no cache. Unset:
 #: ``testbed/__pycache__/phantoms`` beside the code, as numba keeps its compiled kernels
 CACHE_ENV = "TESTBED_CACHE_DIR"
-#: the most phantoms the cache keeps (about 1.6 MB each; the oldest go first)
+#: the most phantoms the cache keeps (about 1.2 MB each; the oldest go first)
 CACHE_MAX_FILES = 64
 #: what, besides the spec, fixes the meshes: this module's code and the libraries that
 #: evaluate and process them
