@@ -61,9 +61,15 @@ def _bytecode(root: Path | None = None) -> None:
 
     root = Path(__file__).resolve().parent.parent if root is None else Path(root)
     for pkg in PACKAGES:
-        if not compileall.compile_dir(str(root / pkg), quiet=1):
-            print(f"warning: some modules of {pkg} were not compiled to bytecode; Python "
-                  "compiles them at import", file=sys.stderr)
+        try:        # like the precompile, it never fails an install
+            done = compileall.compile_dir(str(root / pkg), quiet=1)
+        except Exception as exc:  # noqa: BLE001
+            done, why = False, f" ({exc})"
+        else:
+            why = ""
+        if not done:
+            print(f"warning: some modules of {pkg} were not compiled to bytecode{why}; "
+                  "Python compiles them at import", file=sys.stderr)
 
 
 def _precompile() -> None:
