@@ -97,7 +97,11 @@ def _as_pose(value, spec: str):
             or not np.allclose(m[3], [0, 0, 0, 1]):
         raise ValueError(f"method {spec}: returned a (4, 4) matrix that is not a rigid "
                          "transform (rotation and translation)")
-    return RigidTransform(R, m[:3, 3])
+    try:    # the geometry's own, stricter tests (a review: its message named no method)
+        return RigidTransform(R, m[:3, 3])
+    except ValueError as exc:
+        raise ValueError(f"method {spec}: returned a (4, 4) matrix that is not a rigid "
+                         f"transform: {exc}") from None
 
 
 #: scene fields that a dataset's stored scene may hold from an older testbed and that this

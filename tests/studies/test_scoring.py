@@ -200,7 +200,13 @@ def test_a_methods_result_that_is_no_rigid_pose_is_named():
                          # a review: booleans and strings were cast and scored (853 mm off)
                          (np.eye(4, dtype=bool), "returned an array of bool"),
                          (m.astype(str), "returned an array of <U"),
-                         (np.asarray(m, dtype=object), "returned an array of object")):
+                         (np.asarray(m, dtype=object), "returned an array of object"),
+                         # passed the loose test above; RigidTransform's message named no
+                         # method (a review, tenth session)
+                         (np.block([[m[:3, :3] * 1.0000009, m[:3, 3:]], [m[3:]]]),
+                          r"method x: returned .* not a rigid transform: .*proper rotation"),
+                         (np.block([[m[:3, :3], np.full((3, 1), 1e300)], [m[3:]]]),
+                          r"method x: returned .* not a rigid transform: .*translation")):
         with pytest.raises(ValueError, match=match):
             _as_pose(value, "x")
     # whole numbers are numbers
