@@ -24,6 +24,7 @@ centre is the ground-truth target point.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Annotated, Literal
@@ -883,31 +884,33 @@ def _build_csg_meshes(spec: PhantomSpec, d, g: dict, mirror: bool
 CACHE_ENV = "TESTBED_CACHE_DIR"
 #: the most phantoms the cache keeps (about 1.2 MB each; the oldest go first)
 CACHE_MAX_FILES = 64
-#: what, besides the spec, fixes the meshes: this module's code and the libraries that
-#: evaluate and process them
-_CACHE_SALT: list = []
-
-
 def _cache_file(spec: PhantomSpec) -> Path | None:
     """Where the CSG meshes of ``spec`` are cached: a file named by the SHA-256 of the spec
     (as :func:`_build_key` gives it), this module's source and the versions of manifold3d,
     trimesh and numpy; None when the cache is off."""
     import hashlib
     import os
-    from importlib import metadata
 
     root = os.environ.get(CACHE_ENV)
     if root is None:
         root = str(Path(__file__).parent / "__pycache__" / "phantoms")
     if not root:
         return None
-    if not _CACHE_SALT:
-        h = hashlib.sha256(Path(__file__).read_bytes())
-        for lib in ("manifold3d", "trimesh", "numpy"):
-            h.update(f"{lib} {metadata.version(lib)}".encode())
-        _CACHE_SALT.append(h.hexdigest())
-    key = hashlib.sha256((_CACHE_SALT[0] + spec.model_dump_json()).encode()).hexdigest()
+    key = hashlib.sha256((_cache_salt() + spec.model_dump_json()).encode()).hexdigest()
     return Path(root) / f"csg-{key[:32]}.npz"
+
+
+@functools.cache
+def _cache_salt() -> str:
+    """What, besides the spec, fixes the meshes: this module's code and the versions of the
+    libraries that evaluate and process them (a SHA-256, hex)."""
+    import hashlib
+    from importlib import metadata
+
+    h = hashlib.sha256(Path(__file__).read_bytes())
+    for lib in ("manifold3d", "trimesh", "numpy"):
+        h.update(f"{lib} {metadata.version(lib)}".encode())
+    return h.hexdigest()
 
 
 def _cache_store(path: Path, meshes) -> None:

@@ -322,7 +322,7 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
     # [slice, row, col]
     # whole HU within 12 bits (testbed.ct), stored as a CT image's int16 pixels: exact, and
     # half the bytes to write and compress
-    data = np.ascontiguousarray(np.asarray(ct.volume_hu).transpose(2, 1, 0).astype(np.int16))
+    data = np.asarray(ct.volume_hu).transpose(2, 1, 0).astype(np.int16, order="C")
     obs["volumes"]["ct"] = Volume(data, voxel2ct)
     obs["arrays"]["ct_slices"] = {
         "z_mm": z, "thickness_mm": np.asarray(ct.slice_thickness_mm, dtype=np.float64),

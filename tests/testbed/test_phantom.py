@@ -137,7 +137,7 @@ def _shallow_pin(mesh, z):
     return (float(x) - 2.0, 0.0, float(z))
 
 
-def test_user_mesh(tmp_path):
+def test_user_mesh(tmp_path, monkeypatch):
     femur = make_phantom(PhantomSpec(segments=24))
     good = femur.femur.copy()
     path = tmp_path / "bone.stl"
@@ -182,12 +182,10 @@ def test_user_mesh(tmp_path):
     # hung a run): the limit lowered to below this mesh's count
     import testbed.phantom as P
 
-    limit, P.MAX_USER_FACES = P.MAX_USER_FACES, len(good.faces) - 1
-    try:
-        with pytest.raises(ValueError, match=r"mesh_path.*triangles; at most .*decimate"):
-            make_phantom(PhantomSpec(mesh_path=str(path), mesh_pins_mm=pins))
-    finally:
-        P.MAX_USER_FACES = limit
+    monkeypatch.setattr(P, "MAX_USER_FACES", len(good.faces) - 1)
+    with pytest.raises(ValueError, match=r"mesh_path.*triangles; at most .*decimate"):
+        make_phantom(PhantomSpec(mesh_path=str(path), mesh_pins_mm=pins))
+    monkeypatch.undo()
     with pytest.raises(ValueError, match="not inside"):
         make_phantom(PhantomSpec(mesh_path=str(path),
                                  mesh_pins_mm={**pins, "proximal": (0.0, 0.0, 600.0)}))
