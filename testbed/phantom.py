@@ -547,6 +547,25 @@ def _symmetry_proxy(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     return proxy if len(proxy.faces) else mesh
 
 
+def _binary_stl_mismatch(path: Path) -> str:
+    """For a binary STL whose header's triangle count disagrees with the file's size (a
+    binary STL is an 80-byte header, a uint32 count and 50 bytes per triangle), what to
+    add to the message; '' otherwise."""
+    if path.suffix.lower() != ".stl":
+        return ""
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(84)
+    if len(head) < 84 or head[:5].lower() == b"solid":
+        return ""
+    count = int.from_bytes(head[80:84], "little")
+    if size == 84 + 50 * count:
+        return ""
+    return (f" (it looks like a binary STL whose header counts {count:,} triangles, where "
+            f"its {size:,} bytes hold {max(size - 84, 0) / 50:,.1f} at 50 bytes each after an "
+            "84-byte header: the file was cut short or its header's count is wrong)")
+
+
 def _user_phantom(spec: PhantomSpec) -> Phantom:
     path = Path(spec.mesh_path)
     if not path.is_file():
@@ -564,8 +583,9 @@ def _user_phantom(spec: PhantomSpec) -> Phantom:
     if not isinstance(mesh, trimesh.Trimesh):
         raise ValueError(f"phantom.mesh_path: {str(path)!r} holds no single triangle mesh")
     if len(mesh.faces) == 0:
-        raise ValueError(f"phantom.mesh_path: {str(path)!r} holds no triangles (an empty file, "
-                         "or points without faces); give a closed triangle surface")
+        why = _binary_stl_mismatch(path) or " (an empty file, or points without faces)"
+        raise ValueError(f"phantom.mesh_path: {str(path)!r} holds no triangles{why}; give a "
+                         "closed triangle surface")
     if len(mesh.faces) > MAX_USER_FACES:
         raise ValueError(
             f"phantom.mesh_path: the mesh in {str(path)!r} has {len(mesh.faces):,} triangles; "

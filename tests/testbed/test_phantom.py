@@ -212,6 +212,15 @@ def test_user_mesh(tmp_path, monkeypatch):
     (tmp_path / "empty.stl").write_bytes(b"")
     with pytest.raises(ValueError, match="holds no triangles|cannot read|no single"):
         make_phantom(PhantomSpec(mesh_path=str(tmp_path / "empty.stl"), mesh_pins_mm=pins))
+    # A binary STL whose header counts more triangles than the file holds (a copy cut
+    # short, or a writer's bug) is named as such, not as an empty file.
+    good.export(tmp_path / "good.stl")
+    data = bytearray((tmp_path / "good.stl").read_bytes())
+    data[80:84] = (int.from_bytes(data[80:84], "little") + 7).to_bytes(4, "little")
+    (tmp_path / "miscounted.stl").write_bytes(bytes(data))
+    with pytest.raises(ValueError, match="binary STL whose header counts .* cut short or its "
+                                         "header's count is wrong"):
+        make_phantom(PhantomSpec(mesh_path=str(tmp_path / "miscounted.stl"), mesh_pins_mm=pins))
     with pytest.raises(ValueError, match="mesh_path is empty"):
         PhantomSpec(mesh_path=" ", mesh_pins_mm=pins)
     # A femur lying along x (a mesh exported in another frame) is refused, naming the axis.
