@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import re
 import sys
@@ -78,6 +79,23 @@ def _workers(text):
         raise argparse.ArgumentTypeError(
             f"expected at most {most} for --workers on this machine ({os.cpu_count()} "
             f"core(s)), got {v}; a cluster's workers come with --scheduler")
+    return v
+
+
+#: ``testbed score``'s default time limit per case (s): reglib takes about a second, a
+#: method that has not answered in ten minutes is taken as hung (``--timeout``)
+SCORE_TIMEOUT_S = 600.0
+
+
+def _seconds(text: str) -> float:
+    """``--timeout``: seconds, a finite number >= 0 (0: no limit)."""
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not math.isfinite(v) or v < 0:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds >= 0 (0: no limit), "
+                                         f"got {text!r}")
     return v
 
 
@@ -331,7 +349,12 @@ def cmd_score(args) -> int:
         load_method(args.method)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+    if args.scheduler is not None and args.timeout:
+        raise UsageError("--timeout: a time limit per case needs local workers; with "
+                         "--scheduler set one on the Dask cluster instead")
     _check_scheduler(args, "score")
+    timeout = (None if args.scheduler is not None or args.timeout == 0 else
+               SCORE_TIMEOUT_S if args.timeout is None else args.timeout)
     if not list_cases(dataset):     # before --out is made
         if (dataset / "case.json").is_file():
             raise UsageError(f"{dataset}: is one case; give the dataset folder that holds it "
@@ -346,7 +369,8 @@ def cmd_score(args) -> int:
     out = _out_folder(args.out)
     try:
         score_dataset(dataset, out, method=args.method, workers=args.workers,
-                      scheduler=args.scheduler, progress=sys.stderr.isatty())
+                      scheduler=args.scheduler, progress=sys.stderr.isatty(),
+                      timeout_s=timeout)
     except BaseException:
         if made and out.is_dir() and not any(out.iterdir()):
             out.rmdir()   # refused before any result (no case can be read): no folder left
@@ -486,6 +510,10 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--workers", type=_workers, default=1, help="worker processes")
     c.add_argument("--scheduler", default=None,
                    help="run cases on a Dask cluster: scheduler address tcp://HOST:PORT")
+    c.add_argument("--timeout", type=_seconds, default=None, metavar="SECONDS",
+                   help="a case whose method runs longer is a failed case, its worker "
+                   f"stopped (default {SCORE_TIMEOUT_S:g} s with local workers; 0: no limit; "
+                   "not with --scheduler)")
     c.set_defaults(func=cmd_score)
 
     d = sub.add_parser("render", help="render one X-ray frame of a view to PNG")

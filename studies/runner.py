@@ -477,6 +477,25 @@ def _lost(trial: Trial, why: str) -> TrialResult:
                              f"alone ({why})")
 
 
+def _timed_out(trial: Trial, timeout_s: float) -> TrialResult:
+    return TrialResult(trial.key, trial.index, "failed", (),
+                       error=f"TimedOut: the trial still ran after {timeout_s:g} s (the "
+                             "per-trial time limit) and its worker process was stopped",
+                       seconds=float(timeout_s))
+
+
+def _kill_workers(ex: cf.ProcessPoolExecutor) -> None:
+    """End the pool's worker processes at once (a trial past its time limit may be stuck in
+    compiled code, where no signal reaches Python); the pool is broken afterwards. Python
+    3.11's executor has no public call for it (3.14 adds ``kill_workers``)."""
+    for proc in list((getattr(ex, "_processes", None) or {}).values()):
+        try:
+            proc.kill()
+        except (OSError, ValueError, AttributeError):  # gone already, or closed
+            pass
+    ex.shutdown(wait=False, cancel_futures=True)
+
+
 #: seconds to wait, once a worker died, for the pool to fail the trials still in flight
 POOL_SETTLE_S = 30.0
 #: seconds between a pool worker's checks that the study's process still lives
@@ -543,11 +562,14 @@ def _collect(done, running: dict, record, suspects: list) -> bool:
 
 
 def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str,
-              retries: int = 2) -> None:
+              retries: int = 2, timeout_s: float | None = None) -> None:
     """Process pool with at most ``workers`` trials in flight, so that when a worker dies
     (BrokenProcessPool) the suspects are known: they are rerun one at a time in a fresh
     one-worker pool (``retries`` more times if the worker dies again), and a trial that
-    kills its worker every time even alone is recorded as failed."""
+    kills its worker every time even alone is recorded as failed. A trial still running
+    ``timeout_s`` after it was handed to a worker is recorded as failed and the pool's
+    workers are killed; the other trials then in flight go back to the queue (not suspects:
+    they did nothing wrong) and a new pool takes over."""
     ctx = multiprocessing.get_context(mp_context)
     if mp_context == "forkserver":
         # Workers fork from one server that has imported these once (no effect once the
@@ -562,33 +584,56 @@ def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str,
         if suspects:
             trial = suspects.pop(0)
             for attempt in range(retries + 1):
-                with cf.ProcessPoolExecutor(1, mp_context=ctx, initializer=_worker_start,
-                                            initargs=(os.getpid(),)) as ex:
-                    try:
-                        res = ex.submit(execute_trial, trial_fn, trial).result()
-                        break
-                    except BrokenProcessPool as exc:
-                        res = _lost(trial, f"{str(exc) or type(exc).__name__}; "
-                                    f"{attempt + 1} attempt(s) alone")
+                ex = cf.ProcessPoolExecutor(1, mp_context=ctx, initializer=_worker_start,
+                                            initargs=(os.getpid(),))
+                try:
+                    res = ex.submit(execute_trial, trial_fn, trial).result(timeout=timeout_s)
+                    break
+                except BrokenProcessPool as exc:
+                    res = _lost(trial, f"{str(exc) or type(exc).__name__}; "
+                                f"{attempt + 1} attempt(s) alone")
+                except cf.TimeoutError:
+                    _kill_workers(ex)
+                    res = _timed_out(trial, timeout_s)
+                    break
+                finally:
+                    ex.shutdown(wait=False, cancel_futures=True)
             record(trial, res)
             continue
         ex = cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_start,
                                     initargs=(os.getpid(),))
         running: dict[cf.Future, Trial] = {}
+        deadline: dict[cf.Future, float] = {}   # with timeout_s: when each must be done
         try:
             while queue or running:
                 broken = False
                 while queue and len(running) < workers:
                     t = queue.pop()
                     try:
-                        running[ex.submit(execute_trial, trial_fn, t)] = t
+                        fut = ex.submit(execute_trial, trial_fn, t)
                     except BrokenProcessPool:  # a worker died since the last wait
                         queue.append(t)  # never started: back in line, not a suspect
                         broken = True
                         break
+                    running[fut] = t
+                    if timeout_s is not None:   # at most `workers` in flight: it starts now
+                        deadline[fut] = time.monotonic() + timeout_s
                 if not broken:
-                    done, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
+                    wait_s = None if timeout_s is None else max(
+                        0.0, min(deadline[f] for f in running) - time.monotonic())
+                    done, _ = cf.wait(running, timeout=wait_s, return_when=cf.FIRST_COMPLETED)
                     broken = _collect(done, running, record, suspects)
+                    now = time.monotonic()
+                    late = [f for f in running if timeout_s is not None and deadline[f] <= now]
+                    if late and not broken:
+                        _kill_workers(ex)
+                        for f in late:
+                            t = running.pop(f)
+                            record(t, _timed_out(t, timeout_s))
+                        # the others in flight start again in the next pool, in trial order
+                        queue.extend(sorted(running.values(), key=lambda tr: -tr.index))
+                        running.clear()
+                        break
                 if broken:
                     # a broken pool fails every trial still in flight at once; those that
                     # finished before it broke keep their results, the others are suspects
@@ -702,6 +747,7 @@ def run_trials(
     mp_context: Literal["spawn", "forkserver"] | None = None,
     retries: int = 2,
     isolate: bool = False,
+    timeout_s: float | None = None,
 ) -> pd.DataFrame:
     """Run ``trials`` with ``trial_fn``, storing each result as it finishes; return all rows.
 
@@ -724,6 +770,11 @@ def run_trials(
         (``os._exit``, a crash in compiled code) is recorded as failed, as in a pool, where
         in this process it ended the command with no results (code that is not the
         project's own: ``testbed score --method``).
+    timeout_s : float, optional
+        A trial still running this many seconds after a worker took it is recorded as
+        failed (``TimedOut``) and its worker killed; the study goes on. Trials then run in
+        worker processes even with ``workers=1`` (a trial in this process cannot be
+        stopped). Not with ``scheduler``.
     scheduler : str, dask.distributed.Client or cluster, optional
         Run on Dask: an address ``tcp://HOST:PORT`` (a client is opened and closed here), a
         ``Client`` (used as is), or a cluster such as ``LocalCluster``.
@@ -771,7 +822,15 @@ def run_trials(
     if mp_context not in ("spawn", "forkserver"):
         raise ValueError(f"mp_context: expected 'spawn' or 'forkserver', got {mp_context!r}")
 
-    pooled = workers > 1 or bool(isolate)
+    if timeout_s is not None:
+        if (isinstance(timeout_s, bool) or not isinstance(timeout_s, numbers.Real)
+                or not math.isfinite(timeout_s) or timeout_s <= 0):
+            raise ValueError(f"timeout_s: expected a number of seconds > 0, got {timeout_s!r}")
+        if scheduler is not None:
+            raise ValueError("timeout_s: a per-trial time limit needs local workers; with a "
+                             "Dask scheduler set one on the cluster instead")
+        timeout_s = float(timeout_s)
+    pooled = workers > 1 or bool(isolate) or timeout_s is not None
     if scheduler is None and pooled:
         try:
             pickle.dumps(trial_fn)
@@ -812,7 +871,7 @@ def run_trials(
                 _run_local(trial_fn, todo, record)
             else:
                 _run_pool(trial_fn, todo, record, workers=int(workers), mp_context=mp_context,
-                          retries=retries)
+                          retries=retries, timeout_s=timeout_s)
         finally:
             bar.close()
     finally:

@@ -219,9 +219,12 @@ def missing_cases(dataset) -> list[str]:
 
 
 def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 1,
-                  scheduler=None, progress: bool = True) -> Path:
+                  scheduler=None, progress: bool = True,
+                  timeout_s: float | None = None) -> Path:
     """Score ``method`` on every case of ``dataset``; writes ``out/results.csv`` and
-    ``out/report.md``; returns ``out``. Rerunning into the same ``out`` resumes."""
+    ``out/report.md``; returns ``out``. Rerunning into the same ``out`` resumes.
+    ``timeout_s``: a case whose method still runs after this many seconds is a failed case
+    (its worker process killed), not a hung command (``testbed score --timeout``)."""
     from studies.common import StudyContext, check_out_folder, finish_study, markdown_table
     from studies.runner import fingerprint, make_trials, run_trials
     from testbed.dataset import list_cases
@@ -277,7 +280,8 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
     # method's module), not forked from a server started before it
     user = method != DEFAULT_METHOD
     df = run_trials(trial, trials, out_dir=out, workers=workers, scheduler=scheduler,
-                    progress=progress, isolate=user, mp_context="spawn" if user else None)
+                    progress=progress, isolate=user, mp_context="spawn" if user else None,
+                    timeout_s=timeout_s)
     reused = int(df.attrs.get("skipped", 0))
     reuse_note = ""
     if reused:

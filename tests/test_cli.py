@@ -481,6 +481,23 @@ def test_score_out_inside_the_dataset_is_refused(tmp_path, capsys):
     assert not (ds / "scores").exists()
 
 
+def test_score_timeout_is_checked_before_the_work(tmp_path, capsys):
+    """--timeout takes seconds >= 0 and no Dask scheduler (whose workers the command cannot
+    stop); each refusal is one line, and no --out folder is left."""
+    ds = tmp_path / "ds"
+    (ds / "case_0000").mkdir(parents=True)
+    (ds / "case_0000" / "case.json").write_text("{}")
+    out = tmp_path / "scores"
+    for bad in ("-1", "nan", "inf", "ten"):
+        assert main(["score", str(ds), "--out", str(out), "--timeout", bad]) == 2
+        assert "expected a number of seconds >= 0" in capsys.readouterr().err
+    assert main(["score", str(ds), "--out", str(out), "--timeout", "30",
+                 "--scheduler", "tcp://127.0.0.1:1"]) == 2
+    err = capsys.readouterr().err
+    assert "--timeout: a time limit per case needs local workers" in err, err
+    assert len(err.splitlines()) == 1 and not out.exists()
+
+
 def test_a_study_that_times_its_work_refuses_workers_in_one_line(tmp_path, capsys):
     """The message starts with the command it names, once (it read 'testbed: testbed study
     table1: ...')."""

@@ -211,6 +211,32 @@ def test_worker_that_dies_is_recorded_and_the_others_finish(tmp_path):
     pd.testing.assert_frame_equal(ok[exp.columns.tolist()], exp, check_exact=True)
 
 
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_trial_past_its_time_limit_is_recorded_and_the_others_finish(tmp_path, workers):
+    # a method that hangs (here: sleeps far past the limit) must not hold the study: its
+    # trial is failed as timed out, its worker killed, and every other trial gives the rows
+    # of an unlimited run, among them one in flight beside it when the pool was killed
+    params = _params(5, sleep_s=0.3)
+    params[1] = {**params[1], "sleep_s": 300.0}
+    trials = make_trials("points-lines", 11, params)
+    t0 = time.monotonic()
+    df = run_trials(toy_trial, trials, out_dir=tmp_path, workers=workers, progress=False,
+                    timeout_s=4.0)
+    assert time.monotonic() - t0 < 60.0
+    assert df[df.metric == "failed"].trial.tolist() == [1]
+    err = read_failures(tmp_path).error[0]
+    assert err.startswith("TimedOut: the trial still ran after 4 s"), err
+    ok = df[df.trial != 1].reset_index(drop=True)
+    exp = expected_rows(11, params)
+    exp = exp[exp.trial != 1].reset_index(drop=True)
+    pd.testing.assert_frame_equal(ok[exp.columns.tolist()], exp, check_exact=True)
+    with pytest.raises(ValueError, match="timeout_s: expected a number of seconds > 0"):
+        run_trials(toy_trial, trials, out_dir=tmp_path, timeout_s=0, progress=False)
+    with pytest.raises(ValueError, match="needs local workers"):
+        run_trials(toy_trial, trials, out_dir=tmp_path, timeout_s=5.0, progress=False,
+                   scheduler="tcp://127.0.0.1:1")
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("retries, die_times, ok", [(2, 2, True), (1, 3, False), (0, 2, False)])
 def test_lost_workers_are_retried_a_bounded_number_of_times(tmp_path, retries, die_times, ok):

@@ -2,6 +2,7 @@
 
 import json
 import re
+import time
 
 import numpy as np
 import pytest
@@ -339,7 +340,10 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path, capsys):
         "    return np.eye(3)\n"
         "def leaves(observation, initial):\n"
         "    import os\n"
-        "    os._exit(0)\n")
+        "    os._exit(0)\n"
+        "def hangs(observation, initial):\n"
+        "    import time\n"
+        "    time.sleep(3600)\n")
     import sys
 
     sys.path.insert(0, str(tmp_path))
@@ -351,8 +355,16 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path, capsys):
         # the command with exit 0 and no results.csv, a review)
         score_dataset(tmp_path / "ds", tmp_path / "s_exit", method="mymethods:leaves",
                       progress=False)
+        # a method that hangs is a failed case once its time is up, not a hung command
+        t0 = time.monotonic()
+        score_dataset(tmp_path / "ds", tmp_path / "s_hang", method="mymethods:hangs",
+                      progress=False, timeout_s=6.0)
+        assert time.monotonic() - t0 < 60.0
     finally:
         sys.path.remove(str(tmp_path))
+    assert list(pd.read_csv(tmp_path / "s_hang" / "results.csv").metric) == ["failed"]
+    assert "TimedOut: the trial still ran after 6 s" in (
+        tmp_path / "s_hang" / "report.md").read_text()
     assert list(pd.read_csv(tmp_path / "s_exit" / "results.csv").metric) == ["failed"]
     assert "worker" in (tmp_path / "s_exit" / "report.md").read_text()
     df2 = pd.read_csv(tmp_path / "s2" / "results.csv")
