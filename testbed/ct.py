@@ -427,11 +427,10 @@ def _streaks(shape, origin, px, centres_xy, amp, rng) -> np.ndarray:
     out = np.zeros(shape)
     for c in centres_xy:
         dx, dy = x - c[0], y - c[1]
-        r = np.hypot(dx, dy)
+        fade = np.exp(-np.hypot(dx, dy) / 60.0)     # the same for the centre's 4 streaks
         for i, th in enumerate(rng.uniform(0, np.pi, 4)):
             d_perp = np.abs(-np.sin(th) * dx + np.cos(th) * dy)
-            out += (1 if i % 2 else -1) * amp * np.exp(-0.5 * (d_perp / 1.5) ** 2) * np.exp(
-                -r / 60.0)
+            out += (1 if i % 2 else -1) * amp * np.exp(-0.5 * (d_perp / 1.5) ** 2) * fade
     return out
 
 
