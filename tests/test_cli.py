@@ -498,6 +498,23 @@ def test_score_timeout_is_checked_before_the_work(tmp_path, capsys):
     assert len(err.splitlines()) == 1 and not out.exists()
 
 
+def test_table1_ends_with_exit_0_and_text_labelled_failures_are_counted(tmp_path, capsys):
+    """table1 labels its trials with text ("clean-20-0"); the count of failed trials compared
+    them with 0 and every table1 run ended in an internal error, exit 1, after writing its
+    results (a review)."""
+    out = tmp_path / "t1"
+    assert main(["study", "table1", "--quick", "--out", str(out)]) == 0
+    assert "internal error" not in capsys.readouterr().err
+    from studies.cli import _failed_trials
+
+    (tmp_path / "r").mkdir()
+    (tmp_path / "r" / "results.csv").write_text(
+        "trial,metric,value,unit\nclean-20-0,time,0.1,s\nnoisy-20-0,failed,1,\n"
+        "-1,mean_time,0.1,s\n")
+    assert _failed_trials(tmp_path / "r") == 1
+    assert "1 of 2 trial(s) failed" in capsys.readouterr().err
+
+
 def test_a_study_that_times_its_work_refuses_workers_in_one_line(tmp_path, capsys):
     """The message starts with the command it names, once (it read 'testbed: testbed study
     table1: ...')."""
