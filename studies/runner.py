@@ -285,6 +285,62 @@ def _check_rows(rows, trial: Trial) -> list[dict]:
     return out
 
 
+#: the longest error message and traceback a trial stores (characters): a review's method
+#: raised a message of 5 MB, which went whole into the database and the report
+MAX_ERROR_CHARS = 4000
+
+
+def _describe(exc: BaseException) -> str:
+    """``"Type: message"`` of a trial's exception, even when its ``__str__`` raises (that
+    ended a review's command in an internal error)."""
+    try:
+        text = str(exc)
+    except Exception as inner:  # noqa: BLE001 - whatever the user's __str__ raises
+        text = f"(its message cannot be printed: {type(inner).__name__})"
+    return f"{type(exc).__name__}: {text}"
+
+
+def _format_traceback() -> str:
+    try:
+        return traceback.format_exc()
+    except Exception:  # noqa: BLE001 - an exception that cannot even be formatted
+        return ""
+
+
+def _storable(text: str, *, tail: bool = False) -> str:
+    """``text`` as the database can hold it: characters UTF-8 cannot encode (a lone
+    surrogate, from text decoded with ``surrogateescape``) escaped, and at most
+    :data:`MAX_ERROR_CHARS` characters, its start kept (``tail``: its end, a traceback's
+    last frames) and the cut said so. A message SQLite could not encode ended a review's
+    command with exit 2 and no results, on every rerun."""
+    text = str(text).encode("utf-8", "backslashreplace").decode("utf-8")
+    cut = len(text) - MAX_ERROR_CHARS
+    if cut > 0:
+        note = f" ... ({cut:,} characters cut) ... "
+        text = note + text[cut:] if tail else text[:MAX_ERROR_CHARS] + note
+    return text
+
+
+#: the longest error message a report shows (characters)
+REPORT_ERROR_CHARS = 300
+
+
+def report_line(error: str) -> str:
+    """A trial's error as one line of a markdown report: its first line, at most
+    :data:`REPORT_ERROR_CHARS` characters, backticks and ``<`` escaped, and how many lines
+    were left out (they stay in the database). A review's method raised a message with a
+    markdown heading and an open code fence, which became a section of report.md and
+    swallowed the sections after it."""
+    lines = str(error).strip().splitlines() or [""]
+    text = lines[0]
+    if len(text) > REPORT_ERROR_CHARS:
+        text = text[:REPORT_ERROR_CHARS] + " ..."
+    text = text.replace("`", "\\`").replace("<", "&lt;")
+    if len(lines) > 1:
+        text += f" ({len(lines) - 1} more line(s): read_failures or trials.sqlite)"
+    return text
+
+
 def interrupt_of(exc: BaseException) -> KeyboardInterrupt | None:
     """The KeyboardInterrupt (Ctrl-C, or SIGTERM as :class:`studies.cli.Terminated`) behind
     ``exc``, if any: one that arrives while a numba-compiled function runs surfaces as a
@@ -310,14 +366,14 @@ def execute_trial(trial_fn: Callable[[Trial], list[dict]], trial: Trial) -> Tria
     t0 = time.perf_counter()
     try:
         rows = _check_rows(trial_fn(trial), trial)
-    except (Exception, SystemExit) as exc:  # a failing trial is recorded, not fatal (also a
-        # user's method that calls sys.exit: it must not end the study without its results)
+    except BaseException as exc:  # a failing trial is recorded, not fatal (also a user's
+        # method that calls sys.exit, or raises a BaseException of its own: a review's
+        # ended the command with a traceback and no results)
         stop = interrupt_of(exc)
         if stop is not None:
             raise stop from None
-        return TrialResult(trial.key, trial.index, "failed", (),
-                           error=f"{type(exc).__name__}: {exc}",
-                           traceback=traceback.format_exc(),
+        return TrialResult(trial.key, trial.index, "failed", (), error=_describe(exc),
+                           traceback=_format_traceback(),
                            seconds=time.perf_counter() - t0, worker=who)
     result = TrialResult(trial.key, trial.index, "done", tuple(rows),
                          seconds=time.perf_counter() - t0, worker=who)
@@ -377,7 +433,8 @@ def _store(con: sqlite3.Connection, trial: Trial, res: TrialResult) -> None:
         con.execute(
             "INSERT OR REPLACE INTO trials VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
             (trial.key, trial.index, trial.scene, seed, json.dumps(trial.params),
-             res.status, res.error, res.traceback, res.seconds, res.worker, now))
+             res.status, _storable(res.error), _storable(res.traceback, tail=True), res.seconds,
+             res.worker, now))
         con.executemany(
             "INSERT INTO rows VALUES (?, ?, ?, ?, ?, ?, ?)",
             [(trial.key, trial.index, i, r["metric"],
@@ -421,6 +478,7 @@ def read_results(out_dir, trials: Sequence[Trial] | None = None) -> pd.DataFrame
     columns in order of first appearance (trial parameters, then the rows' own keys). A
     failed trial gives one row ``metric="failed"``, ``value=1.0``.
     ``df.attrs["failures"]`` is a dict trial index -> error message of the failed trials
+    as a report shows it (:func:`report_line`; the whole message is in :func:`read_failures`)
     (plain values, so that ``pd.concat`` of results keeps working).
     """
     db = Path(out_dir) / DB_NAME
@@ -443,7 +501,7 @@ def read_results(out_dir, trials: Sequence[Trial] | None = None) -> pd.DataFrame
             continue
         params = json.loads(params_json)
         if status == "failed":
-            failures[index] = error
+            failures[index] = report_line(error)
             records.append({"trial": index, "metric": FAILED_METRIC, "value": 1.0, "unit": "",
                             **params})
             continue

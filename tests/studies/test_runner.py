@@ -47,6 +47,8 @@ def toy_trial(trial: Trial) -> list[dict]:
     time.sleep(p.get("sleep_s", 0.0))
     if p.get("fail"):
         raise RuntimeError(f"trial {trial.index} was asked to fail")
+    if p.get("odd"):       # exceptions a user's method may raise that are hard to report
+        raise _odd_exception(p["odd"])
     if p.get("die"):
         os._exit(3)
     if p.get("die_times"):  # the first die_times runs lose their worker, then it succeeds
@@ -62,6 +64,23 @@ def toy_trial(trial: Trial) -> list[dict]:
     rows.append({"metric": "mtre", "value": float(rng.normal(1.0, 0.1)), "unit": "mm"})
     rows.append({"metric": "undefined", "value": float("nan"), "unit": ""})
     return rows
+
+
+class _OwnBase(BaseException):
+    """A method's exception that is no Exception."""
+
+
+class _Unprintable(Exception):
+    def __str__(self):
+        raise RuntimeError("cannot print me")
+
+
+def _odd_exception(kind: str) -> BaseException:
+    return {"base": _OwnBase("derived from BaseException"),
+            "unprintable": _Unprintable(),
+            "surrogate": ValueError("bad \udcff byte in a name"),
+            "markdown": ValueError("first line\n## Injected heading\n```\n" + "x" * 9000)
+            }[kind]
 
 
 def expected_rows(study_seed: int, params: list[dict]) -> pd.DataFrame:
@@ -165,6 +184,37 @@ def test_failed_trial_is_recorded_and_does_not_stop_the_study(tmp_path):
     assert pd.concat([df, again]).shape[0] == 2 * len(df)  # attrs do not break pandas
     retried = run_trials(toy_trial, trials, out_dir=tmp_path, progress=False, retry_failed=True)
     assert retried.attrs["executed"] == 2
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_odd_exceptions_are_failed_trials_that_a_report_can_show(tmp_path, workers):
+    # a review's methods raised a BaseException of their own, an exception whose __str__
+    # raises, a message SQLite cannot encode (a lone surrogate) and a 5 MB message with a
+    # markdown heading and an open code fence: the first three ended the command with no
+    # results (on every rerun), the last broke report.md's sections
+    params = _params(6, sleep_s=0.0)
+    kinds = {1: "base", 2: "unprintable", 3: "surrogate", 4: "markdown"}
+    for i, kind in kinds.items():
+        params[i] = {**params[i], "odd": kind}
+    trials = make_trials("points-lines", 3, params)
+    df = run_trials(toy_trial, trials, out_dir=tmp_path, workers=workers, progress=False)
+    assert df[df.metric == "failed"].trial.tolist() == [1, 2, 3, 4]
+    ok = df[~df.trial.isin(kinds)].reset_index(drop=True)
+    exp = expected_rows(3, params)
+    exp = exp[~exp.trial.isin(kinds)].reset_index(drop=True)
+    pd.testing.assert_frame_equal(ok[exp.columns.tolist()], exp, check_exact=True)
+    full = read_failures(tmp_path).set_index("trial").error
+    assert full[1] == "_OwnBase: derived from BaseException"
+    assert full[2] == "_Unprintable: (its message cannot be printed: RuntimeError)"
+    assert full[3] == "ValueError: bad \\udcff byte in a name"
+    assert full[4].startswith("ValueError: first line\n## Injected heading")
+    assert "characters cut" in full[4] and len(full[4]) < 4100
+    shown = df.attrs["failures"]
+    assert shown[4] == "ValueError: first line (3 more line(s): read_failures or trials.sqlite)"
+    assert all("\n" not in v and len(v) < 400 for v in shown.values())
+    # stored: a rerun takes them from the database instead of failing again
+    again = run_trials(toy_trial, trials, out_dir=tmp_path, workers=workers, progress=False)
+    assert again.attrs["executed"] == 0
 
 
 def test_resume_false_reruns_and_other_trials_are_not_returned(tmp_path):
