@@ -186,6 +186,9 @@ def cayley(u) -> np.ndarray:
     ``2 atan(|u|)`` about the axis ``-u / |u|``.
     """
     u = np.asarray(u, dtype=np.float64)
+    if u.ndim == 0 or u.shape[-1] != 3:
+        raise ValueError(f"cayley: expected Cayley parameters of shape (3,) or (..., 3), got "
+                         f"shape {u.shape}")
     U = skew(u)
     n2 = np.sum(u * u, axis=-1)[..., None, None]
     return np.eye(3) + 2.0 * (U @ U - U) / (1.0 + n2)
@@ -285,7 +288,11 @@ class RigidTransform:
 
     @classmethod
     def from_rotvec(cls, rotvec_rad, t_mm=(0.0, 0.0, 0.0)) -> RigidTransform:
-        return cls(Rotation.from_rotvec(rotvec_rad).as_matrix(), t_mm)
+        v = np.asarray(rotvec_rad)
+        if v.shape != (3,) or v.dtype.kind not in "iuf":
+            raise ValueError(f"RigidTransform.from_rotvec: rotvec_rad: expected 3 numbers "
+                             f"(rad), got shape {v.shape} of {v.dtype}")
+        return cls(Rotation.from_rotvec(v.astype(np.float64)).as_matrix(), t_mm)
 
     @classmethod
     def from_rotation(cls, rotation: Rotation, t_mm=(0.0, 0.0, 0.0)) -> RigidTransform:
@@ -329,7 +336,15 @@ class RigidTransform:
         return obj
 
     # algebra
+    #: numpy defers to this class: ``T @ array`` and ``array @ T`` raise Python's TypeError
+    #: naming both types, not numpy's "matmul: Input operand 0 does not have enough
+    #: dimensions" (a review); compose with ``RigidTransform.from_matrix(array)``
+    __array_ufunc__ = None
+
     def __matmul__(self, other: RigidTransform) -> RigidTransform:
+        if isinstance(other, np.ndarray):
+            raise TypeError("RigidTransform @ array: compose with "
+                            "RigidTransform.from_matrix(array), or map points with .apply")
         if not isinstance(other, RigidTransform):
             return NotImplemented
         return RigidTransform._checked_already(self.R @ other.R, self.R @ other.t + self.t)
@@ -341,7 +356,8 @@ class RigidTransform:
         return self.inverse()
 
     def apply(self, points) -> np.ndarray:
-        """Map points ``(N, 3)`` (or a single ``(3,)``) from source to target frame."""
+        """Map points ``(N, 3)`` (or a single ``(3,)``, or any ``(..., 3)``) from source to
+        target frame."""
         p = np.asarray(points, dtype=np.float64)
         if p.ndim == 0 or p.shape[-1] != 3:
             raise ValueError(f"RigidTransform.apply: points: expected (N, 3) or (3,) mm, got "
@@ -374,6 +390,11 @@ class RigidTransform:
 
 def transform_difference(a: RigidTransform, b: RigidTransform) -> tuple[float, float]:
     """Return ``(translation mm, rotation deg)`` of ``a @ b.inverse()``."""
+    for name, v in (("a", a), ("b", b)):
+        if not isinstance(v, RigidTransform):
+            raise TypeError(f"transform_difference: {name}: expected a RigidTransform, got "
+                            f"{type(v).__name__} (RigidTransform.from_matrix makes one of a "
+                            "(4, 4) array)")
     d = a @ b.inverse()
     return float(np.linalg.norm(d.t)), float(np.degrees(d.angle_rad))
 

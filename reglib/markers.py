@@ -268,6 +268,20 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
         raise ValueError(f"response: expected 'log' or 'linear', got {response!r}")
     if noise_mode not in ("block", "field"):
         raise ValueError(f"noise_mode: expected 'block' or 'field', got {noise_mode!r}")
+    for name, v, low, high in (("rel_threshold", rel_threshold, 0.0, 1.0),
+                               ("n_sigma", n_sigma, 0.0, 100.0),
+                               ("max_elongation", max_elongation, 1.0, 100.0),
+                               ("centroid_floor", centroid_floor, 0.0, 1.0)):
+        if isinstance(v, bool) or not isinstance(v, int | float | np.number) \
+                or not low <= float(v) <= high:
+            raise ValueError(f"detect_markers: {name}: expected a number in [{low:g}, "
+                             f"{high:g}], got {v!r}")
+    if (isinstance(min_area_px, bool) or isinstance(max_area_px, bool)
+            or not isinstance(min_area_px, int | np.integer)
+            or not isinstance(max_area_px, int | np.integer)
+            or not 1 <= min_area_px <= max_area_px):
+        raise ValueError(f"detect_markers: min_area_px and max_area_px: expected whole numbers "
+                         f"1 <= min <= max, got {min_area_px!r} and {max_area_px!r}")
     if mask is not None:
         mask = as_flags(mask, "mask")
         if mask.shape != a.shape:

@@ -239,6 +239,14 @@ class EstimateOptions:
         if not (is_real(v) and 0 < v <= 90):
             raise ValueError(f"EstimateOptions.restart_deg: expected a number of degrees in "
                              f"(0, 90], got {v!r}")
+        # restarts come in rings of six turns (+-x, +-y, +-z), ring k turned k x restart_deg:
+        # past 180 degrees they repeat, and a review's 10**6 restarts meant 40 hours
+        rings = -(-self.restarts // 6)
+        if self.restarts > MAX_RESTARTS or rings * v > 180.0:
+            raise ValueError(
+                f"EstimateOptions.restarts: {self.restarts} restarts turned by {v:g} deg "
+                f"reach {rings * v:g} deg (rings of 6, ring k turned by k x restart_deg); "
+                f"at most {MAX_RESTARTS} restarts and 180 deg")
         if self.fixed_point_ct is not None:
             fp = np.asarray(self.fixed_point_ct)
             if fp.shape != (3,) or not np.issubdtype(fp.dtype, np.number) \
@@ -1163,6 +1171,10 @@ def contour_share(views) -> tuple[float, int]:
     med = float(np.median(counts))
     k = int(np.argmin(counts))
     return (float(counts[k] / med) if med > 0 else 0.0), k
+
+
+#: the most restarts :class:`EstimateOptions` allows (each takes about 0.15 s)
+MAX_RESTARTS = 60
 
 
 def restart_poses(start: RigidTransform, pivot_robot, angle_deg: float, n: int) -> list:

@@ -663,6 +663,9 @@ def ransac_min_inliers(n: int) -> int:
     2000 trials find an all-inlier sample with less than 86 % probability anyway), but
     never more than ``n``.
     """
+    if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 0:
+        raise ValueError(f"ransac_min_inliers: n: expected a whole number of pairs >= 0, got "
+                         f"{n!r}")
     return int(min(n, max(6, np.ceil(0.1 * n))))
 
 

@@ -648,7 +648,10 @@ def simplify_surface(surface: Surface, tol_mm: float, *,
         raise ValueError(f"simplify tolerance must be in [0, 5] mm, got {tol_mm}")
     if tol_mm == 0:
         return surface
-    v0, f0 = surface.vertices, surface.faces
+    # fast_simplification (nanobind) refuses read-only arrays with a TypeError of its own
+    # (np.load(mmap_mode="r"), a cache's frozen arrays; a review): writable copies
+    v0 = np.array(surface.vertices, dtype=np.float64, order="C")
+    f0 = np.array(surface.faces, dtype=np.int64, order="C")
     for r in sorted(reductions, reverse=True):
         v, f = fast_simplification.simplify(v0, f0.astype(np.int32), target_reduction=r,
                                             preserve_border=True)

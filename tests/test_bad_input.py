@@ -290,3 +290,52 @@ def test_a_view_outside_the_room_is_refused_naming_the_field(tmp_path, capsys):
     assert main(["render", str(f), "--out", str(png)]) == 2
     line = _error_line(capsys)
     assert "'views[0].isocenter_mm[0]'" in line and "less than or equal to 5000" in line, line
+
+
+def test_small_reglib_calls_name_their_argument():
+    """A review's calls of reglib's building blocks with odd arguments, each of which gave a
+    library's message naming no argument (IndexError, scipy's, numpy's matmul), failed on
+    read-only arrays, or was taken without a word (10**6 restarts: some 40 hours)."""
+    import numpy as np
+    import trimesh
+
+    from reglib.geometry import RigidTransform, cayley, transform_difference
+    from reglib.markers import detect_markers
+    from reglib.pipeline import EstimateOptions
+    from reglib.pose import ransac_min_inliers
+    from reglib.surface import Surface, simplify_surface
+
+    T = RigidTransform.identity()
+    with pytest.raises(ValueError, match=r"cayley: expected Cayley parameters of shape \(3,\)"):
+        cayley([1.0, 2.0])
+    with pytest.raises(ValueError, match=r"cayley: .* got shape \(2,\)"):
+        RigidTransform.from_cayley([0.0, 0.0])
+    with pytest.raises(ValueError, match="from_rotvec: rotvec_rad: expected 3 numbers"):
+        RigidTransform.from_rotvec([0.0, 0.0])
+    with pytest.raises(TypeError, match="RigidTransform @ array: compose with"):
+        T @ np.eye(4)
+    with pytest.raises(TypeError, match="unsupported operand"):
+        np.eye(4) @ T
+    with pytest.raises(TypeError, match="transform_difference: a: expected a RigidTransform"):
+        transform_difference(np.eye(4), T)
+    assert transform_difference(T, T) == (0.0, 0.0)
+    with pytest.raises(ValueError, match="ransac_min_inliers: n: expected a whole number"):
+        ransac_min_inliers(-5)
+    assert ransac_min_inliers(100) == 10
+    frames = np.full((2, 30, 30), 200, dtype=np.uint8)
+    for kw, name in (({"n_sigma": -1.0}, "n_sigma"), ({"rel_threshold": 2.0}, "rel_threshold"),
+                     ({"min_area_px": 50, "max_area_px": 10}, "min_area_px")):
+        with pytest.raises(ValueError, match=f"detect_markers: {name}"):
+            detect_markers(frames[0], frames[1], **kw)
+    assert len(detect_markers(frames[0], frames[1])[0]) == 0
+    with pytest.raises(ValueError, match="restarts: 1000000 restarts .* at most 60"):
+        EstimateOptions(restarts=10**6)
+    with pytest.raises(ValueError, match="reach 200 deg"):
+        EstimateOptions(restarts=30, restart_deg=40.0)
+    # read-only vertices (np.load with mmap_mode, a cache's frozen arrays) simplify as any
+    m = trimesh.creation.icosphere(subdivisions=3, radius=20.0)
+    v, f = np.array(m.vertices), np.array(m.faces)
+    v.setflags(write=False)
+    f.setflags(write=False)
+    out = simplify_surface(Surface(v, f), 0.3)
+    assert 0 < len(out.faces) < len(f)
