@@ -160,8 +160,10 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
     from tqdm import tqdm
 
     from testbed.dataset import CASE_FILE, FORMAT_VERSION, case_problem, write_case
+    from testbed.scene import require_scene
     from testbed.simulate import simulate
 
+    require_scene(scene)        # before dataset.json is written
     if isinstance(cases, bool) or not isinstance(cases, int | np.integer) or cases < 1:
         raise ValueError(f"--cases: expected an integer >= 1, got {cases!r}")
     seed = scene.scene.seed if seed is None else seed

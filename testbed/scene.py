@@ -335,6 +335,18 @@ def parse_scene(data: dict, *, source: str = "<scene>"):
         raise SceneError(_validation_message(source, exc)) from None
 
 
+def require_scene(scene) -> None:
+    """Refuse what :func:`testbed.simulate.simulate` and ``generate`` cannot take:
+    ``TypeError`` for anything but a :class:`Scene`, :class:`SceneError` naming the field for
+    a scene whose values no longer pass the scene's checks (pydantic's ``model_copy(update=
+    ...)`` does not validate: a review's copies with ``ct.pixel_mm = 0`` or ``width_px =
+    -5`` failed deep in the simulation, and negative photon counts were simulated)."""
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene: expected a testbed.scene.Scene (load_scene(find_scene(NAME "
+                        f"or PATH))), got {type(scene).__name__}")
+    parse_scene(scene.model_dump(), source="scene (checked again before the simulation)")
+
+
 #: (section, key) of the scene fields that name a file
 _PATH_FIELDS = (("phantom", "mesh_path"), ("robot", "urdf"))
 

@@ -197,8 +197,10 @@ class CtCase:
 def case_world(scene, seed=0, *, index: int = 0):
     """The case's scene (its femur shape seed set) and world, exactly as :func:`simulate`
     makes them: ``(scene, world)``."""
+    from testbed.scene import require_scene
     from testbed.world import build_world
 
+    require_scene(scene)
     streams = case_streams(seed, index)
     scene = _case_placement(_case_scene(scene, streams["shape"]), streams["placement"])
     return scene, build_world(scene, np.random.default_rng(streams["world"]))
@@ -263,8 +265,10 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
     from testbed.fluoroscope import make_carm, render
     from testbed.operator import xray_clicks
     from testbed.robot import Robot
+    from testbed.scene import require_scene
     from testbed.sweep import run_sweep
 
+    require_scene(scene)
     if scene.scene.kind != "operating_room" or not scene.views:
         raise ValueError(f"scene {scene.scene.name!r} (kind {scene.scene.kind!r}): simulating a "
                          "case needs an operating_room scene with [[views]]")

@@ -353,3 +353,28 @@ def test_a_synthetic_scene_far_from_its_cube_or_with_room_tables_is_refused(tmp_
         f.write_text(_dump(data))
         with pytest.raises(SceneError, match=match):
             load_scene(f)
+
+
+def test_a_scene_changed_after_loading_is_checked_again_before_the_simulation(tmp_path):
+    """pydantic's model_copy(update=...) skips the checks: a review's copies failed deep in
+    the simulation (ZeroDivisionError, numpy's "negative dimensions") or simulated negative
+    photon counts, and generate wrote dataset.json first; a name instead of a scene gave an
+    AttributeError."""
+    from testbed.generate import generate_command
+    from testbed.scene import require_scene
+    from testbed.simulate import simulate, simulate_case
+
+    scene = load_scene(find_scene("experiment2"))
+    require_scene(scene)
+    for section, field, value in (("ct", "pixel_mm", 0), ("fluoroscope", "width_px", -5),
+                                  ("fluoroscope", "photons_per_pixel", -1.0)):
+        part = getattr(scene, section).model_copy(update={field: value})
+        bad = scene.model_copy(update={section: part})
+        with pytest.raises(SceneError, match=rf"field '{section}\.{field}'"):
+            simulate(bad, 1)
+        with pytest.raises(SceneError, match=rf"field '{section}\.{field}'"):
+            generate_command(bad, scene_path="x.toml", cases=1, out=tmp_path / "ds",
+                             progress=False)
+        assert not (tmp_path / "ds").exists()
+    with pytest.raises(TypeError, match="scene: expected a testbed.scene.Scene"):
+        simulate_case("experiment2", 1)
