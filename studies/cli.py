@@ -14,6 +14,7 @@ Imports are lazy, so that ``testbed --help`` is fast and prints no library banne
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import math
 import os
@@ -639,6 +640,11 @@ def main(argv=None) -> int:
             return _interrupted(stop)
         if debug:
             raise
+        if exc.errno == errno.ENAMETOOLONG:    # an argument the file system cannot hold
+            name = str(exc.filename or "")
+            print(f"{PROG}: a path given is too long for the file system ({len(name):,} "
+                  f"characters: {name[:60]!r}...)", file=sys.stderr)
+            return 2
         where = f"{exc.filename}: " if exc.filename and str(exc.filename) not in str(exc) else ""
         print(f"{PROG}: {where}{_one_line(str(exc))}", file=sys.stderr)
         return 2 if isinstance(exc, FileNotFoundError) else 1  # a missing input file: 2

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import os
 import re
 import subprocess
 from dataclasses import dataclass, field
@@ -73,6 +74,22 @@ def check_out_folder(out, name: str) -> None:
     """ValueError when folder ``out`` holds the report of another study than ``name`` (or a
     ``report.md`` no study wrote): running there would replace that study's results and
     report and leave its figures beside the new ones. The same study's folder resumes."""
+    from studies.runner import DB_NAME, stored_study
+
+    owner = stored_study(out)
+    if owner is not None and owner != name:
+        # a study interrupted before its report leaves only its database: a review's other
+        # study then ran there, replaced its results.csv and mixed both in trials.sqlite
+        raise ValueError(f"--out {out}: holds the trials of {owner!r} ({DB_NAME}), not of "
+                         f"{name!r}; give another folder, or {owner!r}'s command to resume it")
+    # what the study will write over: a folder of that name, or a file that cannot be
+    # written (read-only, immutable), failed only after the whole study had run (a review)
+    for path in (Path(out) / "results.csv", Path(out) / "report.md", Path(out) / DB_NAME,
+                 *sorted(Path(out).glob("*.png"))):
+        if path.is_dir() or (path.exists() and not os.access(path, os.W_OK)):
+            raise ValueError(f"--out {out}: {path.name} cannot be replaced "
+                             f"({'it is a folder' if path.is_dir() else 'not writable'}); "
+                             "move it away or give another folder")
     report = Path(out) / "report.md"
     if not report.is_file():
         # a results.csv beside no report and no trial database is no study's: a user's file

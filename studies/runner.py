@@ -391,7 +391,37 @@ CREATE TABLE IF NOT EXISTS rows (
     key TEXT NOT NULL, trial INTEGER NOT NULL, row INTEGER NOT NULL, metric TEXT NOT NULL,
     value REAL, unit TEXT NOT NULL, extra TEXT NOT NULL, PRIMARY KEY (key, row));
 CREATE INDEX IF NOT EXISTS rows_trial ON rows (trial, row);
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT);
 """
+
+
+def stored_study(out_dir) -> str | None:
+    """The study whose trials ``out_dir/trials.sqlite`` holds (``run_trials(study=...)``),
+    or None (no database, an older one, or one that cannot be read: :func:`run_trials`
+    reports that). Read before any work, it tells a study interrupted before its report
+    from a free folder."""
+    db = Path(out_dir) / DB_NAME
+    if not db.is_file():
+        return None
+    try:
+        con = sqlite3.connect(f"{db.resolve().as_uri()}?mode=ro", uri=True, timeout=10.0)
+        try:
+            row = con.execute("SELECT value FROM meta WHERE key = 'study'").fetchone()
+        finally:
+            con.close()
+    except sqlite3.DatabaseError:
+        return None
+    return None if row is None else str(row[0])
+
+
+def _claim(con: sqlite3.Connection, db_path: Path, study: str) -> None:
+    """Record ``study`` as the owner of the database, or refuse one of another study."""
+    row = con.execute("SELECT value FROM meta WHERE key = 'study'").fetchone()
+    if row is not None and row[0] != study:
+        raise ValueError(f"{db_path}: holds the trials of {row[0]!r}, not of {study!r}; "
+                         "give another folder, or that study's command to resume it")
+    if row is None:
+        con.execute("INSERT OR IGNORE INTO meta VALUES ('study', ?)", (study,))
 
 
 class StudyDatabaseError(ValueError):
@@ -806,6 +836,7 @@ def run_trials(
     retries: int = 2,
     isolate: bool = False,
     timeout_s: float | None = None,
+    study: str | None = None,
 ) -> pd.DataFrame:
     """Run ``trials`` with ``trial_fn``, storing each result as it finishes; return all rows.
 
@@ -833,6 +864,10 @@ def run_trials(
         failed (``TimedOut``) and its worker killed; the study goes on. Trials then run in
         worker processes even with ``workers=1`` (a trial in this process cannot be
         stopped). Not with ``scheduler``.
+    study : str, optional
+        The study's name, recorded in the database: a database of another study's trials is
+        refused (``ValueError``) instead of mixed with them (a study interrupted before its
+        report left a folder another study took, a review).
     scheduler : str, dask.distributed.Client or cluster, optional
         Run on Dask: an address ``tcp://HOST:PORT`` (a client is opened and closed here), a
         ``Client`` (used as is), or a cluster such as ``LocalCluster``.
@@ -901,6 +936,8 @@ def run_trials(
     out.mkdir(parents=True, exist_ok=True)
     con = _connect(out / DB_NAME)
     try:
+        if study is not None:
+            _claim(con, out / DB_NAME, study)
         if not resume:
             con.execute("BEGIN IMMEDIATE")
             con.execute("DELETE FROM rows")
@@ -978,5 +1015,6 @@ def run_study_trials(ctx, trial_fn: Callable[[Trial], list[dict]],
     kwargs.setdefault("retries", getattr(ctx, "retries", 2))
     if progress is None:  # the study's choice (testbed study: only on a terminal)
         progress = bool(getattr(ctx, "progress", True))
+    kwargs.setdefault("study", getattr(ctx, "name", None))
     return run_trials(trial_fn, trials, out_dir=ctx.out, workers=int(ctx.workers),
                       scheduler=scheduler, progress=progress, **kwargs)

@@ -281,7 +281,7 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
     user = method != DEFAULT_METHOD
     df = run_trials(trial, trials, out_dir=out, workers=workers, scheduler=scheduler,
                     progress=progress, isolate=user, mp_context="spawn" if user else None,
-                    timeout_s=timeout_s)
+                    timeout_s=timeout_s, study=f"score {method}")
     reused = int(df.attrs.get("skipped", 0))
     reuse_note = ""
     if reused:

@@ -515,6 +515,16 @@ def test_table1_ends_with_exit_0_and_text_labelled_failures_are_counted(tmp_path
     assert "1 of 2 trial(s) failed" in capsys.readouterr().err
 
 
+def test_a_path_too_long_for_the_file_system_exits_2_in_one_short_line(tmp_path, capsys):
+    """A review: a 5000-character scene name or a 300-character --out folder exited 1 (the
+    code of failed trials) and echoed the whole name."""
+    for argv in (["run", "a" * 5000, "--json"],
+                 ["study", "fig9", "--quick", "--out", str(tmp_path / ("b" * 300))]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "too long for the file system" in err and len(err) < 200, err
+
+
 def test_a_study_that_times_its_work_refuses_workers_in_one_line(tmp_path, capsys):
     """The message starts with the command it names, once (it read 'testbed: testbed study
     table1: ...')."""

@@ -701,3 +701,45 @@ def test_the_fork_server_ignores_ctrl_c_and_says_nothing_of_a_pool_gone():
                          timeout=60)
     assert out.returncode == 0, out.stderr
     assert "FileNotFoundError" not in out.stderr and "ZeroDivisionError" in out.stderr
+
+
+def test_a_study_interrupted_before_its_report_keeps_its_folder(tmp_path):
+    """A review: surfaces stopped by Ctrl-C before its report.md left only trials.sqlite, and
+    fig9 then ran in that folder, replaced the results and mixed both studies' trials in the
+    database; the first could not resume there. The database now names its study."""
+    from studies.common import check_out_folder
+    from studies.runner import stored_study
+
+    trials = make_trials("points-lines", 4, _params(3))
+    out = tmp_path / "s"
+    run_trials(toy_trial, trials, out_dir=out, progress=False, study="surfaces")
+    assert stored_study(out) == "surfaces" and not (out / "report.md").exists()
+    check_out_folder(out, "surfaces")   # the same study resumes
+    with pytest.raises(ValueError, match="holds the trials of 'surfaces' .* not of 'fig9'"):
+        check_out_folder(out, "fig9")
+    with pytest.raises(ValueError, match="holds the trials of 'surfaces', not of 'fig9'"):
+        run_trials(toy_trial, trials, out_dir=out, progress=False, study="fig9")
+    again = run_trials(toy_trial, trials, out_dir=out, progress=False, study="surfaces")
+    assert again.attrs["skipped"] == 3
+    # a database of before (no study recorded) is taken by the study that runs there
+    run_trials(toy_trial, trials, out_dir=tmp_path / "old", progress=False)
+    assert stored_study(tmp_path / "old") is None
+    check_out_folder(tmp_path / "old", "fig9")
+
+
+def test_an_output_the_study_cannot_replace_is_refused_before_the_work(tmp_path, monkeypatch):
+    """A folder named results.csv, or a figure that cannot be written, failed only after the
+    whole study had run, with exit 1 and a bare OS message (a review)."""
+    from studies.common import check_out_folder
+
+    (tmp_path / "a" / "results.csv").mkdir(parents=True)
+    with pytest.raises(ValueError, match="results.csv cannot be replaced \\(it is a folder\\)"):
+        check_out_folder(tmp_path / "a", "fig9")
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "fig9_heatmaps.png").write_bytes(b"")
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode: not str(p).endswith(".png")
+                        and real(p, mode))   # as for an immutable file (chattr +i)
+    with pytest.raises(ValueError, match="fig9_heatmaps.png cannot be replaced \\(not "
+                                         "writable\\)"):
+        check_out_folder(tmp_path / "b", "fig9")
