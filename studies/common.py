@@ -70,18 +70,20 @@ class StudyContext:
         return self.out / filename
 
 
-def check_out_folder(out, name: str) -> None:
+def check_out_folder(out, name: str, *, study: str | None = None) -> None:
     """ValueError when folder ``out`` holds the report of another study than ``name`` (or a
-    ``report.md`` no study wrote): running there would replace that study's results and
+    ``report.md`` no study wrote), or the trials of another ``study`` (default ``name``; the
+    name its ``run_trials`` records): running there would replace that study's results and
     report and leave its figures beside the new ones. The same study's folder resumes."""
     from studies.runner import DB_NAME, stored_study
 
-    owner = stored_study(out)
-    if owner is not None and owner != name:
+    owner, want = stored_study(out), name if study is None else study
+    if owner is not None and owner != want:
         # a study interrupted before its report leaves only its database: a review's other
         # study then ran there, replaced its results.csv and mixed both in trials.sqlite
         raise ValueError(f"--out {out}: holds the trials of {owner!r} ({DB_NAME}), not of "
-                         f"{name!r}; give another folder, or {owner!r}'s command to resume it")
+                         f"{want!r}; give another folder (or run {owner!r} again there to "
+                         "resume it)")
     # what the study will write over: a folder of that name, or a file that cannot be
     # written (read-only, immutable), failed only after the whole study had run (a review)
     for path in (Path(out) / "results.csv", Path(out) / "report.md", Path(out) / DB_NAME,

@@ -238,7 +238,10 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
                          "testbed generate")
     fn = load_method(method)  # refuse a bad --method before any work
     out = Path(out)
-    check_out_folder(out, f"score {method}")
+    # the trials' owner names the dataset too: a folder scored on another dataset with the
+    # same method was taken and its results replaced (a review)
+    study = f"score {method} of {dataset.resolve()}"
+    check_out_folder(out, f"score {method}", study=study)
     params = [{"case": c.name, "method": method} for c in cases]
     # what the scores read besides the names: the dataset's files that say what each case
     # is, and the method's source (a dataset regenerated, or a method edited, under the same
@@ -281,7 +284,7 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
     user = method != DEFAULT_METHOD
     df = run_trials(trial, trials, out_dir=out, workers=workers, scheduler=scheduler,
                     progress=progress, isolate=user, mp_context="spawn" if user else None,
-                    timeout_s=timeout_s, study=f"score {method}")
+                    timeout_s=timeout_s, study=study)
     reused = int(df.attrs.get("skipped", 0))
     reuse_note = ""
     if reused:

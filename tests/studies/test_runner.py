@@ -715,7 +715,8 @@ def test_a_study_interrupted_before_its_report_keeps_its_folder(tmp_path):
     run_trials(toy_trial, trials, out_dir=out, progress=False, study="surfaces")
     assert stored_study(out) == "surfaces" and not (out / "report.md").exists()
     check_out_folder(out, "surfaces")   # the same study resumes
-    with pytest.raises(ValueError, match="holds the trials of 'surfaces' .* not of 'fig9'"):
+    with pytest.raises(ValueError, match="holds the trials of 'surfaces' .* not of 'fig9'; "
+                                         "give another folder"):
         check_out_folder(out, "fig9")
     with pytest.raises(ValueError, match="holds the trials of 'surfaces', not of 'fig9'"):
         run_trials(toy_trial, trials, out_dir=out, progress=False, study="fig9")

@@ -431,6 +431,10 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path, capsys):
     victim = sorted((ds2 / "case_0000").rglob("*.npz"))[0]
     victim.write_bytes(victim.read_bytes()[:100])
     score_dataset(ds2, tmp_path / "s6", progress=False)
+    # a folder scored on another dataset is not taken over (its results were replaced)
+    with pytest.raises(ValueError, match=r"holds the trials of 'score reglib of .*ds'.* not "
+                                         r"of 'score reglib of .*ds2'"):
+        score_dataset(ds2, tmp_path / "s", progress=False)
     df6 = pd.read_csv(tmp_path / "s6" / "results.csv")
     assert df6[df6.metric == "pin_error"]["value"].tolist() == pytest.approx(
         list(from_disk.values()), abs=1e-12)
