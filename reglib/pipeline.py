@@ -871,6 +871,11 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
     _check_given(calibrations, contours, surfaces)
     images, arrays = _part(observation, "images"), _part(observation, "arrays")
     names = _view_names(observation)
+    for what, given in (("calibrations", calibrations), ("contours", contours)):
+        unknown = sorted(map(str, set(given or ()) - set(names)))
+        if unknown:     # a misspelt view was ignored without a word (a review)
+            raise ValueError(f"{what}: views {unknown[:5]} are not the observation's (its "
+                             f"views: {', '.join(map(str, names))})")
     pixel_mm = _xray_pixel_mm(_part(observation, "meta"))
     timings: dict[str, float] = {}
 

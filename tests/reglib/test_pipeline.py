@@ -353,7 +353,11 @@ def test_entries_of_the_wrong_kind_and_stages_given_are_named():
                       (dict(contours={"v": {"xy": np.zeros((0, 2))}}),
                        r"contours: the entries \['v'\] are not ViewContours \(got dict\)"),
                       (dict(surfaces={"distal": None}), r"surfaces\['distal'\]: expected "
-                                                       r"\(vertices \(V, 3\) mm, faces")):
+                                                       r"\(vertices \(V, 3\) mm, faces"),
+                      # a misspelt view name was ignored without a word (a review)
+                      (dict(calibrations={"vv": ViewCalibration("vv", None, ok=False)}),
+                       r"calibrations: views \['vv'\] are not the observation's \(its views: "
+                       r"v\)")):
         with pytest.raises(ValueError, match=match):
             prepare(good, **kw)
     assert ViewContours("v", np.zeros((0, 2)), np.zeros(0, bool)).xy.shape == (0, 2)
