@@ -674,6 +674,7 @@ def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str,
             for attempt in range(retries + 1):
                 ex = cf.ProcessPoolExecutor(1, mp_context=ctx, initializer=_worker_start,
                                             initargs=(os.getpid(),))
+                killed = False
                 try:
                     res = ex.submit(execute_trial, trial_fn, trial).result(timeout=timeout_s)
                     break
@@ -682,16 +683,18 @@ def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str,
                                 f"{attempt + 1} attempt(s) alone")
                 except cf.TimeoutError:
                     _kill_workers(ex)
+                    killed = True
                     res = _timed_out(trial, timeout_s)
                     break
                 finally:
-                    ex.shutdown(wait=False, cancel_futures=True)
+                    ex.shutdown(wait=not killed, cancel_futures=True)
             record(trial, res)
             continue
         ex = cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_start,
                                     initargs=(os.getpid(),))
         running: dict[cf.Future, Trial] = {}
         deadline: dict[cf.Future, float] = {}   # with timeout_s: when each must be done
+        killed = False
         try:
             while queue or running:
                 broken = False
@@ -715,6 +718,7 @@ def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str,
                     late = [f for f in running if timeout_s is not None and deadline[f] <= now]
                     if late and not broken:
                         _kill_workers(ex)
+                        killed = True
                         for f in late:
                             t = running.pop(f)
                             record(t, _timed_out(t, timeout_s))
@@ -734,7 +738,7 @@ def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str,
         finally:
             for fut in running:
                 fut.cancel()
-            ex.shutdown(wait=not running, cancel_futures=True)
+            ex.shutdown(wait=not (running or killed), cancel_futures=True)
 
 
 #: error types of a lost worker or connection (Dask), not of the trial itself: retried

@@ -218,6 +218,16 @@ def missing_cases(dataset) -> list[str]:
     return [str(c) for c in listed if str(c) not in have]
 
 
+def _dataset_identity(dataset: Path) -> str:
+    """What a dataset is, for the score's trials: its scene's digest and seed (from
+    ``dataset.json``: a dataset moved or copied is the same), else its folder."""
+    try:
+        index = json.loads((dataset / "dataset.json").read_text())
+        return f"the dataset of scene {index['scene_sha256'][:12]}, seed {int(index['seed'])}"
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return str(dataset.resolve())
+
+
 def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 1,
                   scheduler=None, progress: bool = True,
                   timeout_s: float | None = None) -> Path:
@@ -240,7 +250,7 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
     out = Path(out)
     # the trials' owner names the dataset too: a folder scored on another dataset with the
     # same method was taken and its results replaced (a review)
-    study = f"score {method} of {dataset.resolve()}"
+    study = f"score {method} of {_dataset_identity(dataset)}"
     check_out_folder(out, f"score {method}", study=study)
     params = [{"case": c.name, "method": method} for c in cases]
     # what the scores read besides the names: the dataset's files that say what each case

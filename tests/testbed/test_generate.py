@@ -432,9 +432,15 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path, capsys):
     victim.write_bytes(victim.read_bytes()[:100])
     score_dataset(ds2, tmp_path / "s6", progress=False)
     # a folder scored on another dataset is not taken over (its results were replaced)
-    with pytest.raises(ValueError, match=r"holds the trials of 'score reglib of .*ds'.* not "
-                                         r"of 'score reglib of .*ds2'"):
+    # (ds2 is a copy of ds with a case added: the same scene and seed, so the same dataset;
+    # another seed's is another)
+    index2 = json.loads((ds2 / "dataset.json").read_text())
+    (ds2 / "dataset.json").write_text(json.dumps({**index2, "seed": index2["seed"] + 1}))
+    with pytest.raises(ValueError, match=r"holds the trials of 'score reglib of the dataset of "
+                                         r"scene \w{12}, seed \d+'.* not of 'score reglib of "
+                                         r"the dataset of scene \w{12}, seed \d+'"):
         score_dataset(ds2, tmp_path / "s", progress=False)
+    (ds2 / "dataset.json").write_text(json.dumps(index2))
     df6 = pd.read_csv(tmp_path / "s6" / "results.csv")
     assert df6[df6.metric == "pin_error"]["value"].tolist() == pytest.approx(
         list(from_disk.values()), abs=1e-12)
