@@ -574,6 +574,9 @@ def _user_phantom(spec: PhantomSpec) -> Phantom:
                 "no such file")
         raise ValueError(f"phantom.mesh_path: {str(path)!r} {what}; expected a mesh file "
                          "(STL, PLY, OBJ, ...)")
+    why = _binary_stl_mismatch(path)
+    if why:     # trimesh then parses it as ASCII (and needs charset_normalizer to say so)
+        raise ValueError(f"phantom.mesh_path: cannot read {str(path)!r} as a mesh{why}")
     try:
         mesh = trimesh.load_mesh(path, process=False)   # NaN vertices seen, not dropped
     except Exception as exc:  # trimesh raises many kinds on unreadable files
@@ -583,9 +586,8 @@ def _user_phantom(spec: PhantomSpec) -> Phantom:
     if not isinstance(mesh, trimesh.Trimesh):
         raise ValueError(f"phantom.mesh_path: {str(path)!r} holds no single triangle mesh")
     if len(mesh.faces) == 0:
-        why = _binary_stl_mismatch(path) or " (an empty file, or points without faces)"
-        raise ValueError(f"phantom.mesh_path: {str(path)!r} holds no triangles{why}; give a "
-                         "closed triangle surface")
+        raise ValueError(f"phantom.mesh_path: {str(path)!r} holds no triangles (an empty file, "
+                         "or points without faces); give a closed triangle surface")
     if len(mesh.faces) > MAX_USER_FACES:
         raise ValueError(
             f"phantom.mesh_path: the mesh in {str(path)!r} has {len(mesh.faces):,} triangles; "

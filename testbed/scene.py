@@ -344,7 +344,10 @@ def require_scene(scene) -> None:
     if not isinstance(scene, Scene):
         raise TypeError(f"scene: expected a testbed.scene.Scene (load_scene(find_scene(NAME "
                         f"or PATH))), got {type(scene).__name__}")
-    parse_scene(scene.model_dump(), source="scene (checked again before the simulation)")
+    # the fields as given (a synthetic scene refuses operating-room sections, even at their
+    # defaults; model_copy(update=...) counts the fields it changes as given)
+    parse_scene(scene.model_dump(exclude_unset=True),
+                source="scene (checked again before the simulation)")
 
 
 #: (section, key) of the scene fields that name a file
