@@ -31,6 +31,7 @@ __all__ = [
     "arc_length",
     "robust_scale",
     "RigidTransform",
+    "as_rigid_transform",
     "as_points",
     "as_lines",
     "assert_transform_close",
@@ -386,6 +387,45 @@ class RigidTransform:
             f"RigidTransform(rotvec_deg={np.round(rv, 4).tolist()}, "
             f"t_mm={np.round(self.t, 4).tolist()})"
         )
+
+
+def as_rigid_transform(value, name: str = "initial") -> RigidTransform:
+    """A :class:`RigidTransform` from ``value``: one already, or a (4, 4) homogeneous
+    matrix of real numbers (lists too). ``ValueError`` starting with ``name`` for anything
+    else: a value that is no array of numbers (None, a string; booleans, strings and
+    objects are not read as numbers, nor complex values, whose imaginary part a cast would
+    drop), another shape, NaN or inf, a matrix that is no rigid transform. The one reading
+    of a pose from outside (``reglib.estimate``'s ``initial``; ``testbed score``'s method
+    results)."""
+    if isinstance(value, RigidTransform):
+        return value
+    try:
+        raw = np.asarray(value) if not isinstance(value, str | bytes) else None
+    except (TypeError, ValueError):   # ragged nesting
+        raw = None
+    if raw is not None and raw.dtype.kind == "c":
+        raise ValueError(f"{name}: the (4, 4) ct2robot matrix has complex values; expected "
+                         "real numbers")
+    if raw is None or raw.ndim == 0 or raw.dtype.kind not in "iuf":
+        what = (type(value).__name__ if raw is None or raw.ndim == 0
+                else f"an array of {raw.dtype} values")
+        raise ValueError(f"{name}: expected a RigidTransform or a (4, 4) ct2robot matrix of "
+                         f"numbers, got {what}")
+    m = raw.astype(np.float64)
+    if m.shape != (4, 4):
+        raise ValueError(f"{name}: expected a RigidTransform or a (4, 4) ct2robot matrix, got "
+                         f"shape {m.shape}")
+    if not np.all(np.isfinite(m)):
+        raise ValueError(f"{name}: the (4, 4) ct2robot matrix holds NaN or inf")
+    R = m[:3, :3]
+    if (not np.allclose(m[3], [0, 0, 0, 1]) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6)
+            or np.linalg.det(R) < 0):
+        raise ValueError(f"{name}: the (4, 4) matrix is not a rigid transform (its 3x3 part "
+                         "must be a rotation, its last row [0, 0, 0, 1])")
+    try:    # the class's own, stricter tests (a rotation 1e-6 off, a translation of 1e300)
+        return RigidTransform(R, m[:3, 3])
+    except ValueError as exc:
+        raise ValueError(f"{name}: the (4, 4) matrix is not a rigid transform: {exc}") from None
 
 
 def transform_difference(a: RigidTransform, b: RigidTransform) -> tuple[float, float]:

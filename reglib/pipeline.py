@@ -44,7 +44,13 @@ from typing import Any, Literal
 
 import numpy as np
 
-from reglib.geometry import RigidTransform, as_flags, as_whole, point_line_distances
+from reglib.geometry import (
+    RigidTransform,
+    as_flags,
+    as_rigid_transform,
+    as_whole,
+    point_line_distances,
+)
 from reglib.surface import SURFACE_SIMPLIFY_TOL_MM
 
 __all__ = [
@@ -963,38 +969,6 @@ def _as_options(options) -> EstimateOptions:
                      f"got {type(options).__name__}")
 
 
-def _as_transform(initial) -> RigidTransform:
-    if isinstance(initial, RigidTransform):
-        return initial
-    try:
-        raw = np.asarray(initial) if not isinstance(initial, str | bytes) else None
-    except (TypeError, ValueError):   # ragged nesting
-        raw = None
-    if raw is not None and raw.dtype.kind == "c":
-        raise ValueError("initial: the (4, 4) ct2robot matrix has complex values; expected "
-                         "real numbers")
-    if raw is None or raw.dtype.kind not in "iuf":   # None entries would become NaN
-        what = (type(initial).__name__ if raw is None or raw.ndim == 0
-                else f"an array of {raw.dtype} values")
-        raise ValueError(f"initial: expected a RigidTransform or a (4, 4) ct2robot matrix of "
-                         f"numbers, got {what}")
-    m = raw.astype(np.float64)
-    if m.shape != (4, 4):
-        raise ValueError(f"initial: expected a RigidTransform or a (4, 4) ct2robot matrix, "
-                         f"got shape {m.shape}")
-    if not np.all(np.isfinite(m)):
-        raise ValueError("initial: the (4, 4) ct2robot matrix holds NaN or inf")
-    R = m[:3, :3]
-    if (not np.allclose(m[3], [0, 0, 0, 1]) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6)
-            or np.linalg.det(R) < 0):
-        raise ValueError("initial: the (4, 4) matrix is not a rigid transform (its 3x3 part "
-                         "must be a rotation, its last row [0, 0, 0, 1])")
-    try:
-        return RigidTransform(R, m[:3, 3])
-    except ValueError as exc:
-        raise ValueError(f"initial: {exc}") from None
-
-
 def match_quality(res) -> dict:
     """Figures of a registration's final matches, from what a clinic has (no truth).
 
@@ -1236,7 +1210,7 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
     from reglib.register import register
 
     options = _as_options(options)
-    start = _as_transform(initial)
+    start = as_rigid_transform(initial, "initial")
     if stages is not None and not isinstance(stages, Stages):
         raise ValueError(f"stages: expected None or the Stages of reglib.prepare, got "
                          f"{type(stages).__name__}")

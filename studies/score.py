@@ -67,41 +67,11 @@ def load_method(spec: str):
 
 
 def _as_pose(value, spec: str):
-    from reglib.geometry import RigidTransform
+    """The pose a method returned, as :func:`reglib.geometry.as_rigid_transform` reads it,
+    its refusals naming the method."""
+    from reglib.geometry import as_rigid_transform
 
-    m = value.as_matrix() if isinstance(value, RigidTransform) else value
-    what = (f"method {spec}: returned {type(value).__name__}, expected a (4, 4) ct2robot "
-            "array")
-    try:
-        raw = np.asarray(m)
-    except (TypeError, ValueError):
-        raise ValueError(what) from None
-    if raw.ndim == 0:           # None, a number, a string: no array at all
-        raise ValueError(what)
-    if np.iscomplexobj(raw):    # float64 would drop the imaginary part (a review)
-        raise ValueError(f"method {spec}: returned complex values, expected a real (4, 4) "
-                         "ct2robot array")
-    if raw.dtype.kind not in "iuf":   # strings and booleans cast to numbers (a review:
-        #                                 np.eye(4, dtype=bool) was scored, 853 mm off)
-        raise ValueError(f"method {spec}: returned an array of {raw.dtype}, expected a (4, 4) "
-                         "ct2robot array of numbers")
-    m = raw.astype(np.float64)
-    if m.shape != (4, 4):
-        raise ValueError(f"method {spec}: returned shape {m.shape}, expected a (4, 4) ct2robot "
-                         "array")
-    if not np.all(np.isfinite(m)):
-        raise ValueError(f"method {spec}: returned a (4, 4) array with NaN or inf values, "
-                         "expected a finite ct2robot")
-    R = m[:3, :3]
-    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0 \
-            or not np.allclose(m[3], [0, 0, 0, 1]):
-        raise ValueError(f"method {spec}: returned a (4, 4) matrix that is not a rigid "
-                         "transform (rotation and translation)")
-    try:    # the geometry's own, stricter tests (a review: its message named no method)
-        return RigidTransform(R, m[:3, 3])
-    except ValueError as exc:
-        raise ValueError(f"method {spec}: returned a (4, 4) matrix that is not a rigid "
-                         f"transform: {exc}") from None
+    return as_rigid_transform(value, f"method {spec} returned")
 
 
 #: scene fields that a dataset's stored scene may hold from an older testbed and that this

@@ -192,21 +192,21 @@ def test_a_methods_result_that_is_no_rigid_pose_is_named():
     m = pose.as_matrix()
     for value in (m, m.tolist(), pose, m.astype(np.float32).astype(np.float64)):
         assert np.allclose(_as_pose(value, "x").as_matrix(), m)
-    for value, match in ((m.astype(complex) + 1j, "returned complex values"),
-                         (m.astype(complex), "returned complex values"),
-                         (None, "returned NoneType, expected a .4, 4. ct2robot"),
-                         ("pose", "returned str"), (m[:3], r"shape \(3, 4\)"),
+    for value, match in ((m.astype(complex) + 1j, "returned: the .4, 4. ct2robot matrix has complex values"),
+                         (m.astype(complex), "returned: the .4, 4. ct2robot matrix has complex values"),
+                         (None, "returned: expected a RigidTransform or a .4, 4. ct2robot matrix of numbers, got NoneType"),
+                         ("pose", "returned: .* got str"), (m[:3], r"shape \(3, 4\)"),
                          (m * 2.0, "not a rigid transform"),
                          # a review: booleans and strings were cast and scored (853 mm off)
-                         (np.eye(4, dtype=bool), "returned an array of bool"),
-                         (m.astype(str), "returned an array of <U"),
-                         (np.asarray(m, dtype=object), "returned an array of object"),
+                         (np.eye(4, dtype=bool), "returned: .* got an array of bool"),
+                         (m.astype(str), "returned: .* got an array of <U"),
+                         (np.asarray(m, dtype=object), "returned: .* got an array of object"),
                          # passed the loose test above; RigidTransform's message named no
                          # method (a review, tenth session)
                          (np.block([[m[:3, :3] * 1.0000009, m[:3, 3:]], [m[3:]]]),
-                          r"method x: returned .* not a rigid transform: .*proper rotation"),
+                          r"method x returned: .* not a rigid transform: .*proper rotation"),
                          (np.block([[m[:3, :3], np.full((3, 1), 1e300)], [m[3:]]]),
-                          r"method x: returned .* not a rigid transform: .*translation")):
+                          r"method x returned: .* not a rigid transform: .*translation")):
         with pytest.raises(ValueError, match=match):
             _as_pose(value, "x")
     # whole numbers are numbers
