@@ -262,6 +262,13 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
     if a.shape != b.shape or a.ndim != 2:
         raise ValueError(f"detect_markers: frames must be two (H, W) images of the same shape, "
                          f"got {a.shape} and {b.shape}")
+    for name, x in (("previous", a), ("current", b)):
+        if x.dtype.kind not in "biuf":
+            raise ValueError(f"detect_markers: {name}: expected real intensities, got "
+                             f"{x.dtype}")
+        if x.dtype.kind == "f" and not np.isfinite(x).all():   # found no marker, unsaid
+            raise ValueError(f"detect_markers: {name}: the frame holds NaN or infinite "
+                             "values")
     if polarity not in ("dark", "bright"):
         raise ValueError(f"polarity: expected 'dark' or 'bright', got {polarity!r}")
     if response not in ("log", "linear"):

@@ -328,6 +328,12 @@ def test_small_reglib_calls_name_their_argument():
         with pytest.raises(ValueError, match=f"detect_markers: {name}"):
             detect_markers(frames[0], frames[1], **kw)
     assert len(detect_markers(frames[0], frames[1])[0]) == 0
+    nan = frames[1].astype(np.float64)
+    nan[5, 5] = np.nan
+    with pytest.raises(ValueError, match="detect_markers: current: the frame holds NaN"):
+        detect_markers(frames[0], nan)
+    with pytest.raises(ValueError, match="detect_markers: previous: expected real"):
+        detect_markers(frames[0].astype(complex), frames[1])
     with pytest.raises(ValueError, match="restarts: 1000000 restarts .* at most 60"):
         EstimateOptions(restarts=10**6)
     with pytest.raises(ValueError, match="reach 200 deg"):

@@ -192,9 +192,11 @@ def test_a_methods_result_that_is_no_rigid_pose_is_named():
     m = pose.as_matrix()
     for value in (m, m.tolist(), pose, m.astype(np.float32).astype(np.float64)):
         assert np.allclose(_as_pose(value, "x").as_matrix(), m)
-    for value, match in ((m.astype(complex) + 1j, "returned: the .4, 4. ct2robot matrix has complex values"),
-                         (m.astype(complex), "returned: the .4, 4. ct2robot matrix has complex values"),
-                         (None, "returned: expected a RigidTransform or a .4, 4. ct2robot matrix of numbers, got NoneType"),
+    complex_values = "returned: the .4, 4. ct2robot matrix has complex values"
+    for value, match in ((m.astype(complex) + 1j, complex_values),
+                         (m.astype(complex), complex_values),
+                         (None, "returned: expected a RigidTransform or a .4, 4. ct2robot "
+                                "matrix of numbers, got NoneType"),
                          ("pose", "returned: .* got str"), (m[:3], r"shape \(3, 4\)"),
                          (m * 2.0, "not a rigid transform"),
                          # a review: booleans and strings were cast and scored (853 mm off)
