@@ -326,19 +326,17 @@ REPORT_ERROR_CHARS = 300
 
 
 def report_line(error: str) -> str:
-    """A trial's error as one line of a markdown report: its first line, at most
-    :data:`REPORT_ERROR_CHARS` characters, backticks and ``<`` escaped, and how many lines
-    were left out (they stay in the database). A review's method raised a message with a
+    """A trial's error as one line of a markdown report: its lines joined by " / ", at
+    most :data:`REPORT_ERROR_CHARS` characters (the whole stays in the database), backticks
+    and ``<`` escaped. A review's method raised a message with a
     markdown heading and an open code fence, which became a section of report.md and
     swallowed the sections after it."""
-    lines = str(error).strip().splitlines() or [""]
-    text = lines[0]
+    lines = [ln.strip() for ln in str(error).strip().splitlines() if ln.strip()] or [""]
+    text = " / ".join(lines)    # a scene error's field is on its second line
     if len(text) > REPORT_ERROR_CHARS:
-        text = text[:REPORT_ERROR_CHARS] + " ..."
-    text = text.replace("`", "\\`").replace("<", "&lt;")
-    if len(lines) > 1:
-        text += f" ({len(lines) - 1} more line(s): read_failures or trials.sqlite)"
-    return text
+        text = text[:REPORT_ERROR_CHARS] + " ... (the whole message: read_failures or " \
+            "trials.sqlite)"
+    return text.replace("`", "\\`").replace("<", "&lt;")
 
 
 def interrupt_of(exc: BaseException) -> KeyboardInterrupt | None:
@@ -686,6 +684,10 @@ def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str,
                     killed = True
                     res = _timed_out(trial, timeout_s)
                     break
+                except BaseException:   # Ctrl-C: a worker that ignores it would hold us
+                    _kill_workers(ex)
+                    killed = True
+                    raise
                 finally:
                     ex.shutdown(wait=not killed, cancel_futures=True)
             record(trial, res)
@@ -735,6 +737,12 @@ def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str,
                     suspects.sort(key=lambda tr: tr.index)
                     running.clear()
                     break
+        except BaseException:
+            # Ctrl-C (or an error of our own): a method stuck in code that ignores SIGINT
+            # kept its worker, and the command waited for it at exit for ever (a review)
+            _kill_workers(ex)
+            killed = True
+            raise
         finally:
             for fut in running:
                 fut.cancel()

@@ -210,7 +210,8 @@ def test_odd_exceptions_are_failed_trials_that_a_report_can_show(tmp_path, worke
     assert full[4].startswith("ValueError: first line\n## Injected heading")
     assert "characters cut" in full[4] and len(full[4]) < 4100
     shown = df.attrs["failures"]
-    assert shown[4] == "ValueError: first line (3 more line(s): read_failures or trials.sqlite)"
+    assert shown[4].startswith("ValueError: first line / ## Injected heading / \\`\\`\\` / xxx")
+    assert shown[4].endswith("... (the whole message: read_failures or trials.sqlite)")
     assert all("\n" not in v and len(v) < 400 for v in shown.values())
     # stored: a rerun takes them from the database instead of failing again
     again = run_trials(toy_trial, trials, out_dir=tmp_path, workers=workers, progress=False)
