@@ -573,13 +573,13 @@ def _timed_out(trial: Trial, timeout_s: float) -> TrialResult:
 def _kill_workers(ex: cf.ProcessPoolExecutor) -> None:
     """End the pool's worker processes at once (a trial past its time limit may be stuck in
     compiled code, where no signal reaches Python); the pool is broken afterwards. Python
-    3.11's executor has no public call for it (3.14 adds ``kill_workers``)."""
+    3.11's executor has no public call for it (3.14 adds ``kill_workers``). The caller
+    shuts the pool down, without waiting."""
     for proc in list((getattr(ex, "_processes", None) or {}).values()):
         try:
             proc.kill()
         except (OSError, ValueError, AttributeError):  # gone already, or closed
             pass
-    ex.shutdown(wait=False, cancel_futures=True)
 
 
 #: seconds to wait, once a worker died, for the pool to fail the trials still in flight
@@ -679,15 +679,13 @@ def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str,
                 except BrokenProcessPool as exc:
                     res = _lost(trial, f"{str(exc) or type(exc).__name__}; "
                                 f"{attempt + 1} attempt(s) alone")
-                except cf.TimeoutError:
-                    _kill_workers(ex)
+                except BaseException as exc:  # past its time limit, or Ctrl-C (a worker
+                    _kill_workers(ex)            # that ignores it would hold the command)
                     killed = True
+                    if not isinstance(exc, cf.TimeoutError):
+                        raise
                     res = _timed_out(trial, timeout_s)
                     break
-                except BaseException:   # Ctrl-C: a worker that ignores it would hold us
-                    _kill_workers(ex)
-                    killed = True
-                    raise
                 finally:
                     ex.shutdown(wait=not killed, cancel_futures=True)
             record(trial, res)
