@@ -62,6 +62,7 @@ from reglib.geometry import (
     RigidTransform,
     as_lines,
     as_points,
+    as_rigid_transform,
     cayley,
     robust_scale,
     skew,
@@ -191,13 +192,27 @@ def _check_options(method, *, max_iterations, tol, r, tukey_a, threshold, max_tr
     number("confidence", confidence, lambda v: 0 < v < 1, "a probability in (0, 1)")
 
 
+def _is_matrix_4x4(value) -> bool:
+    """Whether ``value`` is array-like of shape (4, 4) (not a pair ``(R, t)``)."""
+    if isinstance(value, RigidTransform | str | bytes):
+        return False
+    try:
+        return np.shape(value) == (4, 4)
+    except (TypeError, ValueError):     # ragged: a pair (R, t)
+        return False
+
+
 def _check_initial(initial) -> tuple[np.ndarray, np.ndarray]:
-    """``initial`` as (R (3, 3), t (3,)): a rotation (orthonormal, det +1) and finite."""
+    """``initial`` as (R (3, 3), t (3,)): a rotation (orthonormal, det +1) and finite; a
+    (4, 4) homogeneous matrix is read by :func:`reglib.geometry.as_rigid_transform`."""
+    if _is_matrix_4x4(initial):
+        T = as_rigid_transform(initial, "initial")
+        initial = (T.R, T.t)
     try:
         R, t = (np.asarray(x, dtype=np.float64) for x in initial)
     except (TypeError, ValueError):
-        raise ValueError("initial: expected a RigidTransform or a pair (R (3, 3), t (3,))"
-                         ) from None
+        raise ValueError("initial: expected a RigidTransform, a pair (R (3, 3), t (3,)) or a "
+                         "(4, 4) matrix") from None
     if R.shape != (3, 3) or t.shape != (3,) or not (np.all(np.isfinite(R))
                                                     and np.all(np.isfinite(t))):
         raise ValueError(f"initial: expected a finite R (3, 3) and t (3,), got {R.shape} and "
@@ -212,8 +227,14 @@ def _check_initial(initial) -> tuple[np.ndarray, np.ndarray]:
 
 # --------------------------------------------------------------------------- building blocks
 def tukey_weights(z, a: float = 2.0) -> np.ndarray:
-    """Tukey biweight ``psi(z)/z = (1 - (z/a)^2)^2`` for ``|z| < a``, else 0."""
+    """Tukey biweight ``psi(z)/z = (1 - (z/a)^2)^2`` for ``|z| < a``, else 0 (also for
+    ``|z| = inf``). ValueError for a NaN residual (no weight is right for it) or an ``a``
+    that is not a finite number > 0."""
     z = np.asarray(z, dtype=np.float64)
+    if not (isinstance(a, numbers.Real) and np.isfinite(a) and a > 0):
+        raise ValueError(f"tukey_weights: a must be a finite number > 0, got {a!r}")
+    if np.isnan(z).any():
+        raise ValueError(f"tukey_weights: {int(np.isnan(z).sum())} residual(s) are NaN")
     w = 1.0 - (z / a) ** 2
     return np.where(np.abs(z) < a, w * w, 0.0)
 
@@ -928,8 +949,9 @@ def solve_pose(points, origins, directions, method: Method = "robust", *, initia
     origins, directions : (N, 3) each; lines in the target frame (e.g. ``robot``), unit
         directions. Point i corresponds to line i.
     method : "lm" | "linear" | "robust" | "ransac" (see the module docstring).
-    initial : RigidTransform or (R, t), the starting pose (default identity); R must be a
-        rotation (``R^T R = I``, ``det R = +1``) and both finite, else ValueError.
+    initial : RigidTransform, (R, t) or a (4, 4) matrix, the starting pose (default
+        identity); R must be a rotation (``R^T R = I``, ``det R = +1``) and both finite,
+        else ValueError.
     max_iterations : iterations of the linearised methods (LM: 10x as many evaluations).
     tol : stop when the Cayley increment |u| < tol and |t| < tol * (size of the cloud).
         "linear" also stops, converged, when its cost (the sum of squared distances) stopped

@@ -35,7 +35,7 @@ import numpy as np
 
 from reglib.apparent import SurfaceTopology, prepare_surface
 from reglib.closest import ContourSet, _match_contours, closest_points, select_contours
-from reglib.geometry import RigidTransform, as_flags, as_lines, skew
+from reglib.geometry import RigidTransform, as_flags, as_lines, as_rigid_transform, skew
 from reglib.pose import _check_options as _check_pose_options
 from reglib.pose import solve_pose
 
@@ -533,7 +533,7 @@ def register(surfaces, views, initial: RigidTransform, *,
     ----------
     surfaces : list of SurfaceTopology (or ``(vertices, faces)`` pairs), CT frame, mm.
     views : list of View (robot frame).
-    initial : RigidTransform ``ct2robot``, the start pose.
+    initial : RigidTransform ``ct2robot``, the start pose (or its (4, 4) matrix).
     method : pose solver of :func:`reglib.pose.solve_pose` (default "robust", the paper's),
         used with ``residual="line"``. With ``residual="normal"`` or ``fixed_point_ct`` the
         solve is ``solve_pose``'s constrained IRLS (``normals``, ``fixed_point``): robust
@@ -607,8 +607,7 @@ def register(surfaces, views, initial: RigidTransform, *,
     for i, v in enumerate(views):
         if not isinstance(v, View):
             raise ValueError(f"views[{i}]: expected a View, got {type(v).__name__}")
-    if not isinstance(initial, RigidTransform):
-        raise ValueError(f"initial: expected a RigidTransform ct2robot, got {type(initial)}")
+    initial = as_rigid_transform(initial, "initial")      # a (4, 4) ct2robot matrix too
     R0 = np.asarray(initial.R, dtype=np.float64)
     if (not np.all(np.isfinite(R0)) or not np.all(np.isfinite(initial.t))
             or not np.allclose(R0.T @ R0, np.eye(3), atol=1e-6) or np.linalg.det(R0) < 0):

@@ -180,3 +180,20 @@ def test_fast_detector_equals_the_reference_in_its_other_modes(seed):
             assert np.abs(fast[0] - ref[0]).max() < 1e-6
             assert np.abs(fast[1] - ref[1]).max() < 1e-6 * ref[1].max()
 
+
+
+def test_whole_float_areas_are_read_as_integers():
+    """``min_area_px=4.0`` is 4 (it was refused as not a whole number); 4.5, NaN and '4'
+    are still refused, by name."""
+    before = np.full((60, 60), 200, np.uint8)
+    after = before.copy()
+    after[20:25, 20:25] = 100
+    after[40:42, 40:42] = 100                  # a blob of 10-14 px after the smoothing
+    for area in (4, 15):
+        a = M.detect_markers(before, after, min_area_px=area)
+        b = M.detect_markers(before, after, min_area_px=float(area), max_area_px=2000.0)
+        assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+        assert len(a[0]) == (2 if area == 4 else 1)
+    for bad in (4.5, np.nan, "4"):
+        with pytest.raises(ValueError, match="min_area_px and max_area_px: expected whole"):
+            M.detect_markers(before, after, min_area_px=bad)

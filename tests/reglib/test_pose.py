@@ -6,7 +6,7 @@ from scipy.optimize import approx_fprime
 
 from reglib import pose as pose_mod
 from reglib.geometry import RigidTransform, cayley, skew
-from reglib.pose import p3l_solutions, solve_pose
+from reglib.pose import p3l_solutions, solve_pose, tukey_weights
 from testbed.scene import SyntheticSpec
 from testbed.synthetic import landmark_error, make_points_lines
 
@@ -388,6 +388,32 @@ def test_initial_must_be_a_rotation(bad, message, method):
     c = _case(0, n_points=20)
     with pytest.raises(ValueError, match=message):
         solve_pose(c.points, c.origins, c.directions, method, initial=bad)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_initial_as_a_4x4_matrix_gives_the_same_pose(method):
+    """A (4, 4) homogeneous ``initial`` is the same start as its RigidTransform (it was
+    refused as 'not a pair (R, t)'); a (4, 4) that is no rigid transform is named."""
+    c = _case(1, n_points=40, noise_std=0.05)
+    start = RigidTransform.from_rotvec([0.02, -0.01, 0.03], [1.0, -2.0, 0.5]) @ c.points2lines
+    a = solve_pose(c.points, c.origins, c.directions, method, initial=start)
+    b = solve_pose(c.points, c.origins, c.directions, method, initial=start.as_matrix())
+    assert np.array_equal(a.R, b.R) and np.array_equal(a.t, b.t)
+    bad = start.as_matrix().copy()
+    bad[3, 0] = 1.0
+    with pytest.raises(ValueError, match="initial: the .4, 4. matrix is not a rigid"):
+        solve_pose(c.points, c.origins, c.directions, method, initial=bad)
+
+
+def test_tukey_weights_refuse_nan_residuals_and_bad_constants():
+    """A NaN residual had weight 0, as an outlier, without a word; inf is an outlier."""
+    w = tukey_weights(np.array([0.0, 1.0, 2.0, np.inf, -np.inf]), 2.0)
+    assert np.allclose(w, [1.0, 0.5625, 0.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match="1 residual.s. are NaN"):
+        tukey_weights(np.array([0.0, np.nan]))
+    for a in (0.0, -1.0, np.nan, "2"):
+        with pytest.raises(ValueError, match="a must be a finite number > 0"):
+            tukey_weights(np.zeros(3), a)
 
 
 @pytest.mark.parametrize("seed", range(4))

@@ -234,7 +234,7 @@ def test_bad_input_raises():
     with pytest.raises(ValueError, match="views"):
         register([(m.vertices, m.faces)], [], RigidTransform.identity())
     with pytest.raises(ValueError, match="initial"):
-        register([(m.vertices, m.faces)], [v], np.eye(4))
+        register([(m.vertices, m.faces)], [v], np.eye(3))   # a 4x4 is read as a pose
     with pytest.raises(ValueError, match="residual"):
         register([(m.vertices, m.faces)], [v], RigidTransform.identity(), residual="plane")
 
@@ -401,6 +401,19 @@ def test_register_refuses_a_non_rigid_initial_clearly(world):
             register(tops, list(views.values()), bad)
     with pytest.raises(ValueError, match="stale_window: expected an integer >= 0, got -1"):
         register(tops, list(views.values()), true, stale_window=-1)
+
+
+def test_register_takes_a_4x4_initial_as_its_rigid_transform(world):
+    """``register``'s ``initial`` as a (4, 4) ct2robot matrix: the same registration as
+    from its RigidTransform (it was refused)."""
+    tops, views, true = world
+    start = RigidTransform.from_rotvec([0.01, 0.02, -0.01], [1.0, 0.5, -1.0]) @ true
+    a = register(tops, list(views.values()), start, max_iterations=5)
+    b = register(tops, list(views.values()), start.as_matrix(), max_iterations=5)
+    assert np.array_equal(a.ct2robot.as_matrix(), b.ct2robot.as_matrix())
+    with pytest.raises(ValueError, match="initial: expected a RigidTransform or a .4, 4. "
+                                         "ct2robot matrix"):
+        register(tops, list(views.values()), "identity")
 
 
 def test_limit_cycles_of_period_two_to_eight_are_detected_and_nothing_else():
