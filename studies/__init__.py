@@ -46,13 +46,15 @@ SERIAL_STUDIES = {"table1": "it times pose solves, and parallel workers would sh
 
 
 def run_study(name: str, out: Path, *, scene=None, seed=None, quick=False, workers=1,
-              scheduler=None, retries: int = 2, progress: bool = True) -> Path:
+              scheduler=None, retries: int = 2, progress: bool = True,
+              retry_failed: bool = False) -> Path:
     """Run study ``name`` into folder ``out``; returns ``out``.
 
     ``workers``: processes for the trials; ``scheduler``: a Dask scheduler address (or
     Client / cluster) to run them on instead; ``retries``: how many more times a trial whose
     worker was lost is run; ``progress``: a bar of the trials on stderr. Rerunning into the
-    same ``out`` resumes. Raises ``ValueError`` before any work for an unknown study, a
+    same ``out`` resumes (the trials stored as failed run again with ``retry_failed``).
+    Raises ``ValueError`` before any work for an unknown study, a
     scene of another kind than the study's default scene (e.g. an operating room for
     ``fig9``), or workers asked of a serial study.
     """
@@ -78,6 +80,7 @@ def run_study(name: str, out: Path, *, scene=None, seed=None, quick=False, worke
                       workers=workers, scheduler=scheduler)
     ctx.retries = int(retries)
     ctx.progress = bool(progress)
+    ctx.retry_failed = bool(retry_failed)
     df = mod.run(ctx)
     finish_study(ctx, df)
     return out

@@ -288,7 +288,7 @@ def cmd_study(args) -> int:
         _check_scheduler(args, "study")
         run_study(args.name, out, scene=args.scene, seed=args.seed, quick=args.quick,
                   workers=args.workers, scheduler=args.scheduler, retries=args.retries,
-                  progress=sys.stderr.isatty())
+                  progress=sys.stderr.isatty(), retry_failed=args.retry_failed)
     except BaseException:
         if made and out.is_dir() and not any(out.iterdir()):
             out.rmdir()   # refused before any result: leave no empty folder behind
@@ -314,7 +314,8 @@ def _failed_trials(out: Path) -> int:
     if not failed:
         return 0
     print(f"{PROG}: {failed} of {df.trial.nunique()} trial(s) failed (the error of each is in "
-          f"{out / 'report.md'}; the others' results are written)", file=sys.stderr)
+          f"{out / 'report.md'}; the others' results are written; the same command with "
+          "--retry-failed runs the failed ones again)", file=sys.stderr)
     return 1
 
 
@@ -374,7 +375,7 @@ def cmd_score(args) -> int:
     try:
         score_dataset(dataset, out, method=args.method, workers=args.workers,
                       scheduler=args.scheduler, progress=sys.stderr.isatty(),
-                      timeout_s=timeout)
+                      timeout_s=timeout, retry_failed=args.retry_failed)
     except BaseException:
         if made and out.is_dir() and not any(out.iterdir()):
             out.rmdir()   # refused before any result (no case can be read): no folder left
@@ -489,6 +490,8 @@ def build_parser() -> argparse.ArgumentParser:
                        0, "--retries", MAX_RETRIES, "each retry runs a trial whose worker "
                        "died once more, alone"), default=2,
                    help="runs more of a trial whose worker was lost (default 2)")
+    s.add_argument("--retry-failed", action="store_true",
+                   help="on a rerun, run again the trials stored as failed (kept otherwise)")
     s.add_argument("--list", action="store_true", help="list the studies")
     s.set_defaults(func=cmd_study)
 
@@ -518,6 +521,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a case whose method runs longer is a failed case, its worker "
                    f"stopped (default {SCORE_TIMEOUT_S:g} s with local workers; 0: no limit; "
                    "not with --scheduler)")
+    c.add_argument("--retry-failed", action="store_true",
+                   help="on a rerun, score again the cases stored as failed (a timeout, a "
+                   "crash); kept otherwise")
     c.set_defaults(func=cmd_score)
 
     d = sub.add_parser("render", help="render one X-ray frame of a view to PNG")

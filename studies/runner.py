@@ -1026,5 +1026,6 @@ def run_study_trials(ctx, trial_fn: Callable[[Trial], list[dict]],
     if progress is None:  # the study's choice (testbed study: only on a terminal)
         progress = bool(getattr(ctx, "progress", True))
     kwargs.setdefault("study", getattr(ctx, "name", None))
+    kwargs.setdefault("retry_failed", bool(getattr(ctx, "retry_failed", False)))
     return run_trials(trial_fn, trials, out_dir=ctx.out, workers=int(ctx.workers),
                       scheduler=scheduler, progress=progress, **kwargs)

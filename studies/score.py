@@ -200,11 +200,13 @@ def _dataset_identity(dataset: Path) -> str:
 
 def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 1,
                   scheduler=None, progress: bool = True,
-                  timeout_s: float | None = None) -> Path:
+                  timeout_s: float | None = None, retry_failed: bool = False) -> Path:
     """Score ``method`` on every case of ``dataset``; writes ``out/results.csv`` and
     ``out/report.md``; returns ``out``. Rerunning into the same ``out`` resumes.
     ``timeout_s``: a case whose method still runs after this many seconds is a failed case
-    (its worker process killed), not a hung command (``testbed score --timeout``)."""
+    (its worker process killed), not a hung command (``testbed score --timeout``);
+    ``retry_failed``: on a rerun, the cases stored as failed are scored again (``testbed
+    score --retry-failed``)."""
     from studies.common import StudyContext, check_out_folder, finish_study, markdown_table
     from studies.runner import fingerprint, make_trials, run_trials
     from testbed.dataset import list_cases
@@ -264,7 +266,7 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
     user = method != DEFAULT_METHOD
     df = run_trials(trial, trials, out_dir=out, workers=workers, scheduler=scheduler,
                     progress=progress, isolate=user, mp_context="spawn" if user else None,
-                    timeout_s=timeout_s, study=study)
+                    timeout_s=timeout_s, study=study, retry_failed=retry_failed)
     reused = int(df.attrs.get("skipped", 0))
     reuse_note = ""
     if reused:

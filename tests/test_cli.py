@@ -583,3 +583,24 @@ def test_generate_says_when_every_case_shares_one_placement(tmp_path, capsys, mo
     code, out, err = _run(capsys, "generate", str(varied), "--cases", "2", "--out",
                           str(tmp_path / "d2"))
     assert code == 0 and "ct2robot" not in err
+
+
+def test_retry_failed_reaches_the_runner_from_both_commands(tmp_path, monkeypatch, capsys):
+    """``--retry-failed`` on ``score`` and ``study``: the stored failed trials run again
+    (run_trials had the option, no command passed it: a case timed out on a busy machine
+    could be scored again only in a new folder)."""
+    import studies
+    import studies.score
+
+    seen = {}
+    monkeypatch.setattr(studies.score, "score_dataset",
+                        lambda *a, **kw: seen.setdefault("score", kw["retry_failed"]))
+    monkeypatch.setattr(studies, "run_study",
+                        lambda *a, **kw: seen.setdefault("study", kw["retry_failed"]))
+    ds = tmp_path / "ds"
+    (ds / "case_0000").mkdir(parents=True)
+    (ds / "case_0000" / "case.json").write_text("{}")
+    assert main(["score", str(ds), "--out", str(tmp_path / "s"), "--retry-failed"]) == 0
+    assert main(["study", "fig9", "--quick", "--out", str(tmp_path / "f"),
+                 "--retry-failed"]) == 0
+    assert seen == {"score": True, "study": True}, seen

@@ -343,7 +343,11 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path, capsys):
         "    os._exit(0)\n"
         "def hangs(observation, initial):\n"
         "    import time\n"
-        "    time.sleep(3600)\n")
+        "    time.sleep(3600)\n"
+        "def flaky(observation, initial):\n"
+        f"    if __import__('os').path.exists({str(tmp_path / 'down')!r}):\n"
+        "        raise OSError('the license server is down')\n"
+        "    return np.asarray(initial)\n")
     import sys
 
     sys.path.insert(0, str(tmp_path))
@@ -360,6 +364,19 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path, capsys):
         score_dataset(tmp_path / "ds", tmp_path / "s_hang", method="mymethods:hangs",
                       progress=False, timeout_s=6.0)
         assert time.monotonic() - t0 < 60.0
+        # a case failed for a passing cause is kept on a rerun, and scored again with
+        # retry_failed (testbed score --retry-failed; it could not be, but in a new folder)
+        (tmp_path / "down").touch()
+        score_dataset(tmp_path / "ds", tmp_path / "s_flaky", method="mymethods:flaky",
+                      progress=False)
+        (tmp_path / "down").unlink()
+        score_dataset(tmp_path / "ds", tmp_path / "s_flaky", method="mymethods:flaky",
+                      progress=False)
+        assert list(pd.read_csv(tmp_path / "s_flaky" / "results.csv").metric) == ["failed"]
+        score_dataset(tmp_path / "ds", tmp_path / "s_flaky", method="mymethods:flaky",
+                      progress=False, retry_failed=True)
+        retried = pd.read_csv(tmp_path / "s_flaky" / "results.csv")
+        assert "failed" not in set(retried.metric) and "mtre" in set(retried.metric)
     finally:
         sys.path.remove(str(tmp_path))
     assert list(pd.read_csv(tmp_path / "s_hang" / "results.csv").metric) == ["failed"]
