@@ -572,10 +572,19 @@ def _timed_out(trial: Trial, timeout_s: float) -> TrialResult:
 
 def _kill_workers(ex: cf.ProcessPoolExecutor) -> None:
     """End the pool's worker processes at once (a trial past its time limit may be stuck in
-    compiled code, where no signal reaches Python); the pool is broken afterwards. Python
-    3.11's executor has no public call for it (3.14 adds ``kill_workers``). The caller
-    shuts the pool down, without waiting."""
+    compiled code, where no signal reaches Python), each with the processes its trial
+    started (its process group, :func:`_worker_start`); the pool is broken afterwards.
+    Python 3.11's executor has no public call for it (3.14 adds ``kill_workers``). The
+    caller shuts the pool down, without waiting."""
+    import signal
+
     for proc in list((getattr(ex, "_processes", None) or {}).values()):
+        pid = getattr(proc, "pid", None)
+        if pid:   # the group the worker leads: no group of that id unless it made it
+            try:
+                os.killpg(pid, signal.SIGKILL)
+            except (OSError, ValueError):   # not yet its own group, or gone
+                pass
         try:
             proc.kill()
         except (OSError, ValueError, AttributeError):  # gone already, or closed
@@ -607,25 +616,33 @@ def _process_alive(pid: int) -> bool:
 
 
 def _worker_start(parent_pid: int) -> None:
-    """Pool worker initializer: pybullet imported without its banner (a study's workers
-    each printed it on stderr), and a daemon thread that ends this worker when the study's
-    process ``parent_pid`` is gone. A study killed by SIGKILL, the OOM killer or a batch system's
-    hard limit cannot stop its pool, and the workers (each holding both ends of its call
-    queue, so never reading EOF) lived on idle, 0.8 GB each; the study resumes from its
-    database, so nothing they held is lost."""
+    """Pool worker initializer: a process group of its own (below), pybullet imported
+    without its banner (a study's workers each printed it on stderr), and a daemon thread
+    that ends this worker when the study's process ``parent_pid`` is gone. A study killed
+    by SIGKILL, the OOM killer or a batch system's hard limit cannot stop its pool, and the
+    workers (each holding both ends of its call queue, so never reading EOF) lived on idle,
+    0.8 GB each; the study resumes from its database, so nothing they held is lost."""
     import signal
     import threading
 
     from studies.threads import quiet_pybullet
 
-    # Ctrl-C raises KeyboardInterrupt here as in any Python process (the fork server this
-    # worker came from ignores it: studies._forkserver)
+    # A process group of its own, so that a kill reaches the processes a trial starts (a
+    # method's helper programs outlived its worker when a time limit or Ctrl-C ended it, a
+    # review). The terminal's Ctrl-C then reaches the study's process alone, which kills
+    # its workers (_run_pool); a worker started and interrupted printed its traceback.
+    try:
+        os.setpgid(0, 0)
+    except OSError:    # not allowed here (a session leader): the worker alone is killed
+        pass
     signal.signal(signal.SIGINT, signal.default_int_handler)
     quiet_pybullet()
 
     def watch():
         while _process_alive(parent_pid):
             time.sleep(PARENT_POLL_S)
+        if os.getpgid(0) == os.getpid():  # its group: what its trial started, and itself
+            os.killpg(0, signal.SIGKILL)
         os._exit(70)
 
     threading.Thread(target=watch, name="end-with-study", daemon=True).start()

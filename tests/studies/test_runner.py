@@ -24,6 +24,7 @@ from studies.report import plot_metric, success_rate, summarize
 from studies.runner import (
     DB_NAME,
     Trial,
+    _process_alive,
     make_trials,
     read_failures,
     read_results,
@@ -44,6 +45,9 @@ def toy_trial(trial: Trial) -> list[dict]:
     rng = trial.rng()
     if p.get("pid_dir"):     # say which process runs it
         (Path(p["pid_dir"]) / str(os.getpid())).touch()
+    if p.get("child_dir"):   # start a helper program that would outlive the trial
+        child = subprocess.Popen(["sleep", "300"])
+        (Path(p["child_dir"]) / str(child.pid)).touch()
     time.sleep(p.get("sleep_s", 0.0))
     if p.get("fail"):
         raise RuntimeError(f"trial {trial.index} was asked to fail")
@@ -268,13 +272,21 @@ def test_a_trial_past_its_time_limit_is_recorded_and_the_others_finish(tmp_path,
     # trial is failed as timed out, its worker killed, and every other trial gives the rows
     # of an unlimited run, among them one in flight beside it when the pool was killed
     params = _params(5, sleep_s=0.3)
-    params[1] = {**params[1], "sleep_s": 300.0}
+    children = tmp_path / "children"
+    children.mkdir()
+    params[1] = {**params[1], "sleep_s": 300.0, "child_dir": str(children)}
     trials = make_trials("points-lines", 11, params)
     t0 = time.monotonic()
     df = run_trials(toy_trial, trials, out_dir=tmp_path, workers=workers, progress=False,
                     timeout_s=4.0)
     assert time.monotonic() - t0 < 60.0
     assert df[df.metric == "failed"].trial.tolist() == [1]
+    # the program the hung trial started is killed with its worker (it lived on, a review)
+    (child,) = [int(f.name) for f in children.iterdir()]
+    gone = time.monotonic() + 10.0
+    while _process_alive(child) and time.monotonic() < gone:
+        time.sleep(0.05)
+    assert not _process_alive(child)
     err = read_failures(tmp_path).error[0]
     assert err.startswith("TimedOut: the trial still ran after 4 s"), err
     ok = df[df.trial != 1].reset_index(drop=True)
@@ -466,7 +478,7 @@ def test_workers_end_when_the_study_is_killed(tmp_path):
     its pool: its workers end by themselves within seconds (a review found them idle for
     good, 0.8 GB each). The killed process is left unreaped, a zombie, as a parent that
     does not wait leaves it."""
-    from studies.runner import PARENT_POLL_S, _process_alive
+    from studies.runner import PARENT_POLL_S
 
     pids = tmp_path / "pids"
     pids.mkdir()
