@@ -81,8 +81,10 @@ def check_out_folder(out, name: str, *, study: str | None = None) -> None:
     if owner is not None and owner != want:
         # a study interrupted before its report leaves only its database: a review's other
         # study then ran there, replaced its results.csv and mixed both in trials.sqlite
+        again = ("the same testbed score of that dataset" if owner.startswith("score ")
+                 else f"testbed study {owner}")
         raise ValueError(f"--out {out}: holds the trials of {owner!r} ({DB_NAME}), not of "
-                         f"{want!r}; give another folder (or run {owner!r} again there to "
+                         f"{want!r}; give another folder (or run {again} with this --out to "
                          "resume it)")
     # what the study will write over: a folder of that name, or a file that cannot be
     # written (read-only, immutable), failed only after the whole study had run (a review)

@@ -729,8 +729,14 @@ def test_a_study_interrupted_before_its_report_keeps_its_folder(tmp_path):
     assert stored_study(out) == "surfaces" and not (out / "report.md").exists()
     check_out_folder(out, "surfaces")   # the same study resumes
     with pytest.raises(ValueError, match="holds the trials of 'surfaces' .* not of 'fig9'; "
-                                         "give another folder"):
+                                         r"give another folder \(or run testbed study "
+                                         "surfaces with this --out to resume it"):
         check_out_folder(out, "fig9")
+    score = tmp_path / "score"      # a score's owner is no study name: the message says so
+    run_trials(toy_trial, trials, out_dir=score, progress=False, study="score m of data")
+    with pytest.raises(ValueError, match="run the same testbed score of that dataset with "
+                                         "this --out to resume it"):
+        check_out_folder(score, "fig9")
     with pytest.raises(ValueError, match="holds the trials of 'surfaces', not of 'fig9'"):
         run_trials(toy_trial, trials, out_dir=out, progress=False, study="fig9")
     again = run_trials(toy_trial, trials, out_dir=out, progress=False, study="surfaces")
