@@ -615,6 +615,20 @@ def _process_alive(pid: int) -> bool:
         return True
 
 
+def _no_tqdm_process_lock() -> None:
+    """tqdm's bars (even disabled ones) share a lock between processes, a semaphore that
+    each worker made at its first bar; a worker killed (a time limit, Ctrl-C) could not
+    release it, and the semaphore tracker warned of 'leaked semaphore objects' after every
+    interrupted study. A worker draws no bar on the terminal: the lock of its threads is
+    enough (tqdm leaves the process lock out when it is None)."""
+    try:
+        from tqdm.std import TqdmDefaultWriteLock
+    except ImportError:
+        return
+    if not hasattr(TqdmDefaultWriteLock, "mp_lock"):
+        TqdmDefaultWriteLock.mp_lock = None
+
+
 def _worker_start(parent_pid: int) -> None:
     """Pool worker initializer: a process group of its own (below), pybullet imported
     without its banner (a study's workers each printed it on stderr), and a daemon thread
@@ -637,6 +651,7 @@ def _worker_start(parent_pid: int) -> None:
         pass
     signal.signal(signal.SIGINT, signal.default_int_handler)
     quiet_pybullet()
+    _no_tqdm_process_lock()
 
     def watch():
         while _process_alive(parent_pid):

@@ -45,6 +45,10 @@ def toy_trial(trial: Trial) -> list[dict]:
     rng = trial.rng()
     if p.get("pid_dir"):     # say which process runs it
         (Path(p["pid_dir"]) / str(os.getpid())).touch()
+    if p.get("bar"):         # a progress bar, as a method's inner loop may draw (disabled)
+        from tqdm import tqdm
+
+        tqdm(total=1, disable=True).close()
     if p.get("child_dir"):   # start a helper program that would outlive the trial
         child = subprocess.Popen(["sleep", "300"])
         (Path(p["child_dir"]) / str(child.pid)).touch()
@@ -474,6 +478,29 @@ def test_resume_after_sigkill_gives_the_rows_of_an_uninterrupted_run(tmp_path):
                        progress=False)
     pd.testing.assert_frame_equal(resumed, clean, check_exact=True)
     assert len(clean) == 5 * n
+
+
+def test_a_killed_worker_leaves_no_semaphore_behind(tmp_path):
+    """A trial that drew a (disabled) tqdm bar made tqdm's inter-process lock, a semaphore;
+    its worker killed at the time limit never released it, and every interrupted or
+    timed-out study ended with the tracker's 'leaked semaphore objects' warning."""
+    script = tmp_path / "study.py"
+    script.write_text(textwrap.dedent(f"""
+        import sys
+        sys.path.insert(0, {str(HERE)!r})
+        from studies.runner import make_trials, run_trials
+        from test_runner import toy_trial
+
+        if __name__ == "__main__":
+            trials = make_trials("points-lines", 5, [{{"sleep_s": 300.0, "bar": True}}])
+            df = run_trials(toy_trial, trials, out_dir={str(tmp_path / "out")!r}, workers=2,
+                            progress=False, timeout_s=3.0)
+            assert list(df.metric) == ["failed"], df
+    """))
+    out = subprocess.run([sys.executable, str(script)], cwd=ROOT, capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "leaked semaphore" not in out.stderr, out.stderr
 
 
 @pytest.mark.slow
