@@ -478,7 +478,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("study", help="run a study and write results.csv, report.md, figures")
     s.add_argument("name", nargs="?", help="study name (see --list)")
-    s.add_argument("--out", type=_path, help="output folder")
+    s.add_argument("--out", type=_path, help="output folder (required with a study name)")
     s.add_argument("--scene", default=None, help="scene file or name (study default if none)")
     s.add_argument("--seed", type=seed, default=None, help="override the study's seed")
     s.add_argument("--quick", action="store_true", help="a small version (for smoke tests)")
@@ -527,7 +527,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.set_defaults(func=cmd_score)
 
     d = sub.add_parser("render", help="render one X-ray frame of a view to PNG")
-    d.add_argument("scene", nargs="?", default=None)
+    d.add_argument("scene", nargs="?", default=None,
+                   help="scene file or name (default: experiment2)")
     d.add_argument("--view", type=_int_at_least(0, "--view"), default=0,
                    help="view index (0-based)")
     d.add_argument("--out", required=True, type=_path, help="a .png file")
