@@ -580,7 +580,7 @@ def _kill_workers(ex: cf.ProcessPoolExecutor) -> None:
 
     for proc in list((getattr(ex, "_processes", None) or {}).values()):
         pid = getattr(proc, "pid", None)
-        if pid:   # the group the worker leads: no group of that id unless it made it
+        if pid and hasattr(os, "killpg"):   # the group the worker leads (none unless it made it)
             try:
                 os.killpg(pid, signal.SIGKILL)
             except (OSError, ValueError):   # not yet its own group, or gone
@@ -647,8 +647,8 @@ def _worker_start(parent_pid: int) -> None:
     # its workers (_run_pool); a worker started and interrupted printed its traceback.
     try:
         os.setpgid(0, 0)
-    except OSError:    # not allowed here (a session leader): the worker alone is killed
-        pass
+    except (OSError, AttributeError):   # a session leader, or no process groups (Windows):
+        pass                            # the worker alone is killed
     signal.signal(signal.SIGINT, signal.default_int_handler)
     quiet_pybullet()
     _no_tqdm_process_lock()
@@ -656,8 +656,8 @@ def _worker_start(parent_pid: int) -> None:
     def watch():
         while _process_alive(parent_pid):
             time.sleep(PARENT_POLL_S)
-        if os.getpgid(0) == os.getpid():  # its group: what its trial started, and itself
-            os.killpg(0, signal.SIGKILL)
+        if hasattr(os, "killpg") and os.getpgid(0) == os.getpid():  # its group: what its
+            os.killpg(0, signal.SIGKILL)                             # trial started, and it
         os._exit(70)
 
     threading.Thread(target=watch, name="end-with-study", daemon=True).start()
