@@ -45,6 +45,20 @@ SERIAL_STUDIES = {"table1": "it times pose solves, and parallel workers would sh
                             "it measures"}
 
 
+def study_owner(name: str, scene, seed, quick: bool) -> str:
+    """Who a study folder's trials belong to: the study, its scene (by the digest of its
+    resolved fields and files), its seed and ``--quick``. Another scene or seed in the same
+    folder replaced the results and mixed both runs' trials in the database (a review);
+    ``testbed score`` names its dataset likewise."""
+    from studies.runner import scene_fingerprint
+    from testbed.scene import find_scene, load_scene
+
+    sc = load_scene(find_scene(scene))
+    seed = sc.scene.seed if seed is None else int(seed)
+    quick_note = ", quick" if quick else ""
+    return f"{name} of scene {scene_fingerprint(sc)[:12]}, seed {seed}{quick_note}"
+
+
 def run_study(name: str, out: Path, *, scene=None, seed=None, quick=False, workers=1,
               scheduler=None, retries: int = 2, progress: bool = True,
               retry_failed: bool = False) -> Path:
@@ -75,9 +89,11 @@ def run_study(name: str, out: Path, *, scene=None, seed=None, quick=False, worke
         if got != want:
             raise ValueError(f"{path}: [scene] kind = {got!r}, but study {name} needs a "
                              f"scene of kind {want!r} (e.g. {mod.DEFAULT_SCENE})")
-    check_out_folder(out, name)
+    owner = study_owner(name, scene or mod.DEFAULT_SCENE, seed, quick)
+    check_out_folder(out, name, study=owner)
     ctx = start_study(name, out, scene=scene or mod.DEFAULT_SCENE, seed=seed, quick=quick,
                       workers=workers, scheduler=scheduler)
+    ctx.owner = owner
     ctx.retries = int(retries)
     ctx.progress = bool(progress)
     ctx.retry_failed = bool(retry_failed)

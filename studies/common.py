@@ -75,14 +75,16 @@ def check_out_folder(out, name: str, *, study: str | None = None) -> None:
     ``report.md`` no study wrote), or the trials of another ``study`` (default ``name``; the
     name its ``run_trials`` records): running there would replace that study's results and
     report and leave its figures beside the new ones. The same study's folder resumes."""
-    from studies.runner import DB_NAME, stored_study
+    from studies.runner import DB_NAME, legacy_owner, stored_study
 
     owner, want = stored_study(out), name if study is None else study
-    if owner is not None and owner != want:
+    if owner is not None and owner != want and not legacy_owner(owner, want):
         # a study interrupted before its report leaves only its database: a review's other
-        # study then ran there, replaced its results.csv and mixed both in trials.sqlite
+        # study then ran there, replaced its results.csv and mixed both in trials.sqlite;
+        # the same study of another scene or seed did the same (a review)
         again = ("the same testbed score of that dataset" if owner.startswith("score ")
-                 else f"testbed study {owner}")
+                 else f"testbed study {owner.split(' ', 1)[0]} of that scene, seed and "
+                      "--quick")
         raise ValueError(f"--out {out}: holds the trials of {owner!r} ({DB_NAME}), not of "
                          f"{want!r}; give another folder (or run {again} with this --out to "
                          "resume it)")
@@ -121,7 +123,10 @@ def start_study(name, out, *, scene, seed=None, quick=False, workers=1,
                 scheduler=None) -> StudyContext:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    path = find_scene(scene)
+    # the trials' keys hold the scene's path: resolved, so that the same file typed from
+    # another folder or as an absolute path resumes the study (each spelling ran every trial
+    # again, a review)
+    path = find_scene(scene).resolve()
     sc = load_scene(path)
     seed = sc.scene.seed if seed is None else int(seed)
     return StudyContext(name=name, out=out, scene_path=path, scene=sc, seed=seed,

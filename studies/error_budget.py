@@ -222,7 +222,9 @@ def run(ctx) -> pd.DataFrame:
     params = [t.params for t in trials]
     df = run_trials(trial, trials, out_dir=ctx.out, workers=int(ctx.workers),
                     scheduler=ctx.scheduler, retries=getattr(ctx, "retries", 2),
-                    progress=bool(getattr(ctx, "progress", True)), study=ctx.name)
+                    progress=bool(getattr(ctx, "progress", True)),
+                    study=getattr(ctx, "owner", ctx.name),
+                    retry_failed=bool(getattr(ctx, "retry_failed", False)))
     pe = df[(df.metric == "pin_error")]
     if pe.empty:
         ctx.report("Pin errors (mm)", "No registration finished.")

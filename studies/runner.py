@@ -412,10 +412,17 @@ def stored_study(out_dir) -> str | None:
     return None if row is None else str(row[0])
 
 
+def legacy_owner(stored: str, want: str) -> bool:
+    """Whether ``stored``, the owner a study folder's database names, is the bare study name
+    that studies recorded before they named their scene and seed too (``fig9`` for ``fig9 of
+    scene ..., seed ...``): such a folder still resumes."""
+    return " " not in stored and want.startswith(stored + " of scene ")
+
+
 def _claim(con: sqlite3.Connection, db_path: Path, study: str) -> None:
     """Record ``study`` as the owner of the database, or refuse one of another study."""
     row = con.execute("SELECT value FROM meta WHERE key = 'study'").fetchone()
-    if row is not None and row[0] != study:
+    if row is not None and row[0] != study and not legacy_owner(row[0], study):
         raise ValueError(f"{db_path}: holds the trials of {row[0]!r}, not of {study!r}; "
                          "give another folder, or that study's command to resume it")
     if row is None:
@@ -1057,7 +1064,7 @@ def run_study_trials(ctx, trial_fn: Callable[[Trial], list[dict]],
     kwargs.setdefault("retries", getattr(ctx, "retries", 2))
     if progress is None:  # the study's choice (testbed study: only on a terminal)
         progress = bool(getattr(ctx, "progress", True))
-    kwargs.setdefault("study", getattr(ctx, "name", None))
+    kwargs.setdefault("study", getattr(ctx, "owner", None) or getattr(ctx, "name", None))
     kwargs.setdefault("retry_failed", bool(getattr(ctx, "retry_failed", False)))
     return run_trials(trial_fn, trials, out_dir=ctx.out, workers=int(ctx.workers),
                       scheduler=scheduler, progress=progress, **kwargs)

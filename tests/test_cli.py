@@ -604,3 +604,36 @@ def test_retry_failed_reaches_the_runner_from_both_commands(tmp_path, monkeypatc
     assert main(["study", "fig9", "--quick", "--out", str(tmp_path / "f"),
                  "--retry-failed"]) == 0
     assert seen == {"score": True, "study": True}, seen
+
+
+def test_a_study_resumes_whatever_the_scene_path_and_refuses_another_scene(
+        tmp_path, monkeypatch, capsys):
+    """A review: the same scene file typed from another folder (or as an absolute path)
+    ran every trial again, and another scene or seed in the same --out replaced the results
+    and mixed both runs in trials.sqlite. Now: the same study resumes from any spelling, and
+    another scene, seed or --quick is refused before the work."""
+    import shutil
+
+    from studies.runner import read_trials
+
+    (tmp_path / "sc").mkdir()
+    shutil.copy(ROOT / "scenes" / "points-lines.toml", tmp_path / "sc" / "pl.toml")
+    out = tmp_path / "f9"
+    monkeypatch.chdir(tmp_path)
+    assert main(["study", "fig9", "--quick", "--scene", "sc/pl.toml", "--out", str(out)]) == 0
+    first = read_trials(out)
+    monkeypatch.chdir(tmp_path / "sc")
+    for spelling in ("pl.toml", str(tmp_path / "sc" / "pl.toml")):
+        assert main(["study", "fig9", "--quick", "--scene", spelling, "--out", str(out)]) == 0
+    again = read_trials(out)
+    assert len(again) == len(first)
+    assert sorted(again.finished_at) == sorted(first.finished_at)   # none ran again
+    capsys.readouterr()
+    for extra in (["--seed", "5"], []):     # another seed; no --quick
+        argv = ["study", "fig9", "--scene", "pl.toml", "--out", str(out), *extra]
+        if extra:
+            argv.append("--quick")
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "holds the trials of 'fig9 of scene" in err and len(err.splitlines()) == 1, err
+    assert len(read_trials(out)) == len(first)

@@ -759,9 +759,14 @@ def test_a_study_interrupted_before_its_report_keeps_its_folder(tmp_path):
     run_trials(toy_trial, trials, out_dir=out, progress=False, study="surfaces")
     assert stored_study(out) == "surfaces" and not (out / "report.md").exists()
     check_out_folder(out, "surfaces")   # the same study resumes
+    # ...also when the study names its scene and seed, as it does since (a folder of before)
+    check_out_folder(out, "surfaces", study="surfaces of scene 0123456789ab, seed 1")
+    with pytest.raises(ValueError, match="holds the trials of 'surfaces'"):
+        check_out_folder(out, "fig9", study="fig9 of scene 0123456789ab, seed 1")
     with pytest.raises(ValueError, match="holds the trials of 'surfaces' .* not of 'fig9'; "
                                          r"give another folder \(or run testbed study "
-                                         "surfaces with this --out to resume it"):
+                                         "surfaces of that scene, seed and --quick with this "
+                                         "--out to resume it"):
         check_out_folder(out, "fig9")
     score = tmp_path / "score"      # a score's owner is no study name: the message says so
     run_trials(toy_trial, trials, out_dir=score, progress=False, study="score m of data")
