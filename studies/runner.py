@@ -353,10 +353,17 @@ def interrupt_of(exc: BaseException) -> KeyboardInterrupt | None:
     return None
 
 
+#: True in a pool worker that leads a process group of its own (:func:`_worker_start`): the
+#: terminal's Ctrl-C does not reach it, so a KeyboardInterrupt there is the trial's own
+_OWN_GROUP = False
+
+
 def execute_trial(trial_fn: Callable[[Trial], list[dict]], trial: Trial) -> TrialResult:
     """Run one trial, catching its exceptions: the unit of work sent to a worker. An
     interrupt is no failure of the trial: it propagates (:func:`interrupt_of`), and the
-    trial is run again when the study resumes."""
+    trial is run again when the study resumes; but in a pool worker of its own process
+    group no Ctrl-C arrives, and a KeyboardInterrupt that a method raises is its failure
+    (it ended a whole ``testbed score`` with exit 130, a review)."""
     from studies.threads import freeze_worker, single_threaded_kernels
 
     single_threaded_kernels()       # workers parallelise by process
@@ -368,7 +375,7 @@ def execute_trial(trial_fn: Callable[[Trial], list[dict]], trial: Trial) -> Tria
         # method that calls sys.exit, or raises a BaseException of its own: a review's
         # ended the command with a traceback and no results)
         stop = interrupt_of(exc)
-        if stop is not None:
+        if stop is not None and not _OWN_GROUP:
             raise stop from None
         return TrialResult(trial.key, trial.index, "failed", (), error=_describe(exc),
                            traceback=_format_traceback(),
@@ -652,8 +659,10 @@ def _worker_start(parent_pid: int) -> None:
     # method's helper programs outlived its worker when a time limit or Ctrl-C ended it, a
     # review). The terminal's Ctrl-C then reaches the study's process alone, which kills
     # its workers (_run_pool); a worker started and interrupted printed its traceback.
+    global _OWN_GROUP
     try:
         os.setpgid(0, 0)
+        _OWN_GROUP = True
     except (OSError, AttributeError):   # a session leader, or no process groups (Windows):
         pass                            # the worker alone is killed
     signal.signal(signal.SIGINT, signal.default_int_handler)

@@ -59,6 +59,8 @@ def toy_trial(trial: Trial) -> list[dict]:
         raise _odd_exception(p["odd"])
     if p.get("die"):
         os._exit(3)
+    if p.get("keyint"):      # a method that raises KeyboardInterrupt by itself
+        raise KeyboardInterrupt
     if p.get("die_times"):  # the first die_times runs lose their worker, then it succeeds
         mark = Path(p["mark_dir"]) / f"died-{trial.index}"
         n = int(mark.read_text()) if mark.exists() else 0
@@ -268,6 +270,21 @@ def test_worker_that_dies_is_recorded_and_the_others_finish(tmp_path):
     exp = expected_rows(9, params)
     exp = exp[exp.trial != 3].reset_index(drop=True)
     pd.testing.assert_frame_equal(ok[exp.columns.tolist()], exp, check_exact=True)
+
+
+def test_a_keyboard_interrupt_raised_by_a_trial_in_a_worker_is_its_failure(tmp_path):
+    """A method that raises KeyboardInterrupt itself (nobody pressed Ctrl-C, which no longer
+    reaches the workers) ended the whole command with exit 130 and no results, on every
+    rerun (a review); in a worker it is now that trial's failure."""
+    params = _params(4, sleep_s=0.01)
+    params[2] = {**params[2], "keyint": True}
+    trials = make_trials("points-lines", 13, params)
+    df = run_trials(toy_trial, trials, out_dir=tmp_path, workers=2, progress=False)
+    assert df[df.metric == "failed"].trial.tolist() == [2]
+    assert read_failures(tmp_path).error[0].startswith("KeyboardInterrupt")
+    assert sorted(df[df.metric == "mtre"].trial) == [0, 1, 3]
+    with pytest.raises(KeyboardInterrupt):   # in the study's own process it is an interrupt
+        run_trials(toy_trial, trials, out_dir=tmp_path / "here", workers=1, progress=False)
 
 
 @pytest.mark.parametrize("workers", [1, 2])
