@@ -128,6 +128,26 @@ def case_entries(sim) -> tuple[dict, list[str]]:
     return case, truth
 
 
+def _check_index(old, index: Path) -> None:
+    """ValueError naming ``index`` (a ``dataset.json`` being resumed) and its field when its
+    case list or checksum table has another shape than ``testbed generate`` writes: a
+    string of case names was read as that many cases, a number failed with an internal
+    error (a review)."""
+    if not isinstance(old, dict):
+        raise ValueError(f"{index}: expected a JSON object, got {type(old).__name__}; move the "
+                         "folder away or choose another --out")
+    cases = old.get("cases", [])
+    if not isinstance(cases, list) or not all(isinstance(c, str) for c in cases):
+        raise ValueError(f"{index}: 'cases' must be a list of case folder names, got "
+                         f"{cases!r:.80}; move the folder away or choose another --out")
+    hashes = old.get("case_json_sha256", {})
+    if not isinstance(hashes, dict) or not all(
+            isinstance(k, str) and isinstance(v, str) for k, v in hashes.items()):
+        raise ValueError(f"{index}: 'case_json_sha256' must map case folder names to SHA-256 "
+                         f"digests, got {hashes!r:.80}; move the folder away or choose another "
+                         "--out")
+
+
 def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = None,
                      progress: bool = True) -> list[Path]:
     """Write ``cases`` simulated cases of ``scene`` into the folder ``out``.
@@ -188,6 +208,7 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
         except (OSError, ValueError) as exc:
             raise ValueError(f"{index}: unreadable dataset index ({exc}); move the folder away "
                              "or choose another --out") from None
+        _check_index(old, index)
         for key, what in (("scene_sha256", "scene"), ("seed", "seed"),
                           ("generator_version", "generator version"),
                           ("format_version", "format version")):
@@ -224,9 +245,11 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
             shutil.rmtree(leftover, ignore_errors=True)
     hashes = dict(old.get("case_json_sha256", {}))
 
-    def write_index():
-        index.write_text(json.dumps({**summary, "cases": [d.name for d in dirs],
-                                     "case_json_sha256": hashes}, indent=2))
+    def write_index():   # whole or not at all: a kill within the write left an unreadable
+        tmp = index.with_name(f".{index.name}.writing")     # index (a review)
+        tmp.write_text(json.dumps({**summary, "cases": [d.name for d in dirs],
+                                   "case_json_sha256": hashes}, indent=2))
+        tmp.replace(index)
 
     write_index()
     for i in tqdm(range(cases), desc="cases", disable=not progress, unit="case"):

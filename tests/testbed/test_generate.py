@@ -528,6 +528,15 @@ def test_generate_refuses_to_mix_datasets_and_wrong_scenes(tmp_path, monkeypatch
     with pytest.raises(ValueError, match="case_0000 exists and is not a case folder"):
         generate_command(scene, scene_path="x", cases=1, out=out, seed=3, progress=False)
     (out / "case_0000").unlink()
+    # a malformed index being resumed: named with its field, before any simulation (a
+    # string of case names was taken for that many cases; a number, an internal error)
+    for key, value, message in (("cases", "case_0000", "'cases' must be a list"),
+                                ("cases", 5, "'cases' must be a list"),
+                                ("case_json_sha256", "abc", "'case_json_sha256' must map")):
+        (out / "dataset.json").write_text(json.dumps({**index, key: value}))
+        with pytest.raises(ValueError, match=f"dataset.json: {message}"):
+            generate_command(scene, scene_path="x", cases=1, out=out, seed=3, progress=False)
+    (out / "dataset.json").write_text(json.dumps(index))
     # a folder with other things in it and no dataset.json
     junk = tmp_path / "junk"
     junk.mkdir()
