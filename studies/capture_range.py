@@ -296,10 +296,34 @@ def capture_range(s: pd.DataFrame, edges, *, rate: float = CAPTURE_RATE) -> dict
     return out
 
 
+def check_scene(scene, path) -> None:
+    """ValueError naming the scene file and field, before any trial, for a scene this study
+    cannot use: each of its cases draws a procedural femur (a ``[phantom] mesh_path`` femur
+    failed every trial with "no plausible femur in 50 draws"), starts free of any located
+    pin (a ``[registration] fixed_pin`` was ignored without a word: capture range 0 mm), and
+    re-aims each view at its region's anatomy (a view labelled with the other region failed
+    every trial, its message naming no file)."""
+    from testbed.spec import SceneError
+
+    if scene.phantom.mesh_path is not None:
+        raise ValueError(f"{path}: [phantom] mesh_path: capture-range draws a procedural femur "
+                         "of random shape per case and cannot use a mesh; give a scene with "
+                         "the procedural femur (e.g. experiment2)")
+    if scene.registration.fixed_pin is not None:
+        raise ValueError(f"{path}: [registration] fixed_pin = {scene.registration.fixed_pin!r}: "
+                         "capture-range registers free starts, with no located pin; the "
+                         "experiment1 study measures the fixed-pin registration")
+    try:
+        check_view_regions(scene)
+    except SceneError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+
+
 def run(ctx) -> pd.DataFrame:
     from studies.common import markdown_table, nothing_finished
     from studies.runner import run_study_trials
 
+    check_scene(ctx.scene, ctx.scene_path)
     size = QUICK_SIZE if ctx.quick else DEFAULT_SIZE
     bins = QUICK_BINS_MM if ctx.quick else BIN_EDGES_MM
     params = trial_params(bins=bins, **size)

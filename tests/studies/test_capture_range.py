@@ -70,3 +70,38 @@ def test_the_capture_range_is_the_farthest_start_tried():
     assert capture_range(s, [0.0, 10.0, 20.0, 30.0]) == {"m": 17.5}
     s.loc[0, "success_rate"] = 0.0
     assert capture_range(s, [0.0, 10.0, 20.0, 30.0]) == {"m": 0.0}
+
+
+def test_scenes_the_study_cannot_use_are_refused_before_any_trial(tmp_path, capsys):
+    """A review: a mesh femur failed every trial ('no plausible femur in 50 draws'), a
+    fixed pin was ignored (capture range 0 mm, no word), a view labelled with the other
+    region failed every trial in a message naming no file; all exited 1 after the work."""
+    from studies.capture_range import check_scene
+    from studies.cli import main
+    from testbed.scene import find_scene, load_scene
+
+    path = find_scene("experiment2")
+    scene = load_scene(path)
+    check_scene(scene, path)                    # the shipped scene is fine
+    mesh = scene.model_copy(update={"phantom": scene.phantom.model_copy(
+        update={"mesh_path": "femur.stl"})})
+    pin = scene.model_copy(update={"registration": scene.registration.model_copy(
+        update={"fixed_pin": "proximal"})})
+    other = "distal" if scene.views[0].region == "proximal" else "proximal"
+    swapped = scene.model_copy(update={"views": (scene.views[0].model_copy(
+        update={"region": other}), *scene.views[1:])})
+    for bad, message in ((mesh, r"\[phantom\] mesh_path: capture-range draws"),
+                         (pin, r"\[registration\] fixed_pin = 'proximal': capture-range"),
+                         (swapped, r"views\[0\]\.region")):
+        with pytest.raises(ValueError, match=message) as err:
+            check_scene(bad, path)
+        assert str(path) in str(err.value)
+    # through the command: exit 2 in one line, no folder left
+    text = path.read_text().replace('region = "proximal"', 'region = "distal"', 1)
+    (tmp_path / "sw.toml").write_text(text)
+    out = tmp_path / "cr"
+    assert main(["study", "capture-range", "--quick", "--scene", str(tmp_path / "sw.toml"),
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "sw.toml" in err and "region" in err and len(err.splitlines()) == 1, err
+    assert not out.exists()

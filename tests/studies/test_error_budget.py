@@ -121,3 +121,46 @@ def test_a_stored_trial_is_not_reused_after_either_profile_changed(tmp_path):
         assert not set(after) & set(before), name
         p.write_text(text)
     assert keys() == before
+
+
+def test_the_ideal_configuration_keeps_the_clinic_scenes_set_up(clinic):
+    """A review: the ideal and alone configurations took the ideal profile's femur and
+    registration, so a user's femur was paired with the shipped one. The ideal
+    configuration is now the clinic scene with every source at its ideal magnitude."""
+    from studies.error_budget import ideal_of
+
+    profile = load_scene(find_scene("experiment2-ideal"))
+    d = clinic.model_dump(mode="json")
+    d["phantom"]["length_mm"] = 420.0           # a user's femur, not the shipped one
+    d["phantom"]["side"] = "left"
+    mine = parse_scene(d)
+    ideal = ideal_of(mine, profile)
+    assert ideal.phantom == mine.phantom and ideal.registration == mine.registration
+    assert error_sources(ideal, profile) == {}   # every source at the profile's magnitude
+    assert set(error_sources(mine, ideal)) == set(error_sources(mine, profile))
+
+
+def test_the_verdict_section_counts_the_refused_registrations():
+    """A one-view scene's 'mean pin error' of 190 mm was of 25 refused poses, and the
+    report said nothing of the verdict (a review)."""
+    from studies.error_budget import verdict_markdown, verdict_table
+
+    rows = []
+    for start, acc in enumerate([1.0, 0.0, 0.0]):
+        for metric, value in (("accepted", acc), ("converged", 1.0)):
+            rows.append({"trial": 0, "start": start, "metric": metric, "value": value,
+                         "config": "clinic", "source": None, "oracle": None})
+    for start in range(2):
+        rows.append({"trial": 1, "start": start, "metric": "accepted", "value": 1.0,
+                     "config": "ideal", "source": None, "oracle": None})
+        rows.append({"trial": 1, "start": start, "metric": "converged", "value": 1.0,
+                     "config": "ideal", "source": None, "oracle": None})
+    df = pd.DataFrame(rows)
+    t = verdict_table(df).set_index("config")
+    assert t.loc["clinic", "registrations"] == 3 and t.loc["clinic", "accepted"] == 1
+    assert t.loc["ideal", "accepted"] == 2
+    text = verdict_markdown(df)
+    assert "over all 5 registrations" in text and "**2 of them were refused" in text
+    assert "| clinic |" in text and "| ideal |" not in text    # only those with refusals
+    ok = verdict_markdown(df[df.config == "ideal"])
+    assert "All were accepted" in ok and "|" not in ok
