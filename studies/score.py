@@ -288,11 +288,20 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
     if not pe.empty:
         t = pe.groupby("pin")["value"].agg(["mean", "median", "max"]).reset_index()
         per_case = pe.pivot_table(index="case", columns="pin", values="value").reset_index()
+        verdict = df[df.metric.isin(["accepted", "converged"])].pivot_table(
+            index="case", columns="metric", values="value")
+        n_accepted = int(verdict["accepted"].sum()) if "accepted" in verdict else None
+        if len(verdict):   # reglib's own method says whether it trusts each result
+            per_case = per_case.merge(
+                verdict.map(lambda v: "yes" if v > 0.5 else "no").reset_index(), on="case",
+                how="left")
         scored = pe["case"].nunique()
         ctx.report("Pin errors (mm)", f"Method `{method}` on {scored} case(s) of "
                    f"`{dataset}`" + (f" ({len(cases) - scored} of {len(cases)} failed: see "
                                     "'Failed cases')" if scored < len(cases) else "")
                    + "; starts as `testbed run` draws them."
+                   + (f" The method's verdict accepted {n_accepted} of {len(verdict)} (the "
+                      "means are over all)." if n_accepted is not None else "")
                    + (f" {reuse_note[0].upper()}{reuse_note[1:]}." if reuse_note else "")
                    + "\n\n"
                    + markdown_table(t, ".3f") + "\n\n" + markdown_table(per_case, ".3f"))

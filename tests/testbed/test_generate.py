@@ -330,7 +330,9 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path, capsys):
     df = pd.read_csv(tmp_path / "s" / "results.csv")
     got = df[df.metric == "pin_error"].set_index("pin")["value"].to_dict()
     assert got == pytest.approx(from_disk, abs=1e-12)
-    assert (tmp_path / "s" / "report.md").is_file()
+    # the report says what the method's verdict made of it (README: "reported too")
+    assert (f"The method's verdict accepted {int(result['accepted'])} of 1"
+            in (tmp_path / "s" / "report.md").read_text())
     (tmp_path / "mymethods.py").write_text(
         "import numpy as np\n"
         "def stay(observation, initial):\n"
