@@ -257,8 +257,8 @@ def run(ctx) -> pd.DataFrame:
         ctx.report("By source: mean pin error (mm), off and alone",
                    "`clinic`: every source at its clinic magnitude; `ideal`: every source at "
                    "its ideal magnitude. `off`: the clinic with this source at its ideal "
-                   "magnitude; `alone`: the ideal profile with only this source at its clinic "
-                   "magnitude. `removed` = clinic - off, `added` = alone - ideal.\n\n"
+                   "magnitude; `alone`: the ideal configuration with only this source at its "
+                   "clinic magnitude. `removed` = clinic - off, `added` = alone - ideal.\n\n"
                    + markdown_table(t, ".3f"))
         _tornado(ctx, t)
         ctx.report("What would close the gap to the paper", gap_markdown(t))
