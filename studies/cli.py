@@ -331,6 +331,10 @@ def cmd_generate(args) -> int:
                             progress=sys.stderr.isatty())
     # (a rerun keeps the complete cases: it may write none of them)
     print(f"{len(dirs)} case(s) complete in {out}")
+    if not scene.workspace.check:   # as testbed run and the score report say it (a review)
+        print(f"{PROG} generate: {path.name} opts out of the workspace check ([workspace] "
+              "check = false): its acquisitions were not checked for collisions",
+              file=sys.stderr)
     if len(dirs) > 1 and not scene.patient.varies:
         print(f"testbed generate: every case lies where {path.name}'s [patient] puts it (one "
               "ct2robot for all: a method that returns that placement scores 0 mm); set "

@@ -582,7 +582,13 @@ def test_generate_says_when_every_case_shares_one_placement(tmp_path, capsys, mo
     assert "one ct2robot for all" in err and "position_sd_mm" in err
     code, out, err = _run(capsys, "generate", str(varied), "--cases", "2", "--out",
                           str(tmp_path / "d2"))
-    assert code == 0 and "ct2robot" not in err
+    assert code == 0 and "ct2robot" not in err and "workspace" not in err
+    # a scene that opts out of the workspace check: said, as testbed run says it
+    unchecked = tmp_path / "unchecked.toml"
+    unchecked.write_text(varied.read_text() + "\n[workspace]\ncheck = false\n")
+    code, out, err = _run(capsys, "generate", str(unchecked), "--cases", "2", "--out",
+                          str(tmp_path / "d3"))
+    assert code == 0 and "opts out of the workspace check" in err, err
 
 
 def test_retry_failed_reaches_the_runner_from_both_commands(tmp_path, monkeypatch, capsys):
