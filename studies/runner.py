@@ -665,6 +665,12 @@ def _worker_start(parent_pid: int) -> None:
         _OWN_GROUP = True
     except (OSError, AttributeError):   # a session leader, or no process groups (Windows):
         pass                            # the worker alone is killed
+    # ...a group in the terminal's background: a write to the terminal under `stty tostop`
+    # (a method that prints) would stop the worker, and the study with it; ignored, the
+    # write goes through, and a read of the terminal fails instead of stopping
+    for name in ("SIGTTOU", "SIGTTIN"):
+        if hasattr(signal, name):
+            signal.signal(getattr(signal, name), signal.SIG_IGN)
     signal.signal(signal.SIGINT, signal.default_int_handler)
     quiet_pybullet()
     _no_tqdm_process_lock()

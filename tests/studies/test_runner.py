@@ -59,6 +59,9 @@ def toy_trial(trial: Trial) -> list[dict]:
         raise _odd_exception(p["odd"])
     if p.get("die"):
         os._exit(3)
+    if p.get("chatty"):      # a method that prints
+        for i in range(50):
+            print("working", i, flush=True)
     if p.get("keyint"):      # a method that raises KeyboardInterrupt by itself
         raise KeyboardInterrupt
     if p.get("die_times"):  # the first die_times runs lose their worker, then it succeeds
@@ -495,6 +498,54 @@ def test_resume_after_sigkill_gives_the_rows_of_an_uninterrupted_run(tmp_path):
                        progress=False)
     pd.testing.assert_frame_equal(resumed, clean, check_exact=True)
     assert len(clean) == 5 * n
+
+
+def test_workers_that_print_to_a_tostop_terminal_are_not_stopped(tmp_path):
+    """The workers lead process groups of their own, in the terminal's background: under
+    `stty tostop` a trial that printed stopped its worker (SIGTTOU) and the study hung for
+    good (a review). Run in a pseudo-terminal with TOSTOP set."""
+    import pty
+    import select
+    import termios
+
+    script = tmp_path / "study.py"
+    script.write_text(textwrap.dedent(f"""
+        import sys, termios
+        attrs = termios.tcgetattr(0)
+        attrs[3] |= termios.TOSTOP
+        termios.tcsetattr(0, termios.TCSANOW, attrs)
+        sys.path.insert(0, {str(HERE)!r})
+        from studies.runner import make_trials, run_trials
+        from test_runner import toy_trial
+
+        if __name__ == "__main__":
+            trials = make_trials("points-lines", 5, [{{"chatty": True}}] * 2)
+            df = run_trials(toy_trial, trials, out_dir={str(tmp_path / "out")!r}, workers=2,
+                            progress=False)
+            print("DONE", sorted(set(df.metric)), flush=True)
+    """))
+    pid, fd = pty.fork()
+    if pid == 0:     # the child: a session of its own with the pty as its terminal
+        os.chdir(ROOT)
+        os.execv(sys.executable, [sys.executable, str(script)])
+    out, deadline = b"", time.monotonic() + 90
+    try:
+        while time.monotonic() < deadline and b"DONE" not in out:
+            ready, _, _ = select.select([fd], [], [], 1.0)
+            if ready:
+                try:
+                    out += os.read(fd, 65536)
+                except OSError:          # the child closed the terminal
+                    break
+    finally:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        os.waitpid(pid, 0)
+        os.close(fd)
+    assert b"DONE" in out and b"failed" not in out.split(b"DONE")[1], out[-2000:]
+    assert termios.TOSTOP   # (the flag the child set)
 
 
 def test_a_killed_worker_leaves_no_semaphore_behind(tmp_path):
