@@ -14,6 +14,7 @@ underscores) that defines
 from __future__ import annotations
 
 import importlib
+import os
 import pkgutil
 from pathlib import Path
 
@@ -46,17 +47,19 @@ SERIAL_STUDIES = {"table1": "it times pose solves, and parallel workers would sh
 
 
 def study_owner(name: str, scene, seed, quick: bool) -> str:
-    """Who a study folder's trials belong to: the study, its scene (by the digest of its
-    resolved fields and files), its seed and ``--quick``. Another scene or seed in the same
+    """Who a study folder's trials belong to: the study, its scene file (the absolute path,
+    however it was typed), its seed and ``--quick``. Another scene or seed in the same
     folder replaced the results and mixed both runs' trials in the database (a review);
-    ``testbed score`` names its dataset likewise."""
-    from studies.runner import scene_fingerprint
+    ``testbed score`` names its dataset likewise. The scene's contents are not part of it:
+    a scene edited and run again into its folder runs the trials whose inputs changed (their
+    keys hold the contents), as before."""
     from testbed.scene import find_scene, load_scene
 
-    sc = load_scene(find_scene(scene))
-    seed = sc.scene.seed if seed is None else int(seed)
+    path = find_scene(scene)
+    if seed is None:
+        seed = load_scene(path).scene.seed
     quick_note = ", quick" if quick else ""
-    return f"{name} of scene {scene_fingerprint(sc)[:12]}, seed {seed}{quick_note}"
+    return f"{name} of {os.path.abspath(path)}, seed {int(seed)}{quick_note}"
 
 
 def run_study(name: str, out: Path, *, scene=None, seed=None, quick=False, workers=1,

@@ -83,7 +83,7 @@ def check_out_folder(out, name: str, *, study: str | None = None) -> None:
         # study then ran there, replaced its results.csv and mixed both in trials.sqlite;
         # the same study of another scene or seed did the same (a review)
         again = ("the same testbed score of that dataset" if owner.startswith("score ")
-                 else f"testbed study {owner.split(' ', 1)[0]} of that scene, seed and "
+                 else f"testbed study {owner.split(' ', 1)[0]} with that scene, seed and "
                       "--quick")
         raise ValueError(f"--out {out}: holds the trials of {owner!r} ({DB_NAME}), not of "
                          f"{want!r}; give another folder (or run {again} with this --out to "
@@ -126,7 +126,7 @@ def start_study(name, out, *, scene, seed=None, quick=False, workers=1,
     # the trials' keys hold the scene's path: resolved, so that the same file typed from
     # another folder or as an absolute path resumes the study (each spelling ran every trial
     # again, a review)
-    path = find_scene(scene).resolve()
+    path = Path(os.path.abspath(find_scene(scene)))   # not resolve(): a link stays a link
     sc = load_scene(path)
     seed = sc.scene.seed if seed is None else int(seed)
     return StudyContext(name=name, out=out, scene_path=path, scene=sc, seed=seed,

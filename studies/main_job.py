@@ -38,6 +38,21 @@ def run_main_job(scene, *, scene_path, seed=None, out=None, progress: bool = Fal
     return result
 
 
+def _replace_other_run(folder: Path, name: str, scene_path, seed) -> None:
+    """The run's study ``folder`` emptied when it holds the trials of another scene or seed:
+    it is this command's own output, which a run of another seed replaces (a study folder
+    refuses another scene or seed, and ``testbed run points-lines --seed 5`` after a default
+    run exited 2 naming an --out the user never gave, a review)."""
+    import shutil
+
+    from studies import study_owner
+    from studies.runner import legacy_owner, stored_study
+
+    owner, want = stored_study(folder), study_owner(name, scene_path, seed, True)
+    if owner is not None and owner != want and not legacy_owner(owner, want):
+        shutil.rmtree(folder)
+
+
 def _synthetic_job(scene, *, scene_path, seed, out, progress: bool = False) -> dict:
     from reglib.pose import solve_pose
     from studies import run_study
@@ -66,6 +81,7 @@ def _synthetic_job(scene, *, scene_path, seed, out, progress: bool = False) -> d
             "message": res.message,
         }
     t0 = time.perf_counter()
+    _replace_other_run(out / "fig9", "fig9", scene_path, seed)
     run_study("fig9", out / "fig9", scene=str(scene_path), seed=seed, quick=True,
               progress=progress)
     timings["study_fig9_quick"] = time.perf_counter() - t0

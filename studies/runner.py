@@ -422,8 +422,10 @@ def stored_study(out_dir) -> str | None:
 def legacy_owner(stored: str, want: str) -> bool:
     """Whether ``stored``, the owner a study folder's database names, is the bare study name
     that studies recorded before they named their scene and seed too (``fig9`` for ``fig9 of
-    scene ..., seed ...``): such a folder still resumes."""
-    return " " not in stored and want.startswith(stored + " of scene ")
+    /path/scene.toml, seed ...``): such a folder is taken by the first run of that study,
+    which then owns it (its trials are reused where their keys agree: the same scene typed
+    as an absolute path, or a named scene)."""
+    return " " not in stored and want.startswith(stored + " of ")
 
 
 def _claim(con: sqlite3.Connection, db_path: Path, study: str) -> None:
@@ -434,6 +436,8 @@ def _claim(con: sqlite3.Connection, db_path: Path, study: str) -> None:
                          "give another folder, or that study's command to resume it")
     if row is None:
         con.execute("INSERT OR IGNORE INTO meta VALUES ('study', ?)", (study,))
+    elif row[0] != study:   # a folder of before, owned by the bare study name: now this run's
+        con.execute("UPDATE meta SET value = ? WHERE key = 'study'", (study,))
 
 
 class StudyDatabaseError(ValueError):
@@ -594,7 +598,9 @@ def _kill_workers(ex: cf.ProcessPoolExecutor) -> None:
 
     for proc in list((getattr(ex, "_processes", None) or {}).values()):
         pid = getattr(proc, "pid", None)
-        if pid and hasattr(os, "killpg"):   # the group the worker leads (none unless it made it)
+        # the group the worker leads (none unless it made it), while the worker lives (a
+        # reaped worker's pid may be another's)
+        if pid and hasattr(os, "killpg") and getattr(proc, "exitcode", 0) is None:
             try:
                 os.killpg(pid, signal.SIGKILL)
             except (OSError, ValueError):   # not yet its own group, or gone

@@ -293,7 +293,8 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
         n_accepted = int(verdict["accepted"].sum()) if "accepted" in verdict else None
         if len(verdict):   # reglib's own method says whether it trusts each result
             per_case = per_case.merge(
-                verdict.map(lambda v: "yes" if v > 0.5 else "no").reset_index(), on="case",
+                verdict.apply(lambda c: c.map(lambda v: "yes" if v > 0.5 else "no")
+                              ).reset_index(), on="case",
                 how="left")
         scored = pe["case"].nunique()
         ctx.report("Pin errors (mm)", f"Method `{method}` on {scored} case(s) of "

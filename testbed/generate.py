@@ -220,7 +220,8 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
                     f"--out {out}: holds a dataset of another {what} ({', '.join(held)}); "
                     f"this run has {key} {summary[key]!r}: choose another folder (cases of "
                     "different scenes or seeds are never mixed)")
-    elif out.is_dir() and any(out.iterdir()):
+    elif out.is_dir() and any(p.name != f".{index.name}.writing" for p in out.iterdir()):
+        # (a run killed within its first index write leaves only that temporary file)
         raise ValueError(f"--out {out}: the folder is not empty and holds no dataset.json; "
                          "choose a new or empty folder")
     # an impossible acquisition is refused before anything is written (each case is checked

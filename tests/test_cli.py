@@ -641,5 +641,33 @@ def test_a_study_resumes_whatever_the_scene_path_and_refuses_another_scene(
             argv.append("--quick")
         assert main(argv) == 2
         err = capsys.readouterr().err
-        assert "holds the trials of 'fig9 of scene" in err and len(err.splitlines()) == 1, err
+        assert "holds the trials of 'fig9 of " in err and len(err.splitlines()) == 1, err
+        assert str(tmp_path / "sc" / "pl.toml") in err     # the scene it holds, by its path
     assert len(read_trials(out)) == len(first)
+    # the scene edited (here its description) and run again: its folder resumes, and the
+    # trials whose inputs changed run again (a content digest in the owner refused it)
+    text = (tmp_path / "sc" / "pl.toml").read_text()
+    (tmp_path / "sc" / "pl.toml").write_text(
+        text.replace('description = "', 'description = "edited: ', 1))
+    assert main(["study", "fig9", "--quick", "--scene", "pl.toml", "--out", str(out)]) == 0
+    # a folder is a study's of one scene: another scene file (a copy) is refused
+    (tmp_path / "sc" / "copy.toml").write_text(text)
+    assert main(["study", "fig9", "--quick", "--scene", "copy.toml", "--out", str(out)]) == 2
+    assert "copy.toml" in capsys.readouterr().err
+
+
+def test_testbed_run_of_a_synthetic_scene_replaces_its_own_studies_of_another_seed(
+        tmp_path, capsys):
+    """testbed run points-lines writes the quick fig9 and table1 under its --out; a run of
+    another seed exited 2 there (the folder belonged to the first seed's fig9, a review).
+    The run's own study folders are replaced."""
+    import pandas as pd
+
+    out = tmp_path / "run"
+    assert main(["run", "points-lines", "--out", str(out)]) == 0
+    first = pd.read_csv(out / "fig9" / "results.csv")
+    assert main(["run", "points-lines", "--seed", "5", "--out", str(out)]) == 0, \
+        capsys.readouterr().err
+    second = pd.read_csv(out / "fig9" / "results.csv")
+    assert "seed: 5" in (out / "fig9" / "report.md").read_text()
+    assert not first.equals(second)

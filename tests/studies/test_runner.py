@@ -828,12 +828,12 @@ def test_a_study_interrupted_before_its_report_keeps_its_folder(tmp_path):
     assert stored_study(out) == "surfaces" and not (out / "report.md").exists()
     check_out_folder(out, "surfaces")   # the same study resumes
     # ...also when the study names its scene and seed, as it does since (a folder of before)
-    check_out_folder(out, "surfaces", study="surfaces of scene 0123456789ab, seed 1")
+    check_out_folder(out, "surfaces", study="surfaces of /s.toml, seed 1")
     with pytest.raises(ValueError, match="holds the trials of 'surfaces'"):
-        check_out_folder(out, "fig9", study="fig9 of scene 0123456789ab, seed 1")
+        check_out_folder(out, "fig9", study="fig9 of /s.toml, seed 1")
     with pytest.raises(ValueError, match="holds the trials of 'surfaces' .* not of 'fig9'; "
                                          r"give another folder \(or run testbed study "
-                                         "surfaces of that scene, seed and --quick with this "
+                                         "surfaces with that scene, seed and --quick with this "
                                          "--out to resume it"):
         check_out_folder(out, "fig9")
     score = tmp_path / "score"      # a score's owner is no study name: the message says so
@@ -849,6 +849,15 @@ def test_a_study_interrupted_before_its_report_keeps_its_folder(tmp_path):
     run_trials(toy_trial, trials, out_dir=tmp_path / "old", progress=False)
     assert stored_study(tmp_path / "old") is None
     check_out_folder(tmp_path / "old", "fig9")
+    # a folder owned by the bare name is taken by the first run of that study, which owns
+    # it from then on (such a folder was open to any scene and seed, a review)
+    legacy = tmp_path / "legacy"
+    run_trials(toy_trial, trials, out_dir=legacy, progress=False, study="surfaces")
+    run_trials(toy_trial, trials, out_dir=legacy, progress=False,
+               study="surfaces of /s.toml, seed 1")
+    assert stored_study(legacy) == "surfaces of /s.toml, seed 1"
+    with pytest.raises(ValueError, match="holds the trials of 'surfaces of /s.toml, seed 1'"):
+        check_out_folder(legacy, "surfaces", study="surfaces of /s.toml, seed 2")
 
 
 def test_an_output_the_study_cannot_replace_is_refused_before_the_work(tmp_path, monkeypatch):
