@@ -358,12 +358,15 @@ def interrupt_of(exc: BaseException) -> KeyboardInterrupt | None:
 _OWN_GROUP = False
 
 
-def execute_trial(trial_fn: Callable[[Trial], list[dict]], trial: Trial) -> TrialResult:
+def execute_trial(trial_fn: Callable[[Trial], list[dict]], trial: Trial, *,
+                  interrupt_is_failure: bool | None = None) -> TrialResult:
     """Run one trial, catching its exceptions: the unit of work sent to a worker. An
     interrupt is no failure of the trial: it propagates (:func:`interrupt_of`), and the
     trial is run again when the study resumes; but in a pool worker of its own process
     group no Ctrl-C arrives, and a KeyboardInterrupt that a method raises is its failure
-    (it ended a whole ``testbed score`` with exit 130, a review)."""
+    (it ended a whole ``testbed score`` with exit 130, a review). ``interrupt_is_failure``:
+    that choice made by the caller (True on a Dask worker, which no Ctrl-C of the study's
+    terminal reaches); default: whether this is such a pool worker."""
     from studies.threads import freeze_worker, single_threaded_kernels
 
     single_threaded_kernels()       # workers parallelise by process
@@ -375,7 +378,8 @@ def execute_trial(trial_fn: Callable[[Trial], list[dict]], trial: Trial) -> Tria
         # method that calls sys.exit, or raises a BaseException of its own: a review's
         # ended the command with a traceback and no results)
         stop = interrupt_of(exc)
-        if stop is not None and not _OWN_GROUP:
+        own = _OWN_GROUP if interrupt_is_failure is None else interrupt_is_failure
+        if stop is not None and not own:
             raise stop from None
         return TrialResult(trial.key, trial.index, "failed", (), error=_describe(exc),
                            traceback=_format_traceback(),
@@ -862,7 +866,8 @@ def _run_dask(trial_fn, todo, record, *, scheduler, retries: int = 2) -> None:
     attempts: dict[str, int] = {}
     try:
         for t in todo:
-            fut = client.submit(execute_trial, trial_fn, t, pure=False)
+            fut = client.submit(execute_trial, trial_fn, t, pure=False,
+                                interrupt_is_failure=True)
             futures[fut] = t
         pending = as_completed(list(futures))
         for fut in pending:
@@ -874,7 +879,8 @@ def _run_dask(trial_fn, todo, record, *, scheduler, retries: int = 2) -> None:
                 attempts[t.key] = attempts.get(t.key, 0) + 1
                 if lost and attempts[t.key] <= retries:
                     again = client.submit(execute_trial, trial_fn, t, pure=False,
-                                          key=f"{t.key}-retry{attempts[t.key]}")
+                                          key=f"{t.key}-retry{attempts[t.key]}",
+                                          interrupt_is_failure=True)
                     futures[again] = t
                     pending.add(again)
                     continue

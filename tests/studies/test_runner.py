@@ -395,20 +395,20 @@ def test_dask_killed_worker_is_retried_then_recorded(tmp_path, monkeypatch):
     submitted: list[int] = []
 
     class Fut:
-        def __init__(self, trial, attempt):
-            self.trial, self.attempt = trial, attempt
+        def __init__(self, trial, attempt, kw):
+            self.trial, self.attempt, self.kw = trial, attempt, kw
 
         def result(self):
             kills = self.trial.params.get("kills", 0)
             if self.attempt < kills:
                 raise _KilledWorker(f"attempt {self.attempt} lost its worker")
-            return execute_trial(toy_trial, self.trial)
+            return execute_trial(toy_trial, self.trial, **self.kw)
 
     class FakeClient:
-        def submit(self, fn, trial_fn, trial, pure=False, key=None):
+        def submit(self, fn, trial_fn, trial, pure=False, key=None, **kw):
             assert fn is execute_trial and trial_fn is toy_trial
             submitted.append(trial.index)
-            return Fut(trial, submitted.count(trial.index) - 1)
+            return Fut(trial, submitted.count(trial.index) - 1, kw)
 
         def cancel(self, futs):
             pass
@@ -426,16 +426,18 @@ def test_dask_killed_worker_is_retried_then_recorded(tmp_path, monkeypatch):
 
     monkeypatch.setattr(distributed, "Client", FakeClient)
     monkeypatch.setattr(distributed, "as_completed", AsCompleted)
-    params = [{"kills": 0}, {"kills": 2}, {"kills": 3}, {"fail": True}]
+    # a trial's own KeyboardInterrupt on a Dask worker (where no Ctrl-C of the study's
+    # terminal arrives) is its failure, as in a pool worker
+    params = [{"kills": 0}, {"kills": 2}, {"kills": 3}, {"fail": True}, {"keyint": True}]
     trials = make_trials("points-lines", 3, params)
     df = run_trials(toy_trial, trials, out_dir=tmp_path, scheduler=FakeClient(),
                     progress=False, retries=2)
-    assert sorted(df[df.metric == "failed"].trial.unique().tolist()) == [2, 3]
+    assert sorted(df[df.metric == "failed"].trial.unique().tolist()) == [2, 3, 4]
     assert submitted.count(0) == 1 and submitted.count(1) == 3 and submitted.count(2) == 3
     assert submitted.count(3) == 1  # the trial's own error: no retry
     fails = read_failures(tmp_path).set_index("trial").error
     assert "KilledWorker" in fails[2] and "after 3 attempts" in fails[2]
-    assert "asked to fail" in fails[3]
+    assert "asked to fail" in fails[3] and fails[4].startswith("KeyboardInterrupt")
     ok = df[df.trial.isin([0, 1])]
     assert set(ok.metric) >= {"pin_error", "mtre"}
 
