@@ -142,9 +142,11 @@ def nothing_finished(ctx: StudyContext, df: pd.DataFrame, heading: str) -> bool:
     if len(df) and (df["metric"] != FAILED_METRIC).any():
         return False
     failures = df.attrs.get("failures", {})
-    ctx.report(heading, "No trial finished." + (
-        "\n\n" + "\n".join(f"- trial {k}: {v}" for k, v in failures.items())
-        if failures else ""))
+    # the errors themselves: once, under 'Failed trials' (finish_study); they were listed
+    # here and there too (a review)
+    ctx.report(heading, "No trial finished" + (
+        f": {len(failures)} failed (their errors under 'Failed trials')." if failures
+        else "."))
     return True
 
 

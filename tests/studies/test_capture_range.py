@@ -105,3 +105,22 @@ def test_scenes_the_study_cannot_use_are_refused_before_any_trial(tmp_path, caps
     err = capsys.readouterr().err
     assert "sw.toml" in err and "region" in err and len(err.splitlines()) == 1, err
     assert not out.exists()
+
+
+def test_a_study_whose_trials_all_failed_lists_each_error_once(tmp_path):
+    """A review: capture-range listed every failed trial twice, under its own heading and
+    under 'Failed trials'."""
+    import pandas as pd
+
+    from studies.common import StudyContext, finish_study, nothing_finished
+    from testbed.scene import find_scene, load_scene
+
+    path = find_scene("points-lines")
+    ctx = StudyContext(name="capture-range", out=tmp_path, scene_path=path,
+                       scene=load_scene(path), seed=1)
+    df = pd.DataFrame([{"trial": 0, "metric": "failed", "value": 1.0, "unit": ""}])
+    df.attrs["failures"] = {0: "ValueError: boom"}
+    assert nothing_finished(ctx, df, "Capture range")
+    finish_study(ctx, df)
+    report = (tmp_path / "report.md").read_text()
+    assert report.count("boom") == 1 and "No trial finished: 1 failed" in report
