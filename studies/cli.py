@@ -39,7 +39,13 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _one_line(msg: str) -> str:
+    """``msg`` on one line: its lines joined by "; ", each dropping the ``file: `` prefix the
+    first line already gives (a scene's problems each name the file, for readers of the
+    multi-line message; on one line the path came back before every field, a review)."""
     lines = [ln.strip() for ln in str(msg).strip().splitlines() if ln.strip()]
+    if len(lines) > 1 and ": " in lines[0]:
+        prefix = lines[0].split(": ", 1)[0] + ": "
+        lines = lines[:1] + [ln.removeprefix(prefix) for ln in lines[1:]]
     return "; ".join(lines)
 
 

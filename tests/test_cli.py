@@ -576,7 +576,9 @@ def test_study_refuses_a_malformed_scene_before_making_its_out_folder(tmp_path, 
     out = tmp_path / "study"
     assert main(["study", "table2", "--scene", str(tmp_path / "bad.toml"),
                  "--out", str(out)]) == 2
-    assert "scene.bogus" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "scene.bogus" in err and len(err.splitlines()) == 1
+    assert err.count(str(tmp_path / "bad.toml")) == 1, err   # the file named once on the line
     assert not out.exists()
     # a refusal after the folder was made (an unknown scheduler) leaves no empty folder
     assert main(["study", "table2", "--scheduler", "tcp://nohost:1", "--out", str(out)]) == 2
