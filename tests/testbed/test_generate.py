@@ -459,6 +459,9 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path, capsys):
                                          r"scene \w{12}, seed \d+'.* not of 'score reglib of "
                                          r"the dataset of scene \w{12}, seed \d+'"):
         score_dataset(ds2, tmp_path / "s", progress=False)
+    # ...and its report gives the seed the cases were drawn from, not the edited one
+    score_dataset(ds2, tmp_path / "s_seed", progress=False)
+    assert f"seed: {index2['seed']}\n" in (tmp_path / "s_seed" / "report.md").read_text()
     (ds2 / "dataset.json").write_text(json.dumps(index2))
     df6 = pd.read_csv(tmp_path / "s6" / "results.csv")
     assert df6[df6.metric == "pin_error"]["value"].tolist() == pytest.approx(
