@@ -136,7 +136,8 @@ def calibrate_view(scene, view_index: int, rng, *, quick: bool = False) -> list[
     def sens(experiment, param, keep, smoothing=TPS_SMOOTHING):
         try:
             dv, er = _score(_subset(markers, keep), carm, iso, smoothing)
-        except ValueError:
+        except ValueError:   # too few markers to calibrate: said in the report, not dropped
+            row("sensitivity_failed", 1.0, "", experiment=experiment, param=float(param))
             return
         for metric, v in (("validation_max", dv.max()), ("validation_mean", dv.mean()),
                           ("ray_error_iso_mean", er.mean()), ("ray_error_iso_max", er.max())):
@@ -252,10 +253,15 @@ def _write_report(ctx, df: pd.DataFrame) -> None:
     sens = df[df.metric.isin(["validation_max", "ray_error_iso_mean"])]
     if len(sens):
         worst, t = sensitivity_table(sens)
+        failed = df[df.metric == "sensitivity_failed"]
+        note = ("" if failed.empty else "\n\nSettings that could not calibrate (too few "
+                "markers), left out of the table: " + ", ".join(
+                    f"{r.experiment} = {r.param:g} ({r.view})" for r in failed.itertuples())
+                + ".")
         ctx.report("Sensitivity (worst view)",
                    f"View {worst} (the largest mean validation distance over these settings): "
                    "smoothing (paper's kernel units), beads used per row, rod positions per "
-                   "plane.\n\n" + markdown_table(t))
+                   "plane.\n\n" + markdown_table(t) + note)
         try:
             import matplotlib
 
