@@ -49,6 +49,7 @@ bitwise (SQLite REAL is an IEEE double).
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import datetime as _dt
 import hashlib
 import json
@@ -61,6 +62,7 @@ import socket
 import sqlite3
 import time
 import traceback
+import weakref
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
@@ -728,14 +730,73 @@ def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str,
         if getattr(trial_fn, "__module__", "__main__") not in ("__main__", "__mp_main__"):
             mods.append(trial_fn.__module__)
         ctx.set_forkserver_preload(mods)
+    with _job_control():
+        _pool_loop(trial_fn, todo, record, workers=workers, ctx=ctx, retries=retries,
+                   timeout_s=timeout_s)
+
+
+#: the pools of this process (weakly held): what Ctrl-Z stops and SIGCONT resumes
+_POOLS: weakref.WeakSet = weakref.WeakSet()
+
+
+def _new_pool(workers: int, ctx) -> cf.ProcessPoolExecutor:
+    ex = cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_start,
+                                initargs=(os.getpid(),))
+    _POOLS.add(ex)
+    return ex
+
+
+def _signal_workers(sig) -> None:
+    """Send ``sig`` to the process group of every live worker of this process's pools."""
+    for ex in list(_POOLS):
+        for proc in list((getattr(ex, "_processes", None) or {}).values()):
+            if getattr(proc, "exitcode", 0) is None:
+                try:
+                    os.killpg(proc.pid, sig)
+                except (OSError, ValueError):
+                    pass
+
+
+@contextlib.contextmanager
+def _job_control():
+    """While a pool runs: Ctrl-Z (SIGTSTP) stops the workers with the study, and SIGCONT
+    (``fg``, ``bg``) resumes them. The workers lead process groups of their own, so the
+    terminal's stop reached the study's process alone and its workers went on computing (a
+    review). Only where the default stop applies (the main thread, SIGTSTP not ignored)."""
+    import signal
+    import threading
+
+    if (not hasattr(signal, "SIGTSTP") or not hasattr(os, "killpg")
+            or threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGTSTP) is not signal.SIG_DFL):
+        yield
+        return
+
+    def on_stop(signum, frame):
+        _signal_workers(signal.SIGSTOP)
+        os.kill(os.getpid(), signal.SIGSTOP)     # as the default action; goes on at SIGCONT
+
+    def on_continue(signum, frame):
+        _signal_workers(signal.SIGCONT)
+
+    before = signal.signal(signal.SIGTSTP, on_stop), signal.signal(signal.SIGCONT, on_continue)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTSTP, before[0])
+        signal.signal(signal.SIGCONT, before[1])
+
+
+def _pool_loop(trial_fn, todo, record, *, workers: int, ctx, retries: int,
+               timeout_s: float | None) -> None:
+    """:func:`_run_pool`'s loop."""
     queue = list(reversed(todo))  # pop() from the end = in trial order
     suspects: list[Trial] = []
     while queue or suspects:
         if suspects:
             trial = suspects.pop(0)
             for attempt in range(retries + 1):
-                ex = cf.ProcessPoolExecutor(1, mp_context=ctx, initializer=_worker_start,
-                                            initargs=(os.getpid(),))
+                ex = _new_pool(1, ctx)
                 killed = False
                 try:
                     res = ex.submit(execute_trial, trial_fn, trial).result(timeout=timeout_s)
@@ -754,8 +815,7 @@ def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str,
                     ex.shutdown(wait=not killed, cancel_futures=True)
             record(trial, res)
             continue
-        ex = cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_start,
-                                    initargs=(os.getpid(),))
+        ex = _new_pool(workers, ctx)
         running: dict[cf.Future, Trial] = {}
         deadline: dict[cf.Future, float] = {}   # with timeout_s: when each must be done
         killed = False

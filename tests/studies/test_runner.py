@@ -550,6 +550,62 @@ def test_workers_that_print_to_a_tostop_terminal_are_not_stopped(tmp_path):
     assert termios.TOSTOP   # (the flag the child set)
 
 
+def _state(pid: int) -> str:
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().rsplit(")", 1)[1].split()[0]
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc")
+def test_ctrl_z_stops_the_workers_with_the_study_and_sigcont_resumes_them(tmp_path):
+    """The workers lead process groups of their own, so a terminal's Ctrl-Z (SIGTSTP)
+    stopped the study's process alone and its workers went on computing (a review); now
+    they stop with it, and resume on SIGCONT."""
+    pids = tmp_path / "pids"
+    pids.mkdir()
+    script = tmp_path / "study.py"
+    script.write_text(textwrap.dedent(f"""
+        import sys
+        sys.path.insert(0, {str(HERE)!r})
+        from studies.runner import make_trials, run_trials
+        from test_runner import toy_trial
+
+        if __name__ == "__main__":
+            params = [{{"sleep_s": 4.0, "pid_dir": {str(pids)!r}}} for _ in range(2)]
+            trials = make_trials("points-lines", 5, params)
+            df = run_trials(toy_trial, trials, out_dir={str(tmp_path / "out")!r}, workers=2,
+                            progress=False)
+            assert "failed" not in set(df.metric)
+    """))
+    proc = subprocess.Popen([sys.executable, str(script)], cwd=ROOT,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 120
+        while len(list(pids.iterdir())) < 2:
+            assert proc.poll() is None, proc.stderr.read().decode()
+            assert time.monotonic() < deadline, "the workers never started their trials"
+            time.sleep(0.05)
+        workers = [int(f.name) for f in pids.iterdir()]
+        os.kill(proc.pid, signal.SIGTSTP)
+        deadline = time.monotonic() + 10
+        while not all(_state(p) == "T" for p in [proc.pid, *workers]):
+            assert time.monotonic() < deadline, [_state(p) for p in [proc.pid, *workers]]
+            time.sleep(0.05)
+        time.sleep(0.5)
+        assert all(_state(p) == "T" for p in workers)       # still stopped
+        os.kill(proc.pid, signal.SIGCONT)
+        deadline = time.monotonic() + 10
+        while any(_state(p) == "T" for p in workers if _process_alive(p)):
+            assert time.monotonic() < deadline, "the workers were not resumed"
+            time.sleep(0.05)
+        assert proc.wait(timeout=60) == 0, proc.stderr.read().decode()
+    finally:
+        if proc.poll() is None:
+            os.kill(proc.pid, signal.SIGCONT)
+            proc.kill()
+            proc.wait()
+        proc.stderr.close()
+
+
 def test_a_killed_worker_leaves_no_semaphore_behind(tmp_path):
     """A trial that drew a (disabled) tqdm bar made tqdm's inter-process lock, a semaphore;
     its worker killed at the time limit never released it, and every interrupted or
