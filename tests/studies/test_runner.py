@@ -550,16 +550,10 @@ def test_workers_that_print_to_a_tostop_terminal_are_not_stopped(tmp_path):
     assert termios.TOSTOP   # (the flag the child set)
 
 
-def _state(pid: int) -> str:
-    with open(f"/proc/{pid}/stat") as f:
-        return f.read().rsplit(")", 1)[1].split()[0]
-
-
-@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc")
-def test_ctrl_z_stops_the_workers_with_the_study_and_sigcont_resumes_them(tmp_path):
-    """The workers lead process groups of their own, so a terminal's Ctrl-Z (SIGTSTP)
-    stopped the study's process alone and its workers went on computing (a review); now
-    they stop with it, and resume on SIGCONT."""
+def _study_with_workers(tmp_path, *, sleep_s: float, trials: int):
+    """A study of ``trials`` sleeping toy trials on 2 workers, in a process of its own:
+    ``(Popen, worker pids)`` once both workers run a trial (the study checks that none
+    failed)."""
     pids = tmp_path / "pids"
     pids.mkdir()
     script = tmp_path / "study.py"
@@ -570,7 +564,7 @@ def test_ctrl_z_stops_the_workers_with_the_study_and_sigcont_resumes_them(tmp_pa
         from test_runner import toy_trial
 
         if __name__ == "__main__":
-            params = [{{"sleep_s": 4.0, "pid_dir": {str(pids)!r}}} for _ in range(2)]
+            params = [{{"sleep_s": {sleep_s}, "pid_dir": {str(pids)!r}}}] * {trials}
             trials = make_trials("points-lines", 5, params)
             df = run_trials(toy_trial, trials, out_dir={str(tmp_path / "out")!r}, workers=2,
                             progress=False)
@@ -578,13 +572,26 @@ def test_ctrl_z_stops_the_workers_with_the_study_and_sigcont_resumes_them(tmp_pa
     """))
     proc = subprocess.Popen([sys.executable, str(script)], cwd=ROOT,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 120
+    while len(list(pids.iterdir())) < 2:
+        assert proc.poll() is None, proc.stderr.read().decode()
+        assert time.monotonic() < deadline, "the workers never started their trials"
+        time.sleep(0.05)
+    return proc, [int(f.name) for f in pids.iterdir()]
+
+
+def _state(pid: int) -> str:
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().rsplit(")", 1)[1].split()[0]
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc")
+def test_ctrl_z_stops_the_workers_with_the_study_and_sigcont_resumes_them(tmp_path):
+    """The workers lead process groups of their own, so a terminal's Ctrl-Z (SIGTSTP)
+    stopped the study's process alone and its workers went on computing (a review); now
+    they stop with it, and resume on SIGCONT."""
+    proc, workers = _study_with_workers(tmp_path, sleep_s=4.0, trials=2)
     try:
-        deadline = time.monotonic() + 120
-        while len(list(pids.iterdir())) < 2:
-            assert proc.poll() is None, proc.stderr.read().decode()
-            assert time.monotonic() < deadline, "the workers never started their trials"
-            time.sleep(0.05)
-        workers = [int(f.name) for f in pids.iterdir()]
         os.kill(proc.pid, signal.SIGTSTP)
         deadline = time.monotonic() + 10
         while not all(_state(p) == "T" for p in [proc.pid, *workers]):
@@ -637,30 +644,9 @@ def test_workers_end_when_the_study_is_killed(tmp_path):
     does not wait leaves it."""
     from studies.runner import PARENT_POLL_S
 
+    proc, workers = _study_with_workers(tmp_path, sleep_s=120.0, trials=4)
     pids = tmp_path / "pids"
-    pids.mkdir()
-    script = tmp_path / "study.py"
-    script.write_text(textwrap.dedent(f"""
-        import sys
-        sys.path.insert(0, {str(HERE)!r})
-        from studies.runner import make_trials, run_trials
-        from test_runner import toy_trial
-
-        if __name__ == "__main__":
-            params = [{{"sleep_s": 120.0, "pid_dir": {str(pids)!r}}} for _ in range(4)]
-            trials = make_trials("points-lines", 5, params)
-            run_trials(toy_trial, trials, out_dir={str(tmp_path / "out")!r}, workers=2,
-                       progress=False)
-    """))
-    proc = subprocess.Popen([sys.executable, str(script)], cwd=ROOT,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
-        deadline = time.monotonic() + 120
-        while len(list(pids.iterdir())) < 2:
-            assert proc.poll() is None, proc.stderr.read().decode()
-            assert time.monotonic() < deadline, "the workers never started their trials"
-            time.sleep(0.05)
-        workers = [int(f.name) for f in pids.iterdir()]
         assert all(_process_alive(w) for w in workers)
         os.kill(proc.pid, signal.SIGKILL)
         time.sleep(0.5)
