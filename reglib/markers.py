@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from reglib.geometry import as_flags
+from reglib.geometry import as_flags, as_whole
 from reglib.tps import ThinPlateSpline, _as_xy
 
 __all__ = [
@@ -215,14 +215,6 @@ def _noise_map(g1, g2, inside, field_noise, mode: str, reference: bool) -> np.nd
     return np.repeat(np.repeat(tiles, T, axis=0), T, axis=1)[:H, :W]
 
 
-def _whole(value):
-    """``value`` as an int when it is a float holding a whole number (``4.0``), else as it
-    is (for the caller's check)."""
-    if isinstance(value, float | np.floating) and np.isfinite(value) and float(value).is_integer():
-        return int(value)
-    return value
-
-
 def detect_markers(previous, current, *, polarity: str = "dark", response: str = "log",
                    rel_threshold: float = 0.35, noise_mode: str = "block",
                    n_sigma: float = 4.5, min_area_px: int = MIN_AREA_PX, max_area_px: int = 2000,
@@ -291,13 +283,14 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
                 or not low <= float(v) <= high:
             raise ValueError(f"detect_markers: {name}: expected a number in [{low:g}, "
                              f"{high:g}], got {v!r}")
-    min_area_px, max_area_px = _whole(min_area_px), _whole(max_area_px)   # 4.0 is 4
-    if (isinstance(min_area_px, bool) or isinstance(max_area_px, bool)
-            or not isinstance(min_area_px, int | np.integer)
-            or not isinstance(max_area_px, int | np.integer)
-            or not 1 <= min_area_px <= max_area_px):
+    try:    # whole numbers, 4.0 as 4 (geometry.as_whole; booleans and text refused)
+        areas = [as_whole(v, "area") for v in (min_area_px, max_area_px)]
+        if any(a.ndim for a in areas) or not 1 <= areas[0] <= areas[1]:
+            raise ValueError
+    except ValueError:
         raise ValueError(f"detect_markers: min_area_px and max_area_px: expected whole numbers "
-                         f"1 <= min <= max, got {min_area_px!r} and {max_area_px!r}")
+                         f"1 <= min <= max, got {min_area_px!r} and {max_area_px!r}") from None
+    min_area_px, max_area_px = int(areas[0]), int(areas[1])
     if mask is not None:
         mask = as_flags(mask, "mask")
         if mask.shape != a.shape:

@@ -75,10 +75,10 @@ def check_out_folder(out, name: str, *, study: str | None = None) -> None:
     ``report.md`` no study wrote), or the trials of another ``study`` (default ``name``; the
     name its ``run_trials`` records): running there would replace that study's results and
     report and leave its figures beside the new ones. The same study's folder resumes."""
-    from studies.runner import DB_NAME, legacy_owner, stored_study
+    from studies.runner import DB_NAME, owner_conflict, stored_study
 
     owner, want = stored_study(out), name if study is None else study
-    if owner is not None and owner != want and not legacy_owner(owner, want):
+    if owner_conflict(owner, want):
         # a study interrupted before its report leaves only its database: a review's other
         # study then ran there, replaced its results.csv and mixed both in trials.sqlite;
         # the same study of another scene or seed did the same (a review)

@@ -226,17 +226,13 @@ def make_budget_trials(scene_path, seed: int, *, cases: int) -> list:
 
 
 def run(ctx) -> pd.DataFrame:
-    from studies.runner import run_trials
+    from studies.runner import run_context_trials
     from testbed.scene import load_scene
 
     trials = make_budget_trials(ctx.scene_path, int(ctx.seed),
                                 cases=QUICK_CASES if ctx.quick else CASES)
     params = [t.params for t in trials]
-    df = run_trials(trial, trials, out_dir=ctx.out, workers=int(ctx.workers),
-                    scheduler=ctx.scheduler, retries=getattr(ctx, "retries", 2),
-                    progress=bool(getattr(ctx, "progress", True)),
-                    study=getattr(ctx, "owner", ctx.name),
-                    retry_failed=bool(getattr(ctx, "retry_failed", False)))
+    df = run_context_trials(ctx, trial, trials)
     pe = df[(df.metric == "pin_error")]
     if pe.empty:
         ctx.report("Pin errors (mm)", "No registration finished.")

@@ -46,10 +46,9 @@ def _replace_other_run(folder: Path, name: str, scene_path, seed) -> None:
     import shutil
 
     from studies import study_owner
-    from studies.runner import legacy_owner, stored_study
+    from studies.runner import owner_conflict, stored_study
 
-    owner, want = stored_study(folder), study_owner(name, scene_path, seed, True)
-    if owner is not None and owner != want and not legacy_owner(owner, want):
+    if owner_conflict(stored_study(folder), study_owner(name, scene_path, seed, True)):
         shutil.rmtree(folder)
 
 

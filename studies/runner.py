@@ -425,6 +425,13 @@ def stored_study(out_dir) -> str | None:
     return None if row is None else str(row[0])
 
 
+def owner_conflict(stored: str | None, want: str) -> bool:
+    """Whether a folder whose database names ``stored`` as its owner (None: no owner yet)
+    refuses the trials of ``want``: another owner, unless a bare legacy name
+    (:func:`legacy_owner`)."""
+    return stored is not None and stored != want and not legacy_owner(stored, want)
+
+
 def legacy_owner(stored: str, want: str) -> bool:
     """Whether ``stored``, the owner a study folder's database names, is the bare study name
     that studies recorded before they named their scene and seed too (``fig9`` for ``fig9 of
@@ -437,7 +444,7 @@ def legacy_owner(stored: str, want: str) -> bool:
 def _claim(con: sqlite3.Connection, db_path: Path, study: str) -> None:
     """Record ``study`` as the owner of the database, or refuse one of another study."""
     row = con.execute("SELECT value FROM meta WHERE key = 'study'").fetchone()
-    if row is not None and row[0] != study and not legacy_owner(row[0], study):
+    if owner_conflict(None if row is None else row[0], study):
         raise ValueError(f"{db_path}: holds the trials of {row[0]!r}, not of {study!r}; "
                          "give another folder, or that study's command to resume it")
     if row is None:
@@ -602,19 +609,27 @@ def _kill_workers(ex: cf.ProcessPoolExecutor) -> None:
     caller shuts the pool down, without waiting."""
     import signal
 
+    _signal_groups(ex, signal.SIGKILL)
     for proc in list((getattr(ex, "_processes", None) or {}).values()):
-        pid = getattr(proc, "pid", None)
-        # the group the worker leads (none unless it made it), while the worker lives (a
-        # reaped worker's pid may be another's)
-        if pid and hasattr(os, "killpg") and getattr(proc, "exitcode", 0) is None:
-            try:
-                os.killpg(pid, signal.SIGKILL)
-            except (OSError, ValueError):   # not yet its own group, or gone
-                pass
         try:
-            proc.kill()
+            proc.kill()     # a worker not (yet) leading a group of its own
         except (OSError, ValueError, AttributeError):  # gone already, or closed
             pass
+
+
+def _signal_groups(ex: cf.ProcessPoolExecutor, sig) -> None:
+    """Send ``sig`` to the process group of each live worker of pool ``ex``: the worker and
+    what its trial started. Only while the worker lives (a reaped worker's pid may be
+    another's), and no group of that id exists unless the worker made it."""
+    if not hasattr(os, "killpg"):
+        return
+    for proc in list((getattr(ex, "_processes", None) or {}).values()):
+        pid = getattr(proc, "pid", None)
+        if pid and getattr(proc, "exitcode", 0) is None:
+            try:
+                os.killpg(pid, sig)
+            except (OSError, ValueError):   # not yet its own group, or gone
+                pass
 
 
 #: seconds to wait, once a worker died, for the pool to fail the trials still in flight
@@ -749,12 +764,7 @@ def _new_pool(workers: int, ctx) -> cf.ProcessPoolExecutor:
 def _signal_workers(sig) -> None:
     """Send ``sig`` to the process group of every live worker of this process's pools."""
     for ex in list(_POOLS):
-        for proc in list((getattr(ex, "_processes", None) or {}).values()):
-            if getattr(proc, "exitcode", 0) is None:
-                try:
-                    os.killpg(proc.pid, sig)
-                except (OSError, ValueError):
-                    pass
+        _signal_groups(ex, sig)
 
 
 @contextlib.contextmanager
@@ -1146,6 +1156,15 @@ def run_study_trials(ctx, trial_fn: Callable[[Trial], list[dict]],
     """
     trials = make_trials(str(ctx.scene_path), int(ctx.seed), params,
                          fingerprint=scene_fingerprint(ctx.scene))
+    return run_context_trials(ctx, trial_fn, trials, scheduler=scheduler, progress=progress,
+                              **kwargs)
+
+
+def run_context_trials(ctx, trial_fn: Callable[[Trial], list[dict]], trials: list[Trial], *,
+                       scheduler=None, progress: bool | None = None, **kwargs) -> pd.DataFrame:
+    """:func:`run_trials` of ready-made ``trials`` with the study context's options: its
+    folder, workers, scheduler, retries, progress, owner and ``retry_failed`` (other
+    keywords go to :func:`run_trials`)."""
     if scheduler is None:
         scheduler = getattr(ctx, "scheduler", None)
     kwargs.setdefault("retries", getattr(ctx, "retries", 2))
