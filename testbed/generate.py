@@ -78,7 +78,10 @@ ENTRY_DOC = {
     "transforms/carm2robot_{view}": ("truth", "C-arm frame (source at the origin, +z the "
                                      "beam) -> robot frame"),
     "transforms/ct2robot": ("truth", "ct -> robot: x_robot = R x_ct + t (the registration's "
-                            "answer)"),
+                            "answer; the femur's pose when the pins were digitised)"),
+    "transforms/ct2robot_{view}": ("truth", "ct -> robot while the view's sweep and X-ray "
+                                   "frame were taken: ct2robot unless [patient] motion_mm or "
+                                   "motion_deg moves the femur between views"),
     "meshes/{body}": ("truth", "phantom bodies in the ct frame, mm: femur, canal, cancellous, "
                       "soft_tissue, pin_<name>"),
     "meshes/robot_{body}": ("truth", "the table (foam, top) and the instruments' meshes in the "

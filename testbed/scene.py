@@ -144,6 +144,18 @@ class PatientSpec(Spec):
     them, or a method that returns the scene's placement scores 0 mm. The views stay where
     the scene aims them, so draws far beyond a few centimetres and degrees can take the
     anatomy out of their fields.
+
+    ``motion_mm`` and ``motion_deg`` (default 0: the bone holds still): the femur moving
+    on its support during the procedure, as a limb that is not fixed to the robot does (the
+    paper's second experiment draped the bone on a foam bar; the first fixed it to the
+    robot). A random walk of one step per stage: from the pin digitisation (the pose
+    ``ct2robot`` of the truth, which the pin-based reference measures) to the first view,
+    then from each view to the next; each step a shift of ``motion_mm`` (standard deviation
+    per robot axis) and a turn of ``motion_deg`` (per axis, about the femur's middle),
+    clipped at 2.5 standard deviations. A view's sweep and X-ray frame see the femur where
+    the walk has taken it (``transforms/ct2robot_{view}`` in the truth); the table and the
+    instruments stay. The workspace check takes the placement at the pin digitisation. No
+    figure exists for a bone on foam (docs/error-model.md), so no shipped scene sets them.
     """
 
     position_mm: Vec3 = (0.0, 0.0, 0.0)
@@ -155,6 +167,14 @@ class PatientSpec(Spec):
     rotation_sd_deg: tuple[Annotated[float, Field(ge=0, le=15)],
                            Annotated[float, Field(ge=0, le=15)],
                            Annotated[float, Field(ge=0, le=15)]] = (0.0, 0.0, 0.0)
+    motion_mm: Annotated[float, Field(ge=0, le=20)] = 0.0
+    motion_deg: Annotated[float, Field(ge=0, le=5)] = 0.0
+
+    @property
+    def moves(self) -> bool:
+        """True when the femur moves between the stages of a case (``motion_mm`` or
+        ``motion_deg`` above 0)."""
+        return self.motion_mm > 0 or self.motion_deg > 0
 
     @property
     def varies(self) -> bool:

@@ -24,10 +24,10 @@ run --seed S`` simulates case 0 of ``S``, the same case as ``case_0000`` of ``te
 generate --seed S``. Each stream of a case (:data:`SEED_STREAMS`: the femur's shape, the
 world, the CT scanner, the operator, the robot (one child per view: arm errors, then sweep
 image noise), the X-ray frames (one child per view), the patient's placement where the
-scene draws one) is the case seed's child of spawn key
-:data:`STREAM_KEYS` ``[name]``, built directly (:func:`case_streams`): a case seed is never
-spawned from, so the same seed gives the same streams however often and in whatever order
-the stages ask for them.
+scene draws one, the femur's motion between views where the scene asks for it) is the case
+seed's child of spawn key :data:`STREAM_KEYS` ``[name]``, built directly
+(:func:`case_streams`): a case seed is never spawned from, so the same seed gives the same
+streams however often and in whatever order the stages ask for them.
 """
 
 from __future__ import annotations
@@ -56,14 +56,15 @@ __all__ = [
 ]
 
 #: the streams of a case
-SEED_STREAMS = ("shape", "world", "ct", "operator", "robot", "xray", "placement")
+SEED_STREAMS = ("shape", "world", "ct", "operator", "robot", "xray", "placement", "motion")
 #: the child (spawn key) of the case seed behind each stream. The numbers are those the
 #: streams had when the stages drew them by successive ``spawn()`` calls on the case seed
 #: (robot and X-ray from the first 6 children, shape and world from the second 6, CT and
 #: operator from the third), kept so that every case and dataset stays what it was; the
-#: placement's (2026-11-26) a new key, so that no earlier stream moved.
+#: placement's (2026-11-26) and the motion's (2026-11-27) new keys, so that no earlier stream
+#: moved.
 STREAM_KEYS = {"shape": 6, "world": 7, "ct": 14, "operator": 15, "robot": 4, "xray": 5,
-               "placement": 16}
+               "placement": 16, "motion": 17}
 #: a case's placement draw is clipped at this many standard deviations ([patient]
 #: position_sd_mm, rotation_sd_deg)
 PLACEMENT_CLIP_SD = 2.5
@@ -145,16 +146,45 @@ def _case_placement(scene, placement_ss: np.random.SeedSequence):
     shift = z[:3] * np.asarray(p.position_sd_mm, dtype=np.float64)
     turn = Rotation.from_rotvec(np.radians(z[3:] * np.asarray(p.rotation_sd_deg,
                                                                dtype=np.float64)))
-    T = p.ct2robot()
-    middle = T.apply(np.array([0.0, 0.0, 0.5 * float(scene.phantom.length_mm)]))
-    R = turn.as_matrix() @ T.R
-    t = turn.apply(T.t - middle) + middle + shift
+    T = _moved(p.ct2robot(), turn, shift, float(scene.phantom.length_mm))
     patient = p.model_copy(update={
-        "position_mm": tuple(float(x) for x in t),
-        "rotation_deg": tuple(float(x) for x in Rotation.from_matrix(R).as_euler(
+        "position_mm": tuple(float(x) for x in T.t),
+        "rotation_deg": tuple(float(x) for x in Rotation.from_matrix(T.R).as_euler(
             "xyz", degrees=True)),
         "position_sd_mm": (0.0, 0.0, 0.0), "rotation_sd_deg": (0.0, 0.0, 0.0)})
     return scene.model_copy(update={"patient": patient})
+
+
+def _moved(ct2robot, turn, shift_mm, length_mm: float):
+    """``ct2robot`` (a RigidTransform) after the femur turns by ``turn`` (a scipy Rotation,
+    robot frame) about its middle, ``length_mm / 2`` up the ct frame's z axis, and shifts
+    by ``shift_mm`` (robot frame)."""
+    from reglib.geometry import RigidTransform
+
+    middle = ct2robot.apply(np.array([0.0, 0.0, 0.5 * length_mm]))
+    return RigidTransform(turn.as_matrix() @ ct2robot.R,
+                          turn.apply(ct2robot.t - middle) + middle + shift_mm)
+
+
+def view_poses(scene, ct2robot, motion_ss: np.random.SeedSequence) -> list:
+    """The femur's pose (ct -> robot, RigidTransform) at each view of the case: ``ct2robot``
+    (its pose at the pin digitisation) for every view when the bone holds still, else the
+    random walk of ``[patient] motion_mm`` / ``motion_deg`` (one step before each view,
+    each a normal draw per robot axis clipped at :data:`PLACEMENT_CLIP_SD`; see
+    :class:`testbed.scene.PatientSpec`)."""
+    from scipy.spatial.transform import Rotation
+
+    p = scene.patient
+    if not p.moves:
+        return [ct2robot] * len(scene.views)
+    rng = np.random.default_rng(motion_ss)
+    poses, T = [], ct2robot
+    for _ in scene.views:
+        z = np.clip(rng.standard_normal(6), -PLACEMENT_CLIP_SD, PLACEMENT_CLIP_SD)
+        turn = Rotation.from_rotvec(np.radians(z[3:] * float(p.motion_deg)))
+        T = _moved(T, turn, z[:3] * float(p.motion_mm), float(scene.phantom.length_mm))
+        poses.append(T)
+    return poses
 
 
 #: the spawn key, under the robot stream, of the case's one robot (its imperfections and
@@ -338,6 +368,9 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
 
     # 3. per view: sweep, X-ray frame, clicks
     carms, frames, recorded = {}, {}, {}
+    # where the femur is at each view ([patient] motion_mm / motion_deg; else where the pins
+    # were digitised): the patient's bodies per view, the table and instruments staying
+    poses = view_poses(scene, world.ct2robot, streams["motion"])
     robot_rngs = np.random.default_rng(robot_ss).spawn(len(scene.views))
     xray_rngs = np.random.default_rng(xray_ss).spawn(len(scene.views))
     op_rngs = xray_op_rng.spawn(len(scene.views))
@@ -354,6 +387,10 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
             carm = make_carm(scene.fluoroscope, vspec, view_index=i)
             carms[vspec.name] = carm
             tru["transforms"][f"carm2robot_{v}"] = carm.carm2robot
+            tru["transforms"][f"ct2robot_{v}"] = poses[i]
+            bodies = (world.bodies if poses[i] is world.ct2robot else
+                      [*(b.transformed(poses[i]) for b in ph.bodies()), *world.table,
+                       *world.instruments])
             if sweeps:
                 # the sweep sees the intensifier as it was during calibration: the patient's
                 # frame (and the truth) as it is at the acquisition (their difference is the
@@ -373,7 +410,7 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
                     fb.total = n
                     fb.update(1)
 
-                sweep = run_sweep(robot, sweep_carm, scene.fluoroscope, bodies=world.bodies,
+                sweep = run_sweep(robot, sweep_carm, scene.fluoroscope, bodies=bodies,
                                   rng=noise_rng, progress=record)
                 frame_bar.close()
                 recorded[vspec.name] = sweep
@@ -389,7 +426,7 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
                 tick(f"sweep {vspec.name}", t0)
             t0 = time.perf_counter()
             try:
-                frame = render(carm, world.bodies, fluoro=scene.fluoroscope, rng=xray_rngs[i])
+                frame = render(carm, bodies, fluoro=scene.fluoroscope, rng=xray_rngs[i])
             except ValueError as exc:
                 raise ValueError(f"views[{i}] ({vspec.name!r}): {exc}") from None
             frames[vspec.name] = frame
