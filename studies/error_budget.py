@@ -57,7 +57,7 @@ SOURCE_GROUPS = (
     (r"^robot\.rod_mount", "rod mounting"),
     (r"^ct\.(metal_streaks|streak_hu)", "CT metal streaks"),
     (r"^ct\.(max_slice_thickness_mm|slice_thickness_mm)", "CT slice thickness"),
-    (r"^ct\.noise_hu", "CT noise"),
+    (r"^ct\.noise_", "CT noise"),
     (r"^operator\.ct_", "operator on CT"),
     (r"^operator\.", "operator on X-ray"),
 )

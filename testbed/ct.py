@@ -70,8 +70,12 @@ class CTSpec(Spec):
     Clinic defaults (``docs/error-model.md``): contiguous slices, i.e. the thickness equals the
     spacing up to ``max_slice_thickness_mm`` = 10 mm (so 6 mm on the coarse part of the
     clinical schedule: partial volume over the whole gap); metal streaks from the pins on
-    (``streak_hu``); noise ``noise_hu``. The ideal profile caps the thickness at 2 mm and
-    turns the streaks off.
+    (``streak_hu``); noise ``noise_hu`` at ``noise_reference_thickness_mm`` (6 mm), growing as
+    ``sqrt(noise_reference_thickness_mm / thickness)`` on thinner slices (37 HU at 1 mm):
+    quantum noise falls with the square root of the photons a voxel collects, which grow
+    with the slice thickness at a fixed dose (``noise_scales_with_thickness``; off: the same
+    ``noise_hu`` on every slice). The ideal profile caps the thickness at 2 mm, turns the
+    streaks off and keeps ``noise_hu`` on every slice.
     """
 
     pixel_mm: Annotated[float, Field(ge=0.3, le=2.0)] = 0.8
@@ -92,6 +96,8 @@ class CTSpec(Spec):
     subslice_mm: Annotated[float, Field(ge=0.05, le=5.0)] = 0.5
     supersample: Annotated[int, Field(ge=1, le=8)] = 3
     noise_hu: Annotated[float, Field(ge=0.0, le=2000.0)] = 15.0
+    noise_scales_with_thickness: bool = True
+    noise_reference_thickness_mm: Spacing = 6.0
     metal_streaks: bool = True
     streak_hu: Annotated[float, Field(ge=0.0, le=5000.0)] = 300.0
 
@@ -114,6 +120,11 @@ class CTSpec(Spec):
         if not self.metal_streaks and self.streak_hu != fields["streak_hu"].default:
             raise ValueError("streak_hu is only used with metal_streaks = true: set "
                              "metal_streaks = true or leave streak_hu out")
+        if (not self.noise_scales_with_thickness and self.noise_reference_thickness_mm
+                != fields["noise_reference_thickness_mm"].default):
+            raise ValueError("noise_reference_thickness_mm is only used with "
+                             "noise_scales_with_thickness = true: set it to true or leave "
+                             "noise_reference_thickness_mm out")
         if (self.slice_thickness_mm is not None
                 and self.max_slice_thickness_mm != fields["max_slice_thickness_mm"].default):
             raise ValueError("max_slice_thickness_mm caps the thickness only when "
@@ -489,10 +500,18 @@ def scan(phantom, spec: CTSpec | None = None, rng=None, *, bodies: list[Body] | 
             if metal:
                 img += _streaks(img.shape, origin, px, metal, spec.streak_hu, rng)
         if spec.noise_hu > 0:
-            img += rng.normal(0.0, spec.noise_hu, img.shape)
+            img += rng.normal(0.0, noise_sd_hu(spec, tk), img.shape)
         vol[k] = np.rint(np.clip(img, -1024.0, 3071.0))
     return CTScan(volume_hu=vol, slice_z_mm=z, slice_thickness_mm=thick, pixel_mm=px,
                   origin_xy_mm=np.asarray(origin, dtype=np.float64), regions=regions)
+
+
+def noise_sd_hu(spec: CTSpec, thickness_mm: float) -> float:
+    """The noise's standard deviation (HU) on a slice ``thickness_mm`` thick (see
+    :class:`CTSpec`)."""
+    if not spec.noise_scales_with_thickness:
+        return float(spec.noise_hu)
+    return float(spec.noise_hu * np.sqrt(spec.noise_reference_thickness_mm / thickness_mm))
 
 
 def sample_hu_reference(bodies: list[Body], points_ct) -> np.ndarray:

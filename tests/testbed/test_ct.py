@@ -102,8 +102,12 @@ def test_clinical_schedule(cylinders):
     np.testing.assert_allclose(a[:, 2, 3], z)
     with pytest.raises(ValueError, match="unequally spaced"):
         _ = ct.voxel2ct
-    # Noise: the standard deviation asked, in a uniform region.
-    np.testing.assert_allclose(np.std(ct.volume_hu[3, :20, :20]), 20.0, rtol=0.15)
+    # Noise: the standard deviation asked at 6 mm, grown on this 1 mm slice by sqrt(6), in
+    # a uniform region (air's is cut by the clip at -1024 HU)
+    assert ct.slice_thickness_mm[3] == 1.0
+    c, r = np.rint(ct.ct_to_pixel(np.array([43.0, -2.0, z[3]]))[0]).astype(int)  # r 40 mm
+    patch = ct.volume_hu[3, r - 5:r + 5, c - 5:c + 5]     # soft tissue, clear of the clip
+    np.testing.assert_allclose(np.std(patch), 20.0 * np.sqrt(6.0), rtol=0.15)
 
 
 def test_default_protocol_on_the_femur_has_two_regions_and_fine_slices_at_pins():
@@ -156,6 +160,30 @@ def test_a_given_slice_thickness_is_kept_even_above_the_spacing(cylinders):
     centre = tuple(s // 2 for s in thick.volume_hu.shape[1:])
     ring = (centre[0], centre[1] + 15)               # in the cortex (r 10-20 mm)
     assert thick.volume_hu[2][ring] < thin.volume_hu[2][ring] - 100.0
+
+
+def test_noise_grows_on_thinner_slices_as_the_square_root_of_the_thickness(cylinders):
+    """scan with noise - scan without it (the same generator, streaks off) is the noise of
+    each slice: 15 HU on a 6 mm slice, 15 sqrt(6) = 36.7 HU on a 1 mm one (clinic default),
+    15 HU on both with the scaling off (the ideal profile); a reference thickness that the
+    scaling does not use is refused."""
+    from testbed.ct import noise_sd_hu
+
+    z = (30.0, 50.0)
+    base = dict(schedule="explicit", slice_z_mm=z, metal_streaks=False, pixel_mm=1.0)
+    for thickness, scales, expected in ((6.0, True, 15.0), (1.0, True, 15.0 * np.sqrt(6.0)),
+                                        (1.0, False, 15.0), (2.0, True, 15.0 * np.sqrt(3.0))):
+        kw = dict(base, slice_thickness_mm=thickness, noise_scales_with_thickness=scales)
+        noisy = scan(cylinders, CTSpec(noise_hu=15.0, **kw), rng=5).volume_hu
+        clean = scan(cylinders, CTSpec(noise_hu=0.0, **kw), rng=5).volume_hu
+        d = (noisy - clean).astype(np.float64)
+        inside = np.abs(clean) < 500          # soft tissue and marrow, clear of the clip
+        sd = d[inside].std()                  # whole HU add 1/12 HU^2 of rounding to each
+        assert abs(np.sqrt(max(sd**2 - 2 / 12, 0.0)) - expected) < 0.03 * expected, (
+            thickness, scales, sd)
+        assert noise_sd_hu(CTSpec(noise_hu=15.0, **kw), thickness) == pytest.approx(expected)
+    with pytest.raises(ValueError, match="noise_reference_thickness_mm is only used"):
+        CTSpec(noise_scales_with_thickness=False, noise_reference_thickness_mm=3.0)
 
 
 def test_a_field_that_cuts_the_bone_is_refused(cylinders):
