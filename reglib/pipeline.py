@@ -760,6 +760,32 @@ def xray_contours(view: str, image, clicks: Mapping, *, pixel_mm=None) -> ViewCo
     return ViewContours(view, np.vstack(pts), np.concatenate(flags), tuple(problems))
 
 
+def frame_size_problem(view: str, frame_shape, sweep_frames, fov=None) -> str:
+    """Why the X-ray frame of ``view`` cannot be read through its sweep's calibration, or "":
+    the calibration maps pixels of frames of the sweep's size, so a frame of another size (a
+    crop, another video mode) would be read in a frame the calibration does not describe (a
+    review, 2026-11-27: four frames cropped by 12 px were accepted with the pins 5.2-5.5 mm
+    off); the field-of-view mask must be the frame's size too. "" when there is no sweep
+    frame to compare with."""
+    shape = tuple(int(n) for n in frame_shape)
+    problems = []
+    try:
+        sweep_shape = tuple(int(n) for n in np.shape(sweep_frames[0])) \
+            if sweep_frames is not None and len(sweep_frames) else None
+    except (TypeError, IndexError, KeyError):
+        sweep_shape = None
+    if sweep_shape is not None and sweep_shape != shape:
+        problems.append(f"its X-ray frame is {shape[0]} x {shape[1]} px (rows x columns) and "
+                        f"its sweep's frames {sweep_shape[0]} x {sweep_shape[1]} px: the "
+                        "calibration maps pixels of frames of the sweep's size (a frame "
+                        "cropped or scaled, or taken in another video mode?)")
+    if fov is not None and tuple(np.shape(fov)) != shape:
+        problems.append(f"its field-of-view mask (arrays/xray_fov_{view}) is "
+                        f"{' x '.join(str(n) for n in np.shape(fov))} px and its X-ray frame "
+                        f"{shape[0]} x {shape[1]} px")
+    return f"view {view}: " + "; ".join(problems) if problems else ""
+
+
 def sweep_agreement(view: str, frame, sweep_frames, sweep_arrays, min_agreement: float, *,
                     pixel_mm=None) -> str:
     """Whether the X-ray frame of ``view`` was taken from where its sweep calibrated: "" when
@@ -927,6 +953,13 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
         timings["contours"] = timings.get("contours", 0.0) + time.perf_counter() - t0
         if not cal.ok:
             failed[v] = cal.message
+            continue
+        if frame is None and f"xray_{v}" in images:
+            frame = _xray_frame(images, v)
+        why = "" if frame is None else frame_size_problem(
+            v, np.shape(frame), images.get(f"sweep_{v}"), arrays.get(f"xray_fov_{v}"))
+        if why:
+            failed[v] = why
             continue
         if options.min_sweep_agreement > 0:
             t0 = time.perf_counter()

@@ -176,6 +176,39 @@ def test_a_frame_not_taken_where_its_view_was_calibrated_leaves_the_view_out(cas
         assert re.search(why, st.failed[v]), st.failed[v]
 
 
+def test_a_frame_of_another_size_than_its_sweep_leaves_the_view_out(case):
+    """A review (2026-11-27) cropped the X-ray frames by 12 px (the clicks moved alike): the
+    sweep's calibration read them in a frame it does not describe, and the estimate was
+    accepted with the pins 5.2-5.5 mm off. A view whose frame, or field-of-view mask, is not
+    its sweep frames' size is now left out and named with both sizes."""
+    import dataclasses
+
+    from reglib.pipeline import frame_size_problem, prepare
+
+    obs = case.sim.observation
+    v, other = list(case.sim.carms)
+    x = np.asarray(obs.images[f"xray_{v}"])
+    H, W = x.shape
+    assert frame_size_problem(v, x.shape, obs.images[f"sweep_{v}"],
+                              obs.arrays[f"xray_fov_{v}"]) == ""
+    clicks = dict(obs.arrays[f"xray_clicks_{v}"])
+    cropped = {**clicks, "clicks_xy": np.asarray(clicks["clicks_xy"]) - 12.0}
+    fov = np.asarray(obs.arrays[f"xray_fov_{v}"])
+    for frame, mask, why in (
+            (x[12:, 12:], fov, rf"X-ray frame is {H - 12} x {W - 12} px .* sweep's frames "
+                               rf"{H} x {W} px"),
+            (x[12:, 12:], fov[12:, 12:], rf"X-ray frame is {H - 12} x {W - 12} px"),
+            (x, fov[12:, 12:], rf"field-of-view mask .* is {H - 12} x {W - 12} px")):
+        o = dataclasses.replace(obs, images={**obs.images, f"xray_{v}": frame},
+                                arrays={**obs.arrays, f"xray_fov_{v}": mask,
+                                        f"xray_clicks_{v}": cropped if frame is not x
+                                        else clicks})
+        st = prepare(o, options=case.options, surfaces=case.stages.surfaces,
+                     calibrations=case.stages.calibrations)
+        assert [w.name for w in st.views] == [other]
+        assert re.search(why, st.failed[v]), st.failed[v]
+
+
 def test_registration_pin_errors_with_true_inputs(case):
     """The pose solver alone: with the true rays, surfaces and contours it finds the pose."""
     res = _register_all(case, _starts(case, 3.0), oracle=TRUE_INPUTS)
