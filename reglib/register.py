@@ -390,6 +390,9 @@ def _check_solver_options(method, opts):
 
 #: the limit cycles' periods the robust solvers' loop recognises as settled
 CYCLE_PERIODS = (2, 3, 4, 5, 6, 7, 8)
+#: the plain least-squares methods (no outlier rejection): only period 2 is settled, and
+#: ``stale_window`` stops them
+PLAIN_METHODS = ("linear", "lm")
 
 
 def _limit_cycle(placed, tol_mm: float, periods) -> int:
@@ -572,9 +575,10 @@ def register(surfaces, views, initial: RigidTransform, *,
         matches keep switching between neighbouring contour points and the pose jitters by
         a few hundredths of a mm forever, so ``tol_step_mm`` alone is never met (seen on the
         experiment2 scene: 0.05 mm steps after 50 iterations, pins at 0.2-0.3 mm).
-    stale_window : with ``method="linear"`` (plain least squares: outlier matches are not
-        rejected, and the loop can cycle for ever; seen on the test bone, a period-4 cycle of
-        0.5-2.2 mm steps from every 7 deg / 20 mm start), stop, not converged, when the
+    stale_window : with ``method="linear"`` or ``"lm"`` (plain least squares: outlier
+        matches are not rejected, and the loop can cycle for ever; seen on the test bone, a
+        period-4 cycle of 0.5-2.2 mm steps from every 7 deg / 20 mm start), stop, not
+        converged, when the
         median point-path distance has not improved on its best by 1 % for this many
         iterations (0 disables). The robust methods are not affected.
     max_motion_mm, max_rotation_deg : divergence limits on the distance from ``initial``
@@ -763,10 +767,11 @@ def register(surfaces, views, initial: RigidTransform, *,
         # called unconverged after 50 or 200 iterations and refused 0.70 mm off, a
         # review); it has settled when each of the last p + 1 poses is where it was p
         # iterations before (two whole cycles). Periods above 2 only for the robust
-        # solvers: plain least squares ("linear") cycles with period 4 on wrong poses and
-        # stops by stale_window instead.
+        # solvers: plain least squares ("linear", and "lm", a review: a period-3 cycle of 6 mm
+        # steps 30 deg off was called converged) cycles on wrong poses and stops by
+        # stale_window instead.
         period = _limit_cycle(placed, tol_stall_mm,
-                              (2,) if method == "linear" else CYCLE_PERIODS) \
+                              (2,) if method in PLAIN_METHODS else CYCLE_PERIODS) \
             if stall_window > 0 else 0
         if period:
             converged = True
@@ -778,7 +783,7 @@ def register(surfaces, views, initial: RigidTransform, *,
         med = history[-1].median_mm
         if med < 0.99 * best_median:
             best_median, best_at = med, it
-        if method == "linear" and stale_window > 0 and it - best_at >= stale_window:
+        if method in PLAIN_METHODS and stale_window > 0 and it - best_at >= stale_window:
             reason = (f"stopped improving: the median point-path distance has not improved "
                       f"on its best ({best_median:.3g} mm at iteration {best_at}) for "
                       f"{stale_window} iterations, the pose still moves by {step_mm:.3g} mm "

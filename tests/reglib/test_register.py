@@ -376,6 +376,25 @@ def test_linear_stops_when_it_stops_improving(world):
     assert full.iterations == 30 and "no convergence after 30" in full.reason
 
 
+def test_lm_stops_when_it_stops_improving_as_linear_does(world):
+    """"lm" is plain least squares too: a review found it called converged on a period-3
+    cycle of 6 mm steps 30 deg off (the robust solvers' longer periods had applied to it,
+    and stale_window had not). With a short stale_window it now stops, not converged, once
+    the median stops improving, as "linear" does; the robust solver is not affected."""
+    tops, views, true = world
+    init = perturbed(true, 7.0, 20.0, np.random.default_rng(0))
+    for method in ("lm", "linear"):
+        res = register(tops, list(views.values()), init, method=method, residual="line",
+                       max_iterations=50, stale_window=2)
+        assert not res.converged and res.reason.startswith("stopped improving"), (
+            method, res.reason)
+        meds = [h.median_mm for h in res.history]
+        assert min(meds) < 0.5 * meds[0]          # it did improve first
+    rob = register(tops, list(views.values()), init, method="robust", residual="line",
+                   max_iterations=50, stale_window=2)
+    assert not rob.reason.startswith("stopped improving"), rob.reason
+
+
 def test_stall_window_zero_disables_the_stall_test(world):
     """Noisy paths: with the default window the loop stops on stalled steps; with 0 it
     never does (it runs to max_iterations or the step tolerance) and stays near the truth."""
