@@ -123,7 +123,9 @@ def prepare_surface(vertices, faces) -> SurfaceTopology:
 
     Parameters
     ----------
-    vertices : (V, 3) array_like, mm.
+    vertices : (V, 3) array_like, mm. Vertices that no face uses are left out of the
+        topology (its ``vertices`` and the contours' ``vertex_ids`` then number the rest in
+        their order).
     faces : (F, 3) array_like of int, consistently oriented (outward normals).
 
     Raises
@@ -135,6 +137,14 @@ def prepare_surface(vertices, faces) -> SurfaceTopology:
     """
     v = as_points(vertices, "vertices", min_count=3)
     f = as_faces(faces, len(v))
+    used = np.zeros(len(v), dtype=bool)
+    used[f.reshape(-1)] = True
+    if not used.all():
+        # vertices no face uses are dropped (a review: one stray vertex at 1e7 mm set the
+        # surfaces' bounding box, on which the loop measures its steps and divergence, and a
+        # good registration "diverged ... 770709 mm")
+        index = np.cumsum(used) - 1
+        v, f = v[used], index[f]
     degen = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
     if np.any(degen):
         raise ValueError(f"faces: repeated vertex in faces {np.flatnonzero(degen)[:10].tolist()}")

@@ -118,6 +118,17 @@ class PoseResult:
 
 
 # --------------------------------------------------------------------------- input checks
+def _distinct_pairs(p, o, d, enough: int) -> int:
+    """How many distinct (point, line) rows there are, counted up to ``enough`` (most inputs
+    reach it within their first rows)."""
+    seen = set()
+    for row in np.hstack([p, o, d]):
+        seen.add(row.tobytes())
+        if len(seen) >= enough:
+            break
+    return len(seen)
+
+
 def _check_inputs(points, origins, directions, method: str):
     if method not in MIN_POINTS:
         raise ValueError(f"method: expected one of {sorted(MIN_POINTS)}, got {method!r}")
@@ -131,6 +142,12 @@ def _check_inputs(points, origins, directions, method: str):
     if p.shape[0] < need:
         raise ValueError(
             f"method {method!r} needs at least {need} point-line pairs, got {p.shape[0]}"
+        )
+    distinct = _distinct_pairs(p, o, d, need)
+    if distinct < need:   # a review: 3 pairs repeated to 40 rows, RANSAC 57 mm off, converged
+        raise ValueError(
+            f"method {method!r} needs at least {need} distinct point-line pairs, got "
+            f"{distinct} among {p.shape[0]} rows (repeated pairs count once)"
         )
     centered = p - p.mean(axis=0)
     ev = np.linalg.eigvalsh(centered.T @ centered)  # squared singular values, ascending

@@ -410,6 +410,12 @@ def _limit_cycle(placed, tol_mm: float, periods) -> int:
 
 #: register's whole-number options and their least values
 _WHOLE = {"max_iterations": 1, "solver_iterations": 1, "stall_window": 0, "stale_window": 0}
+#: ... and their largest (a review: max_iterations = 10**12 with the stop tests off ran on
+#: for ever, its history growing by a record per iteration; solve_pose caps its own
+#: iterations at reglib.pose.MAX_ITERATIONS)
+MAX_LOOP_ITERATIONS = 10_000
+_WHOLE_MAX = {"max_iterations": MAX_LOOP_ITERATIONS, "solver_iterations": None,
+              "stall_window": MAX_LOOP_ITERATIONS, "stale_window": MAX_LOOP_ITERATIONS}
 #: register's real-valued options: (test, the values in words); NaN never passes
 _REAL = {
     "tukey_a": (lambda v: 0 < v < np.inf,
@@ -451,10 +457,13 @@ def _check_values(o: dict) -> None:
     for name, allowed in _keyword_spec()[1].items():
         if o[name] not in allowed:
             raise OptionError(name, f"expected one of {list(allowed)}, got {o[name]!r}")
+    from reglib.pose import MAX_ITERATIONS
+
     for name, low in _WHOLE.items():
         v = o[name]
-        if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < low:
-            raise OptionError(name, f"expected an integer >= {low}, got {v!r}")
+        high = _WHOLE_MAX[name] or MAX_ITERATIONS
+        if isinstance(v, bool) or not isinstance(v, int | np.integer) or not low <= v <= high:
+            raise OptionError(name, f"expected an integer in [{low}, {high}], got {v!r}")
     for name, (ok, what) in _REAL.items():
         v = o[name]
         if not (is_real(v) and not np.isnan(v) and ok(v)):

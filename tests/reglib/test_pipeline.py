@@ -97,8 +97,11 @@ def test_options_are_checked():
                       (dict(max_validation_mm="1"), "max_validation_mm: expected a number"),
                       (dict(fixed_point_ct=(1.0, np.nan, 0.0)), "fixed_point_ct"),
                       (dict(coarse={"max_iterations": "5"}),
-                       r"EstimateOptions.coarse\['max_iterations'\]: expected an integer >= 1"),
-                      (dict(registration={"max_iterations": 0}), "an integer >= 1"),
+                       r"EstimateOptions.coarse\['max_iterations'\]: expected an integer "
+                       r"in \[1, 10000\]"),
+                      (dict(registration={"max_iterations": 0}), r"an integer in \[1, 10000\]"),
+                      (dict(registration={"max_iterations": 10**12}),
+                       r"an integer in \[1, 10000\], got 1000000000000"),
                       (dict(registration={"tukey_a": float("nan")}), r"tukey_a'\]: .* > 0"),
                       (dict(registration={"tukey_a": "4"}), r"tukey_a'\]: .* > 0"),
                       (dict(registration={"min_inlier_fraction": 2.0}), "fraction in"),

@@ -418,8 +418,32 @@ def test_register_refuses_a_non_rigid_initial_clearly(world):
         with pytest.raises(ValueError, match=r"initial: its 3x3 part is not a rotation "
                                              r"\(orthonormal, det \+1\) or it holds NaN/inf"):
             register(tops, list(views.values()), bad)
-    with pytest.raises(ValueError, match="stale_window: expected an integer >= 0, got -1"):
+    with pytest.raises(ValueError,
+                       match=r"stale_window: expected an integer in \[0, 10000\], got -1"):
         register(tops, list(views.values()), true, stale_window=-1)
+
+
+def test_register_caps_its_loop_and_ignores_vertices_no_face_uses(world):
+    """A review: max_iterations = 10**12 with every stop test off ran on for ever (now
+    refused, naming the range); one stray vertex at 1e7 mm that no face used set the
+    bounding box the loop measures its steps on, and a good registration 'diverged ...
+    770709 mm' (now the vertex is left out, and the result is the clean surfaces')."""
+    from reglib.apparent import prepare_surface
+
+    tops, views, true = world
+    with pytest.raises(ValueError, match=r"max_iterations: expected an integer in "
+                                         r"\[1, 10000\], got 1000000000000"):
+        register(tops, list(views.values()), true, max_iterations=10**12, tol_step_mm=0.0,
+                 stall_window=0)
+    init = perturbed(true, 2.0, 5.0, np.random.default_rng(4))
+    clean = register(tops, list(views.values()), init)
+    stray = [prepare_surface(np.vstack([t.vertices, [[1e7, 0.0, 0.0]]]), t.faces)
+             for t in tops]
+    assert all(len(s.vertices) == len(t.vertices) for s, t in zip(stray, tops))
+    res = register(stray, list(views.values()), init)
+    assert res.converged and clean.converged, res.reason
+    assert np.allclose(res.ct2robot.as_matrix(), clean.ct2robot.as_matrix(), atol=1e-9)
+    assert pin_errors(res.ct2robot, true).max() < 0.5
 
 
 def test_register_takes_a_4x4_initial_as_its_rigid_transform(world):
