@@ -521,6 +521,15 @@ def xray_contours(image, traces: Sequence[dict], *, fov_mask=None) -> list[XrayC
 #: edges of the bone, the table and the instruments, without the noise's finest grain and
 #: the glare's and vignetting's slow changes
 AGREEMENT_SIGMAS_PX = (2.0, 6.0)
+#: no shift is taken when its correlation lies within this share of the peak's: it explains
+#: the frames as well. A review (2026-11-27): views whose fields showed mostly
+#: straight, parallel edges (a turned patient under views not re-aimed) correlated 0.979 at
+#: no shift against 0.980 at (+1, -7) px (ideal profile) and 0.647 against 0.672 (clinic,
+#: 0.963 of it), and were left out as "moved after the sweep". On experiment2's four views a
+#: true shift of 1 px leaves 0.967-0.986 of the peak at no shift, of 2 px (the first beyond
+#: the pipeline's 1.5 px limit) 0.879-0.934: the share is about the band's own correlation
+#: at a 1.5 px lag
+AGREEMENT_TIE = 0.04
 
 
 def _agreement_band(image, window, m: float, *, reference: bool = False) -> np.ndarray:
@@ -566,7 +575,8 @@ def frame_agreement(frame, reference, fov_mask, *, reach_px: int = 32, scale: fl
     sweep's reference frame (the rod parked, the patient in the beam) show the same scene
     from the same pose: the peak lies at no shift, 0.54-1.00 on the shipped scenes' views
     (at 20 quanta per pixel too). A frame shifted by ``s`` px peaks at ``s``; a frame of
-    another view, mirrored or turned, peaks at 0.35 at most. Computed by FFT
+    another view, mirrored or turned, peaks at 0.35 at most. No shift is reported when its
+    correlation lies within :data:`AGREEMENT_TIE` (a share) of the peak's. Computed by FFT
     (:func:`_frame_agreement_direct` is the direct sum, compared in tests).
 
     Returns
@@ -598,6 +608,10 @@ def frame_agreement(frame, reference, fov_mask, *, reach_px: int = 32, scale: fl
     k = np.unravel_index(int(np.argmax(ncc)), ncc.shape)
     if not np.isfinite(ncc[k]):
         return float("nan"), (0, 0)
+    # no shift when it explains the frames as well as the peak (AGREEMENT_TIE): a ridge
+    # along straight edges is flat, and its argmax a shift that nothing made
+    if ncc[R, R] >= ncc[k] - AGREEMENT_TIE * abs(ncc[k]):
+        return float(ncc[R, R]), (0, 0)
     return float(ncc[k]), (int(k[1]) - R, int(k[0]) - R)
 
 
