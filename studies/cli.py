@@ -412,12 +412,29 @@ def cmd_render(args) -> int:
     # the world of `testbed run` with the same seed: with [phantom] shape_variation > 0 the
     # femur is drawn from shape_seed and the case's seed, as every study case draws its own
     seed = scene.scene.seed if args.seed is None else args.seed
-    _, world = case_world(scene, seed)
+    case_scene, world = case_world(scene, seed)
     frame = render_view(scene, args.view, seed=seed, bodies=world.bodies)
+    _render_workspace_warning(case_scene, world)
     if not cv2.imwrite(str(out), frame.image_u8):
         raise UsageError(f"--out {out}: could not write the image")
     print(f"wrote {out}")
     return 0
+
+
+def _render_workspace_warning(scene, world) -> None:
+    """A line on stderr when the acquisition that ``render`` draws is one ``testbed run``
+    refuses, or that was not checked (a review: both were drawn without a word)."""
+    from testbed.workspace import WorkspaceError, require_feasible
+
+    if not scene.workspace.check:
+        print("warning: the workspace was not checked ([workspace] check = false): this "
+              "acquisition may not be physically possible", file=sys.stderr)
+        return
+    try:
+        require_feasible(scene, world)
+    except WorkspaceError as exc:
+        print(f"warning: {_one_line(str(exc))} (testbed run refuses this scene; the frame is "
+              "drawn as asked)", file=sys.stderr)
 
 
 def cmd_bench(args) -> int:
@@ -540,7 +557,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("scene", nargs="?", default=None,
                    help="scene file or name (default: experiment2)")
     d.add_argument("--view", type=_int_at_least(0, "--view"), default=0,
-                   help="view index (0-based)")
+                   help="view index (0-based; default 0)")
     d.add_argument("--out", required=True, type=_path, help="a .png file")
     d.add_argument("--seed", type=seed, default=None,
                    help="the case seed (default: the scene's); the world of testbed run "

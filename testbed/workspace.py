@@ -341,9 +341,18 @@ def _remedy(report: WorkspaceReport) -> str:
             return f"{_VIEW} within the robot's reach, or change [robot]"
         if p.contacts:
             c = min(p.contacts, key=lambda c: c.distance_mm)
-            other = c.b if c.a.startswith(("robot", "rod")) else c.a
+            mine, other = (c.a, c.b) if c.a.startswith(("robot", "rod")) else (c.b, c.a)
             if other.startswith("carm_intensifier"):
-                return f"{_SWEEP} further from the intensifier, or {_VIEW}"
+                if mine.startswith("rod"):
+                    return f"{_SWEEP} further from the intensifier, or {_VIEW}"
+                # the arm reaching past the intensifier's rim: moving the planes along the
+                # beam does not clear it, nor does sweeping less of the field (a review of a
+                # 12-inch intensifier: 8.6 mm became 5.5 / 4.8 mm, and 0.8-3.6 mm at a
+                # coverage of 0.75-0.5); a rod held further from the wrist does (mount_mm
+                # 180 mm instead of 120: feasible, and accepted at 0.34 mm)
+                return ("the robot's arm reaches past the intensifier's rim: hold the rod "
+                        "further from the wrist ([robot.rod] mount_mm, e.g. 180 mm for a "
+                        f"12-inch intensifier), or {_VIEW}")
             if other.startswith("carm"):
                 return f"{_VIEW}, or {_SWEEP}"
             base = other.split("[")[0]
@@ -363,8 +372,10 @@ def _clip(text: str, limit: int = 200) -> str:
 
 
 def _gap(c: Contact) -> str:
-    return (f"overlap {-c.distance_mm:.1f} mm" if c.distance_mm < 0
-            else f"{c.distance_mm:.1f} mm apart, within the margin")
+    if c.distance_mm < 0:     # "overlap 0.0 mm" read as no collision (a review)
+        return (f"overlap {-c.distance_mm:.1f} mm" if c.distance_mm <= -0.05
+                else "overlap under 0.05 mm")
+    return f"{c.distance_mm:.1f} mm apart, within the margin"
 
 
 def require_feasible(scene, world) -> list[WorkspaceReport]:

@@ -39,6 +39,22 @@ def test_a_view_turned_into_the_robot_is_refused_naming_view_pose_and_pair():
     assert require_feasible(parse_scene(d), world) == []
 
 
+def test_a_12_inch_intensifier_is_refused_with_advice_that_works():
+    """A review: with a 12-inch intensifier the robot's quill passes the intensifier's rim,
+    and the advice to move the rod's planes further from it made the overlap worse; holding
+    the rod further from the wrist, as the advice now says, makes the views feasible."""
+    d = load_scene(find_scene("experiment2-ideal")).model_dump(mode="json")
+    d["fluoroscope"].update(fov_diameter_mm=304.8, width_px=768, height_px=576, pixel_mm=0.55)
+    scene, world = case_world(parse_scene(d), 0)
+    with pytest.raises(WorkspaceError, match=r"robot_quill collides with carm_intensifier "
+                                             r"\(overlap [0-9.]+ mm.* hold the rod further "
+                                             r"from the wrist \(\[robot.rod\] mount_mm"):
+        require_feasible(scene, world)
+    d["robot"]["rod"]["mount_mm"] = 180.0
+    scene, world = case_world(parse_scene(d), 0)
+    assert all(r.ok for r in require_feasible(scene, world))
+
+
 def test_an_unreachable_robot_is_refused_before_the_simulation(capsys):
 
     d = load_scene(find_scene("experiment2")).model_dump(mode="json")
@@ -72,6 +88,15 @@ def test_run_on_a_colliding_scene_exits_2_with_one_line(tmp_path, capsys):
     err = _run_edited(tmp_path, capsys, "orbital_deg = 10.0\nangular_deg = 28.0",
                       "orbital_deg = 8.0\nangular_deg = -35.0")
     assert "view proximal_oblique, sweep pose" in err and "collides with" in err
+    # render draws the view as asked, and says that run refuses the scene (a review: it
+    # drew it without a word)
+    from studies.cli import main
+
+    assert main(["render", str(tmp_path / "edited.toml"), "--view", "1",
+                 "--out", str(tmp_path / "v1.png")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: " in err and "collides with" in err and "testbed run refuses" in err
+    assert (tmp_path / "v1.png").is_file()
 
 
 def test_an_instrument_through_the_bone_is_refused_naming_it(tmp_path, capsys):
