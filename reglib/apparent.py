@@ -118,6 +118,11 @@ class ApparentContour:
         return self.points[:-1], self.points[1:]
 
 
+#: :func:`prepare_surface` refuses a surface whose normals' flux through its own centre is
+#: below minus this share of its absolute flux (inward)
+INWARD_SHARE = 0.5
+
+
 def prepare_surface(vertices, faces) -> SurfaceTopology:
     """Check a surface and build the half-edge tables used by :func:`apparent_contours`.
 
@@ -132,8 +137,9 @@ def prepare_surface(vertices, faces) -> SurfaceTopology:
     ------
     ValueError
         Bad shapes, indices out of range, degenerate faces (repeated vertex), an edge with
-        more than two triangles (non-manifold), or two triangles of an edge that traverse it
-        in the same direction (inconsistent orientation).
+        more than two triangles (non-manifold), two triangles of an edge that traverse it
+        in the same direction (inconsistent orientation), or normals that point inward
+        (:data:`INWARD_SHARE`).
     """
     v = as_points(vertices, "vertices", min_count=3)
     f = as_faces(faces, len(v))
@@ -184,6 +190,17 @@ def prepare_surface(vertices, faces) -> SurfaceTopology:
         bad = np.flatnonzero(np.linalg.norm(normals, axis=1) == 0.0)
         raise ValueError(f"faces: zero-area triangles {bad[:10].tolist()}")
     centroids = tri.mean(axis=1)
+    # outward normals, as documented: the faces' normals (area-weighted) against their
+    # centroids' offsets from the surface's centre; an open tube or cup gives a clearly
+    # positive sum, a flat sheet about 0. Clearly negative: the faces were turned inward (a
+    # review: a surface with every face reversed was registered 2.29 mm off against 0.77 mm,
+    # without a word)
+    flux = np.einsum("ij,ij->i", normals, centroids - centroids.mean(axis=0))
+    if flux.sum() < -INWARD_SHARE * np.abs(flux).sum():
+        raise ValueError(
+            "faces: the surface's normals point inward (its faces wind clockwise seen from "
+            "outside); reglib expects outward normals: reverse each face's vertex order "
+            "(faces[:, ::-1])")
     valence = np.bincount(he_origin, minlength=len(v))
     for arr in (v, f, normals, centroids, he_origin, he_dest, twin):
         arr.setflags(write=False)

@@ -192,6 +192,22 @@ def test_bad_surfaces_are_refused():
     top = prepare_surface(m.vertices, m.faces)
     with pytest.raises(ValueError, match="center"):
         apparent_contours(top, [0.0, np.nan, 1.0])
+    # inward normals (every face reversed): refused, for a closed sphere and for an open
+    # tube like the CT's surfaces (a review: registered 2.29 mm off instead of 0.77, unsaid);
+    # a flat sheet, whose flux is about 0, is taken either way
+    with pytest.raises(ValueError, match=r"normals point inward .* \(faces\[:, ::-1\]\)"):
+        prepare_surface(m.vertices, m.faces[:, ::-1])
+    tube = trimesh.creation.cylinder(radius=10.0, height=40.0, sections=24)
+    side = np.flatnonzero(np.abs(tube.face_normals[:, 2]) < 0.5)       # no caps: open
+    sub = tube.submesh([side], append=True)
+    prepare_surface(sub.vertices, sub.faces)
+    with pytest.raises(ValueError, match="normals point inward"):
+        prepare_surface(sub.vertices, sub.faces[:, ::-1])
+    sheet = trimesh.creation.box(extents=(10.0, 10.0, 1.0))
+    top_face = np.flatnonzero(sheet.face_normals[:, 2] > 0.5)
+    flat = sheet.submesh([top_face], append=True)
+    for faces in (flat.faces, flat.faces[:, ::-1]):
+        prepare_surface(flat.vertices, faces)
 
 
 @pytest.mark.parametrize("seed", range(3))
