@@ -96,6 +96,9 @@ def resample_polygon(points_xy, spacing: float, *, closed: bool = True,
     spacing = positive_number(spacing, "resample_polygon: spacing", unit="px")
     p, s = arc_length(points_xy, closed=closed)
     total = s[-1]
+    if not np.isfinite(total):    # a review: "cannot convert float NaN to integer"
+        raise ValueError("resample_polygon: points_xy: the polygon holds NaN or infinite "
+                         "coordinates")
     if total <= 0:
         raise ValueError("polygon has zero length (all points coincide)")
     m = int(np.clip(round(total / spacing), min_points, max_points))

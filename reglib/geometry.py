@@ -20,6 +20,7 @@ estimate, which stay far from 180 degrees.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -297,6 +298,9 @@ class RigidTransform:
 
     @classmethod
     def from_rotation(cls, rotation: Rotation, t_mm=(0.0, 0.0, 0.0)) -> RigidTransform:
+        if not isinstance(rotation, Rotation):
+            raise ValueError("RigidTransform.from_rotation: rotation: expected a "
+                             f"scipy.spatial.transform.Rotation, got {type(rotation).__name__}")
         return cls(rotation.as_matrix(), t_mm)
 
     @classmethod
@@ -368,8 +372,12 @@ class RigidTransform:
     __call__ = apply
 
     def apply_vectors(self, vectors) -> np.ndarray:
-        """Rotate direction vectors ``(N, 3)`` (no translation)."""
-        return np.asarray(vectors, dtype=np.float64) @ self.R.T
+        """Rotate direction vectors ``(N, 3)`` (or ``(..., 3)``; no translation)."""
+        v = np.asarray(vectors, dtype=np.float64)
+        if v.ndim == 0 or v.shape[-1] != 3:
+            raise ValueError(f"RigidTransform.apply_vectors: vectors: expected (N, 3) or (3,), "
+                             f"got shape {v.shape}")
+        return v @ self.R.T
 
     def apply_lines(self, origins, directions) -> tuple[np.ndarray, np.ndarray]:
         return self.apply(origins), self.apply_vectors(directions)
@@ -379,6 +387,11 @@ class RigidTransform:
 
     @classmethod
     def from_dict(cls, d: dict) -> RigidTransform:
+        """From ``{"R": (3, 3), "t": (3,) mm}`` (what :meth:`to_dict` writes)."""
+        missing = [k for k in ("R", "t") if not isinstance(d, Mapping) or k not in d]
+        if missing:
+            raise ValueError(f"RigidTransform.from_dict: expected a mapping with keys 'R' "
+                             f"(3 x 3) and 't' (3,), missing {missing}")
         return cls(np.asarray(d["R"]), np.asarray(d["t"]))
 
     def __repr__(self) -> str:

@@ -259,9 +259,9 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
     strength : (K,) peak of ``d`` of each blob (log units).
     """
     a, b = np.asarray(previous), np.asarray(current)
-    if a.shape != b.shape or a.ndim != 2:
+    if a.shape != b.shape or a.ndim != 2 or min(a.shape) < 3:
         raise ValueError(f"detect_markers: frames must be two (H, W) images of the same shape, "
-                         f"got {a.shape} and {b.shape}")
+                         f"at least 3 x 3 px, got {a.shape} and {b.shape}")
     for name, x in (("previous", a), ("current", b)):
         if x.dtype.kind not in "biuf":
             raise ValueError(f"detect_markers: {name}: expected real intensities, got "

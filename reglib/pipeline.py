@@ -706,6 +706,10 @@ def xray_contours(view: str, image, clicks: Mapping, *, pixel_mm=None) -> ViewCo
     def failed(why: str) -> ViewContours:
         return ViewContours(view, np.zeros((0, 2)), np.zeros(0, bool), (f"view {view}: {why}",))
 
+    if pixel_mm is not None:   # the range estimate takes from meta (a review: 1e-12 mm gave
+        pixel_mm = _xray_pixel_mm({"xray_pixel_mm": pixel_mm},      # a 2-point "contour")
+                                  what="xray_contours: pixel_mm (the video's pixel at the "
+                                       "intensifier's input)")
     try:
         img = np.asarray(image, dtype=np.float64)
     except (TypeError, ValueError):
@@ -833,14 +837,15 @@ def sweep_agreement(view: str, frame, sweep_frames, sweep_arrays, min_agreement:
     return ""
 
 
-def _xray_pixel_mm(meta) -> float | None:
+def _xray_pixel_mm(meta, what: str | None = None) -> float | None:
     """The observation's ``meta["xray_pixel_mm"]`` (mm), None when absent; a value that is
-    not a positive number of mm is refused naming the key."""
+    not a positive number of mm within range is refused naming the key (or ``what``)."""
     if not isinstance(meta, Mapping) or meta.get("xray_pixel_mm") is None:
         return None
     from reglib.contours import positive_number
 
-    what = "observation: meta['xray_pixel_mm'] (the video's pixel at the intensifier's input)"
+    what = what or ("observation: meta['xray_pixel_mm'] (the video's pixel at the "
+                    "intensifier's input)")
     v = positive_number(meta["xray_pixel_mm"], what)
     if not MIN_XRAY_PIXEL_MM <= v <= 10:
         raise ValueError(f"{what} must lie in {MIN_XRAY_PIXEL_MM:g}-10 mm, got {v:g}")

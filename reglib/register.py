@@ -489,6 +489,12 @@ def _solver_options(method, solver_options, solver_iterations, tukey_a) -> dict:
     register's ``solver_iterations`` and ``tukey_a`` as defaults; :class:`OptionError` for a
     key ``solve_pose`` does not take or register sets itself, or a value it cannot use."""
     opts = dict(solver_options)
+    if "rng" in opts:      # a review: SeedSequence's own TypeError, naming no option
+        try:
+            np.random.default_rng(opts["rng"])
+        except (TypeError, ValueError):
+            raise OptionError("solver_options", "rng: expected a seed (int >= 0) or a numpy "
+                              f"Generator, got {opts['rng']!r}") from None
     try:
         _check_solver_options(method, opts)
         opts.setdefault("max_iterations", solver_iterations)

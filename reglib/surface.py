@@ -311,6 +311,10 @@ def surface_from_contours(slices, *, quality: Quality = "area",
     vertices, faces = _tile_stack(stack, quality)
     surf = Surface(vertices, faces, {"n_slices": len(stack), "n_triangles_tiled": len(faces),
                                      "simplify_tol_mm": 0.0, "hausdorff_mm": 0.0})
+    if simplify_tol_mm is not None and (isinstance(simplify_tol_mm, bool) or not isinstance(
+            simplify_tol_mm, int | float | np.number) or not np.isfinite(simplify_tol_mm)):
+        raise ValueError("surface_from_contours: simplify_tol_mm: expected a number of mm in "
+                         f"[0, 5] or None, got {simplify_tol_mm!r}")
     if not simplify_tol_mm:
         return surf
     if simplify == "quadric":

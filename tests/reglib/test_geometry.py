@@ -121,3 +121,31 @@ def test_bad_transforms_and_lines_are_named():
         closest_point_to_lines(np.zeros((0, 3)), np.zeros((0, 3)))
     with pytest.raises(ValueError, match=r"weights must be \(4,\)"):
         closest_point_to_lines(o + np.eye(4, 3), np.tile([0.0, 0.6, 0.8], (4, 1)), [1.0, 2.0])
+
+
+def test_small_entry_points_name_their_bad_argument():
+    """A bad-input review (2026-11-27) found these ending in a KeyError, an AttributeError, a
+    numpy core-dimension error, 'cannot convert float NaN to integer', an OpenCV assertion
+    or a 2-point 'contour': each now names the argument and what was expected."""
+    from reglib.contours import resample_polygon
+    from reglib.markers import detect_markers
+    from reglib.pipeline import xray_contours
+    from reglib.surface import surface_from_contours
+
+    with pytest.raises(ValueError, match=r"from_dict: .* missing \['t'\]"):
+        RigidTransform.from_dict({"R": np.eye(3)})
+    with pytest.raises(ValueError, match="from_rotation: rotation: expected a scipy"):
+        RigidTransform.from_rotation(None)
+    with pytest.raises(ValueError, match=r"apply_vectors: vectors: expected \(N, 3\)"):
+        RigidTransform(np.eye(3), np.zeros(3)).apply_vectors(np.ones((3, 2)))
+    with pytest.raises(ValueError, match="points_xy: the polygon holds NaN"):
+        resample_polygon([[0.0, 0.0], [np.nan, 1.0], [1.0, 1.0]], 1.0)
+    with pytest.raises(ValueError, match="at least 3 x 3 px, got \\(0, 0\\)"):
+        detect_markers(np.zeros((0, 0)), np.zeros((0, 0)))
+    with pytest.raises(ValueError, match="xray_contours: pixel_mm .* must lie in"):
+        xray_contours("v", np.zeros((64, 64)), {}, pixel_mm=1e-12)
+    ring = [np.c_[10 * np.cos(t), 10 * np.sin(t), np.full_like(t, z)]
+            for z in (0.0, 2.0) for t in [np.linspace(0, 2 * np.pi, 24, endpoint=False)]]
+    with pytest.raises(ValueError, match="simplify_tol_mm: expected a number of mm"):
+        surface_from_contours([[c] for c in ring], simplify_tol_mm="0.1")
+    assert surface_from_contours([[c] for c in ring]).faces.shape[1] == 3

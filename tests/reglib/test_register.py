@@ -605,7 +605,9 @@ def test_view_fit_measures_each_view_against_the_nearest_apparent_contour(world)
                                  {"max_rotation_deg": 0.0},
                                  {"solver_options": {"bogus": 1}},
                                  {"solver_options": {"tol": -1.0}},
-                                 {"solver_options": {"points": 1}}])
+                                 {"solver_options": {"points": 1}},
+                                 {"solver_options": {"rng": "x"}, "method": "ransac",
+                                  "residual": "line"}])
 def test_check_options_refuses_what_register_refuses(world, bad):
     """reglib.register.check_options (used by EstimateOptions when it is made) runs register's
     own checks: the same option refused with the same message, before any work."""
