@@ -466,3 +466,25 @@ def test_a_malformed_xray_frame_is_refused_naming_the_entry():
             _xray_frame({"xray_a": bad}, "a")
     with pytest.raises(ValueError, match="missing entry images/xray_b"):
         _xray_frame({"xray_a": good}, "b")
+
+
+def test_the_reported_try_is_never_a_diverged_one_when_another_exists():
+    """A refused estimate reports its best try; a try whose registration diverged holds only
+    its start (a review saw 'diverged ... moved 166.6 mm' beside a pose 5.7 mm off), so it
+    ranks after every other, whatever its objections; then fewer objections, then the
+    smaller median distance."""
+    from types import SimpleNamespace
+
+    from reglib.pipeline import best_try
+
+    def t(reason, objections, median):
+        return (SimpleNamespace(reason=reason), {"median_residual_mm": median},
+                ["x"] * objections)
+
+    diverged = t("diverged at iteration 4: the pose moved 166.6 mm", 1, 0.5)
+    worse = t("the pose cycles through 7 poses", 2, 6.7)
+    better = t("converged", 2, 4.2)
+    assert best_try([diverged, worse, better]) is better
+    assert best_try([diverged]) is diverged
+    assert best_try([t("converged", 1, 9.0), better]) is not better      # fewer objections
+    assert best_try([t("a", 0, float("nan")), t("b", 0, 2.0)])[0].reason == "b"
