@@ -667,6 +667,31 @@ def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
     if flat.size:
         raise ValueError(f"slice2ct: the column and row axes of slices {flat[:5].tolist()} are "
                          "zero or parallel; they span no slice plane")
+    # the geometry a review found blamed on the contours ("1 slice(s) with a contour large
+    # enough to tile"): pixels of absurd size, slices at one position, slices stacked
+    # within their own planes (axes swapped)
+    px = np.linalg.norm(s2c[:, :3, :2], axis=1)            # (K, 2) mm per column / row
+    odd = np.flatnonzero(((px < 0.01) | (px > 10.0)).any(axis=1))
+    if odd.size:
+        raise ValueError(f"slice2ct: slice {int(odd[0])} has pixels of "
+                         f"{px[odd[0], 0]:.3g} x {px[odd[0], 1]:.3g} mm (the column and row "
+                         "axes' lengths); expected 0.01-10 mm")
+    if len(s2c) > 1:
+        normal = axes / np.linalg.norm(axes, axis=1, keepdims=True)
+        step = np.diff(s2c[:, :3, 3], axis=0)                # origin to the next origin
+        across = np.abs(np.einsum("ij,ij->i", step, normal[:-1]))
+        length = np.linalg.norm(step, axis=1)
+        same = np.flatnonzero(across <= 1e-6)
+        if same.size and np.all(length[same] <= 1e-6):
+            raise ValueError(f"slice2ct: slices {int(same[0])} and {int(same[0]) + 1} lie at "
+                             "the same position; each slice needs its own")
+        inplane = np.flatnonzero(across < 0.5 * length)
+        if inplane.size:
+            k = int(inplane[0])
+            raise ValueError(f"slice2ct: slice {k + 1} lies {length[k]:.3g} mm from slice {k} "
+                             f"but only {across[k]:.3g} mm across its plane: the slices are "
+                             "stacked along their own planes (column, row and slice axes "
+                             "swapped?)")
     vol_hu = vol.transpose(2, 1, 0)  # [slice, row, col], as reglib.contours reads it
     out = {}
     for region in sorted(ct_clicks):

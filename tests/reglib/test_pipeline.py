@@ -148,6 +148,7 @@ def test_ct_surface_input_is_checked_and_a_failed_region_is_a_surface_error():
 
     vol = np.zeros((20, 20, 4))
     s2c = np.tile(np.eye(4), (4, 1, 1))
+    s2c[:, 2, 3] = 2.0 * np.arange(4)                    # slices 2 mm apart
     good = {"slices": np.arange(4), "clicks_xy": np.zeros((4, 2)), "slice": np.arange(4),
             "contour": np.zeros(4, int)}
     for change, match in (
@@ -173,6 +174,18 @@ def test_ct_surface_input_is_checked_and_a_failed_region_is_a_surface_error():
     flat[1, :3, 1] = flat[1, :3, 0]
     with pytest.raises(ValueError, match=r"row axes of slices \[1\] are zero or parallel"):
         ct_surfaces(vol, flat, {"distal": good})
+    # geometry a review found blamed on the contours: slices at one position, absurd pixels,
+    # slices stacked within their own planes (the column and slice axes swapped)
+    with pytest.raises(ValueError, match="slices 0 and 1 lie at the same position"):
+        ct_surfaces(vol, np.tile(np.eye(4), (4, 1, 1)), {"distal": good})
+    huge = s2c.copy()
+    huge[:, :3, :2] *= 1e6
+    with pytest.raises(ValueError, match=r"slice 0 has pixels of 1e\+06 x 1e\+06 mm"):
+        ct_surfaces(vol, huge, {"distal": good})
+    swapped = s2c.copy()
+    swapped[:, :3, 0] = [0.0, 0.0, 1.0]           # the column axis along the stacking
+    with pytest.raises(ValueError, match="stacked along their own planes"):
+        ct_surfaces(vol, swapped, {"distal": good})
     with pytest.raises(ValueError, match=r"CT volume: expected an \(I, J, K\) array"):
         ct_surfaces(np.zeros((0, 0, 0)), s2c, {"distal": good})
     # well-formed clicks on an empty CT: the stage fails, as a SurfaceError naming the region
