@@ -269,6 +269,11 @@ def detect_markers(previous, current, *, polarity: str = "dark", response: str =
         if x.dtype.kind == "f" and not np.isfinite(x).all():   # found no marker, unsaid
             raise ValueError(f"detect_markers: {name}: the frame holds NaN or infinite "
                              "values")
+        if x.size and x.dtype.kind in "fiu" and x.dtype.itemsize > 4 \
+                and np.abs(x).max() > 1e30:     # float32 would make them inf (a review)
+            raise ValueError(f"detect_markers: {name}: values up to "
+                             f"{float(np.abs(x).max()):.3g}; expected intensities (grey "
+                             "levels), at most 1e30")
     if polarity not in ("dark", "bright"):
         raise ValueError(f"polarity: expected 'dark' or 'bright', got {polarity!r}")
     if response not in ("log", "linear"):

@@ -142,6 +142,8 @@ def test_small_entry_points_name_their_bad_argument():
         resample_polygon([[0.0, 0.0], [np.nan, 1.0], [1.0, 1.0]], 1.0)
     with pytest.raises(ValueError, match="at least 3 x 3 px, got \\(0, 0\\)"):
         detect_markers(np.zeros((0, 0)), np.zeros((0, 0)))
+    with pytest.raises(ValueError, match="previous: values up to 1e\\+300"):  # float32: inf
+        detect_markers(np.full((20, 20), 1e300), np.full((20, 20), 1e300))
     with pytest.raises(ValueError, match="xray_contours: pixel_mm .* must lie in"):
         xray_contours("v", np.zeros((64, 64)), {}, pixel_mm=1e-12)
     ring = [np.c_[10 * np.cos(t), 10 * np.sin(t), np.full_like(t, z)]
