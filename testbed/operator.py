@@ -54,7 +54,10 @@ class OperatorSpec(Spec):
     deviation of each click's error (px, CT pixels); ``ct_reclick_every_mm``: the user clicks
     again after this distance along the slices (0: on every slice);
     ``ct_bone_threshold_hu``: what the user sees as bone on a slice (HU);
-    ``ct_min_section_mm2``: smaller bright islands are ignored.
+    ``ct_min_section_mm2``: smaller bright islands are ignored. ``ct_ignore_spurs_mm``: bright
+    spurs narrower than this that join the bone (a metal streak through a pin crossing the
+    threshold) are not seen as bone: the section is opened by a disc of that diameter
+    before it is outlined (0: the thresholded section as it is, the ideal profile).
     ``xray_clicks``: clicks per visible run of the femur's outline on an X-ray frame;
     ``xray_click_noise_px``: error of each click (px); ``xray_edge_margin_px``: no click this
     close to the field's rim; ``instrument_margin_px``: no click this close to an
@@ -70,6 +73,7 @@ class OperatorSpec(Spec):
     ct_reclick_every_mm: NonNegative = 10.0
     ct_bone_threshold_hu: Annotated[float, Field(ge=-500.0, le=3000.0)] = 400.0
     ct_min_section_mm2: Annotated[float, Field(gt=0.0, le=1000.0)] = 20.0
+    ct_ignore_spurs_mm: Annotated[float, Field(ge=0.0, le=20.0)] = 3.0
 
     @field_validator("ct_bone_threshold_hu")
     @classmethod
@@ -147,14 +151,16 @@ class CtClicks:
 
 
 def bone_sections(slice_hu, *, threshold_hu: float, min_area_px: float,
-                  whole_slice: bool = False) -> list[np.ndarray]:
+                  whole_slice: bool = False, spur_px: float = 0.0) -> list[np.ndarray]:
     """Outlines of the bright cross-sections of a CT slice, as a user sees them.
 
     The slice is thresholded, holes (marrow) filled, and each connected part of at least
     ``min_area_px`` pixels and :data:`MIN_SECTION_SHARE` of the largest part outlined.
     Returns a list of (K, 2) (x, y) px closed polygons (last point not repeated), ordered
-    by mean x. The work is done on the bright pixels' box; ``whole_slice=True`` does it on
-    the whole slice (the reference, compared in tests).
+    by mean x. ``spur_px`` > 0: the filled section is first opened by a disc of that
+    diameter (px), so that spurs narrower than it (a metal streak above the threshold, joined
+    to the bone) are not outlined. The work is done on the bright pixels' box;
+    ``whole_slice=True`` does it on the whole slice (the reference, compared in tests).
     """
     from scipy import ndimage
     from skimage.measure import find_contours
@@ -171,6 +177,14 @@ def bone_sections(slice_hu, *, threshold_hu: float, min_area_px: float,
         above = above[r0:rows[-1] + 2, c0:cols[-1] + 2]
     offset = np.array([c0, r0], dtype=np.float64)
     bright = ndimage.binary_fill_holes(above)
+    if spur_px > 0:
+        r = 0.5 * float(spur_px)
+        k = int(np.ceil(r))
+        yy, xx = np.mgrid[-k:k + 1, -k:k + 1]
+        disc = xx * xx + yy * yy <= r * r
+        # the margin keeps the opening's border what the whole slice's would be
+        bright = ndimage.binary_opening(np.pad(bright, k + 1), structure=disc)[
+            k + 1:-(k + 1), k + 1:-(k + 1)]
     labels, n = ndimage.label(bright)
     areas = np.bincount(labels.ravel())[1:] if n else np.zeros(0)
     # islands much smaller than the bone's section (a streak, a pin's head) are not bone
@@ -271,7 +285,8 @@ def ct_clicks(volume_hu, slice_z_mm, region_slices: dict, *, pixel_mm: float,
         sections = {}
         for k in np.sort(np.asarray(region_slices[region], dtype=np.int64)):
             sec = bone_sections(vol[k], threshold_hu=spec.ct_bone_threshold_hu,
-                                min_area_px=min_area_px)
+                                min_area_px=min_area_px,
+                                spur_px=spec.ct_ignore_spurs_mm / pixel_mm)
             if sec:
                 sections[int(k)] = sec
         if region == "proximal":
