@@ -630,6 +630,35 @@ def _region_clicks(region: str, a: Mapping, n_slices: int):
     return xy, sl, co, [int(k) for k in slices]
 
 
+def _check_slice_geometry(s2c: np.ndarray, used, axes: np.ndarray) -> None:
+    """The geometry of the slices a region uses (``used``, slice indices), which a review
+    found blamed on the contours ("1 slice(s) with a contour large enough to tile"): pixels
+    of absurd size, and two slices at one position along their normal (the same slice
+    twice, or the column, row and slice axes swapped, which stacks the slices within their
+    own planes). Slices no region uses are not judged (a merged series may repeat one)."""
+    used = np.unique(np.asarray(used, dtype=np.int64))
+    if not len(used):
+        return
+    px = np.linalg.norm(s2c[used, :3, :2], axis=1)            # (K, 2) mm per column / row
+    odd = np.flatnonzero(((px < 0.01) | (px > 10.0)).any(axis=1))
+    if odd.size:
+        k = int(used[odd[0]])
+        raise ValueError(f"slice2ct: slice {k} has pixels of {px[odd[0], 0]:.3g} x "
+                         f"{px[odd[0], 1]:.3g} mm (the column and row axes' lengths); "
+                         "expected 0.01-10 mm")
+    if len(used) > 1:
+        normal = axes[used] / np.linalg.norm(axes[used], axis=1, keepdims=True)
+        # each slice's position along its own normal, against the next used slice's
+        along = np.einsum("ij,ij->i", s2c[used[1:], :3, 3] - s2c[used[:-1], :3, 3],
+                          normal[:-1])
+        same = np.flatnonzero(np.abs(along) <= 1e-6)
+        if same.size:
+            a, b = int(used[same[0]]), int(used[same[0] + 1])
+            raise ValueError(f"slice2ct: slices {a} and {b} lie at the same position along "
+                             "their normal: the same slice twice, or the column, row and "
+                             "slice axes swapped (slices stacked within their own planes)?")
+
+
 def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
                 options: EstimateOptions | None = None) -> dict:
     """Bone surfaces from the CT: snake contours from the operator's clicks, tiled.
@@ -667,35 +696,11 @@ def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
     if flat.size:
         raise ValueError(f"slice2ct: the column and row axes of slices {flat[:5].tolist()} are "
                          "zero or parallel; they span no slice plane")
-    # the geometry a review found blamed on the contours ("1 slice(s) with a contour large
-    # enough to tile"): pixels of absurd size, slices at one position, slices stacked
-    # within their own planes (axes swapped)
-    px = np.linalg.norm(s2c[:, :3, :2], axis=1)            # (K, 2) mm per column / row
-    odd = np.flatnonzero(((px < 0.01) | (px > 10.0)).any(axis=1))
-    if odd.size:
-        raise ValueError(f"slice2ct: slice {int(odd[0])} has pixels of "
-                         f"{px[odd[0], 0]:.3g} x {px[odd[0], 1]:.3g} mm (the column and row "
-                         "axes' lengths); expected 0.01-10 mm")
-    if len(s2c) > 1:
-        normal = axes / np.linalg.norm(axes, axis=1, keepdims=True)
-        step = np.diff(s2c[:, :3, 3], axis=0)                # origin to the next origin
-        across = np.abs(np.einsum("ij,ij->i", step, normal[:-1]))
-        length = np.linalg.norm(step, axis=1)
-        same = np.flatnonzero(across <= 1e-6)
-        if same.size and np.all(length[same] <= 1e-6):
-            raise ValueError(f"slice2ct: slices {int(same[0])} and {int(same[0]) + 1} lie at "
-                             "the same position; each slice needs its own")
-        inplane = np.flatnonzero(across < 0.5 * length)
-        if inplane.size:
-            k = int(inplane[0])
-            raise ValueError(f"slice2ct: slice {k + 1} lies {length[k]:.3g} mm from slice {k} "
-                             f"but only {across[k]:.3g} mm across its plane: the slices are "
-                             "stacked along their own planes (column, row and slice axes "
-                             "swapped?)")
     vol_hu = vol.transpose(2, 1, 0)  # [slice, row, col], as reglib.contours reads it
     out = {}
     for region in sorted(ct_clicks):
         xy, sl, co, slices = _region_clicks(region, ct_clicks[region], vol.shape[2])
+        _check_slice_geometry(s2c, np.asarray(slices), axes)
         clicks = {}
         for k in np.unique(sl):
             m = sl == k
@@ -797,6 +802,8 @@ def frame_size_problem(view: str, frame_shape, sweep_frames, fov=None) -> str:
     off); the field-of-view mask must be the frame's size too. "" when there is no sweep
     frame to compare with."""
     shape = tuple(int(n) for n in frame_shape)
+    if len(shape) != 2:       # a malformed frame: the stage that reads it names it
+        return ""
     problems = []
     try:
         sweep_shape = tuple(int(n) for n in np.shape(sweep_frames[0])) \
@@ -962,8 +969,15 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
     cals, conts, views, failed = {}, {}, [], {}
     for v in names:
         t0 = time.perf_counter()
+        # the frame and its mask against the sweep frames' size, before anything reads them
+        # (calibrate_view refuses a mask of another size, which ended the whole estimate)
+        size_problem = frame_size_problem(
+            v, np.shape(images.get(f"xray_{v}", ())), images.get(f"sweep_{v}"),
+            arrays.get(f"xray_fov_{v}"))
         if calibrations is not None and v in calibrations:
             cal = calibrations[v]
+        elif size_problem:
+            cal = ViewCalibration(v, None, ok=False, message=size_problem)
         else:
             cal = calibrate_view(v, _entry(images, f"sweep_{v}", "images", numeric=True),
                                  _entry(arrays, f"sweep_{v}", "arrays", table=()),
@@ -984,12 +998,8 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
         if not cal.ok:
             failed[v] = cal.message
             continue
-        if frame is None and f"xray_{v}" in images:
-            frame = _xray_frame(images, v)
-        why = "" if frame is None else frame_size_problem(
-            v, np.shape(frame), images.get(f"sweep_{v}"), arrays.get(f"xray_fov_{v}"))
-        if why:
-            failed[v] = why
+        if size_problem:
+            failed[v] = size_problem
             continue
         if options.min_sweep_agreement > 0:
             t0 = time.perf_counter()
@@ -1242,9 +1252,10 @@ def _left_out(stages) -> tuple:
 
 def best_try(tries):
     """The try to report among ``(RegistrationResult, quality, objections)`` tuples: one
-    whose registration did not diverge (a diverged try's pose is only its start: a review
-    saw "diverged ... moved 166.6 mm" beside a pose 5.7 mm off that no registration had
-    reached), then the fewest objections, then the smallest median distance."""
+    whose registration did not diverge (a diverged try stops where it ran away to, beyond
+    the divergence limits, and its few objections could rank it first: a review saw
+    "diverged ... moved 166.6 mm" reported for a refused estimate), then the fewest
+    objections, then the smallest median distance."""
     return min(tries, key=lambda t: (str(t[0].reason).startswith("diverged"), len(t[2]),
                                      np.nan_to_num(t[1]["median_residual_mm"], nan=np.inf)))
 

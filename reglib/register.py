@@ -390,9 +390,11 @@ def _check_solver_options(method, opts):
 
 #: the limit cycles' periods the robust solvers' loop recognises as settled
 CYCLE_PERIODS = (2, 3, 4, 5, 6, 7, 8)
-#: the plain least-squares methods (no outlier rejection): only period 2 is settled, and
-#: ``stale_window`` stops them
-PLAIN_METHODS = ("linear", "lm")
+#: a cycle whose steps reach this (mm, the surfaces' bounding-box motion) has not settled,
+#: whatever its period: a review found "lm" called converged on a period-3 cycle of steps up
+#: to 6.2 mm, 30 deg off; the robust solvers' cycles on clinic and held-out scenes have steps
+#: of 0.23-1.94 mm (experiment1 seed 3: 0.67-1.23 mm, 0.70 mm from the truth)
+MAX_CYCLE_STEP_MM = 3.0
 
 
 def _limit_cycle(placed, tol_mm: float, periods) -> int:
@@ -406,6 +408,16 @@ def _limit_cycle(placed, tol_mm: float, periods) -> int:
                 < tol_mm for k in range(p + 1)):
             return p
     return 0
+
+
+def _settled_cycle(placed, steps_mm, tol_mm: float, periods) -> int:
+    """:func:`_limit_cycle`'s period, or 0 when the cycle's last ``period`` steps
+    (``steps_mm``, per iteration) reach :data:`MAX_CYCLE_STEP_MM`: such a cycle has not
+    settled."""
+    p = _limit_cycle(placed, tol_mm, periods)
+    if p and max(steps_mm[-p:]) >= MAX_CYCLE_STEP_MM:
+        return 0
+    return p
 
 
 #: register's whole-number options and their least values
@@ -590,10 +602,9 @@ def register(surfaces, views, initial: RigidTransform, *,
         matches keep switching between neighbouring contour points and the pose jitters by
         a few hundredths of a mm forever, so ``tol_step_mm`` alone is never met (seen on the
         experiment2 scene: 0.05 mm steps after 50 iterations, pins at 0.2-0.3 mm).
-    stale_window : with ``method="linear"`` or ``"lm"`` (plain least squares: outlier
-        matches are not rejected, and the loop can cycle for ever; seen on the test bone, a
-        period-4 cycle of 0.5-2.2 mm steps from every 7 deg / 20 mm start), stop, not
-        converged, when the
+    stale_window : with ``method="linear"`` (plain least squares: outlier matches are not
+        rejected, and the loop can cycle for ever; seen on the test bone, a period-4 cycle
+        of 0.5-2.2 mm steps from every 7 deg / 20 mm start), stop, not converged, when the
         median point-path distance has not improved on its best by 1 % for this many
         iterations (0 disables). The robust methods are not affected.
     max_motion_mm, max_rotation_deg : divergence limits on the distance from ``initial``
@@ -781,12 +792,11 @@ def register(surfaces, views, initial: RigidTransform, *,
         # views, seed 3, 0.67 / 0.75 / 1.04 / 1.23 / 1.18 / 0.92 mm, period 6, which was
         # called unconverged after 50 or 200 iterations and refused 0.70 mm off, a
         # review); it has settled when each of the last p + 1 poses is where it was p
-        # iterations before (two whole cycles). Periods above 2 only for the robust
-        # solvers: plain least squares ("linear", and "lm", a review: a period-3 cycle of 6 mm
-        # steps 30 deg off was called converged) cycles on wrong poses and stops by
-        # stale_window instead.
-        period = _limit_cycle(placed, tol_stall_mm,
-                              (2,) if method in PLAIN_METHODS else CYCLE_PERIODS) \
+        # iterations before (two whole cycles), with steps below MAX_CYCLE_STEP_MM. Periods
+        # above 2 not for "linear": plain least squares cycles with period 4 on wrong poses
+        # and stops by stale_window instead.
+        period = _settled_cycle(placed, [h.step_mm for h in history], tol_stall_mm,
+                                (2,) if method == "linear" else CYCLE_PERIODS) \
             if stall_window > 0 else 0
         if period:
             converged = True
@@ -798,7 +808,7 @@ def register(surfaces, views, initial: RigidTransform, *,
         med = history[-1].median_mm
         if med < 0.99 * best_median:
             best_median, best_at = med, it
-        if method in PLAIN_METHODS and stale_window > 0 and it - best_at >= stale_window:
+        if method == "linear" and stale_window > 0 and it - best_at >= stale_window:
             reason = (f"stopped improving: the median point-path distance has not improved "
                       f"on its best ({best_median:.3g} mm at iteration {best_at}) for "
                       f"{stale_window} iterations, the pose still moves by {step_mm:.3g} mm "

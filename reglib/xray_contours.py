@@ -582,8 +582,9 @@ def frame_agreement(frame, reference, fov_mask, *, reach_px: int = 32, scale: fl
     Returns
     -------
     (ncc, (dx, dy)): the peak's correlation in [-1, 1] and its shift in px (the frame's
-    content lies ``(dx, dy)`` from the reference's). ``(nan, (0, 0))`` where a window is
-    empty or a band is flat.
+    content lies ``(dx, dy)`` from the reference's), or no shift when no shift's correlation
+    is within :data:`AGREEMENT_TIE` of the peak's. ``(nan, (0, 0))`` where a window is empty
+    or a band is flat.
     """
     R = int(reach_px)
     outer, inner = _agreement_windows(frame, reference, fov_mask, scale, R)
@@ -611,7 +612,7 @@ def frame_agreement(frame, reference, fov_mask, *, reach_px: int = 32, scale: fl
     # no shift when it explains the frames as well as the peak (AGREEMENT_TIE): a ridge
     # along straight edges is flat, and its argmax a shift that nothing made
     if ncc[R, R] >= ncc[k] - AGREEMENT_TIE * abs(ncc[k]):
-        return float(ncc[R, R]), (0, 0)
+        return float(ncc[k]), (0, 0)
     return float(ncc[k]), (int(k[1]) - R, int(k[0]) - R)
 
 

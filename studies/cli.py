@@ -413,7 +413,14 @@ def cmd_render(args) -> int:
     # femur is drawn from shape_seed and the case's seed, as every study case draws its own
     seed = scene.scene.seed if args.seed is None else args.seed
     case_scene, world = case_world(scene, seed)
-    frame = render_view(scene, args.view, seed=seed, bodies=world.bodies)
+    bodies = world.bodies
+    if case_scene.patient.moves and 0 <= args.view < len(case_scene.views):
+        # the femur where that view saw it, as testbed run simulates it
+        from testbed.simulate import case_streams, view_bodies, view_poses
+
+        pose = view_poses(case_scene, world.ct2robot, case_streams(seed)["motion"])[args.view]
+        bodies = view_bodies(world, pose)
+    frame = render_view(scene, args.view, seed=seed, bodies=bodies)
     _render_workspace_warning(case_scene, world)
     if not cv2.imwrite(str(out), frame.image_u8):
         raise UsageError(f"--out {out}: could not write the image")

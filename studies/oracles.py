@@ -81,11 +81,16 @@ def true_surfaces(sim, estimated: dict) -> dict:
 def true_contours(sim) -> dict:
     """View -> ViewContours of the femur's exact apparent contour (px), external flags from
     the outline of the femur's shadow in the frame."""
-    femur = sim.world.phantom.femur.copy()
-    femur.apply_transform(sim.world.ct2robot.as_matrix())
+    from testbed.instruments import file_key
+
     out = {}
     for v, carm in sim.carms.items():
         frame = sim.frames[v]
+        # the femur where the view saw it ([patient] motion_mm / motion_deg move it between
+        # views; a review found the oracle drawing it where the pins were digitised)
+        pose = sim.truth.transforms.get(f"ct2robot_{file_key(v)}", sim.world.ct2robot)
+        femur = sim.world.phantom.femur.copy()
+        femur.apply_transform(pose.as_matrix())
         sil = silhouette_points(femur, carm.source_robot)
         xy = carm.project(sil) if len(sil) else np.zeros((0, 2))
         H, W = frame.fov.shape

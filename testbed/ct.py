@@ -235,15 +235,13 @@ def slice_schedule(phantom, spec: CTSpec) -> tuple[np.ndarray, dict]:
 
     def check(name, lo, hi):
         if lo < zlo or hi > zhi:
-            if hi < zlo or lo > zhi:
-                where = "lie outside"
-            else:
-                ends = ([f"below its bottom at z = {zlo:.1f} mm"] if lo < zlo else []) + (
-                    [f"above its top at z = {zhi:.1f} mm"] if hi > zhi else [])
-                where = "reach " + " and ".join(ends) + " of"
+            where = "lie outside" if hi < zlo or lo > zhi else "reach beyond"
+            ends = ([f"below its bottom at {zlo:.1f} mm"] if lo < zlo else []) + (
+                [f"above its top at {zhi:.1f} mm"] if hi > zhi else [])
             raise ValueError(
                 f"ct.{name}: slices from z = {lo:.1f} to {hi:.1f} mm {where} the volume "
-                f"of the phantom (z from {zlo:.1f} to {zhi:.1f} mm)"
+                f"of the phantom (z from {zlo:.1f} to {zhi:.1f} mm): "
+                + " and ".join(ends)
             )
 
     if spec.schedule == "explicit":

@@ -53,6 +53,8 @@ __all__ = [
     "simulate",
     "simulate_case",
     "simulate_ct",
+    "view_bodies",
+    "view_poses",
 ]
 
 #: the streams of a case
@@ -164,6 +166,15 @@ def _moved(ct2robot, turn, shift_mm, length_mm: float):
     middle = ct2robot.apply(np.array([0.0, 0.0, 0.5 * length_mm]))
     return RigidTransform(turn.as_matrix() @ ct2robot.R,
                           turn.apply(ct2robot.t - middle) + middle + shift_mm)
+
+
+def view_bodies(world, ct2robot) -> list:
+    """The world's bodies (robot frame) with the patient's at ``ct2robot`` (the table and
+    the instruments where they are): ``world.bodies`` when that is the world's own pose."""
+    if ct2robot is world.ct2robot:
+        return world.bodies
+    return [*(b.transformed(ct2robot) for b in world.phantom.bodies()), *world.table,
+            *world.instruments]
 
 
 def view_poses(scene, ct2robot, motion_ss: np.random.SeedSequence) -> list:
@@ -388,9 +399,7 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
             carms[vspec.name] = carm
             tru["transforms"][f"carm2robot_{v}"] = carm.carm2robot
             tru["transforms"][f"ct2robot_{v}"] = poses[i]
-            bodies = (world.bodies if poses[i] is world.ct2robot else
-                      [*(b.transformed(poses[i]) for b in ph.bodies()), *world.table,
-                       *world.instruments])
+            bodies = view_bodies(world, poses[i])
             if sweeps:
                 # the sweep sees the intensifier as it was during calibration: the patient's
                 # frame (and the truth) as it is at the acquisition (their difference is the

@@ -203,6 +203,29 @@ def test_bad_surfaces_are_refused():
     prepare_surface(sub.vertices, sub.faces)
     with pytest.raises(ValueError, match="normals point inward"):
         prepare_surface(sub.vertices, sub.faces[:, ::-1])
+    # a flared open tube (a trumpet, 65 -> 5 mm over 120 mm) and two cuts of it as one
+    # surface: taken outward, refused reversed (a first test, the normals' flux through the
+    # faces' mean centroid, refused the outward trumpet)
+    t = np.linspace(0.0, 1.0, 25)
+    ang = np.linspace(0.0, 2 * np.pi, 48, endpoint=False)
+    rad = 65.0 - 60.0 * t
+    ring = np.stack([np.outer(rad, np.cos(ang)), np.outer(rad, np.sin(ang)),
+                     np.outer(120.0 * t, np.ones_like(ang))], -1).reshape(-1, 3)
+    n = len(ang)
+    quads = [(i * n + j, i * n + (j + 1) % n, (i + 1) * n + (j + 1) % n, (i + 1) * n + j)
+             for i in range(len(t) - 1) for j in range(n)]
+    faces = np.array([[a, b, c] for a, b, c, d in quads] + [[a, c, d] for a, b, c, d in quads])
+    v0, v1, v2 = ring[faces[0]]
+    if np.cross(v1 - v0, v2 - v0) @ (v0 * [1.0, 1.0, 0.0]) < 0:
+        faces = faces[:, ::-1]                      # outward: away from the axis
+    prepare_surface(ring, faces)
+    with pytest.raises(ValueError, match="normals point inward"):
+        prepare_surface(ring, faces[:, ::-1])
+    two_v = np.vstack([ring, ring + [300.0, 0.0, 0.0]])
+    two_f = np.vstack([faces, faces + len(ring)])
+    prepare_surface(two_v, two_f)
+    with pytest.raises(ValueError, match="normals point inward"):
+        prepare_surface(two_v, two_f[:, ::-1])
     sheet = trimesh.creation.box(extents=(10.0, 10.0, 1.0))
     top_face = np.flatnonzero(sheet.face_normals[:, 2] > 0.5)
     flat = sheet.submesh([top_face], append=True)

@@ -184,8 +184,22 @@ def test_ct_surface_input_is_checked_and_a_failed_region_is_a_surface_error():
         ct_surfaces(vol, huge, {"distal": good})
     swapped = s2c.copy()
     swapped[:, :3, 0] = [0.0, 0.0, 1.0]           # the column axis along the stacking
-    with pytest.raises(ValueError, match="stacked along their own planes"):
+    with pytest.raises(ValueError, match="stacked within their own planes"):
         ct_surfaces(vol, swapped, {"distal": good})
+    # slices no region uses are not judged: a merged series may repeat one (a review)
+    repeated = s2c.copy()
+    repeated[3] = repeated[2]
+    three = {"slices": np.arange(3), "clicks_xy": np.zeros((3, 2)), "slice": np.arange(3),
+             "contour": np.zeros(3, int)}
+    with pytest.raises(ValueError) as err:
+        ct_surfaces(vol, repeated, {"distal": three})
+    assert "slice2ct" not in str(err.value), err.value      # the contours' own complaint
+    # a slice whose corner moves (another reconstruction centre) is the same stack
+    shifted = s2c.copy()
+    shifted[2, :2, 3] = [40.0, -25.0]
+    with pytest.raises(ValueError) as err:
+        ct_surfaces(vol, shifted, {"distal": good})
+    assert "slice2ct" not in str(err.value), err.value
     with pytest.raises(ValueError, match=r"CT volume: expected an \(I, J, K\) array"):
         ct_surfaces(np.zeros((0, 0, 0)), s2c, {"distal": good})
     # well-formed clicks on an empty CT: the stage fails, as a SurfaceError naming the region
