@@ -159,6 +159,16 @@ def register_case(case: Case, start, *, oracle=(), fixed_pin=None, strategy=None
     return est, pin_errors(est.ct2robot, case.ct2robot, case.pins_ct)
 
 
+def _registration_line(est) -> str:
+    """How the registration ended, with its iterations (once: 'no convergence after 50
+    iterations' already says them, and the line read '... after 50 iterations' twice)."""
+    if est.registration is None:
+        return "not run (the pins' error is the start's; see the verdict)"
+    reason = str(est.quality.get("reason", est.message))
+    n = est.quality.get("iterations", 0)
+    return reason if f"after {n} iterations" in reason else f"{reason} after {n} iterations"
+
+
 def _fit_line(est, options) -> str:
     """The worst view's fit in words (``reglib.pipeline.view_fit``)."""
     from reglib.pipeline import VIEW_FIT_MM
@@ -333,10 +343,7 @@ def run_case(scene, *, seed: int, progress: bool = False):
         "workspace": meta.get("workspace", ""),
         "extra_lines": [("workspace", meta.get("workspace", "")),
                         ("start mTRE (mm)", f"{np.mean(list(start_err.values())):.2f}"),
-                        ("registration", f"{est.quality.get('reason', est.message)} after "
-                         f"{est.quality.get('iterations', 0)} iterations"
-                         if est.registration is not None else
-                         "not run (the pins' error is the start's; see the verdict)"),
+                        ("registration", _registration_line(est)),
                         ("verdict", "accepted" if est.accepted
                          else f"NOT accepted: {est.message}"),
                         *((("weakest motion", f"{est.quality.get('weak_motion_mm', np.nan):.1f} "

@@ -215,3 +215,22 @@ def test_a_methods_result_that_is_no_rigid_pose_is_named():
     eye = np.eye(4, dtype=np.int64)
     eye[:3, 3] = (1, 2, 3)
     assert np.allclose(_as_pose(eye, "x").t, (1, 2, 3))
+
+
+def test_the_run_line_says_the_iterations_once():
+    """testbed run's 'registration:' line read 'no convergence after 50 iterations (last
+    step 35 mm) after 50 iterations' (a review); a reason that names its iterations keeps
+    them once, others get them appended, and a registration not run says so."""
+    from types import SimpleNamespace
+
+    from studies.end_to_end import _registration_line
+
+    def est(reason, n, ran=True):
+        return SimpleNamespace(registration=object() if ran else None, message="",
+                               quality={"reason": reason, "iterations": n})
+
+    assert _registration_line(est("no convergence after 50 iterations (last step 35 mm)",
+                                  50)) == "no convergence after 50 iterations (last step 35 mm)"
+    assert _registration_line(est("the last 5 steps were all below", 12)) == (
+        "the last 5 steps were all below after 12 iterations")
+    assert _registration_line(est("", 0, ran=False)).startswith("not run")
