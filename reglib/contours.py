@@ -127,6 +127,8 @@ def gradient_potential(image, sigma_px: float, *, clip_percentile: float = 98.0)
         raise ValueError(f"image must be a non-empty 2-D array (H, W), got shape {img.shape}")
     if not 0 < clip_percentile <= 100:
         raise ValueError(f"clip_percentile must lie in (0, 100], got {clip_percentile!r}")
+    if not np.all(np.isfinite(img)):      # a review: an all-NaN potential, unsaid
+        raise ValueError("gradient_potential: image holds NaN or infinite values")
     g = ndimage.gaussian_gradient_magnitude(img, positive_number(sigma_px, "sigma_px", unit="px"))
     q = float(np.percentile(g, clip_percentile))
     if q <= 0:
@@ -230,6 +232,10 @@ def refine_subpixel(image, contour_xy, *, search_px: float = 2.5, step_px: float
     (K, 2) array, (x, y) px.
     """
     c = np.asarray(contour_xy, dtype=np.float64)
+    if c.ndim != 2 or c.shape[1] != 2 or not np.all(np.isfinite(c)):
+        # a review: NaN vertices came back NaN without a word
+        raise ValueError(f"refine_subpixel: contour_xy: expected (K, 2) finite px, got "
+                         f"shape {c.shape}" + (" with NaN or inf" if c.size else ""))
     if normal_sigma < 0:
         raise ValueError(f"normal_sigma: expected >= 0 vertices, got {normal_sigma}")
     shape = (c if normal_sigma == 0 else

@@ -151,3 +151,16 @@ def test_small_entry_points_name_their_bad_argument():
     with pytest.raises(ValueError, match="simplify_tol_mm: expected a number of mm"):
         surface_from_contours([[c] for c in ring], simplify_tol_mm="0.1")
     assert surface_from_contours([[c] for c in ring]).faces.shape[1] == 3
+    from reglib.contours import gradient_potential, refine_subpixel
+
+    img = np.zeros((32, 32))
+    img[8:24, 8:24] = 100.0
+    bad = img.copy()
+    bad[3, 3] = np.nan
+    with pytest.raises(ValueError, match="gradient_potential: image holds NaN"):
+        gradient_potential(bad, 1.0)
+    square = np.array([[8.0, 8.0], [23.0, 8.0], [23.0, 23.0], [8.0, 23.0]])
+    pot = gradient_potential(img, 1.0)
+    assert refine_subpixel(pot, square).shape == (4, 2)
+    with pytest.raises(ValueError, match="contour_xy: expected .* with NaN or inf"):
+        refine_subpixel(pot, np.vstack([square, [np.nan, 1.0]]))
