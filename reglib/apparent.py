@@ -137,22 +137,18 @@ def _closed_volume(v, f, twin, he_origin, he_dest) -> float:
     b = np.flatnonzero(twin < 0)
     if len(b):
         a_, b_ = he_origin[b], he_dest[b]
-        centre = np.zeros((len(b), 3))
         if len(np.unique(a_)) == len(a_):           # one boundary edge leaves each vertex
-            nxt = np.full(len(v), -1, dtype=np.int64)
-            nxt[a_] = np.arange(len(b))
-            loop = np.full(len(b), -1, dtype=np.int64)
-            for start in range(len(b)):
-                if loop[start] >= 0:
-                    continue
-                members, e = [], start
-                while e >= 0 and loop[e] < 0:
-                    loop[e] = start
-                    members.append(e)
-                    e = nxt[b_[e]]
-                centre[members] = p[a_[members]].mean(axis=0)
+            # the loops: the boundary edges' connected components, each fanned from its mean
+            from scipy.sparse import coo_matrix
+            from scipy.sparse.csgraph import connected_components
+
+            graph = coo_matrix((np.ones(len(b)), (a_, b_)), shape=(len(v), len(v)))
+            label = connected_components(graph, directed=False)[1][a_]
+            n = np.maximum(np.bincount(label), 1)[:, None]
+            mean = np.stack([np.bincount(label, weights=p[a_, k]) for k in range(3)], 1) / n
+            centre = mean[label]
         else:
-            centre[:] = p[np.unique(a_)].mean(axis=0)
+            centre = np.broadcast_to(p[np.unique(a_)].mean(axis=0), (len(b), 3))
         vol += float(np.einsum("ij,ij->i", p[b_], np.cross(p[a_], centre)).sum())
     return vol / 6.0
 

@@ -737,9 +737,8 @@ def xray_contours(view: str, image, clicks: Mapping, *, pixel_mm=None) -> ViewCo
         return ViewContours(view, np.zeros((0, 2)), np.zeros(0, bool), (f"view {view}: {why}",))
 
     if pixel_mm is not None:   # the range estimate takes from meta (a review: 1e-12 mm gave
-        pixel_mm = _xray_pixel_mm({"xray_pixel_mm": pixel_mm},      # a 2-point "contour")
-                                  what="xray_contours: pixel_mm (the video's pixel at the "
-                                       "intensifier's input)")
+        pixel_mm = _pixel_mm_in_range(pixel_mm, "xray_contours: pixel_mm (the video's "  # a
+                                      "pixel at the intensifier's input)")   # 2-point contour)
     try:
         img = np.asarray(image, dtype=np.float64)
     except (TypeError, ValueError):
@@ -869,16 +868,21 @@ def sweep_agreement(view: str, frame, sweep_frames, sweep_arrays, min_agreement:
     return ""
 
 
-def _xray_pixel_mm(meta, what: str | None = None) -> float | None:
+def _xray_pixel_mm(meta) -> float | None:
     """The observation's ``meta["xray_pixel_mm"]`` (mm), None when absent; a value that is
-    not a positive number of mm within range is refused naming the key (or ``what``)."""
+    not a positive number of mm within range is refused naming the key."""
     if not isinstance(meta, Mapping) or meta.get("xray_pixel_mm") is None:
         return None
+    return _pixel_mm_in_range(meta["xray_pixel_mm"], "observation: meta['xray_pixel_mm'] "
+                              "(the video's pixel at the intensifier's input)")
+
+
+def _pixel_mm_in_range(value, what: str) -> float:
+    """``value`` as a video pixel at the intensifier's input (mm), refused naming ``what``
+    when it is no positive number within MIN_XRAY_PIXEL_MM-10 mm."""
     from reglib.contours import positive_number
 
-    what = what or ("observation: meta['xray_pixel_mm'] (the video's pixel at the "
-                    "intensifier's input)")
-    v = positive_number(meta["xray_pixel_mm"], what)
+    v = positive_number(value, what)
     if not MIN_XRAY_PIXEL_MM <= v <= 10:
         raise ValueError(f"{what} must lie in {MIN_XRAY_PIXEL_MM:g}-10 mm, got {v:g}")
     return v
@@ -1334,8 +1338,6 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
         return res, q, verdict(res.converged, q, failed, options, len(stages.views),
                                [v.name for v in stages.views], list(stages.failed))
 
-    best = best_try
-
     def run(pose):
         if options.strategy == "single":
             return judged(register(surfaces, stages.views, pose, **reg_opts))
@@ -1347,7 +1349,7 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
         tries = [judged(register(surfaces, stages.views, coarse.ct2robot, **fine))]
         if tries[0][2] and not _only_weak_geometry(tries[0][2]):
             tries.append(judged(register(surfaces, stages.views, pose, **fine)))
-        res, q, reasons = best(tries)
+        res, q, reasons = best_try(tries)
         q["coarse_reason"] = coarse.reason
         return res, q, reasons
 
@@ -1367,7 +1369,7 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
             tries.append(run(pose))
             if not tries[-1][2]:
                 break
-        res, quality, reasons = best(tries)
+        res, quality, reasons = best_try(tries)
     quality["restarts"] = restarts
     # more than one try: does another fit about as well, far from this one?
     quality["alternative_mm"], quality["alternative_median_mm"] = alternative_pose(

@@ -120,10 +120,10 @@ class PoseResult:
 # --------------------------------------------------------------------------- input checks
 def _distinct_pairs(p, o, d, enough: int) -> int:
     """How many distinct (point, line) rows there are, counted up to ``enough`` (most inputs
-    reach it within their first rows)."""
+    reach it within their first rows: the rows are read one at a time, not copied)."""
     seen = set()
-    for row in np.hstack([p, o, d]):
-        seen.add(row.tobytes())
+    for i in range(len(p)):
+        seen.add((p[i].tobytes(), o[i].tobytes(), d[i].tobytes()))
         if len(seen) >= enough:
             break
     return len(seen)

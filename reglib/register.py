@@ -410,12 +410,12 @@ def _limit_cycle(placed, tol_mm: float, periods) -> int:
     return 0
 
 
-def _settled_cycle(placed, steps_mm, tol_mm: float, periods) -> int:
-    """:func:`_limit_cycle`'s period, or 0 when the cycle's last ``period`` steps
-    (``steps_mm``, per iteration) reach :data:`MAX_CYCLE_STEP_MM`: such a cycle has not
-    settled."""
+def _settled_cycle(placed, history, tol_mm: float, periods) -> int:
+    """:func:`_limit_cycle`'s period, or 0 when the steps of the cycle's last ``period``
+    iterations (``history``, records with ``step_mm``) reach :data:`MAX_CYCLE_STEP_MM`: such
+    a cycle has not settled."""
     p = _limit_cycle(placed, tol_mm, periods)
-    if p and max(steps_mm[-p:]) >= MAX_CYCLE_STEP_MM:
+    if p and max(h.step_mm for h in history[-p:]) >= MAX_CYCLE_STEP_MM:
         return 0
     return p
 
@@ -795,7 +795,7 @@ def register(surfaces, views, initial: RigidTransform, *,
         # iterations before (two whole cycles), with steps below MAX_CYCLE_STEP_MM. Periods
         # above 2 not for "linear": plain least squares cycles with period 4 on wrong poses
         # and stops by stale_window instead.
-        period = _settled_cycle(placed, [h.step_mm for h in history], tol_stall_mm,
+        period = _settled_cycle(placed, history, tol_stall_mm,
                                 (2,) if method == "linear" else CYCLE_PERIODS) \
             if stall_window > 0 else 0
         if period:

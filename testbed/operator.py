@@ -181,10 +181,8 @@ def bone_sections(slice_hu, *, threshold_hu: float, min_area_px: float,
         r = 0.5 * float(spur_px)
         k = int(np.ceil(r))
         yy, xx = np.mgrid[-k:k + 1, -k:k + 1]
-        disc = xx * xx + yy * yy <= r * r
-        # the margin keeps the opening's border what the whole slice's would be
-        bright = ndimage.binary_opening(np.pad(bright, k + 1), structure=disc)[
-            k + 1:-(k + 1), k + 1:-(k + 1)]
+        # beyond the box all is background, as the opening's border value (0) takes it
+        bright = ndimage.binary_opening(bright, structure=xx * xx + yy * yy <= r * r)
     labels, n = ndimage.label(bright)
     areas = np.bincount(labels.ravel())[1:] if n else np.zeros(0)
     # islands much smaller than the bone's section (a streak, a pin's head) are not bone

@@ -382,13 +382,15 @@ def test_a_cycle_of_large_steps_has_not_settled(world):
     (3 mm), whatever the method: the same three poses repeated, 0.3 mm apart, settle with
     period 3; 6 mm apart, they do not. And lm from the standard starts still converges as
     before (a first fix had made it stop, unconverged, on settled poses)."""
+    from types import SimpleNamespace
+
     from reglib.register import MAX_CYCLE_STEP_MM, _settled_cycle
 
     base = np.zeros((8, 3))
     for gap, expect in ((0.3, 3), (6.0, 0)):
         poses = [base + [k * gap, 0.0, 0.0] for k in (0, 1, 2)]
         placed = [poses[i % 3] for i in range(9)]
-        steps = [gap, gap, 2 * gap] * 3
+        steps = [SimpleNamespace(step_mm=x) for x in [gap, gap, 2 * gap] * 3]
         assert _settled_cycle(placed, steps, 0.1, (2, 3, 4)) == expect, gap
     assert MAX_CYCLE_STEP_MM == 3.0
     tops, views, true = world
