@@ -428,10 +428,13 @@ def test_bench_quick_prints_every_workload_with_value_unit_goal_reference():
         assert {"value", "unit", "goal", "reference"} <= set(row), key
         assert row["value"] is not None and np.isfinite(row["value"]) and row["value"] > 0, key
         assert row["unit"] and row["goal"] is not None, key
-    # against a pure-numpy task's scaling measured in the same run (another job on the
-    # machine lowers both): workers that ran one after the other would give about 1x
+    # the two workers ran side by side: their registrations' summed wall time is about twice
+    # the run's (one after the other: about once). The speed-up itself is a benchmark figure,
+    # not asserted here: with 8 starts and one pair, another job on the machine moved it
+    # from 2.0x to 1.27x (CI of 06ede36) while the pure-numpy reference stayed at 1.8x
     scaling = result["scaling_2_workers"]
-    assert 0.7 * scaling["reference"] < scaling["value"] < 2.5, scaling
+    assert 1.6 < scaling["concurrency"] <= 2.05, scaling
+    assert 0 < scaling["value"] < 2.6, scaling
     assert result["run_cpu_s"]["value"] > result["run_cpu_s"]["reference"]  # above imports
     # a trial registers starts: slower than its simulation alone (the row timed no
     # registration until 2026-11-26, its rate equal to the simulation's)
