@@ -536,8 +536,11 @@ MAD_TO_SIGMA = 0.6745
 
 def robust_scale(residuals) -> float:
     """A robust standard deviation of residuals: ``median(|r|) / 0.6745`` (the scale of the
-    paper's Tukey weights)."""
-    return float(np.median(np.abs(np.asarray(residuals, dtype=np.float64)))) / MAD_TO_SIGMA
+    paper's Tukey weights); NaN for no residuals (without numpy's empty-slice warning)."""
+    r = np.abs(np.asarray(residuals, dtype=np.float64))
+    if r.size == 0:
+        return float("nan")
+    return float(np.median(r)) / MAD_TO_SIGMA
 
 
 def arc_length(points, *, closed: bool = False) -> tuple[np.ndarray, np.ndarray]:

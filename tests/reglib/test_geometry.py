@@ -164,3 +164,18 @@ def test_small_entry_points_name_their_bad_argument():
     assert refine_subpixel(pot, square).shape == (4, 2)
     with pytest.raises(ValueError, match="contour_xy: expected .* with NaN or inf"):
         refine_subpixel(pot, np.vstack([square, [np.nan, 1.0]]))
+
+
+def test_robust_scale_is_the_mad_over_its_normal_factor_and_nan_for_nothing():
+    """``median(|r|) / 0.6745``: about 1 on many standard normal residuals; no residuals give
+    NaN without numpy's "mean of empty slice" warning (a bad-input review)."""
+    import warnings
+
+    from reglib.geometry import robust_scale
+
+    r = np.random.default_rng(3).normal(0.0, 2.0, 20000)
+    assert robust_scale(r) == pytest.approx(2.0, rel=0.03)
+    assert robust_scale([-3.0, 1.0, 2.0]) == pytest.approx(2.0 / 0.6745, rel=1e-3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.isnan(robust_scale([]))
