@@ -225,6 +225,21 @@ class RegistrationSpec(Spec):
                 f"residual = {self.residual!r} is not used by strategy 'coarse-fine' (it runs "
                 "'line', then 'normal'); set strategy = \"single\" to register with one "
                 "residual, or leave residual out")
+        # the loop's IRLS is what a fixed point or the across-contour residual needs
+        # (reglib.register): refused here, before a simulation, naming the fields (it had
+        # failed after 5 s of simulation naming neither, a held-out review)
+        irls = ("robust", "linear")
+        if self.method not in irls and self.fixed_pin is not None:
+            raise ValueError(
+                f"method = {self.method!r} cannot be used with fixed_pin = "
+                f"{self.fixed_pin!r}: only the rotation about the pin is solved, by the "
+                "loop's IRLS; use method = \"robust\" or \"linear\", or leave fixed_pin out")
+        if (self.method not in irls and self.strategy == "single"
+                and self.residual == "normal"):
+            raise ValueError(
+                f"method = {self.method!r} cannot be used with residual = \"normal\" (the "
+                "across-contour residual is solved by the loop's IRLS); use method = "
+                "\"robust\" or \"linear\", or residual = \"line\"")
         return self
 
 
