@@ -940,6 +940,14 @@ def _verdict(res: PoseResult, p, o, d, cheirality: bool) -> PoseResult:
     pose with inliers behind their lines' origins) turn ``converged`` off."""
     if not res.converged:
         return res
+    k = int(np.count_nonzero(res.inliers))
+    if k == 3 < len(p) and res.method != "ransac":   # (RANSAC: ransac_min_inliers)
+        # three pairs are six equations for the pose's six unknowns: the solver fits them
+        # exactly whatever the pose, and the others, rejected, confirm nothing (a held-out
+        # review: noise-free, 4 or 5 pairs, robust "converged" 0.2-1.4 units off)
+        return replace(res, converged=False, message=(
+            f"only 3 of {len(p)} pairs are inliers: three point-line pairs fit a pose "
+            "exactly, so nothing confirms it"))
     P = p @ res.R.T + res.t
     why = _undetermined(P, o, d, res.weights, single_pairs=res.method == "ransac")
     if not why and cheirality:
