@@ -104,6 +104,10 @@ def _synthetic_job(scene, *, scene_path, seed, out, progress: bool = False) -> d
         "mtre_mm": float(np.mean(robust["landmark_errors"])),
         "units": "unit-cube units (the synthetic set-up is unitless)",
         "converged": bool(robust["converged"]),
+        # the method's own verdict (the contract's key; a held-out review found it missing):
+        # for points and lines it is solve_pose's, whose `converged` already holds its rank,
+        # cheirality and inlier checks
+        "accepted": bool(robust["converged"]),
         "methods": methods,
         "fig9_success_at_max_noise": success,
         "outputs": {"fig9": str(out / "fig9"), "table1": str(out / "table1")},

@@ -518,6 +518,17 @@ def test_table1_ends_with_exit_0_and_text_labelled_failures_are_counted(tmp_path
     assert "1 of 2 trial(s) failed" in capsys.readouterr().err
 
 
+def test_synthetic_run_json_has_the_contract_keys(tmp_path, capsys):
+    """`testbed run points-lines --json` gives the keys every run gives (pins, mtre_mm,
+    converged, accepted, timings; `accepted` was missing, a held-out review), its
+    `accepted` the robust solver's own verdict."""
+    assert main(["run", "points-lines", "--json", "--out", str(tmp_path / "r")]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert {"pins", "mtre_mm", "converged", "accepted", "timings", "units"} <= set(result)
+    assert result["accepted"] is result["methods"]["robust"]["converged"] is True
+    assert result["mtre_mm"] < 1e-6        # the shipped scene is noise-free at its landmarks
+
+
 def test_table1_names_the_solves_that_failed(tmp_path):
     """A held-out geometry (the centre of perspective inside the cloud): PoseLib's refine
     ended 1-2 cloud sizes off and the report gave the ratios to its times as if it had
