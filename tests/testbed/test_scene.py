@@ -377,6 +377,35 @@ def test_a_synthetic_scene_far_from_its_cube_or_with_room_tables_is_refused(tmp_
             load_scene(f)
 
 
+def test_a_bad_list_item_is_one_problem_and_distances_print_in_full(tmp_path):
+    """A list with a bad item is one problem, the item's (pydantic also reported the list as
+    "at least 1 item after validation, not 0", a second, false one: a held-out review); an
+    empty list keeps that message. A distance just over its limit prints as it is (1000.5,
+    not "1e+03 ...; at most 1000")."""
+    f = tmp_path / "scene.toml"
+    for landmarks, where in (([[float("nan"), 0.0, 0.0]], "synthetic.landmarks[0][0]"),
+                             ([[1.0, 0.0]], "synthetic.landmarks[0]")):
+        data = {k: dict(v) for k, v in VALID.items()}
+        data["synthetic"]["landmarks"] = landmarks
+        f.write_text(_dump(data))
+        with pytest.raises(SceneError) as exc:
+            load_scene(f)
+        msg = str(exc.value)
+        assert "(1 problem(s))" in msg and f"field '{where}'" in msg, msg
+        assert "at least 1 item" not in msg, msg
+    data = {k: dict(v) for k, v in VALID.items()}
+    data["synthetic"]["landmarks"] = []
+    f.write_text(_dump(data))
+    with pytest.raises(SceneError, match=r"synthetic.landmarks.*at least 1 item"):
+        load_scene(f)
+    data = {k: dict(v) for k, v in VALID.items()}
+    data["synthetic"]["center_of_perspective"] = [-1000.0, 0.5, 0.5]
+    f.write_text(_dump(data))
+    with pytest.raises(SceneError, match=r"1000\.5 cube sizes from the points' cube; at most "
+                                         r"1000"):
+        load_scene(f)
+
+
 def test_a_scene_changed_after_loading_is_checked_again_before_the_simulation(tmp_path):
     """pydantic's model_copy(update=...) skips the checks: a review's copies failed deep in
     the simulation (ZeroDivisionError, numpy's "negative dimensions") or simulated negative
