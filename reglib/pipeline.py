@@ -1058,7 +1058,9 @@ def match_quality(res) -> dict:
     of the across-contour distances per mm of RMS displacement of the surfaces, along their
     least constrained motion); ``weak_motion_mm``: the median distance over it, i.e. how far
     the surfaces can move (RMS) along that motion for the distances to change by their
-    median: the pose's uncertainty along its weakest direction, in mm of the bone.
+    median: the pose's uncertainty along its weakest direction, in mm of the bone. With a
+    fixed point, ``pivot_gain`` and ``pivot_gain_max``: mm of the bone's RMS displacement,
+    and at its farthest vertex, per mm of the fixed point's error (worst direction).
     """
     r = np.abs(np.asarray(res.residuals, dtype=np.float64))
     vi = np.asarray(res.view_index)
@@ -1086,6 +1088,11 @@ def match_quality(res) -> dict:
         "max_view_median_mm": float(max(np.median(r[vi == v]) for v in views)),
         "min_view_inlier_fraction": float(min(np.mean(w[vi == v] > 0) for v in views))
         if w.size == r.size else 0.0,
+        # with a fixed point: how far its error moves the bone (register.fixed_point_gain);
+        # reported, not judged: no held-out evidence gives it a limit yet
+        **({"pivot_gain": float(res.pivot_gain),
+            "pivot_gain_max": float(res.pivot_gain_max)}
+           if np.isfinite(getattr(res, "pivot_gain", float("nan"))) else {}),
     }
 
 

@@ -144,6 +144,12 @@ class RegistrationResult:
         loop did not solve.
     weakest_motion : (6,) float64, that motion (rotation rad, translation mm about the
         surfaces' centre or the fixed point; scaled to 1 mm RMS displacement).
+    pivot_gain, pivot_gain_max : float, with a fixed point only (NaN otherwise): how far an
+        error of the fixed point's robot position moves the registered bone
+        (:func:`fixed_point_gain`): mm of RMS displacement of the surfaces, and mm at their
+        farthest vertex, per mm of the point's error in its worst direction;
+        ``pivot_response`` (3, 3) rad per mm, the rotation the matches answer that error with
+        (``A`` of :func:`fixed_point_gain`; empty without a fixed point).
     """
 
     ct2robot: RigidTransform
@@ -158,6 +164,9 @@ class RegistrationResult:
     time_s: float = 0.0
     sensitivity: np.ndarray = field(default_factory=lambda: np.zeros(0))
     weakest_motion: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    pivot_gain: float = float("nan")
+    pivot_gain_max: float = float("nan")
+    pivot_response: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def __bool__(self) -> bool:
         return bool(self.converged)
@@ -283,6 +292,56 @@ def pose_sensitivity(points, normals, weights, targets, *, centre=None, fixed_po
     motion = np.zeros(6)
     motion[:k] = x / np.sqrt(x @ M @ x)
     return np.sqrt(np.clip(lam, 0.0, None)), motion
+
+
+def fixed_point_gain(points, normals, weights, targets, fixed_point):
+    """How an error of a fixed point moves a pose registered by rotation about it.
+
+    With the rotation alone free about ``fixed_point`` ``p``, an error ``e`` of where the
+    point lies moves the bone by ``e``; the matches then turn it by the rotation ``w = A e``
+    that best restores their across-contour distances (the weighted least squares of
+    ``n . (w x (x - p) + e)`` over the matches, linearised at the final pose), so that a
+    target ``q`` moves by ``e + w x (q - p)``. Two views of a long bone hold its spin
+    loosely, and a point at one end moved across the views turns the other end by several
+    times the error (the paper's experiment 1).
+
+    Parameters
+    ----------
+    points, normals, weights : the matches, as :func:`pose_sensitivity`.
+    targets : (Q, 3) mm, points whose displacement counts (the surfaces' vertices).
+    fixed_point : (3,) mm, in the frame of the points.
+
+    Returns
+    -------
+    ``(rms, largest, A)``: mm of RMS displacement of the targets, and mm at the target that
+    moves most, per mm of error in its worst direction; ``A`` (3, 3) rad per mm, the
+    rotation the matches answer an error with. NaN and a NaN ``A`` when the kept matches
+    do not hold the rotation (rank below 3).
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    w = np.asarray(weights, dtype=np.float64).reshape(-1)
+    q = np.asarray(targets, dtype=np.float64).reshape(-1, 3)
+    c = np.asarray(fixed_point, dtype=np.float64).reshape(3)
+    if not (len(p) == len(n) == len(w)) or len(q) == 0:
+        raise ValueError("fixed_point_gain: points, normals and weights must have one row per "
+                         "match, and targets at least one point")
+    nan = float("nan")
+    keep = (w > 0) & np.all(np.isfinite(p), axis=1) & np.all(np.isfinite(n), axis=1)
+    Jr = np.cross(p[keep] - c, n[keep]) * np.sqrt(w[keep])[:, None]
+    Jt = n[keep] * np.sqrt(w[keep])[:, None]
+    H = Jr.T @ Jr
+    ev = np.linalg.eigvalsh(H) if keep.any() else np.zeros(3)
+    if not ev[0] > 1e-12 * max(ev[-1], 1e-300):
+        return nan, nan, np.full((3, 3), nan)
+    A = -np.linalg.solve(H, Jr.T @ Jt)
+    # each target's displacement per unit error: D_q = I - skew(q - c) A, (Q, 3, 3)
+    d = q - c
+    D = np.broadcast_to(np.eye(3), (len(d), 3, 3)) - np.einsum("qij,jk->qik", skew(d), A)
+    rms = float(np.sqrt(np.linalg.eigvalsh(np.einsum("qji,qjk->ik", D, D) / len(d))[-1]))
+    largest = float(np.max(np.linalg.norm(D, ord=2, axis=(1, 2))))
+    return rms, largest, A
+
 
 
 # --------------------------------------------------------------------------- the loop
@@ -831,12 +890,19 @@ def register(surfaces, views, initial: RigidTransform, *,
                       f"centre of perspective of view(s) {', '.join(names)} (a mirror or "
                       f"runaway pose; the loop had stopped with: {reason})")
     per_view = np.array([float(np.mean(w[view_index == i] > 0)) for i in range(len(views))])
-    sens, weakest = pose_sensitivity(T.apply(p_ct), _across(d_r, T.apply_vectors(tans_ct)), w,
-                                     T.apply(np.vstack([s.vertices for s in tops])),
+    normals_r = _across(d_r, T.apply_vectors(tans_ct))
+    vertices_r = T.apply(np.vstack([s.vertices for s in tops]))
+    sens, weakest = pose_sensitivity(T.apply(p_ct), normals_r, w, vertices_r,
                                      fixed_point=fixed_robot)
+    gain = gain_max = float("nan")
+    response = np.zeros(0)
+    if fixed_robot is not None:
+        gain, gain_max, response = fixed_point_gain(T.apply(p_ct), normals_r, w, vertices_r,
+                                                    fixed_robot)
     return RegistrationResult(
         ct2robot=T, converged=converged, reason=reason, iterations=it, history=tuple(history),
         residuals=dist, weights=w, view_index=view_index.astype(np.int64),
         inlier_fraction_per_view=per_view, time_s=time.perf_counter() - t_start,
-        sensitivity=sens, weakest_motion=weakest,
+        sensitivity=sens, weakest_motion=weakest, pivot_gain=gain, pivot_gain_max=gain_max,
+        pivot_response=response,
     )

@@ -352,10 +352,19 @@ def run_case(scene, *, seed: int, progress: bool = False):
                             " mm)"),
                            ("worst view fit", _fit_line(est, case.options)))
                           if est.registration is not None else ()),
+                        *((("located pin's error", _pivot_line(est.quality)),)
+                          if "pivot_gain" in est.quality else ()),
                         *(("warning", w) for w in (*est.warnings, *label_warnings)),
                         ("acquisition (sweeps)", f"{acq:.1f} s, dose {dose:.1f} mrem")],
     }
     return result, case, start, est
+
+
+def _pivot_line(quality: dict) -> str:
+    """What an error of the fixed (located) pin does to the registered bone."""
+    return (f"moves the bone {quality['pivot_gain']:.1f} times as far (RMS over the surfaces), "
+            f"{quality['pivot_gain_max']:.1f} times at its farthest point: the views turn "
+            "the bone about the pin to make up for it (reported, not judged)")
 
 
 def write_overlays(case: Case, start, final, out: Path) -> dict:

@@ -162,6 +162,47 @@ def test_fixed_point_rotation_only(world):
     assert np.all(err < 0.05), err
 
 
+def test_pivot_gain_predicts_what_a_misplaced_fixed_point_does(world):
+    """Experiment 1's set-up with the fixed pin's robot position 0.4 mm off along each axis:
+    the registered bone moves as fixed_point_gain's linear answer says (each vertex within
+    15 % of its predicted displacement's largest), and the reported gains bound the moves:
+    the RMS and the largest vertex displacement per mm, in the worst direction."""
+    from reglib.geometry import skew
+
+    tops, views, true = world
+    two = [views["proximal_ap"], views["distal_oblique"]]
+    exact = register(tops, two, true, fixed_point_ct=PINS_CT[0], max_iterations=60)
+    assert exact.converged and np.all(pin_errors(exact.ct2robot, true) < 1e-3)
+    A = exact.pivot_response
+    assert A.shape == (3, 3) and np.isfinite(exact.pivot_gain)
+    assert 1.0 <= exact.pivot_gain <= exact.pivot_gain_max
+    verts = np.vstack([s.vertices for s in tops])
+    vr = exact.ct2robot.apply(verts)
+    pivot = exact.ct2robot.apply(PINS_CT[0])
+    rms = []
+    for axis in range(3):
+        e = np.zeros(3)
+        e[axis] = 0.4
+        init = RigidTransform(np.eye(3), e) @ true        # the pin's robot position, off by e
+        res = register(tops, two, init, fixed_point_ct=PINS_CT[0], max_iterations=60)
+        assert res.converged, res.reason
+        moved = res.ct2robot.apply(verts) - vr
+        predicted = e - np.einsum("qij,j->qi", skew(vr - pivot), A @ e)
+        scale = np.linalg.norm(predicted, axis=1).max()
+        assert np.abs(moved - predicted).max() < 0.15 * scale, (axis, scale)
+        rms.append(np.sqrt(np.mean(np.sum(moved ** 2, axis=1))) / 0.4)
+        assert np.linalg.norm(moved, axis=1).max() / 0.4 <= 1.1 * exact.pivot_gain_max
+    assert max(rms) <= 1.1 * exact.pivot_gain
+    assert max(rms) >= 0.55 * exact.pivot_gain     # an axis is within 55 deg of the worst
+    # without a fixed point there is no pivot: nothing reported
+    from reglib.pipeline import match_quality
+
+    free = register(tops, list(views.values()), true, max_iterations=60)
+    assert np.isnan(free.pivot_gain) and free.pivot_response.size == 0
+    assert "pivot_gain" not in match_quality(free)
+    assert match_quality(exact)["pivot_gain_max"] == exact.pivot_gain_max
+
+
 def test_paper_line_residual_with_solve_pose_reduces_the_error(world):
     """The paper's point-to-line loop (solve_pose, robust): converges more slowly, but from
     2 deg / 5 mm it must bring every pin well below 1 mm in 25 iterations."""
