@@ -74,11 +74,18 @@ def run(ctx) -> pd.DataFrame:
                          values="value").reset_index()
     w = ok[ok.metric.isin(["converged", "accepted", "mtre"])].pivot_table(
         index=["trial", "variant", "start"], columns="metric", values="value").reset_index()
+    # the paper's claim is per pin (the distal pins within 2 mm): an mTRE within 2 mm can
+    # hold a pin 4 mm off (a held-out review, the views alone)
+    pins = [c for c in tab.columns if c not in ("trial", "variant", "start")]
+    worst = tab.assign(worst_pin=tab[pins].max(axis=1))[
+        ["trial", "variant", "start", "worst_pin"]]
+    w = w.merge(worst, on=["trial", "variant", "start"], how="left")
     parts = []
     for v, d in w.groupby("variant"):
         parts.append(f"{v}: of {len(d)} starts, {int(d['converged'].sum())} converged, "
                      f"{int(d['accepted'].sum())} accepted by the method's verdict, "
-                     f"{int((d['mtre'] < 2.0).sum())} within 2 mm mTRE of the truth")
+                     f"{int((d['mtre'] < 2.0).sum())} within 2 mm mTRE of the truth, "
+                     f"{int((d['worst_pin'] < 2.0).sum())} with every pin within 2 mm")
     verdict = "; ".join(parts)
     ctx.report("Pin errors (mm)",
                "The paper: distal pins within 2 mm with the proximal pin; about 5 mm with the "
