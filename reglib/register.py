@@ -343,7 +343,6 @@ def fixed_point_gain(points, normals, weights, targets, fixed_point):
     return rms, largest, A
 
 
-
 # --------------------------------------------------------------------------- the loop
 def _across(directions, tangents) -> np.ndarray:
     """Unit vectors across the contour and perpendicular to the path (``d x t``), one per
