@@ -285,9 +285,12 @@ def cmd_study(args) -> int:
             # ...and one whose world cannot be built (a user mesh that cannot be read, a view
             # the C-arm or the robot cannot take), as testbed run refuses it: exit 2 naming
             # the field, not a failed trial per case after the work has started
+            from testbed.ct import plan_scan
             from testbed.simulate import checked_world
 
-            checked_world(scene, scene.scene.seed if args.seed is None else args.seed)
+            case_scene, world, _ = checked_world(
+                scene, scene.scene.seed if args.seed is None else args.seed)
+            plan_scan(world.phantom, case_scene.ct)   # ...and a CT it cannot scan
     made = not Path(args.out).exists()
     out = _out_folder(args.out)
     try:

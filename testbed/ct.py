@@ -449,6 +449,26 @@ def _streaks(shape, origin, px, centres_xy, amp, rng) -> np.ndarray:
     return out
 
 
+def plan_scan(phantom, spec: CTSpec):
+    """What :func:`scan` checks and lays out before it rasterises: the slices (ct mm), the
+    regions, the slices' thicknesses, the grid's size (px) and origin (mm). Raises the
+    ``ValueError`` that :func:`scan` would (a slice or region outside the phantom, a field
+    that cuts the femur, too many voxels), so that a study can refuse a scene before its
+    trials (a held-out review: they failed one by one, naming no file)."""
+    z, regions = slice_schedule(phantom, spec)
+    thick = _thickness(z, spec)
+    n, origin = _grid(phantom, spec)
+    voxels = len(z) * n * n
+    if voxels > MAX_VOXELS:
+        raise ValueError(
+            f"ct: the schedule and field give {len(z)} slices of {n} x {n} px "
+            f"({voxels:.3g} voxels, {4 * voxels / 2**30:.1f} GiB); at most {MAX_VOXELS:.3g} "
+            "(a 512 x 512 scan of 1500 slices): coarsen the spacing "
+            "(fine_spacing_mm, coarse_spacing_mm or uniform_spacing_mm) or pixel_mm, or "
+            "narrow fov_mm")
+    return z, regions, thick, n, origin
+
+
 def scan(phantom, spec: CTSpec | None = None, rng=None, *, bodies: list[Body] | None = None
          ) -> CTScan:
     """Scan the phantom: a CT volume in HU on the slice schedule of ``spec``.
@@ -470,17 +490,7 @@ def scan(phantom, spec: CTSpec | None = None, rng=None, *, bodies: list[Body] | 
     """
     spec = CTSpec() if spec is None else spec
     rng = np.random.default_rng(rng)
-    z, regions = slice_schedule(phantom, spec)
-    thick = _thickness(z, spec)
-    n, origin = _grid(phantom, spec)
-    voxels = len(z) * n * n
-    if voxels > MAX_VOXELS:
-        raise ValueError(
-            f"ct: the schedule and field give {len(z)} slices of {n} x {n} px "
-            f"({voxels:.3g} voxels, {4 * voxels / 2**30:.1f} GiB); at most {MAX_VOXELS:.3g} "
-            "(a 512 x 512 scan of 1500 slices): coarsen the spacing "
-            "(fine_spacing_mm, coarse_spacing_mm or uniform_spacing_mm) or pixel_mm, or "
-            "narrow fov_mm")
+    z, regions, thick, n, origin = plan_scan(phantom, spec)
     px = spec.pixel_mm
     ss = spec.supersample
     y_sub = origin[1] + (np.arange(n * ss) + 0.5) / ss * px - 0.5 * px

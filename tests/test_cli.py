@@ -599,6 +599,21 @@ def test_study_refuses_a_malformed_scene_before_making_its_out_folder(tmp_path, 
     assert not out.exists()
 
 
+def test_a_study_refuses_a_ct_it_cannot_scan_before_any_trial(tmp_path, capsys):
+    """A CT schedule beyond the phantom: testbed run refused it naming file and field, while
+    every study ran it and failed its trials one by one ("No case finished", exit 1, the
+    file not named; a held-out review). The study refuses it as run does, before --out."""
+    scene = (ROOT / "scenes" / "experiment2.toml").read_text()
+    bad = tmp_path / "ct_outside.toml"
+    bad.write_text(scene + '\n[ct]\nschedule = "uniform"\nuniform_range_mm = [600.0, 800.0]\n')
+    for name in ("table2", "surfaces"):
+        out = tmp_path / name
+        assert main(["study", name, "--quick", "--scene", str(bad), "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert str(bad) in err and "ct.uniform_range_mm" in err and "beyond" in err, err
+        assert len(err.splitlines()) == 1 and not out.exists()
+
+
 def test_generate_says_when_every_case_shares_one_placement(tmp_path, capsys, monkeypatch):
     """A dataset of a scene without [patient] position_sd_mm / rotation_sd_deg has one
     ct2robot for all its cases (a review: a method returning the scene's placement scored
