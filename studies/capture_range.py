@@ -303,16 +303,14 @@ def check_scene(scene, path) -> None:
     pin (a ``[registration] fixed_pin`` was ignored without a word: capture range 0 mm), and
     re-aims each view at its region's anatomy (a view labelled with the other region failed
     every trial, its message naming no file)."""
+    from studies.common import refuse_fixed_pin
     from testbed.spec import SceneError
 
     if scene.phantom.mesh_path is not None:
         raise ValueError(f"{path}: [phantom] mesh_path: capture-range draws a procedural femur "
                          "of random shape per case and cannot use a mesh; give a scene with "
                          "the procedural femur (e.g. experiment2)")
-    if scene.registration.fixed_pin is not None:
-        raise ValueError(f"{path}: [registration] fixed_pin = {scene.registration.fixed_pin!r}: "
-                         "capture-range registers free starts, with no located pin; the "
-                         "experiment1 study measures the fixed-pin registration")
+    refuse_fixed_pin(scene, path, "capture-range")
     try:
         check_view_regions(scene)
     except SceneError as exc:

@@ -236,6 +236,19 @@ def region_centres(phantom) -> dict[str, np.ndarray]:
             "distal": box_centre(v[:, 2] <= lo + cut)}
 
 
+def refuse_fixed_pin(scene, path, study: str) -> None:
+    """ValueError naming the scene file and field when the scene locates a pin
+    (``[registration] fixed_pin``) and the study registers free starts: the pin would be
+    ignored without a word (a held-out review: table2, view-setups and error-budget
+    registered an experiment1 scene as if it had no pin, and view-setups counted the result
+    as a false refusal)."""
+    if scene.registration.fixed_pin is not None:
+        raise ValueError(
+            f"{path}: [registration] fixed_pin = {scene.registration.fixed_pin!r}: {study} "
+            "registers free starts, without a located pin; the experiment1 study and "
+            "testbed run register about it")
+
+
 def check_view_regions(scene, centres_robot=None, *, phantom=None) -> None:
     """``SceneError`` naming ``views[i].region`` when a view's isocentre lies nearer the
     other region's anatomy than its own: the studies that follow a view's region

@@ -226,9 +226,11 @@ def make_budget_trials(scene_path, seed: int, *, cases: int) -> list:
 
 
 def run(ctx) -> pd.DataFrame:
+    from studies.common import refuse_fixed_pin
     from studies.runner import run_context_trials
     from testbed.scene import load_scene
 
+    refuse_fixed_pin(ctx.scene, ctx.scene_path, "error-budget")
     trials = make_budget_trials(ctx.scene_path, int(ctx.seed),
                                 cases=QUICK_CASES if ctx.quick else CASES)
     params = [t.params for t in trials]

@@ -74,8 +74,10 @@ def trial(tr) -> list[dict]:
 
 
 def run(ctx) -> pd.DataFrame:
+    from studies.common import refuse_fixed_pin
     from studies.runner import run_study_trials
 
+    refuse_fixed_pin(ctx.scene, ctx.scene_path, "table2")
     n = QUICK_CASES if ctx.quick else CASES
     df = run_study_trials(ctx, trial, [{"case": i, "quick": bool(ctx.quick)} for i in range(n)])
     ok = df[df.metric != "failed"]

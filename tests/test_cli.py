@@ -614,6 +614,21 @@ def test_a_study_refuses_a_ct_it_cannot_scan_before_any_trial(tmp_path, capsys):
         assert len(err.splitlines()) == 1 and not out.exists()
 
 
+@pytest.mark.parametrize("study", ["table2", "view-setups", "error-budget", "capture-range"])
+def test_a_study_of_free_starts_refuses_a_located_pin(study, tmp_path, capsys):
+    """A scene with [registration] fixed_pin (experiment1): these studies register free
+    starts and ignored the pin without a word (a held-out review: view-setups counted such
+    a pose a false refusal); they refuse it naming file and field, as capture-range did,
+    before any trial and leaving no --out folder."""
+    out = tmp_path / "out"
+    assert main(["study", study, "--quick", "--workers", "1", "--scene", "experiment1",
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "experiment1.toml" in err and "[registration] fixed_pin = 'proximal'" in err, err
+    assert f"{study} registers free starts" in err and len(err.splitlines()) == 1, err
+    assert not out.exists()
+
+
 def test_generate_says_when_every_case_shares_one_placement(tmp_path, capsys, monkeypatch):
     """A dataset of a scene without [patient] position_sd_mm / rotation_sd_deg has one
     ct2robot for all its cases (a review: a method returning the scene's placement scored
