@@ -237,6 +237,16 @@ def targets_markdown(df: pd.DataFrame) -> str:
     paper = paper_medians()
     mean = float(pe["value"].mean())
     lines = []
+    # the figures below are of every registration; say so when the method refused some
+    # (a held-out review: 0 of 10 accepted and a target reported "met")
+    acc = df[df.metric == "accepted"]["value"]
+    conv = df[df.metric == "converged"]["value"]
+    if len(acc) and (acc == 0).any():
+        lines.append(
+            f"- **note**: {int((acc == 0).sum())} of {len(acc)} registrations were refused by "
+            f"the method's own verdict ({int((conv == 0).sum())} did not converge); the figures "
+            "below include them, though a clinic would not use a refused pose: `results.csv` "
+            "holds each registration's `accepted`")
 
     def check(ok, text):
         lines.append(f"- {'met' if ok else '**missed**'}: {text}")
@@ -249,7 +259,8 @@ def targets_markdown(df: pd.DataFrame) -> str:
             f"{np.sqrt(TARGET_MEAN_MM[0]**2 - mean**2):.2f} mm at the pins is missing (errors "
             "adding in quadrature); `testbed study error-budget` attributes the error to each "
             "source and gives the factor by which each source's magnitude would have to grow "
-            "to supply it (section 'What would close the gap to the paper').")
+            "to supply it (section 'What would close the gap to the paper'; it needs the "
+            "scene's ideal profile, `<name>-ideal.toml` beside the scene file).")
     vs_ref = df[df.metric == "pin_error_vs_reference"]
     if len(vs_ref):
         lines.append(

@@ -45,3 +45,19 @@ def test_the_mean_against_the_pin_based_reference_is_said_beside_the_target():
     assert "**missed**: mean pin error 1.00 mm" in text
     assert "against the pin-based reference: mean 0.40 mm" in text
     assert "against the pin-based reference" not in targets_markdown(rows)
+
+
+def test_the_targets_say_when_the_method_refused_registrations_they_include():
+    """A held-out review: 0 of 10 registrations accepted and a target reported "met" without
+    a word. The targets now say how many were refused (and did not converge) first."""
+    rows = _rows(2.8, 0.3)
+    verdict = pd.DataFrame([{"metric": m, "pin": "", "start": s, "statistic": "", "value": v}
+                            for s, (c, a) in (("rot5_1", (1.0, 0.0)), ("rot7_1", (0.0, 0.0)),
+                                              ("identity", (1.0, 1.0)))
+                            for m, v in (("converged", c), ("accepted", a))])
+    text = targets_markdown(pd.concat([rows, verdict], ignore_index=True))
+    assert text.startswith("- **note**: 2 of 3 registrations were refused by the method's own "
+                           "verdict (1 did not converge)"), text
+    assert "met: mean pin error 2.80 mm" in text
+    every = verdict.assign(value=1.0)
+    assert "**note**" not in targets_markdown(pd.concat([rows, every], ignore_index=True))
