@@ -62,6 +62,11 @@ def study_owner(name: str, scene, seed, quick: bool) -> str:
     return f"{name} of {os.path.abspath(path)}, seed {int(seed)}{quick_note}"
 
 
+#: studies that move the scene's views (capture-range re-aims them at each random femur):
+#: the warnings about the scene's own views do not apply to their cases
+NO_SCENE_WARNINGS = ("capture-range",)
+
+
 def run_study(name: str, out: Path, *, scene=None, seed=None, quick=False, workers=1,
               scheduler=None, retries: int = 2, progress: bool = True,
               retry_failed: bool = False) -> Path:
@@ -100,6 +105,14 @@ def run_study(name: str, out: Path, *, scene=None, seed=None, quick=False, worke
     ctx.retries = int(retries)
     ctx.progress = bool(progress)
     ctx.retry_failed = bool(retry_failed)
+    if ctx.scene.scene.kind == "operating_room" and name not in NO_SCENE_WARNINGS:
+        from studies.end_to_end import scene_warnings
+
+        warnings = scene_warnings(ctx.scene, int(ctx.seed))
+        if warnings:
+            ctx.report("Warnings about the scene", "What `testbed run` says of this scene "
+                       "at the study's seed; the figures below carry it:\n\n"
+                       + "\n".join(f"- {w}" for w in warnings))
     df = mod.run(ctx)
     finish_study(ctx, df)
     return out

@@ -629,6 +629,28 @@ def test_a_study_of_free_starts_refuses_a_located_pin(study, tmp_path, capsys):
     assert not out.exists()
 
 
+def test_a_study_report_carries_the_warnings_testbed_run_gives_of_its_scene(tmp_path):
+    """A CT of the proximal end only under distal views: testbed run names the missing
+    slices, while every study reported distal pins tens of mm off without a word (a
+    held-out review). The study's report now starts with the same warnings; the shipped
+    scene has none."""
+    from studies.end_to_end import scene_warnings
+    from testbed.scene import load_scene
+
+    scene = (ROOT / "scenes" / "experiment2.toml").read_text()
+    bad = tmp_path / "ct_proximal.toml"
+    bad.write_text(scene + '\n[ct]\nschedule = "uniform"\nuniform_range_mm = [300.0, 470.0]\n')
+    warned = scene_warnings(load_scene(bad), 1996)
+    assert len(warned) == 2 and all("the CT has no slices at its anatomy" in w for w in warned)
+    assert all("distal" in w for w in warned)
+    assert main(["study", "calibration", "--quick", "--scene", str(bad), "--out",
+                 str(tmp_path / "c")]) == 0
+    report = (tmp_path / "c" / "report.md").read_text()
+    assert "## Warnings about the scene" in report
+    assert all(w in report for w in warned)
+    assert scene_warnings(load_scene(ROOT / "scenes" / "experiment2.toml"), 1996) == []
+
+
 def test_generate_says_when_every_case_shares_one_placement(tmp_path, capsys, monkeypatch):
     """A dataset of a scene without [patient] position_sd_mm / rotation_sd_deg has one
     ct2robot for all its cases (a review: a method returning the scene's placement scored
