@@ -298,11 +298,17 @@ def scene_warnings(scene, seed: int) -> list[str]:
     study report without a word, where testbed run named the missing slices)."""
     from studies.common import region_centres
     from testbed.fluoroscope import make_carm
-    from testbed.simulate import case_seed, checked_world, simulate_ct
+    from testbed.simulate import case_seed, case_world, simulate_ct
 
+    # advisory: no workspace check (a study that builds its own worlds, e.g. calibration's
+    # robot per view, may run a scene whose case world collides), and a CT that cannot be
+    # made gives no CT warning (the study says what fails)
     css = case_seed(seed, 0)
-    case_scene, world, _ = checked_world(scene, css)
-    ctc = simulate_ct(case_scene, css, world=world)
+    case_scene, world = case_world(scene, css)
+    try:
+        ctc = simulate_ct(case_scene, css, world=world)
+    except ValueError:
+        ctc = None
     try:
         centres = region_centres(world.phantom)
     except (KeyError, ValueError):
@@ -311,7 +317,7 @@ def scene_warnings(scene, seed: int) -> list[str]:
              for i, v in enumerate(case_scene.views)}
     out = [*_region_label_warnings(case_scene, world.phantom),
            *aim_warnings(case_scene.views, carms, world.ct2robot, centres)]
-    if centres is not None:
+    if centres is not None and ctc is not None:
         groups = [np.asarray(cc.slices, dtype=np.int64) for cc in ctc.clicks.values()]
         out += ct_coverage_warnings(case_scene.views, centres, ctc.ct.slice_z_mm, groups)
     return out
