@@ -338,8 +338,9 @@ def fixed_point_gain(points, normals, weights, targets, fixed_point):
     # each target's displacement per unit error: D_q = I - skew(q - c) A, (Q, 3, 3)
     d = q - c
     D = np.broadcast_to(np.eye(3), (len(d), 3, 3)) - np.einsum("qij,jk->qik", skew(d), A)
-    rms = float(np.sqrt(np.linalg.eigvalsh(np.einsum("qji,qjk->ik", D, D) / len(d))[-1]))
-    largest = float(np.max(np.linalg.norm(D, ord=2, axis=(1, 2))))
+    G = np.einsum("qji,qjk->qik", D, D)        # D_q^T D_q: both figures read it
+    rms = float(np.sqrt(np.linalg.eigvalsh(G.mean(axis=0))[-1]))
+    largest = float(np.sqrt(np.linalg.eigvalsh(G)[:, -1].max()))
     return rms, largest, A
 
 
@@ -889,14 +890,15 @@ def register(surfaces, views, initial: RigidTransform, *,
                       f"centre of perspective of view(s) {', '.join(names)} (a mirror or "
                       f"runaway pose; the loop had stopped with: {reason})")
     per_view = np.array([float(np.mean(w[view_index == i] > 0)) for i in range(len(views))])
+    points_r = T.apply(p_ct)
     normals_r = _across(d_r, T.apply_vectors(tans_ct))
     vertices_r = T.apply(np.vstack([s.vertices for s in tops]))
-    sens, weakest = pose_sensitivity(T.apply(p_ct), normals_r, w, vertices_r,
+    sens, weakest = pose_sensitivity(points_r, normals_r, w, vertices_r,
                                      fixed_point=fixed_robot)
     gain = gain_max = float("nan")
     response = np.zeros(0)
     if fixed_robot is not None:
-        gain, gain_max, response = fixed_point_gain(T.apply(p_ct), normals_r, w, vertices_r,
+        gain, gain_max, response = fixed_point_gain(points_r, normals_r, w, vertices_r,
                                                     fixed_robot)
     return RegistrationResult(
         ct2robot=T, converged=converged, reason=reason, iterations=it, history=tuple(history),

@@ -78,7 +78,8 @@ def run_study(name: str, out: Path, *, scene=None, seed=None, quick=False, worke
     same ``out`` resumes (the trials stored as failed run again with ``retry_failed``).
     Raises ``ValueError`` before any work for an unknown study, a
     scene of another kind than the study's default scene (e.g. an operating room for
-    ``fig9``), or workers asked of a serial study.
+    ``fig9``), a scene the study's module refuses (its ``check_scene``), or workers asked of
+    a serial study.
     """
     from studies.common import check_out_folder, finish_study, start_study
     from testbed.scene import find_scene, load_scene
@@ -105,6 +106,9 @@ def run_study(name: str, out: Path, *, scene=None, seed=None, quick=False, worke
     ctx.retries = int(retries)
     ctx.progress = bool(progress)
     ctx.retry_failed = bool(retry_failed)
+    # a scene the study cannot use is refused before any work (its module's check_scene)
+    if hasattr(mod, "check_scene"):
+        mod.check_scene(ctx.scene, ctx.scene_path)
     if ctx.scene.scene.kind == "operating_room" and name not in NO_SCENE_WARNINGS:
         from studies.end_to_end import scene_warnings
 

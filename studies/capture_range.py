@@ -321,7 +321,6 @@ def run(ctx) -> pd.DataFrame:
     from studies.common import markdown_table, nothing_finished
     from studies.runner import run_study_trials
 
-    check_scene(ctx.scene, ctx.scene_path)
     size = QUICK_SIZE if ctx.quick else DEFAULT_SIZE
     bins = QUICK_BINS_MM if ctx.quick else BIN_EDGES_MM
     params = trial_params(bins=bins, **size)

@@ -196,13 +196,13 @@ def _region_label_warnings(scene, phantom=None) -> list[str]:
     return []
 
 
-def _centres(sim) -> dict | None:
-    """The region centres of the case's femur (:func:`studies.common.region_centres`), or
+def _centres(phantom) -> dict | None:
+    """The region centres of a case's femur (:func:`studies.common.region_centres`), or
     None when its phantom has neither landmarks nor a usable mesh."""
     from studies.common import region_centres
 
     try:
-        return region_centres(sim.world.phantom)
+        return region_centres(phantom)
     except (KeyError, ValueError):
         return None
 
@@ -214,7 +214,7 @@ def _aim_warnings(case: Case) -> list[str]:
     do not cover, and the verdict refuses it as a view that does not fit (a femur of 550 mm
     under views aimed for one of 450 mm: 9-10 % of its X-ray paths near the surfaces)."""
     sim = case.sim
-    return aim_warnings(sim.scene.views, sim.carms, sim.world.ct2robot, _centres(sim))
+    return aim_warnings(sim.scene.views, sim.carms, sim.world.ct2robot, _centres(sim.world.phantom))
 
 
 def aim_warnings(views, carms: dict, ct2robot, centres) -> list[str]:
@@ -222,14 +222,13 @@ def aim_warnings(views, carms: dict, ct2robot, centres) -> list[str]:
     its region centres (ct mm; None: nothing to say)."""
     if centres is None:
         return []
-    T = ct2robot
     out = []
     for i, v in enumerate(views):
         carm = carms.get(v.name)
         if carm is None or v.region not in centres:
             continue
         try:
-            rho = float(carm.point_rho(T.apply(centres[v.region])[None])[0])
+            rho = float(carm.point_rho(ct2robot.apply(centres[v.region])[None])[0])
         except ValueError:      # behind the source: nothing to say here
             continue
         if rho > 1.0:
@@ -279,7 +278,7 @@ def ct_coverage_warnings(views, centres_ct, z_mm, groups) -> list[str]:
 def _ct_warnings(case: Case) -> list[str]:
     """:func:`ct_coverage_warnings` of a prepared case."""
     sim = case.sim
-    centres = _centres(sim)
+    centres = _centres(sim.world.phantom)
     if centres is None:
         return []
     arrays = sim.observation.arrays
@@ -296,7 +295,6 @@ def scene_warnings(scene, seed: int) -> list[str]:
     a second), for the reports of the studies that use the scene's views as they are (a
     held-out review: a CT of the proximal end only gave distal pins 29-70 mm off in every
     study report without a word, where testbed run named the missing slices)."""
-    from studies.common import region_centres
     from testbed.fluoroscope import make_carm
     from testbed.simulate import case_seed, case_world, simulate_ct
 
@@ -309,10 +307,7 @@ def scene_warnings(scene, seed: int) -> list[str]:
         ctc = simulate_ct(case_scene, css, world=world)
     except ValueError:
         ctc = None
-    try:
-        centres = region_centres(world.phantom)
-    except (KeyError, ValueError):
-        centres = None
+    centres = _centres(world.phantom)
     carms = {v.name: make_carm(case_scene.fluoroscope, v, view_index=i)
              for i, v in enumerate(case_scene.views)}
     out = [*_region_label_warnings(case_scene, world.phantom),

@@ -225,12 +225,17 @@ def make_budget_trials(scene_path, seed: int, *, cases: int) -> list:
             for i, p in enumerate(params)]
 
 
-def run(ctx) -> pd.DataFrame:
+def check_scene(scene, path) -> None:
+    """Refuse, before any work (``studies.run_study``), a scene that locates a pin."""
     from studies.common import refuse_fixed_pin
+
+    refuse_fixed_pin(scene, path, "error-budget")
+
+
+def run(ctx) -> pd.DataFrame:
     from studies.runner import run_context_trials
     from testbed.scene import load_scene
 
-    refuse_fixed_pin(ctx.scene, ctx.scene_path, "error-budget")
     trials = make_budget_trials(ctx.scene_path, int(ctx.seed),
                                 cases=QUICK_CASES if ctx.quick else CASES)
     params = [t.params for t in trials]

@@ -73,11 +73,16 @@ def trial(tr) -> list[dict]:
                                 **PAPER_METHOD["registration"]))
 
 
-def run(ctx) -> pd.DataFrame:
+def check_scene(scene, path) -> None:
+    """Refuse, before any work (``studies.run_study``), a scene that locates a pin."""
     from studies.common import refuse_fixed_pin
+
+    refuse_fixed_pin(scene, path, "table2")
+
+
+def run(ctx) -> pd.DataFrame:
     from studies.runner import run_study_trials
 
-    refuse_fixed_pin(ctx.scene, ctx.scene_path, "table2")
     n = QUICK_CASES if ctx.quick else CASES
     df = run_study_trials(ctx, trial, [{"case": i, "quick": bool(ctx.quick)} for i in range(n)])
     ok = df[df.metric != "failed"]

@@ -157,18 +157,20 @@ def _figure(ctx, wide: pd.DataFrame, limit_mm: float) -> None:
     plt.close(fig)
 
 
+def check_scene(scene, path) -> None:
+    """Refuse, before any work (``studies.run_study``), a scene whose view labels disagree
+    with its anatomy (the set-ups group the views by region) or that locates a pin."""
+    from studies.common import check_view_regions, refuse_fixed_pin
+
+    check_view_regions(scene)
+    refuse_fixed_pin(scene, path, "view-setups")
+
+
 def run(ctx) -> pd.DataFrame:
     from reglib.pipeline import EstimateOptions
-    from studies.common import (
-        check_view_regions,
-        markdown_table,
-        nothing_finished,
-        refuse_fixed_pin,
-    )
+    from studies.common import markdown_table, nothing_finished
     from studies.runner import run_study_trials
 
-    check_view_regions(ctx.scene)  # the set-ups group the views by region
-    refuse_fixed_pin(ctx.scene, ctx.scene_path, "view-setups")
     cases = QUICK_CASES if ctx.quick else CASES
     df = run_study_trials(ctx, trial, [{"case": i, "quick": bool(ctx.quick)}
                                        for i in range(cases)])

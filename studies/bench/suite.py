@@ -359,8 +359,8 @@ def bench_throughput(case, quick: bool) -> dict:
     shared = (case.sim.observation, case.stages, case.options)
     rates, burns, overlap = [], [], []
     for _ in range(1 if quick else COMMAND_REPEATS):   # rate pairs, measured in turn
-        (one, _), (two, concurrency) = (_rate(_register_start, starts, w, shared)
-                                        for w in (1, 2))
+        one, _ = _rate(_register_start, starts, 1, shared)
+        two, concurrency = _rate(_register_start, starts, 2, shared)
         rates.append((one, two))
         overlap.append(concurrency)
         burns.append(tuple(_rate(_burn, list(range(8)), w)[0] for w in (1, 2)))
