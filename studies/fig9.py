@@ -114,7 +114,9 @@ def _report(ctx, df, noise, fractions):
     ctx.report(
         f"Success rate at noise {max(noise)} (a third of the cloud's diameter)",
         f"Fraction of instances whose max landmark error is below {threshold:g} (the "
-        "scene's success_threshold). The paper: the robust "
+        "scene's success_threshold). The figure's grid of noise and corrupted fractions "
+        "replaces the scene's noise_std and outlier_fraction; its other fields (n_points, "
+        "rotation_deg, landmarks, ...) stand. The paper: the robust "
         "method copes with about 40 % of such points; LM and linear only with < 5 %.\n\n"
         + markdown_table(table, ".2f"),
     )

@@ -69,10 +69,6 @@ def _poselib_solvers():
     return {"poselib_ransac": ransac, "poselib_refine": refine}
 
 
-#: a median landmark error above this (units of the unit cloud) is a failed solve
-FAILED_SOLVE_ERROR = 0.1
-
-
 def time_solves(spec, n_points, noise, repeats, seed, methods=METHODS, *, with_poselib=True):
     """Rows of (method, n_points, data, repeat, time s, landmark error)."""
     from reglib.geometry import RigidTransform
@@ -151,7 +147,10 @@ def _report(ctx, raw):
               "ratios to them are missing.")
     ctx.report("Median time per solve (ms)",
                "Median CPU time over fresh seeded instances, this machine, one core; the "
-               f"paper's IBM RS6000 times beside. {ratios}\n\n"
+               "paper's IBM RS6000 times beside. The table's sizes (20, 100, 1000 points) and "
+               "its two data sets (clean; noise 0.01 on every point) replace the scene's "
+               "n_points, noise_std and outlier_fraction; its other fields stand. "
+               f"{ratios}\n\n"
                + markdown_table(t, ".3g"))
     # per data set: a median over clean (about 1e-15) and noisy (about 1e-2) solves together
     # described neither
@@ -161,11 +160,15 @@ def _report(ctx, raw):
     # a time (and a ratio to it) is of a solve that failed where its error is large: said,
     # not left to the reader (PoseLib's refine ended 1-2 cloud sizes off on a held-out
     # geometry and the ratios read as if it had solved, a review)
+    # failed: above the scene's success_threshold, as fig9 and the synthetic run count (a
+    # fixed 0.1 called every noisy solve failed on a held-out scene whose landmarks lie 100
+    # cloud sizes away, h26)
+    threshold = ctx.scene.synthetic.success_threshold
     med = raw.groupby(["data", "n_points", "method"])["error"].median()
-    failed = [f"{m} on {d} {n}" for (d, n, m), e in med.items() if e > FAILED_SOLVE_ERROR]
-    warn = (f"\n\n**Solves that failed** (median landmark error above {FAILED_SOLVE_ERROR:g}, "
-            "a tenth of the cloud; their times and the ratios to them are of failed solves): "
-            + ", ".join(failed) + "." if failed else "")
+    failed = [f"{m} on {d} {n}" for (d, n, m), e in med.items() if e > threshold]
+    warn = (f"\n\n**Solves that failed** (median landmark error above {threshold:g}, the "
+            "scene's success_threshold; their times and the ratios to them are of failed "
+            "solves): " + ", ".join(failed) + "." if failed else "")
     ctx.report("Median max landmark error of the timed solves",
                "Per data set (clean: exact lines, noisy: the noise of the timing table's "
                "noisy rows).\n\n" + markdown_table(err, ".2g") + warn)

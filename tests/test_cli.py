@@ -548,6 +548,33 @@ def test_table1_names_the_solves_that_failed(tmp_path):
     assert "Solves that failed" not in (tmp_path / "t0" / "report.md").read_text()
 
 
+def test_table1_judges_failed_solves_by_the_scenes_success_threshold(tmp_path):
+    """Landmarks 100 cloud sizes away (a held-out scene, h26): the noisy rows' landmark
+    errors grow with the distance, and a fixed 0.1 called every noisy solve failed; the
+    scene's success_threshold decides, as in fig9 and the synthetic run."""
+    import re
+
+    text = (ROOT / "scenes" / "points-lines.toml").read_text()
+    far = re.sub(r"(?ms)^landmarks = .*?\]\]", "landmarks = [[100.0, 0.0, 0.0], "
+                 "[0.0, 100.0, 0.0], [0.0, 0.0, 100.0]]", text)
+    assert far != text
+    reports = {}
+    for threshold in (0.1, 20.0):
+        scene = tmp_path / f"far{threshold:g}.toml"
+        scene.write_text(re.sub(r"(?m)^success_threshold = .*$",
+                                f"success_threshold = {threshold}", far)
+                         if "success_threshold" in far else
+                         far.replace("[synthetic]\n", f"[synthetic]\nsuccess_threshold = "
+                                     f"{threshold}\n"))
+        out = tmp_path / f"t{threshold:g}"
+        assert main(["study", "table1", "--quick", "--scene", str(scene), "--out",
+                     str(out)]) == 0
+        reports[threshold] = (out / "report.md").read_text()
+    assert "**Solves that failed** (median landmark error above 0.1" in reports[0.1]
+    assert "robust on noisy 20" in reports[0.1]
+    assert "Solves that failed" not in reports[20.0]
+
+
 def test_a_path_too_long_for_the_file_system_exits_2_in_one_short_line(tmp_path, capsys):
     """A review: a 5000-character scene name or a 300-character --out folder exited 1 (the
     code of failed trials) and echoed the whole name."""
