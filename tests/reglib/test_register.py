@@ -456,6 +456,36 @@ def test_stall_window_zero_disables_the_stall_test(world):
     assert np.all(pin_errors(off.ct2robot, true) < 0.3)
 
 
+def test_the_stall_rule_stops_steps_that_no_longer_shrink_and_not_shrinking_ones(
+        world, monkeypatch):
+    """The stall rule alone (a mutation audit: with its "no longer shrinking" test inverted
+    every test passed, the limit-cycle rule, whose reason also names tol_stall_mm, being
+    the one that fired). Each solve's pose is replaced by a translation of the current one:
+    steps of a constant 0.05 mm (a drift, no cycle) stop by the stall rule after its
+    window; steps halving from 0.08 mm are still shrinking and do not (the poses settle,
+    and the limit-cycle rule ends them)."""
+    import dataclasses
+
+    import reglib.register as reg_mod
+
+    tops, views, true = world
+    real = reg_mod.solve_pose
+    for halve in (False, True):
+        steps = iter(0.08 * 0.5 ** np.arange(60) if halve else np.full(60, 0.05))
+
+        def drift(*args, steps=steps, **kw):
+            res = real(*args, **kw)      # the residual "normal": an increment on the pose
+            return dataclasses.replace(res, R=np.eye(3), t=np.array([next(steps), 0.0, 0.0]))
+
+        monkeypatch.setattr(reg_mod, "solve_pose", drift)
+        out = register(tops, list(views.values()), true, max_iterations=40, tol_step_mm=1e-4)
+        assert out.converged, out.reason
+        if halve:
+            assert "no longer shrink" not in out.reason, out.reason
+        else:
+            assert "no longer shrink" in out.reason and out.iterations == 5, out.reason
+
+
 def test_register_refuses_a_non_rigid_initial_clearly(world):
     tops, views, true = world
     bad = object.__new__(RigidTransform)            # bypasses RigidTransform's own check

@@ -269,6 +269,19 @@ def test_case_streams_never_spawn_from_the_case_seed():
         assert np.array_equal(b[name].generate_state(4), want)
     assert np.array_equal(case_streams(7, 3)["ct"].generate_state(4),
                           kids[STREAM_KEYS["ct"]].generate_state(4))
+    # every stream its own: two sources on one stream draw the same numbers (a mutation
+    # audit: the operator on the CT noise's key was caught only by a slow regression
+    # limit), and none on the keys the robot and the judge salt with
+    from studies.scoring import JUDGE_STREAM
+    from testbed.simulate import ROBOT_KEY
+
+    keys = list(STREAM_KEYS.values())
+    assert len(set(keys)) == len(keys) and not {ROBOT_KEY, JUDGE_STREAM} & set(keys)
+    states = {name: tuple(ss.generate_state(4)) for name, ss in a.items()}
+    assert len(set(states.values())) == len(states)
+    # the keys are what every dataset made so far was drawn with (see STREAM_KEYS)
+    assert STREAM_KEYS == {"shape": 6, "world": 7, "ct": 14, "operator": 15, "robot": 4,
+                           "xray": 5, "placement": 16, "motion": 17}
 
 
 @pytest.mark.slow

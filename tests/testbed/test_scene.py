@@ -100,6 +100,7 @@ def test_syntax_error_names_file(tmp_path):
         ("fluoroscope", "earth_field_uT", [0.0, 1e8, -44.0], "less than or equal to 200"),
         ("robot", "encoder_noise_deg", 1e8, "less than or equal to 1"),
         ("operator", "ct_click_noise_px", 1e6, "less than or equal to 50"),
+        ("operator", "xray_click_noise_px", 1000.0, "less than or equal to 50"),
         # a bad-input review: these were taken (810 deg as 90, an invisible rod swept)
         ("patient", "rotation_deg", [810.0, 0.0, 0.0], "less than or equal to 360"),
     ],
