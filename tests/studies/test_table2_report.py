@@ -61,3 +61,19 @@ def test_the_targets_say_when_the_method_refused_registrations_they_include():
     assert "met: mean pin error 2.80 mm" in text
     every = verdict.assign(value=1.0)
     assert "**note**" not in targets_markdown(pd.concat([rows, every], ignore_index=True))
+
+
+def test_a_scene_other_than_the_papers_set_up_is_said_before_the_targets():
+    """Two views, or the ideal profile: the targets (the paper's four clinic views) are not
+    this scene's, and the report says so before them; the shipped clinic scene gets no
+    such line."""
+    from studies.table2 import set_up_note
+    from testbed.scene import find_scene, load_scene
+
+    clinic = load_scene(find_scene("experiment2"))
+    assert set_up_note(clinic) == ""
+    assert "ideal profile" in set_up_note(load_scene(find_scene("experiment2-ideal")))
+    two = clinic.model_copy(update={"views": clinic.views[:2]})
+    note = set_up_note(two)
+    assert note.startswith("**This scene is not the set-up") and "2 view(s)" in note
+    assert "ideal" not in note
