@@ -16,7 +16,9 @@ per set-up, the acceptance, the mTRE and ``weak_motion_mm``; the confusion count
 and a figure of the mTRE against ``weak_motion_mm`` beside the verdict's limit.
 
 Long-format rows: ``mtre`` (mm), ``pin_error`` (mm, with ``pin``), ``accepted``,
-``converged``, ``weak_motion_mm`` (mm), ``views`` (count), each with a ``setup`` column.
+``converged``, ``weak_motion_mm`` (mm), ``views`` (count), each with a ``setup`` column;
+and, trial -1, the verdict's counts against success (mTRE) and ``accepts_with_a_pin_off``
+(accepted with a pin :data:`SUCCESS_MM` or more off).
 """
 
 from __future__ import annotations
@@ -100,6 +102,16 @@ def confusion(wide: pd.DataFrame) -> dict[str, int]:
             "true refusals": int(np.sum(~acc & ~good))}
 
 
+def accepts_with_a_pin_off(wide: pd.DataFrame) -> int:
+    """Accepted registrations with a pin :data:`SUCCESS_MM` or more off (``max_pin``, mm),
+    whatever their mTRE: success by the mean alone counted a pose with one pin 3-4 mm off
+    as right (the experiment1 study's O3, a held-out review)."""
+    if "max_pin" not in wide:
+        return 0
+    return int(np.sum((wide["accepted"].to_numpy() > 0.5)
+                      & (wide["max_pin"].to_numpy() >= SUCCESS_MM)))
+
+
 def closing_line(c: dict[str, int]) -> str:
     """The verdict's last line: the price of its refusals when it accepted no wrong pose,
     else the false accepts (the same reassurance was printed beside false accepts)."""
@@ -120,6 +132,7 @@ def summary(wide: pd.DataFrame) -> pd.DataFrame:
         out.append({"set-up": name, "views": int(d["views"].iloc[0]), "cases": len(d),
                     "accepted": int((d["accepted"] > 0.5).sum()),
                     "mTRE median (mm)": d["mtre"].median(), "mTRE max (mm)": d["mtre"].max(),
+                    **({"worst pin max (mm)": d["max_pin"].max()} if "max_pin" in d else {}),
                     "weak motion median (mm)": d["weak_motion_mm"].median(),
                     "weak motion min (mm)": d["weak_motion_mm"].min(),
                     "weak motion max (mm)": d["weak_motion_mm"].max(),
@@ -180,6 +193,10 @@ def run(ctx) -> pd.DataFrame:
     failures = df.attrs.get("failures", {})
     wide = ok[ok.metric.isin(["mtre", "accepted", "weak_motion_mm", "views"])].pivot_table(
         index=["trial", "setup"], columns="metric", values="value").reset_index()
+    pins = ok[ok.metric == "pin_error"]
+    if len(pins) and not wide.empty:
+        worst = pins.groupby(["trial", "setup"])["value"].max().rename("max_pin")
+        wide = wide.merge(worst.reset_index(), on=["trial", "setup"], how="left")
     if wide.empty:
         ctx.report("Verdict against the truth", "No registration finished." + (
             "\n\n" + "\n".join(f"- trial {k}: {v}" for k, v in failures.items())
@@ -191,6 +208,7 @@ def run(ctx) -> pd.DataFrame:
     wide = wide.sort_values(["setup", "trial"])
     wide["setup"] = wide["setup"].astype(str)
     c = confusion(wide)
+    off = accepts_with_a_pin_off(wide)
     ctx.report("Verdict against the truth", "\n".join([
         f"{len(wide)} registrations: {wide.trial.nunique()} case(s) of the scene"
         + (f" (of {cases}; the others failed: see 'Failed trials')"
@@ -199,7 +217,9 @@ def run(ctx) -> pd.DataFrame:
         f"`testbed run`'s start with {len(order)} set-ups of its views. Success: final mTRE "
         f"< {SUCCESS_MM:g} mm. The verdict refuses, among others, a pose whose "
         f"`weak_motion_mm` exceeds {limit:g} mm.", "",
-        *(f"- {k}: **{v}**" for k, v in c.items()), "",
+        *(f"- {k}: **{v}**" for k, v in c.items()),
+        f"- of the accepts, with a pin {SUCCESS_MM:g} mm or more off (whatever the mTRE): "
+        f"**{off}**", "",
         closing_line(c)]))
     ctx.report("Per set-up", markdown_table(summary(wide), ".3g"))
     if failures:
@@ -207,4 +227,6 @@ def run(ctx) -> pd.DataFrame:
     _figure(ctx, wide, limit)
     rows = [{"trial": -1, "metric": k.replace(" ", "_"), "value": float(v), "unit": "count"}
             for k, v in c.items()]
+    rows.append({"trial": -1, "metric": "accepts_with_a_pin_off", "value": float(off),
+                 "unit": "count"})
     return pd.concat([df, pd.DataFrame(rows)], ignore_index=True)

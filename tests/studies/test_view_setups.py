@@ -43,9 +43,20 @@ def test_quick_study_refuses_one_view_per_end_and_accepts_all_views(tmp_path):
     assert wide.loc[pair[0], "accepted"] == 0 and wide.loc[pair[0], "mtre"] > 2.0
     assert wide.loc[pair[0], "weak_motion_mm"] > 2 * wide.loc["all", "weak_motion_mm"]
     counts = df[df.trial == -1].set_index("metric")["value"]
-    assert counts["false_accepts"] == 0 and counts.sum() == 3
+    assert counts["false_accepts"] == 0 and counts["accepts_with_a_pin_off"] == 0
+    assert counts.drop("accepts_with_a_pin_off").sum() == 3
     report = (tmp_path / "report.md").read_text()
     assert "false accepts" in report and (tmp_path / "view_setups.png").is_file()
+
+
+def test_accepts_with_a_pin_off_are_counted_whatever_the_mtre():
+    from studies.view_setups import accepts_with_a_pin_off
+
+    wide = pd.DataFrame({"accepted": [1, 1, 0, 1], "mtre": [0.5, 1.5, 1.0, 2.5],
+                         "max_pin": [0.9, 3.1, 4.0, 2.0]})
+    assert accepts_with_a_pin_off(wide) == 2       # 1.5 mm mTRE with a 3.1 mm pin, and 2.5
+    assert confusion(wide)["true accepts"] == 2    # the mean alone calls 1.5 mm right
+    assert accepts_with_a_pin_off(wide.drop(columns="max_pin")) == 0
 
 
 def test_the_closing_line_names_false_accepts():
