@@ -367,7 +367,9 @@ def run(ctx) -> pd.DataFrame:
     ctx.report("The method's own verdict against the truth", markdown_table(flags, ".3f") + (
         f"\n\nPer method: `accepted` (the method's verdict, computed without the truth) "
         f"against success (final mTRE < {SUCCESS_MM:g} mm). Precision: the share of accepted "
-        "results that are right; recall: the share of right results that were accepted."))
+        "results that are right; recall: the share of right results that were accepted. A "
+        "blank precision means the method accepted no start, a blank recall that no start "
+        "succeeded (a ratio of none)."))
     _figures(ctx, ok, s, edges)
     rows = [{"trial": -1, "metric": "capture_range", "value": cr[m], "unit": "mm", "method": m}
             for m in cr]
