@@ -288,13 +288,14 @@ def _ct_warnings(case: Case) -> list[str]:
     return ct_coverage_warnings(sim.scene.views, centres, arrays["ct_slices"]["z_mm"], groups)
 
 
-def scene_warnings(scene, seed: int) -> list[str]:
+def scene_warnings(scene, seed: int, *, aim: bool = True) -> list[str]:
     """What ``testbed run`` warns of an operating-room scene (a view labelled with the other
     region, a view whose field misses its region's anatomy, a view whose anatomy the CT's
     contoured slices do not reach), from case 0's world and CT alone (no fluoroscopy: about
     a second), for the reports of the studies that use the scene's views as they are (a
     held-out review: a CT of the proximal end only gave distal pins 29-70 mm off in every
-    study report without a word, where testbed run named the missing slices)."""
+    study report without a word, where testbed run named the missing slices). ``aim=False``
+    leaves out the fields' aim (a study that re-aims the views)."""
     from testbed.fluoroscope import make_carm
     from testbed.simulate import case_seed, case_world, simulate_ct
 
@@ -311,7 +312,7 @@ def scene_warnings(scene, seed: int) -> list[str]:
     carms = {v.name: make_carm(case_scene.fluoroscope, v, view_index=i)
              for i, v in enumerate(case_scene.views)}
     out = [*_region_label_warnings(case_scene, world.phantom),
-           *aim_warnings(case_scene.views, carms, world.ct2robot, centres)]
+           *(aim_warnings(case_scene.views, carms, world.ct2robot, centres) if aim else [])]
     if centres is not None and ctc is not None:
         groups = [np.asarray(cc.slices, dtype=np.int64) for cc in ctc.clicks.values()]
         out += ct_coverage_warnings(case_scene.views, centres, ctc.ct.slice_z_mm, groups)

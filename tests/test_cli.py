@@ -678,6 +678,37 @@ def test_a_study_report_carries_the_warnings_testbed_run_gives_of_its_scene(tmp_
     assert scene_warnings(load_scene(ROOT / "scenes" / "experiment2.toml"), 1996) == []
 
 
+def test_capture_range_reports_the_cts_reach_but_not_the_aim_of_views_it_reaims(
+        tmp_path, monkeypatch):
+    """capture-range re-aims the views at each random femur, so it had no scene warnings at
+    all, and a CT of the proximal end only gave 0 mm for every method without a word (a
+    held-out review): its report now carries the CT's reach, and leaves out the aim."""
+    import pandas as pd
+
+    import studies.capture_range as cr
+    from studies.end_to_end import scene_warnings
+    from testbed.scene import load_scene
+
+    scene = (ROOT / "scenes" / "experiment2.toml").read_text()
+    bad = tmp_path / "ct_proximal.toml"
+    bad.write_text(scene + '\n[ct]\nschedule = "uniform"\nuniform_range_mm = [300.0, 470.0]\n')
+    assert scene_warnings(load_scene(bad), 1996, aim=False) == scene_warnings(
+        load_scene(bad), 1996)
+    # a view turned off its anatomy: an aim warning, left out for a study that re-aims
+    off = tmp_path / "off_aim.toml"
+    off.write_text(scene.replace("isocenter_mm = [800.0, -160.0, 200.0]",
+                                 "isocenter_mm = [800.0, -160.0, 500.0]", 1))
+    aimed = scene_warnings(load_scene(off), 1996)
+    assert aimed and scene_warnings(load_scene(off), 1996, aim=False) == []
+    monkeypatch.setattr(cr, "run", lambda ctx: pd.DataFrame(
+        [{"trial": 0, "metric": "x", "value": 1.0, "unit": ""}]))
+    assert main(["study", "capture-range", "--quick", "--scene", str(bad), "--out",
+                 str(tmp_path / "cr")]) == 0
+    report = (tmp_path / "cr" / "report.md").read_text()
+    assert "## Warnings about the scene" in report and "re-aims them" in report
+    assert "the CT has no slices at its anatomy" in report
+
+
 def test_generate_says_when_every_case_shares_one_placement(tmp_path, capsys, monkeypatch):
     """A dataset of a scene without [patient] position_sd_mm / rotation_sd_deg has one
     ct2robot for all its cases (a review: a method returning the scene's placement scored
