@@ -340,6 +340,11 @@ def cmd_generate(args) -> int:
                             progress=sys.stderr.isatty())
     # (a rerun keeps the complete cases: it may write none of them)
     print(f"{len(dirs)} case(s) complete in {out}")
+    from studies.end_to_end import scene_warnings
+
+    seed = scene.scene.seed if args.seed is None else args.seed
+    for w in scene_warnings(scene, int(seed)):     # what testbed run says of the scene
+        print(f"{PROG} generate: warning: {w}", file=sys.stderr)
     if not scene.workspace.check:   # as testbed run and the score report say it (a review)
         print(f"{PROG} generate: {path.name} opts out of the workspace check ([workspace] "
               "check = false): its acquisitions were not checked for collisions",

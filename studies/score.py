@@ -198,6 +198,22 @@ def _dataset_identity(dataset: Path) -> str:
         return str(dataset.resolve())
 
 
+def dataset_scene_warnings(scene, seed: int) -> list[str]:
+    """:func:`studies.end_to_end.scene_warnings` of a dataset's scene (as its cases record
+    it) at its seed; advisory, so empty when they cannot be computed (e.g. a user mesh that
+    is no longer where the scene names it). A held-out review: a dataset of a CT of the
+    proximal end only scored distal pins tens of mm off without a word, where testbed run
+    and the studies name the missing slices."""
+    from studies.end_to_end import scene_warnings
+
+    if scene is None or getattr(scene.scene, "kind", "") != "operating_room":
+        return []
+    try:
+        return scene_warnings(scene, int(seed))
+    except Exception:  # noqa: BLE001 - advisory: the scores stand without it
+        return []
+
+
 def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 1,
                   scheduler=None, progress: bool = True,
                   timeout_s: float | None = None, retry_failed: bool = False) -> Path:
@@ -289,6 +305,11 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
             seed = 0
     ctx = StudyContext(name=f"score {method}", out=out, scene_path=dataset, scene=scene,
                        seed=seed, workers=workers, scheduler=scheduler)
+    warnings = dataset_scene_warnings(scene, seed)
+    if warnings:
+        ctx.report("Warnings about the scene", "What `testbed run` says of the scene the "
+                   "cases were generated from (its first case); the figures below carry "
+                   "it:\n\n" + "\n".join(f"- {w}" for w in warnings))
     pe = df[df.metric == "pin_error"]
     if not pe.empty:
         t = pe.groupby("pin")["value"].agg(["mean", "median", "max"]).reset_index()
