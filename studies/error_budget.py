@@ -150,6 +150,48 @@ def ideal_scene_path(scene_path) -> str | None:
         return None
 
 
+#: the shipped profiles whose difference defines the ideal magnitudes that stand in for a
+#: scene without its own ideal profile
+SHIPPED_PAIR = ("experiment2", "experiment2-ideal")
+#: ``params["ideal"]`` of a scene without its own ideal profile
+SHIPPED = "shipped"
+
+
+def shipped_ideal(scene):
+    """``scene`` with every error source at the shipped ideal profile's magnitude: each field
+    in which ``experiment2-ideal`` differs from ``experiment2`` (:func:`error_sources`) set
+    to its ideal value, the rest (femur, set-up, options) the scene's own. For a scene
+    without its own ideal profile (a held-out review: every held-out scene got no budget by
+    source, and table2 pointed to a section that was then not written)."""
+    from testbed.scene import find_scene, load_scene
+
+    clinic, ideal = (load_scene(find_scene(n)) for n in SHIPPED_PAIR)
+    values = {k: v[1] for fields in error_sources(clinic, ideal).values()
+              for k, v in fields.items()}
+    out = variant(scene, values)
+    return out.model_copy(update={"scene": out.scene.model_copy(
+        update={"name": f"{scene.scene.name} (shipped ideal magnitudes)"})})
+
+
+def ideal_profile(clinic, ideal: str):
+    """The ideal profile a trial's ``params["ideal"]`` names: a scene file, or
+    :data:`SHIPPED` (:func:`shipped_ideal` of ``clinic``)."""
+    from testbed.scene import load_scene
+
+    return shipped_ideal(clinic) if ideal == SHIPPED else load_scene(ideal)
+
+
+def no_budget_reason(scene, scene_path) -> str:
+    """Why a scene gets no budget by source (:func:`trial_params` found no source to vary)."""
+    try:
+        ideal_profile(scene, ideal_scene_path(scene_path) or SHIPPED)
+    except ValueError as exc:
+        return (f"The shipped ideal magnitudes cannot be applied to this scene ({exc}); give "
+                f"it an ideal profile, `{Path(scene_path).stem}-ideal.toml` beside it")
+    return ("Every error source of the scene is already at its ideal magnitude (it equals "
+            "its ideal profile, or the shipped ideal magnitudes): no source to switch off")
+
+
 # --------------------------------------------------------------------------- trials
 def _scene_of(tr):
     from testbed.scene import load_scene
@@ -158,7 +200,7 @@ def _scene_of(tr):
     cfg = tr.params["config"]
     if cfg == "clinic":
         return clinic
-    ideal = ideal_of(clinic, load_scene(tr.params["ideal"]))
+    ideal = ideal_of(clinic, ideal_profile(clinic, tr.params["ideal"]))
     if cfg == "ideal":
         return ideal
     fields = error_sources(clinic, ideal)[tr.params["source"]]
@@ -189,16 +231,26 @@ def trial(tr) -> list[dict]:
 
 
 def trial_params(scene_path, *, cases: int) -> list[dict]:
-    """Per case: the clinic configuration, and with an ideal profile the ideal one and each
-    source off and alone."""
+    """Per case: the clinic configuration, the ideal one and each source off and alone; the
+    ideal profile is the scene's own (``<name>-ideal.toml``) or else the shipped magnitudes
+    (:data:`SHIPPED`); with no source to vary (a scene already at them), the clinic
+    configuration alone."""
     from testbed.scene import load_scene
 
-    ideal = ideal_scene_path(scene_path)
-    params = [{"config": "clinic", "source": "", "ideal": ideal or "", "case": i}
+    clinic = load_scene(scene_path)
+    ideal = ideal_scene_path(scene_path) or SHIPPED
+    try:
+        sources = error_sources(clinic, ideal_profile(clinic, ideal))
+    except ValueError:
+        if ideal != SHIPPED:       # the scene's own profile: its problem is the user's
+            raise
+        sources = {}               # said in the report (no_budget_reason)
+    if not sources:
+        ideal = ""
+    params = [{"config": "clinic", "source": "", "ideal": ideal, "case": i}
               for i in range(cases)]
-    if ideal is None:
+    if not ideal:
         return params
-    sources = error_sources(load_scene(scene_path), load_scene(ideal))
     for i in range(cases):
         params.append({"config": "ideal", "source": "", "ideal": ideal, "case": i})
         for s in sources:
@@ -218,9 +270,11 @@ def make_budget_trials(scene_path, seed: int, *, cases: int) -> list:
 
     params = trial_params(scene_path, cases=cases)
     ideal = params[0]["ideal"]
+    clinic = load_scene(scene_path)
     digest = fingerprint(texts=["ideal: the clinic's set-up, the profile's magnitudes",
-                                scene_fingerprint(load_scene(scene_path)),
-                                scene_fingerprint(load_scene(ideal)) if ideal else ""])
+                                scene_fingerprint(clinic),
+                                scene_fingerprint(ideal_profile(clinic, ideal)) if ideal
+                                else ""])
     return [Trial.from_seed_sequence(i, str(scene_path), case_seed(seed, p["case"]), p, digest)
             for i, p in enumerate(params)]
 
@@ -234,7 +288,6 @@ def check_scene(scene, path) -> None:
 
 def run(ctx) -> pd.DataFrame:
     from studies.runner import run_context_trials
-    from testbed.scene import load_scene
 
     trials = make_budget_trials(ctx.scene_path, int(ctx.seed),
                                 cases=QUICK_CASES if ctx.quick else CASES)
@@ -246,10 +299,16 @@ def run(ctx) -> pd.DataFrame:
         return df
     ctx.report("The method's verdict on these registrations", verdict_markdown(df))
     ideal = params[0]["ideal"]
+    stem = Path(ctx.scene_path).stem
     if ideal:
-        src = error_sources(ctx.scene, load_scene(ideal))
-        ctx.report("Error sources", f"The clinic profile `{ctx.scene_path}` against its ideal "
-                   f"profile `{ideal}`, field by field. The `ideal` and `alone` "
+        src = error_sources(ctx.scene, ideal_profile(ctx.scene, ideal))
+        what = (f"its ideal profile `{ideal}`" if ideal != SHIPPED else
+                f"the shipped ideal magnitudes (no `{stem}-ideal.toml` was found beside the "
+                f"scene file or among the named scenes: every field in which "
+                f"`{SHIPPED_PAIR[1]}` differs from `{SHIPPED_PAIR[0]}` at "
+                f"`{SHIPPED_PAIR[1]}`'s value)")
+        ctx.report("Error sources", f"The clinic profile `{ctx.scene_path}` against {what}, "
+                   "field by field. The `ideal` and `alone` "
                    "configurations are the clinic scene with these fields changed: its femur, "
                    "registration options and workspace check stay the clinic scene's, "
                    "whatever the ideal profile sets there.\n\n" + markdown_table(pd.DataFrame(
@@ -266,9 +325,8 @@ def run(ctx) -> pd.DataFrame:
         _tornado(ctx, t)
         ctx.report("What would close the gap to the paper", gap_markdown(t))
     else:
-        stem = Path(ctx.scene_path).stem
-        ctx.report("By source", f"No ideal profile (`{stem}-ideal.toml`) was found beside the "
-                   "scene file or among the named scenes: only the stage budget is run.")
+        ctx.report("By source", no_budget_reason(ctx.scene, ctx.scene_path)
+                   + ": only the stage budget is run.")
     stage = pe[pe.config == "clinic"].groupby("oracle")["value"].agg(
         ["mean", "median", "max"]).reset_index()
     base = stage.set_index("oracle")["mean"].get("none", float("nan"))

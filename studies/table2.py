@@ -283,8 +283,9 @@ def targets_markdown(df: pd.DataFrame) -> str:
             f"{np.sqrt(TARGET_MEAN_MM[0]**2 - mean**2):.2f} mm at the pins is missing (errors "
             "adding in quadrature); `testbed study error-budget` attributes the error to each "
             "source and gives the factor by which each source's magnitude would have to grow "
-            "to supply it (section 'What would close the gap to the paper'; it needs the "
-            "scene's ideal profile, `<name>-ideal.toml` beside the scene file).")
+            "to supply it (section 'What would close the gap to the paper'; from the "
+            "scene's ideal profile, `<name>-ideal.toml` beside the scene file, or else the "
+            "shipped ideal magnitudes).")
     vs_ref = df[df.metric == "pin_error_vs_reference"]
     if len(vs_ref):
         lines.append(

@@ -164,3 +164,35 @@ def test_the_verdict_section_counts_the_refused_registrations():
     assert "| clinic |" in text and "| ideal |" not in text    # only those with refusals
     ok = verdict_markdown(df[df.config == "ideal"])
     assert "All were accepted" in ok and "|" not in ok
+
+
+def test_a_scene_without_its_ideal_profile_gets_the_shipped_magnitudes(clinic, tmp_path):
+    """A held-out review: no held-out scene had a `<stem>-ideal.toml`, so none got a budget
+    by source (and table2 pointed to a section that was not written). The shipped ideal
+    magnitudes now stand in: each field in which experiment2-ideal differs from experiment2
+    at its ideal value, on the scene's own set-up and femur; a scene already at them (the
+    ideal profile itself) has no source to vary, and the report says why."""
+    from studies.error_budget import SHIPPED, no_budget_reason, shipped_ideal, trial_params
+
+    text = find_scene("experiment2").read_text()
+    moved = re.sub(r"(?m)^position_mm = .*$", "position_mm = [835.0, 205.0, 200.0]", text,
+                   count=1)
+    assert moved != text
+    mine_path = tmp_path / "held_out.toml"
+    mine_path.write_text(moved.replace("[fluoroscope]\n", "[fluoroscope]\nfocal_spot_mm = 0.9\n",
+                                       1))
+    mine = load_scene(mine_path)
+    ideal = shipped_ideal(mine)
+    assert ideal.patient == mine.patient and ideal.views == mine.views
+    assert ideal.phantom == mine.phantom and ideal.registration == mine.registration
+    shipped = error_sources(clinic, load_scene(find_scene("experiment2-ideal")))
+    assert set(error_sources(mine, ideal)) == set(shipped)
+    assert error_sources(mine, ideal)["focal-spot blur"]["fluoroscope.focal_spot_mm"] == (0.9, 0.0)
+    params = trial_params(mine_path, cases=1)
+    assert {p["ideal"] for p in params} == {SHIPPED}
+    assert {p["config"] for p in params} == {"clinic", "ideal", "off", "alone"}
+    assert len(params) == 2 + 2 * len(shipped)
+    own = tmp_path / "experiment2-ideal.toml"      # no experiment2-ideal-ideal beside it
+    own.write_text(find_scene("experiment2-ideal").read_text())
+    assert [p["config"] for p in trial_params(own, cases=1)] == ["clinic"]
+    assert "already at its ideal magnitude" in no_budget_reason(load_scene(own), own)
