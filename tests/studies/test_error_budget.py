@@ -196,3 +196,18 @@ def test_a_scene_without_its_ideal_profile_gets_the_shipped_magnitudes(clinic, t
     own.write_text(find_scene("experiment2-ideal").read_text())
     assert [p["config"] for p in trial_params(own, cases=1)] == ["clinic"]
     assert "already at its ideal magnitude" in no_budget_reason(load_scene(own), own)
+
+
+def test_the_stage_budget_says_when_a_true_input_made_the_error_larger():
+    """A held-out review: the true contours made the pin error larger on four scenes and the
+    report said nothing."""
+    from studies.error_budget import stage_markdown
+
+    rows = [{"config": "clinic", "oracle": o, "value": v}
+            for o, vals in (("none", (1.0, 1.2)), ("calibration", (0.4, 0.6)),
+                            ("contours", (1.8, 2.2))) for v in vals]
+    text = stage_markdown(pd.DataFrame(rows))
+    assert "-0.818" in text and "A negative share (`contours`)" in text
+    assert "`calibration`" not in text.split("A negative share")[1]
+    better = stage_markdown(pd.DataFrame([r for r in rows if r["oracle"] != "contours"]))
+    assert "0.545" in better and "negative share" not in better
