@@ -334,16 +334,20 @@ def cmd_generate(args) -> int:
         raise UsageError(f"{path}: scene kind {scene.scene.kind!r}: testbed generate needs an "
                          "operating_room scene with [[views]] (e.g. experiment2)")
     out = _creatable_folder(args.out)
+    from studies.end_to_end import sim_warnings
     from testbed.generate import generate_command
 
+    warnings = []      # what testbed run says of the scene, from case 0 when this run makes it
+
+    def first_case(i, sim):
+        if i == 0:
+            warnings.extend(sim_warnings(sim))
+
     dirs = generate_command(scene, scene_path=path, cases=args.cases, out=out, seed=args.seed,
-                            progress=sys.stderr.isatty())
+                            progress=sys.stderr.isatty(), on_case=first_case)
     # (a rerun keeps the complete cases: it may write none of them)
     print(f"{len(dirs)} case(s) complete in {out}")
-    from studies.end_to_end import scene_warnings
-
-    seed = scene.scene.seed if args.seed is None else args.seed
-    for w in scene_warnings(scene, int(seed)):     # what testbed run says of the scene
+    for w in warnings:
         print(f"{PROG} generate: warning: {w}", file=sys.stderr)
     if not scene.workspace.check:   # as testbed run and the score report say it (a review)
         print(f"{PROG} generate: {path.name} opts out of the workspace check ([workspace] "

@@ -207,6 +207,16 @@ def _centres(phantom) -> dict | None:
         return None
 
 
+def sim_warnings(sim) -> list[str]:
+    """What ``testbed run`` warns of a simulated case (``testbed.simulate.Simulation``): a
+    view labelled with the other region, a field that misses its anatomy, anatomy the CT's
+    contoured slices do not reach; from what the simulation made (no more work)."""
+    return [*_region_label_warnings(sim.scene, sim.world.phantom),
+            *aim_warnings(sim.scene.views, sim.carms, sim.world.ct2robot,
+                          _centres(sim.world.phantom)),
+            *_ct_warnings_of(sim)]
+
+
 def _aim_warnings(case: Case) -> list[str]:
     """A view whose field of view misses the anatomy of its region (the centre of
     :func:`studies.common.region_centres`, seen through the view's C-arm, beyond the
@@ -277,7 +287,11 @@ def ct_coverage_warnings(views, centres_ct, z_mm, groups) -> list[str]:
 
 def _ct_warnings(case: Case) -> list[str]:
     """:func:`ct_coverage_warnings` of a prepared case."""
-    sim = case.sim
+    return _ct_warnings_of(case.sim)
+
+
+def _ct_warnings_of(sim) -> list[str]:
+    """:func:`ct_coverage_warnings` of a simulated case."""
     centres = _centres(sim.world.phantom)
     if centres is None:
         return []
@@ -339,8 +353,7 @@ def run_case(scene, *, seed: int, progress: bool = False):
     timings["registration"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_all
     meta = case.sim.truth.meta
-    label_warnings = [*_region_label_warnings(case.sim.scene, case.sim.world.phantom),
-                      *_aim_warnings(case), *_ct_warnings(case)]
+    label_warnings = sim_warnings(case.sim)
     acq = float(sum(meta["sweep_time_s"].values()))
     dose = float(sum(meta["dose_mrem"].values()))
     result = {

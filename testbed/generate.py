@@ -152,7 +152,7 @@ def _check_index(old, index: Path) -> None:
 
 
 def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = None,
-                     progress: bool = True) -> list[Path]:
+                     progress: bool = True, on_case=None) -> list[Path]:
     """Write ``cases`` simulated cases of ``scene`` into the folder ``out``.
 
     Parameters
@@ -174,6 +174,10 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
         ``(seed, i)`` (:func:`testbed.simulate.case_seed`).
     progress : bool
         A tqdm progress bar over the cases.
+    on_case : callable or None
+        Called as ``on_case(i, sim)`` with each case this run simulates (its
+        ``testbed.simulate.Simulation``), before the case is written (the command line
+        takes case 0's warnings from it).
 
     Returns
     -------
@@ -269,6 +273,8 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
             write_index()
         sim = simulate(scene, case_seed(int(seed), i), truth_rays=True, progress=progress,
                        prepared=first if i == 0 else None)
+        if on_case is not None:
+            on_case(i, sim)
         case, truth = case_entries(sim)
         case["meta"].update(case_index=i, dataset_seed=int(seed), timings_s=sim.timings)
         # the scene file holds the patient's placement, i.e. the true ct2robot: truth only
