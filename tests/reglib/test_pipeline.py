@@ -515,3 +515,80 @@ def test_the_reported_try_is_never_a_diverged_one_when_another_exists():
     assert best_try([diverged]) is diverged
     assert best_try([t("converged", 1, 9.0), better]) is not better      # fewer objections
     assert best_try([t("a", 0, float("nan")), t("b", 0, 2.0)])[0].reason == "b"
+
+
+def test_a_view_that_fits_nothing_is_objected_to_with_two_views_too():
+    """Two views, one with 5 % of its paths near the surfaces: one objection naming it (a
+    mutation audit: the objection only with more than two views passed every test;
+    experiment1 registers two)."""
+    from reglib.pipeline import EstimateOptions, verdict
+
+    q = {"median_residual_mm": 0.3, "inlier_fraction": 0.9, "worst_view_fit": 0.05,
+         "worst_view": 1, "min_contour_share": 1.0, "least_contour_view": 0,
+         "weak_motion_mm": 2.0}
+    r = verdict(True, q, "", EstimateOptions(), 2, ["a", "b"])
+    assert len(r) == 1 and "view b does not fit" in r[0], r
+    assert verdict(True, {**q, "worst_view_fit": 0.6}, "", EstimateOptions(), 2,
+                   ["a", "b"]) == []
+
+
+def _plane_sweep(near_z, far_z, val_z):
+    """A sweep's reported bead rows: three on a near plane, three on a far one, one
+    validation row, each of 8 beads, at the given heights (mm)."""
+    from reglib.markers import SweepData
+
+    xs = np.linspace(-40, 40, 8)
+    rows, plane = [], []
+    for code, z in ((0, near_z), (1, far_z)):
+        for y in (-30.0, 0.0, 30.0):
+            rows.append(np.column_stack([xs, np.full(8, y), np.full(8, z)]))
+            plane.append(code)
+    rows.append(np.column_stack([xs, np.zeros(8), np.full(8, val_z)]))
+    plane.append(2)
+    return SweepData(view="v", frames=np.zeros((len(plane), 8, 8), np.uint8),
+                     plane=np.array(plane), beads_robot=np.stack(rows),
+                     bead_positions_mm=np.arange(8.0), mask=None)
+
+
+def test_a_validation_row_on_either_calibration_plane_is_refused():
+    """The validation row tests the paths only between the planes: one 1 mm from the near
+    or from the far plane is refused (a mutation audit: a check of the near plane alone
+    passed every test; such a row once let a view register 158 mm off)."""
+    from reglib.pipeline import _sweep_geometry
+
+    assert _sweep_geometry(_plane_sweep(0.0, 120.0, 60.0)) == ""
+    for z in (1.0, 119.0):
+        assert "validation row lies" in _sweep_geometry(_plane_sweep(0.0, 120.0, z)), z
+
+
+def test_restarts_about_a_fixed_point_keep_it_where_the_start_put_it(monkeypatch):
+    """experiment1's restarts turn the start about the located pin as the start places it
+    in the robot frame (a mutation audit: turning about the pin's CT coordinates moved it
+    56.6 mm and experiment1 seed 1 from 0.70 mm accepted to 39.1 mm refused, and every test
+    passed). Every registration's start keeps the point to 1e-6 mm."""
+    import functools
+
+    import reglib.register as rr
+    from reglib.pipeline import EstimateOptions, Stages, estimate
+    from studies.bench.registration import PINS_CT, make_scene, perturbed
+
+    s = make_scene()
+    stages = Stages({}, {f"r{i}": (t.vertices, t.faces) for i, t in enumerate(s.surfaces)},
+                    {}, list(s.views.values()), {}, {})
+    fp = np.asarray(list(PINS_CT.values())[0] if isinstance(PINS_CT, dict) else PINS_CT[0],
+                    dtype=np.float64)
+    start = perturbed(s.true, 5.0, 0.0, np.random.default_rng(1))
+    starts, real = [], rr.register
+
+    @functools.wraps(real)
+    def spy(surfaces, views, initial, **kw):
+        starts.append(initial)
+        return real(surfaces, views, initial, **kw)
+
+    monkeypatch.setattr(rr, "register", spy)
+    # a median limit no pose meets: every restart is tried
+    estimate(None, start, stages=stages, options=EstimateOptions(
+        fixed_point_ct=tuple(fp), restarts=6, accept_max_median_mm=1e-9))
+    want = start.apply(fp)
+    assert len(starts) > 3
+    assert max(float(np.linalg.norm(p.apply(fp) - want)) for p in starts) < 1e-6

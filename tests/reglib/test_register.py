@@ -698,3 +698,31 @@ def test_check_options_refuses_what_register_refuses(world, bad):
         register(tops, list(views.values()), true, **bad)
     assert str(made.value) == str(ran.value) and made.value.option == next(iter(bad))
     check_options(max_iterations=5, tukey_a=2.0, method="lm", residual="line")
+
+
+def test_either_divergence_limit_stops_the_loop_alone():
+    """A start turned 7 deg and moved 20 mm, the loop bringing it back by about that much:
+    a motion limit of 2 mm alone, or a rotation limit of 0.5 deg alone, stops it as
+    diverged (a mutation audit: both limits needed at once passed every test)."""
+    s = make_scene()
+    views = list(s.views.values())
+    init = perturbed(s.true, 7.0, 20.0, np.random.default_rng(0))
+    for limits in ({"max_motion_mm": 2.0}, {"max_rotation_deg": 0.5}):
+        out = register(s.surfaces, views, init, max_iterations=60, **limits)
+        assert not out.converged and out.reason.startswith("diverged"), (limits, out.reason)
+
+
+def test_a_cycle_with_a_long_step_anywhere_in_it_has_not_settled():
+    """A period-2 cycle whose poses return within 0.1 mm, with one step of 4 mm that is not
+    the last: not settled (a mutation audit: the 3 mm limit tested on the last step alone
+    passed every test)."""
+    from types import SimpleNamespace
+
+    from reglib.register import MAX_CYCLE_STEP_MM, _settled_cycle
+
+    a, b = np.zeros((8, 3)), np.full((8, 3), 0.01)
+    placed = [a, b] * 4 + [a]
+    steps = [0.5] * 7 + [MAX_CYCLE_STEP_MM + 1.0, 0.5]
+    assert _settled_cycle(placed, [SimpleNamespace(step_mm=x) for x in steps], 0.1, (2,)) == 0
+    short = [0.5] * 9
+    assert _settled_cycle(placed, [SimpleNamespace(step_mm=x) for x in short], 0.1, (2,)) == 2

@@ -124,3 +124,23 @@ def test_a_study_whose_trials_all_failed_lists_each_error_once(tmp_path):
     finish_study(ctx, df)
     report = (tmp_path / "report.md").read_text()
     assert report.count("boom") == 1 and "No trial finished: 1 failed" in report
+
+
+def test_flag_scores_count_false_accepts_and_rejects_and_their_ratios():
+    """Six starts of one method, each kind of outcome (a mutation audit: false rejects
+    counted as refused failures passed every test; the function had none)."""
+    import numpy as np
+    import pandas as pd
+
+    from studies.capture_range import SUCCESS_MM, flag_scores
+
+    accepted = [1, 1, 1, 0, 0, 0]
+    final = np.array([0.5, 0.2, 3.0, 0.5, 4.0, 5.0]) * SUCCESS_MM
+    rows = []
+    for i, (a, f) in enumerate(zip(accepted, final, strict=True)):
+        rows += [{"trial": i, "method": "m", "start": 0, "metric": "accepted", "value": a},
+                 {"trial": i, "method": "m", "start": 0, "metric": "final_mtre", "value": f}]
+    r = flag_scores(pd.DataFrame(rows)).iloc[0]
+    assert (r["starts"], r["accepted"], r["successes"]) == (6, 3, 3)
+    assert (r["false accepts"], r["false rejects"]) == (1, 1)
+    assert r["precision"] == pytest.approx(2 / 3) and r["recall"] == pytest.approx(2 / 3)

@@ -77,3 +77,22 @@ def test_a_scene_other_than_the_papers_set_up_is_said_before_the_targets():
     note = set_up_note(two)
     assert note.startswith("**This scene is not the set-up") and "2 view(s)" in note
     assert "ideal" not in note
+
+
+def test_the_pin_table_gives_quartiles_of_the_turned_starts_and_the_identity_apart():
+    """Nine turned starts at 1..9 mm and three identity starts at 40 mm: the median 5.00
+    and the IQR 3.00-7.00 are of the turned starts, the identity column 40.00 (a mutation
+    audit: the identity starts mixed in, 6.50 and 3.75-16.75, and 10th-90th percentiles
+    for the IQR, 1.80-8.20, both passed every test)."""
+    import numpy as np
+
+    from studies.table2 import table2_markdown
+
+    rows = [{"trial": k, "metric": "pin_error", "pin": p, "start": s, "value": v}
+            for k, (s, v) in enumerate([("rot5_1", x) for x in np.arange(1.0, 10.0)]
+                                       + [("identity", 40.0)] * 3)
+            for p in PIN_NAMES]
+    md = table2_markdown(pd.DataFrame(rows))
+    line = next(t for t in md.splitlines() if t.startswith("| proximal"))
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    assert cells[1] == "5.00" and cells[2] == "3.00-7.00" and "40.00" in cells[3:], cells
