@@ -119,8 +119,9 @@ def run_study(name: str, out: Path, *, scene=None, seed=None, quick=False, worke
         if warnings:
             ctx.report("Warnings about the scene", "What `testbed run` says of this scene "
                        "at the study's seed"
-                       + (" (of its femur; the aim of its views left out, as this study "
-                          "re-aims them at each random femur)" if reaimed else "")
+                       + (" (of the scene's own femur, where this study draws a random "
+                          "femur per case, and without the aim of its views, which it "
+                          "re-aims at each)" if reaimed else "")
                        + "; the figures below carry it:\n\n"
                        + "\n".join(f"- {w}" for w in warnings))
     df = mod.run(ctx)

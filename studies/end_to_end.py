@@ -285,11 +285,6 @@ def ct_coverage_warnings(views, centres_ct, z_mm, groups) -> list[str]:
     return out
 
 
-def _ct_warnings(case: Case) -> list[str]:
-    """:func:`ct_coverage_warnings` of a prepared case."""
-    return _ct_warnings_of(case.sim)
-
-
 def _ct_warnings_of(sim) -> list[str]:
     """:func:`ct_coverage_warnings` of a simulated case."""
     centres = _centres(sim.world.phantom)

@@ -4,8 +4,10 @@ Two attributions of the Table II error (the quick Table II starts of each case: 
 two 5 deg and two 7 deg rotations):
 
 - **by source** (the world): the scene (the clinic profile, e.g. ``experiment2``) is
-  compared field by field with its ideal profile (``<name>-ideal`` in ``scenes/``, e.g.
-  ``experiment2-ideal``); every field that differs is an error source (fields that belong
+  compared field by field with its ideal profile (``<name>-ideal.toml`` beside the scene
+  file, or the named scene ``<name>-ideal`` when it has the scene's set-up, e.g.
+  ``experiment2-ideal``; else the shipped ideal magnitudes, :func:`shipped_ideal_fields`);
+  every field that differs is an error source (fields that belong
   together, such as the distortion's coefficients, are one source: :data:`SOURCE_GROUPS`).
   Each source is switched **off** in the clinic (set to its ideal value) and **on alone** in
   the ideal profile; the drop (off) and the rise (alone) of the mean pin error against the
@@ -158,19 +160,48 @@ SHIPPED = "shipped"
 
 
 def shipped_ideal(scene):
-    """``scene`` with every error source at the shipped ideal profile's magnitude: each field
-    in which ``experiment2-ideal`` differs from ``experiment2`` (:func:`error_sources`) set
-    to its ideal value, the rest (femur, set-up, options) the scene's own. For a scene
+    """``scene`` with its error sources at the shipped ideal profile's magnitudes (see
+    :func:`shipped_ideal_fields`), the rest (femur, set-up, options) its own. For a scene
     without its own ideal profile (a held-out review: every held-out scene got no budget by
     source, and table2 pointed to a section that was then not written)."""
-    from testbed.scene import find_scene, load_scene
-
-    clinic, ideal = (load_scene(find_scene(n)) for n in SHIPPED_PAIR)
-    values = {k: v[1] for fields in error_sources(clinic, ideal).values()
-              for k, v in fields.items()}
+    values, _ = shipped_ideal_fields(scene)
     out = variant(scene, values)
     return out.model_copy(update={"scene": out.scene.model_copy(
         update={"name": f"{scene.scene.name} (shipped ideal magnitudes)"})})
+
+
+def shipped_ideal_fields(scene) -> tuple[dict, dict]:
+    """The fields :func:`shipped_ideal` sets, and the sources it leaves at the scene's value
+    with why: ``({path: ideal value}, {source: reason})``.
+
+    Each field in which ``experiment2-ideal`` differs from ``experiment2``
+    (:func:`error_sources`) takes the ideal profile's value, source by source, except:
+    a number the scene already holds at a smaller magnitude (the ideal never makes a source
+    larger: a scene's 0.5 px clicks became 1 px, a review), and a source whose values the
+    scene's other fields refuse (e.g. its own ``[ct] slice_thickness_mm`` beside the ideal
+    ``max_slice_thickness_mm``: one such clash had dropped every source, a review)."""
+    from testbed.scene import find_scene, load_scene
+
+    clinic, ideal = (load_scene(find_scene(n)) for n in SHIPPED_PAIR)
+    own = _flatten(scene.model_dump(mode="json"))
+    values, skipped = {}, {}
+    for source, fields in error_sources(clinic, ideal).items():
+        take = {}
+        for path, (_, v) in fields.items():
+            mine = own.get(path)
+            number = (isinstance(v, int | float) and not isinstance(v, bool)
+                      and isinstance(mine, int | float) and not isinstance(mine, bool))
+            if not (number and abs(mine) <= abs(v)) and mine != v:
+                take[path] = v
+        if not take:
+            continue
+        try:
+            variant(scene, {**values, **take})
+        except ValueError as exc:
+            skipped[source] = str(exc).splitlines()[-1][:200]
+            continue
+        values.update(take)
+    return values, skipped
 
 
 def ideal_profile(clinic, ideal: str):
@@ -183,13 +214,24 @@ def ideal_profile(clinic, ideal: str):
 
 def no_budget_reason(scene, scene_path) -> str:
     """Why a scene gets no budget by source (:func:`trial_params` found no source to vary)."""
-    try:
-        ideal_profile(scene, ideal_scene_path(scene_path) or SHIPPED)
-    except ValueError as exc:
-        return (f"The shipped ideal magnitudes cannot be applied to this scene ({exc}); give "
-                f"it an ideal profile, `{Path(scene_path).stem}-ideal.toml` beside it")
-    return ("Every error source of the scene is already at its ideal magnitude (it equals "
-            "its ideal profile, or the shipped ideal magnitudes): no source to switch off")
+    own = ideal_scene_path(scene_path)
+    if own and _beside(own, scene_path):
+        return (f"The scene equals its ideal profile `{own}` in every error source: no "
+                "source to switch off")
+    _, skipped = shipped_ideal_fields(scene)
+    if skipped:
+        return ("The shipped ideal magnitudes cannot be applied to this scene ("
+                + "; ".join(f"{k}: {v}" for k, v in skipped.items())
+                + f"); give it an ideal profile, `{Path(scene_path).stem}-ideal.toml` "
+                "beside it")
+    return (f"Every error source the budget knows (the fields in which `{SHIPPED_PAIR[1]}` "
+            f"differs from `{SHIPPED_PAIR[0]}`) is at its shipped ideal magnitude or below "
+            "in this scene: no source to switch off (other fields are not switched)")
+
+
+def _beside(profile, scene_path) -> bool:
+    """Whether ``profile`` lies in the scene file's own folder (the user's own profile)."""
+    return Path(profile).resolve().parent == Path(scene_path).resolve().parent
 
 
 # --------------------------------------------------------------------------- trials
@@ -236,15 +278,20 @@ def trial_params(scene_path, *, cases: int) -> list[dict]:
     (:data:`SHIPPED`); with no source to vary (a scene already at them), the clinic
     configuration alone."""
     from testbed.scene import load_scene
+    from testbed.spec import SceneError
 
     clinic = load_scene(scene_path)
-    ideal = ideal_scene_path(scene_path) or SHIPPED
-    try:
-        sources = error_sources(clinic, ideal_profile(clinic, ideal))
-    except ValueError:
-        if ideal != SHIPPED:       # the scene's own profile: its problem is the user's
-            raise
-        sources = {}               # said in the report (no_budget_reason)
+    ideal = ideal_scene_path(scene_path)
+    if ideal and not _beside(ideal, scene_path):
+        # a named scene's profile found by the file's name (a user's copy of experiment2
+        # elsewhere): used when it has the scene's set-up, else the shipped magnitudes (a
+        # review: a moved patient's copy was refused, exit 2, where one named otherwise ran)
+        try:
+            error_sources(clinic, load_scene(ideal))
+        except SceneError:
+            ideal = None
+    ideal = ideal or SHIPPED
+    sources = error_sources(clinic, ideal_profile(clinic, ideal))
     if not sources:
         ideal = ""
     params = [{"config": "clinic", "source": "", "ideal": ideal, "case": i}
@@ -302,11 +349,15 @@ def run(ctx) -> pd.DataFrame:
     stem = Path(ctx.scene_path).stem
     if ideal:
         src = error_sources(ctx.scene, ideal_profile(ctx.scene, ideal))
+        skipped = shipped_ideal_fields(ctx.scene)[1] if ideal == SHIPPED else {}
         what = (f"its ideal profile `{ideal}`" if ideal != SHIPPED else
-                f"the shipped ideal magnitudes (no `{stem}-ideal.toml` was found beside the "
-                f"scene file or among the named scenes: every field in which "
-                f"`{SHIPPED_PAIR[1]}` differs from `{SHIPPED_PAIR[0]}` at "
-                f"`{SHIPPED_PAIR[1]}`'s value)")
+                f"the shipped ideal magnitudes (no `{stem}-ideal.toml` with this scene's "
+                f"set-up was found beside the scene file or among the named scenes: every "
+                f"field in which `{SHIPPED_PAIR[1]}` differs from `{SHIPPED_PAIR[0]}` at "
+                f"`{SHIPPED_PAIR[1]}`'s value, unless the scene's is smaller"
+                + ("; left at the scene's value, as the scene refuses the ideal one: "
+                   + "; ".join(f"{k} ({v})" for k, v in skipped.items()) if skipped else "")
+                + ")")
         ctx.report("Error sources", f"The clinic profile `{ctx.scene_path}` against {what}, "
                    "field by field. The `ideal` and `alone` "
                    "configurations are the clinic scene with these fields changed: its femur, "
@@ -323,7 +374,10 @@ def run(ctx) -> pd.DataFrame:
                    "clinic magnitude. `removed` = clinic - off, `added` = alone - ideal.\n\n"
                    + markdown_table(t, ".3f"))
         _tornado(ctx, t)
-        ctx.report("What would close the gap to the paper", gap_markdown(t))
+        from studies.table2 import set_up_note
+
+        ctx.report("What would close the gap to the paper", set_up_note(ctx.scene)
+                   + gap_markdown(t))
     else:
         ctx.report("By source", no_budget_reason(ctx.scene, ctx.scene_path)
                    + ": only the stage budget is run.")
@@ -341,13 +395,13 @@ def stage_markdown(pe: pd.DataFrame) -> str:
     stage["share of mean error removed"] = 1.0 - stage["mean"] / base
     worse = stage[stage["share of mean error removed"] < 0]["oracle"].tolist()
     note = ("\n\nA negative share (" + ", ".join(f"`{w}`" for w in worse) + ") means the "
-            "truth made the error larger: a true input is not necessarily the one the method "
-            "does best with. The true X-ray contours (`studies.oracles.true_contours`) are "
-            "the femur's whole apparent contour, its inner curves and the parts under "
+            "truth made the error larger, over these cases (with few of them, possibly by "
+            "chance): a true input is not necessarily the one the method does best with. "
+            "The true X-ray contours (`studies.oracles.true_contours`), for one, are the "
+            "femur's whole apparent contour, its inner curves and the parts under "
             "instruments included, where the estimated ones follow the outline the operator "
-            "could see; the CT surfaces they are matched with leave out the femoral head, "
-            "whichever contours are used. Which of these makes the difference was not "
-            "measured." if worse else "")
+            "could see, and the CT surfaces they are matched with leave out the femoral head "
+            "either way. The cause was not measured." if worse else "")
     return ("The cases of the scene as given (the `clinic` configuration). Mean, median "
             "and max over the pins, the starts and the cases; "
             "`none` is the realistic pipeline, `calibration+contours+surfaces` leaves only "

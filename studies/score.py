@@ -200,8 +200,8 @@ def _dataset_identity(dataset: Path) -> str:
 
 def dataset_scene_warnings(scene, seed: int) -> list[str]:
     """:func:`studies.end_to_end.scene_warnings` of a dataset's scene (as its cases record
-    it) at its seed; advisory, so empty when they cannot be computed (e.g. a user mesh that
-    is no longer where the scene names it). A held-out review: a dataset of a CT of the
+    it) at its seed; advisory: when they cannot be computed (e.g. a user mesh that is no
+    longer where the scene names it), one line says so. A held-out review: a dataset of a CT of the
     proximal end only scored distal pins tens of mm off without a word, where testbed run
     and the studies name the missing slices."""
     from studies.end_to_end import scene_warnings
@@ -210,8 +210,10 @@ def dataset_scene_warnings(scene, seed: int) -> list[str]:
         return []
     try:
         return scene_warnings(scene, int(seed))
-    except Exception:  # noqa: BLE001 - advisory: the scores stand without it
-        return []
+    except Exception as exc:  # noqa: BLE001 - advisory: the scores stand without it
+        # said, not dropped (a review: a user mesh moved since generate lost them silently)
+        return [f"the scene's warnings could not be computed from the scene the cases "
+                f"record ({' '.join(str(exc).split())[:200]}); the scores stand"]
 
 
 def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 1,

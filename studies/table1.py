@@ -166,7 +166,8 @@ def _report(ctx, raw):
     threshold = ctx.scene.synthetic.success_threshold
     med = raw.groupby(["data", "n_points", "method"])["error"].median()
     failed = [f"{m} on {d} {n}" for (d, n, m), e in med.items() if e > threshold]
-    warn = (f"\n\n**Solves that failed** (median landmark error above {threshold:g}, the "
+    warn = (f"\n\n**Solves that failed** (the median of the solves' largest landmark errors "
+            f"above {threshold:g}, the "
             "scene's success_threshold; their times and the ratios to them are of failed "
             "solves): " + ", ".join(failed) + "." if failed else "")
     ctx.report("Median max landmark error of the timed solves",

@@ -47,6 +47,8 @@ def test_quick_study_refuses_one_view_per_end_and_accepts_all_views(tmp_path):
     assert counts.drop("accepts_with_a_pin_off").sum() == 3
     report = (tmp_path / "report.md").read_text()
     assert "false accepts" in report and (tmp_path / "view_setups.png").is_file()
+    assert "with a pin 2 mm or more off (whatever the mTRE): **0**" in report
+    assert "worst pin max (mm)" in report      # the pins reached the table (a review)
 
 
 def test_accepts_with_a_pin_off_are_counted_whatever_the_mtre():
