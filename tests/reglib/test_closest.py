@@ -320,3 +320,23 @@ def test_match_contours_equals_steps_a_and_b(seed):
     assert np.all(empty[0] == -1) and np.all(np.isnan(empty[2]))
     with pytest.raises(ValueError, match="external"):
         match_contours(cs, o, d, np.ones(3, dtype=bool))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_match_contours_honours_max_stab_without_a_step_a_threshold(seed):
+    """match_contours with ``within_mm=None`` keeps max_stab_distance_mm, as select_contours
+    does (a mutation audit: the compiled test dropped passed every test, which always gave
+    within_mm equal to max_stab; agreement with the reference 1.00 against 0.04)."""
+    rng = np.random.default_rng(100 + seed)
+    n_diff_inf = 0
+    for _ in range(4):
+        cs, o, d = random_case(rng, n_lines=150, n_contours=6)
+        ext = np.ones(len(o), dtype=bool)
+        for max_stab in (2.0, 5.0):
+            sel, _, _, _ = match_contours(cs, o, d, ext, within_mm=None,
+                                          max_stab_distance_mm=max_stab)
+            cp = closest_points(cs, o, d, method="reference")
+            want = select_contours(cp, cs, d, ext, max_stab_distance_mm=max_stab)
+            n_diff_inf += int(np.sum(want != select_contours(cp, cs, d, ext)))
+            assert np.mean(sel == want) > 0.99, (max_stab, np.mean(sel == want))
+    assert n_diff_inf > 10   # the limit matters on these cases
