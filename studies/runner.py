@@ -636,6 +636,9 @@ def _signal_groups(ex: cf.ProcessPoolExecutor, sig) -> None:
 POOL_SETTLE_S = 30.0
 #: seconds between a pool worker's checks that the study's process still lives
 PARENT_POLL_S = 1.0
+#: longest wait of the study's main thread for its workers, so that a signal's Python
+#: handler (Ctrl-Z, SIGCONT, Ctrl-C) runs within it whichever thread received the signal
+SIGNAL_POLL_S = 0.25
 
 
 def _process_alive(pid: int) -> bool:
@@ -797,6 +800,19 @@ def _job_control():
         signal.signal(signal.SIGCONT, before[1])
 
 
+def _result_in_slices(fut: cf.Future, timeout_s: float | None):
+    """``fut.result(timeout=timeout_s)``, waited for in slices of :data:`SIGNAL_POLL_S`
+    (signal handlers run between them); ``cf.TimeoutError`` past ``timeout_s``."""
+    end = None if timeout_s is None else time.monotonic() + timeout_s
+    while True:
+        left = SIGNAL_POLL_S if end is None else max(0.0, end - time.monotonic())
+        try:
+            return fut.result(timeout=min(left, SIGNAL_POLL_S))
+        except cf.TimeoutError:
+            if end is not None and time.monotonic() >= end:
+                raise
+
+
 def _pool_loop(trial_fn, todo, record, *, workers: int, ctx, retries: int,
                timeout_s: float | None) -> None:
     """:func:`_run_pool`'s loop."""
@@ -809,7 +825,8 @@ def _pool_loop(trial_fn, todo, record, *, workers: int, ctx, retries: int,
                 ex = _new_pool(1, ctx)
                 killed = False
                 try:
-                    res = ex.submit(execute_trial, trial_fn, trial).result(timeout=timeout_s)
+                    res = _result_in_slices(ex.submit(execute_trial, trial_fn, trial),
+                                            timeout_s)
                     break
                 except BrokenProcessPool as exc:
                     res = _lost(trial, f"{str(exc) or type(exc).__name__}; "
@@ -846,6 +863,11 @@ def _pool_loop(trial_fn, todo, record, *, workers: int, ctx, retries: int,
                 if not broken:
                     wait_s = None if timeout_s is None else max(
                         0.0, min(deadline[f] for f in running) - time.monotonic())
+                    # in slices: a signal the kernel hands to another of this process's
+                    # threads runs its Python handler only when the main thread wakes, and
+                    # a wait without end on stopped workers never did (SIGCONT after Ctrl-Z
+                    # left them stopped, a CI run)
+                    wait_s = SIGNAL_POLL_S if wait_s is None else min(wait_s, SIGNAL_POLL_S)
                     done, _ = cf.wait(running, timeout=wait_s, return_when=cf.FIRST_COMPLETED)
                     broken = _collect(done, running, record, suspects)
                     now = time.monotonic()

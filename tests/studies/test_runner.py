@@ -920,3 +920,21 @@ def test_an_output_the_study_cannot_replace_is_refused_before_the_work(tmp_path,
     with pytest.raises(ValueError, match="fig9_heatmaps.png cannot be replaced \\(not "
                                          "writable\\)"):
         check_out_folder(tmp_path / "b", "fig9")
+
+
+def test_result_in_slices_returns_the_result_and_times_out_as_result_does():
+    """The study's waits on its workers are sliced so that a signal's Python handler runs
+    whichever thread received it (a CI run: SIGCONT after Ctrl-Z left the workers stopped
+    while the main thread waited without end); the semantics stay result()'s."""
+    import concurrent.futures as cf
+    import threading
+
+    from studies.runner import SIGNAL_POLL_S, _result_in_slices
+
+    fut = cf.Future()
+    threading.Timer(3 * SIGNAL_POLL_S, fut.set_result, args=(42,)).start()
+    assert _result_in_slices(fut, None) == 42
+    t0 = time.monotonic()
+    with pytest.raises(cf.TimeoutError):
+        _result_in_slices(cf.Future(), 2.5 * SIGNAL_POLL_S)
+    assert 2.5 * SIGNAL_POLL_S <= time.monotonic() - t0 < 2.5 * SIGNAL_POLL_S + 1.0
