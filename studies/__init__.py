@@ -83,7 +83,12 @@ def run_study(name: str, out: Path, *, scene=None, seed=None, quick=False, worke
     ``fig9``), a scene the study's module refuses (its ``check_scene``), or workers asked of
     a serial study.
     """
-    from studies.common import check_out_folder, finish_study, start_study
+    from studies.common import (
+        check_out_folder,
+        finish_study,
+        report_scene_warnings,
+        start_study,
+    )
     from testbed.scene import find_scene, load_scene
 
     known = available_studies()
@@ -115,15 +120,12 @@ def run_study(name: str, out: Path, *, scene=None, seed=None, quick=False, worke
         from studies.end_to_end import scene_warnings
 
         reaimed = name in REAIMED_VIEWS
-        warnings = scene_warnings(ctx.scene, int(ctx.seed), aim=not reaimed)
-        if warnings:
-            ctx.report("Warnings about the scene", "What `testbed run` says of this scene "
-                       "at the study's seed"
-                       + (" (of the scene's own femur, where this study draws a random "
-                          "femur per case, and without the aim of its views, which it "
-                          "re-aims at each)" if reaimed else "")
-                       + "; the figures below carry it:\n\n"
-                       + "\n".join(f"- {w}" for w in warnings))
+        report_scene_warnings(
+            ctx, scene_warnings(ctx.scene, int(ctx.seed), aim=not reaimed),
+            "this scene at the study's seed"
+            + (" (of the scene's own femur, where this study draws a random femur per "
+               "case, and without the aim of its views, which it re-aims at each)"
+               if reaimed else ""))
     df = mod.run(ctx)
     finish_study(ctx, df)
     return out

@@ -236,6 +236,15 @@ def region_centres(phantom) -> dict[str, np.ndarray]:
             "distal": box_centre(v[:, 2] <= lo + cut)}
 
 
+def report_scene_warnings(ctx: StudyContext, warnings, whose: str) -> None:
+    """The report's "Warnings about the scene" section (none without warnings): what
+    ``testbed run`` says of ``whose`` (e.g. "this scene at the study's seed"), which the
+    figures after it carry."""
+    if warnings:
+        ctx.report("Warnings about the scene", f"What `testbed run` says of {whose}; the "
+                   "figures below carry it:\n\n" + "\n".join(f"- {w}" for w in warnings))
+
+
 def refuse_fixed_pin(scene, path, study: str) -> None:
     """ValueError naming the scene file and field when the scene locates a pin
     (``[registration] fixed_pin``) and the study registers free starts: the pin would be

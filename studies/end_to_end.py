@@ -207,14 +207,29 @@ def _centres(phantom) -> dict | None:
         return None
 
 
+def _warnings(scene, phantom, ct2robot, carms, z_mm, groups, *, aim: bool = True
+              ) -> list[str]:
+    """What ``testbed run`` warns of a case: a view labelled with the other region, a field
+    that misses its anatomy (``aim``), anatomy the CT's contoured slices do not reach.
+    ``carms``: view name -> CArm; ``z_mm``: the CT slices' z, ``groups``: each region's
+    contoured slice indices (``z_mm`` None: no CT to judge)."""
+    centres = _centres(phantom)
+    out = [*_region_label_warnings(scene, phantom),
+           *(aim_warnings(scene.views, carms, ct2robot, centres) if aim else [])]
+    if centres is not None and z_mm is not None:
+        out += ct_coverage_warnings(scene.views, centres, z_mm, groups)
+    return out
+
+
 def sim_warnings(sim) -> list[str]:
-    """What ``testbed run`` warns of a simulated case (``testbed.simulate.Simulation``): a
-    view labelled with the other region, a field that misses its anatomy, anatomy the CT's
-    contoured slices do not reach; from what the simulation made (no more work)."""
-    return [*_region_label_warnings(sim.scene, sim.world.phantom),
-            *aim_warnings(sim.scene.views, sim.carms, sim.world.ct2robot,
-                          _centres(sim.world.phantom)),
-            *_ct_warnings_of(sim)]
+    """:func:`_warnings` of a simulated case (``testbed.simulate.Simulation``), from what
+    the simulation made (no more work)."""
+    arrays = sim.observation.arrays
+    groups = [np.asarray(arrays[f"ct_clicks_{r}"]["slices"], dtype=np.int64)
+              for r in sim.observation.meta.get("regions", [])
+              if f"ct_clicks_{r}" in arrays]
+    return _warnings(sim.scene, sim.world.phantom, sim.world.ct2robot, sim.carms,
+                     arrays["ct_slices"]["z_mm"], groups)
 
 
 def _aim_warnings(case: Case) -> list[str]:
@@ -285,18 +300,6 @@ def ct_coverage_warnings(views, centres_ct, z_mm, groups) -> list[str]:
     return out
 
 
-def _ct_warnings_of(sim) -> list[str]:
-    """:func:`ct_coverage_warnings` of a simulated case."""
-    centres = _centres(sim.world.phantom)
-    if centres is None:
-        return []
-    arrays = sim.observation.arrays
-    groups = [np.asarray(arrays[f"ct_clicks_{r}"]["slices"], dtype=np.int64)
-              for r in sim.observation.meta.get("regions", [])
-              if f"ct_clicks_{r}" in arrays]
-    return ct_coverage_warnings(sim.scene.views, centres, arrays["ct_slices"]["z_mm"], groups)
-
-
 def scene_warnings(scene, seed: int, *, aim: bool = True) -> list[str]:
     """What ``testbed run`` warns of an operating-room scene (a view labelled with the other
     region, a view whose field misses its region's anatomy, a view whose anatomy the CT's
@@ -317,15 +320,12 @@ def scene_warnings(scene, seed: int, *, aim: bool = True) -> list[str]:
         ctc = simulate_ct(case_scene, css, world=world)
     except ValueError:
         ctc = None
-    centres = _centres(world.phantom)
     carms = {v.name: make_carm(case_scene.fluoroscope, v, view_index=i)
-             for i, v in enumerate(case_scene.views)}
-    out = [*_region_label_warnings(case_scene, world.phantom),
-           *(aim_warnings(case_scene.views, carms, world.ct2robot, centres) if aim else [])]
-    if centres is not None and ctc is not None:
-        groups = [np.asarray(cc.slices, dtype=np.int64) for cc in ctc.clicks.values()]
-        out += ct_coverage_warnings(case_scene.views, centres, ctc.ct.slice_z_mm, groups)
-    return out
+             for i, v in enumerate(case_scene.views)} if aim else {}
+    return _warnings(case_scene, world.phantom, world.ct2robot, carms,
+                     None if ctc is None else ctc.ct.slice_z_mm,
+                     [] if ctc is None else [np.asarray(cc.slices, dtype=np.int64)
+                                             for cc in ctc.clicks.values()], aim=aim)
 
 
 def run_case(scene, *, seed: int, progress: bool = False):

@@ -225,7 +225,13 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
     (its worker process killed), not a hung command (``testbed score --timeout``);
     ``retry_failed``: on a rerun, the cases stored as failed are scored again (``testbed
     score --retry-failed``)."""
-    from studies.common import StudyContext, check_out_folder, finish_study, markdown_table
+    from studies.common import (
+        StudyContext,
+        check_out_folder,
+        finish_study,
+        markdown_table,
+        report_scene_warnings,
+    )
     from studies.runner import fingerprint, make_trials, run_trials
     from testbed.dataset import list_cases
 
@@ -307,11 +313,8 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
             seed = 0
     ctx = StudyContext(name=f"score {method}", out=out, scene_path=dataset, scene=scene,
                        seed=seed, workers=workers, scheduler=scheduler)
-    warnings = dataset_scene_warnings(scene, seed)
-    if warnings:
-        ctx.report("Warnings about the scene", "What `testbed run` says of the scene the "
-                   "cases were generated from (its first case); the figures below carry "
-                   "it:\n\n" + "\n".join(f"- {w}" for w in warnings))
+    report_scene_warnings(ctx, dataset_scene_warnings(scene, seed),
+                          "the scene the cases were generated from (its first case)")
     pe = df[df.metric == "pin_error"]
     if not pe.empty:
         t = pe.groupby("pin")["value"].agg(["mean", "median", "max"]).reset_index()
