@@ -507,6 +507,26 @@ def _version() -> str:
         return "unknown (not installed)"
 
 
+def _scene_arguments(parser, help_text: str) -> None:
+    """The scene of ``run``, ``generate`` and ``render``: positional, or ``--scene`` as the
+    studies take it (:func:`_merge_scene` joins the two)."""
+    parser.add_argument("scene", nargs="?", default=None, help=help_text)
+    parser.add_argument("--scene", dest="scene_option", default=None, metavar="SCENE",
+                        help="the same as the positional scene")
+
+
+def _merge_scene(args) -> None:
+    """``args.scene`` from the positional scene or ``--scene``; both, naming different
+    scenes, are a usage error."""
+    option = getattr(args, "scene_option", None)
+    if option is None:
+        return
+    if args.scene is not None and args.scene != option:
+        raise UsageError(f"{PROG} {args.command}: two scenes given ({args.scene!r} and "
+                         f"--scene {option!r}); give one")
+    args.scene = option
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog=PROG, description="Simulation testbed for CT to X-ray registration for a "
                 "surgical robot (after Gueziec et al., IEEE TMI 1998).")
@@ -515,7 +535,7 @@ def build_parser() -> argparse.ArgumentParser:
     seed = _int_at_least(0, "--seed")
 
     r = sub.add_parser("run", help="the main job on a scene (default scene: experiment2)")
-    r.add_argument("scene", nargs="?", default=None, help="scene file or name")
+    _scene_arguments(r, "scene file or name")
     r.add_argument("--json", action="store_true", help="print one JSON object")
     r.add_argument("--seed", type=seed, default=None, help="override the scene's seed")
     r.add_argument("--out", type=_path, default=None,
@@ -542,8 +562,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_study)
 
     g = sub.add_parser("generate", help="write a synthetic dataset")
-    g.add_argument("scene", nargs="?", default=None,
-                   help="scene file or name (default: experiment2)")
+    _scene_arguments(g, "scene file or name (default: experiment2)")
     g.add_argument("--cases", type=_int_at_least(1, "--cases", at_most=MAX_CASES), default=1,
                    help="number of cases (default 1); a rerun resumes")
     g.add_argument("--out", required=True, type=_path,
@@ -573,8 +592,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.set_defaults(func=cmd_score)
 
     d = sub.add_parser("render", help="render one X-ray frame of a view to PNG")
-    d.add_argument("scene", nargs="?", default=None,
-                   help="scene file or name (default: experiment2)")
+    _scene_arguments(d, "scene file or name (default: experiment2)")
     d.add_argument("--view", type=_int_at_least(0, "--view"), default=0,
                    help="view index (0-based; default 0)")
     d.add_argument("--out", required=True, type=_path, help="a .png file")
@@ -668,6 +686,7 @@ def main(argv=None) -> int:
     try:
         _check_environment()
         args = build_parser().parse_args(argv)
+        _merge_scene(args)
         if args.version:
             print(f"{PROG} {_version()}")
             return 0

@@ -75,6 +75,11 @@ def _one_error_line(err: str) -> str:
     (["study", "fig9", "--quick", "--out", "{tmp}/csv"], "holds a results.csv that no study"),
     (["render", "/no/such/dir/experiment2.toml", "--out", "{tmp}/r.png"], "no such scene"),
     (["run", "no-such-scene"], "no such scene"),
+    # run, generate and render take --scene as the studies do (a user's first try)
+    (["run", "--scene", "no-such-scene"], "no such scene"),
+    (["render", "--scene", "no-such-scene", "--out", "{tmp}/r.png"], "no such scene"),
+    (["generate", "--scene", "no-such-scene", "--out", "{tmp}/g"], "no such scene"),
+    (["run", "experiment2", "--scene", "experiment1"], "two scenes given"),
     (["score", "{tmp}/nothing", "--out", "{tmp}/s"], "no such dataset"),
     (["score", "{tmp}/afile", "--out", "{tmp}/s"], "is a file, not a dataset folder"),
     (["score", "{tmp}/case_0003", "--out", "{tmp}/s"], "is one case; give the dataset folder"),
@@ -851,3 +856,18 @@ def test_score_says_when_the_scene_warnings_cannot_be_computed():
         update={"mesh_path": "/nonexistent/femur.stl"})})
     (line,) = dataset_scene_warnings(gone, 1996)
     assert line.startswith("the scene's warnings could not be computed") and "stand" in line
+
+
+@pytest.mark.parametrize("command", ["run", "generate", "render"])
+def test_scene_option_and_positional_scene_are_one_argument(command):
+    from studies.cli import _merge_scene, build_parser
+
+    extra = [] if command == "run" else ["--out", "x.png" if command == "render" else "d"]
+    for argv in ([command, "experiment1", *extra], [command, "--scene", "experiment1", *extra],
+                 [command, "experiment1", "--scene", "experiment1", *extra]):
+        args = build_parser().parse_args(argv)
+        _merge_scene(args)
+        assert args.scene == "experiment1", argv
+    args = build_parser().parse_args([command, *extra])
+    _merge_scene(args)
+    assert args.scene is None          # the command's default scene
