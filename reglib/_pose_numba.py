@@ -329,12 +329,189 @@ def _irls_weights(dist, robust, tukey_a, floor, w):
 
 
 @njit(cache=True)
+def _normals_system6(x, m, nrm, w, r, robust, A, b):
+    """:func:`irls`'s normal equations with normals and six unknowns, into ``A`` (6, 6)
+    and ``b`` (6,): per point the Jacobian row ``J = [y x n, n]`` (``y = x - m``),
+    ``A[p, q] += J[p] * w * J[q]`` and ``b[p] -= J[p] * w * r``, each entry summed over the
+    points in order as the generic loop of :func:`irls` does (the same floating-point
+    operations), in scalars. Unweighted (``robust`` False: every weight is 1, so
+    ``J[p] * w * J[q]`` equals ``J[q] * w * J[p]`` exactly), the lower triangle is the
+    upper one's mirror."""
+    m0, m1, m2 = m[0], m[1], m[2]
+    b0 = 0.0
+    a00 = 0.0
+    a01 = 0.0
+    a02 = 0.0
+    a03 = 0.0
+    a04 = 0.0
+    a05 = 0.0
+    b1 = 0.0
+    a10 = 0.0
+    a11 = 0.0
+    a12 = 0.0
+    a13 = 0.0
+    a14 = 0.0
+    a15 = 0.0
+    b2 = 0.0
+    a20 = 0.0
+    a21 = 0.0
+    a22 = 0.0
+    a23 = 0.0
+    a24 = 0.0
+    a25 = 0.0
+    b3 = 0.0
+    a30 = 0.0
+    a31 = 0.0
+    a32 = 0.0
+    a33 = 0.0
+    a34 = 0.0
+    a35 = 0.0
+    b4 = 0.0
+    a40 = 0.0
+    a41 = 0.0
+    a42 = 0.0
+    a43 = 0.0
+    a44 = 0.0
+    a45 = 0.0
+    b5 = 0.0
+    a50 = 0.0
+    a51 = 0.0
+    a52 = 0.0
+    a53 = 0.0
+    a54 = 0.0
+    a55 = 0.0
+    for i in range(x.shape[0]):
+        y0, y1, y2 = x[i, 0] - m0, x[i, 1] - m1, x[i, 2] - m2
+        j3, j4, j5 = nrm[i, 0], nrm[i, 1], nrm[i, 2]
+        j0 = y1 * j5 - y2 * j4
+        j1 = y2 * j3 - y0 * j5
+        j2 = y0 * j4 - y1 * j3
+        wi = w[i]
+        ri = r[i, 0]
+        w0 = j0 * wi
+        w1 = j1 * wi
+        w2 = j2 * wi
+        w3 = j3 * wi
+        w4 = j4 * wi
+        w5 = j5 * wi
+        b0 -= w0 * ri
+        b1 -= w1 * ri
+        b2 -= w2 * ri
+        b3 -= w3 * ri
+        b4 -= w4 * ri
+        b5 -= w5 * ri
+        if robust:
+            a00 += w0 * j0
+            a01 += w0 * j1
+            a02 += w0 * j2
+            a03 += w0 * j3
+            a04 += w0 * j4
+            a05 += w0 * j5
+            a10 += w1 * j0
+            a11 += w1 * j1
+            a12 += w1 * j2
+            a13 += w1 * j3
+            a14 += w1 * j4
+            a15 += w1 * j5
+            a20 += w2 * j0
+            a21 += w2 * j1
+            a22 += w2 * j2
+            a23 += w2 * j3
+            a24 += w2 * j4
+            a25 += w2 * j5
+            a30 += w3 * j0
+            a31 += w3 * j1
+            a32 += w3 * j2
+            a33 += w3 * j3
+            a34 += w3 * j4
+            a35 += w3 * j5
+            a40 += w4 * j0
+            a41 += w4 * j1
+            a42 += w4 * j2
+            a43 += w4 * j3
+            a44 += w4 * j4
+            a45 += w4 * j5
+            a50 += w5 * j0
+            a51 += w5 * j1
+            a52 += w5 * j2
+            a53 += w5 * j3
+            a54 += w5 * j4
+            a55 += w5 * j5
+        else:
+            a00 += w0 * j0
+            a01 += w0 * j1
+            a02 += w0 * j2
+            a03 += w0 * j3
+            a04 += w0 * j4
+            a05 += w0 * j5
+            a11 += w1 * j1
+            a12 += w1 * j2
+            a13 += w1 * j3
+            a14 += w1 * j4
+            a15 += w1 * j5
+            a22 += w2 * j2
+            a23 += w2 * j3
+            a24 += w2 * j4
+            a25 += w2 * j5
+            a33 += w3 * j3
+            a34 += w3 * j4
+            a35 += w3 * j5
+            a44 += w4 * j4
+            a45 += w4 * j5
+            a55 += w5 * j5
+    b[0] = b0
+    A[0, 0] = a00
+    A[0, 1] = a01
+    A[0, 2] = a02
+    A[0, 3] = a03
+    A[0, 4] = a04
+    A[0, 5] = a05
+    b[1] = b1
+    A[1, 0] = a10 if robust else a01
+    A[1, 1] = a11
+    A[1, 2] = a12
+    A[1, 3] = a13
+    A[1, 4] = a14
+    A[1, 5] = a15
+    b[2] = b2
+    A[2, 0] = a20 if robust else a02
+    A[2, 1] = a21 if robust else a12
+    A[2, 2] = a22
+    A[2, 3] = a23
+    A[2, 4] = a24
+    A[2, 5] = a25
+    b[3] = b3
+    A[3, 0] = a30 if robust else a03
+    A[3, 1] = a31 if robust else a13
+    A[3, 2] = a32 if robust else a23
+    A[3, 3] = a33
+    A[3, 4] = a34
+    A[3, 5] = a35
+    b[4] = b4
+    A[4, 0] = a40 if robust else a04
+    A[4, 1] = a41 if robust else a14
+    A[4, 2] = a42 if robust else a24
+    A[4, 3] = a43 if robust else a34
+    A[4, 4] = a44
+    A[4, 5] = a45
+    b[5] = b5
+    A[5, 0] = a50 if robust else a05
+    A[5, 1] = a51 if robust else a15
+    A[5, 2] = a52 if robust else a25
+    A[5, 3] = a53 if robust else a35
+    A[5, 4] = a54 if robust else a45
+    A[5, 5] = a55
+
+
+@njit(cache=True)
 def irls(x0, o, d, nrm, use_normals, fixed, use_fixed, robust, tukey_a, max_iterations, tol,
-         need):
+         need, generic=False):
     """:func:`reglib.pose._solve_irls` compiled (that numpy function is the reference,
     compared in ``tests/reglib/test_pose.py``). ``nrm`` is ignored unless ``use_normals``,
     ``fixed`` unless ``use_fixed``. Returns ``(R, t, dist, w, status)`` with status
-    :data:`IRLS_OK`, :data:`IRLS_FEW_WEIGHTS` or :data:`IRLS_UNDETERMINED`."""
+    :data:`IRLS_OK`, :data:`IRLS_FEW_WEIGHTS` or :data:`IRLS_UNDETERMINED`. ``generic``:
+    the normal equations by the general loop even where :func:`_normals_system6` serves
+    (the same floating-point operations; the twin the tests compare bit for bit)."""
     n = x0.shape[0]
     x = x0.copy()
     dof = 3 if use_fixed else 6
@@ -369,7 +546,11 @@ def irls(x0, o, d, nrm, use_normals, fixed, use_fixed, robust, tukey_a, max_iter
         A = np.zeros((dof, dof))
         b = np.zeros(dof)
         rows = 1 if use_normals else 3
-        for i in range(n):
+        if use_normals and dof == 6 and not generic:
+            # the same sums, in the same order, with the loop bounds known to the compiler
+            # (the generic loop below is the reference, compared in tests)
+            _normals_system6(x, m, nrm, w, r, robust, A, b)
+        for i in range(n if not (use_normals and dof == 6 and not generic) else 0):
             y0, y1, y2 = x[i, 0] - m[0], x[i, 1] - m[1], x[i, 2] - m[2]
             if use_normals:
                 n0, n1, n2 = nrm[i, 0], nrm[i, 1], nrm[i, 2]

@@ -245,7 +245,7 @@ def sample_is_degenerate(p, i0, i1, i2):
 
 
 @njit(cache=True)
-def hypotheses(p, o, d, samples, thr, confidence, max_trials, grid, cheirality):
+def hypotheses(p, o, d, samples, thr, confidence, max_trials, grid, cheirality, prune=True):
     """The RANSAC hypothesis loop.
 
     Parameters
@@ -256,6 +256,9 @@ def hypotheses(p, o, d, samples, thr, confidence, max_trials, grid, cheirality):
     grid : grid size of the minimal solver; cheirality : require points in front of their
         lines' origins (sample points in front, else the hypothesis is rejected; points
         behind never count as inliers).
+    prune : stop scoring a hypothesis once it cannot reach the best inlier count so far
+        (the same result; False scores every pair of every hypothesis, the twin the tests
+        compare with).
 
     Returns
     -------
@@ -311,6 +314,7 @@ def hypotheses(p, o, d, samples, thr, confidence, max_trials, grid, cheirality):
                     continue
             cnt = 0
             cost = 0.0
+            hopeless = False
             for i in range(n):
                 w0 = R[0, 0] * p[i, 0] + R[0, 1] * p[i, 1] + R[0, 2] * p[i, 2] + t[0] - o[i, 0]
                 w1 = R[1, 0] * p[i, 0] + R[1, 1] * p[i, 1] + R[1, 2] * p[i, 2] + t[1] - o[i, 1]
@@ -325,6 +329,15 @@ def hypotheses(p, o, d, samples, thr, confidence, max_trials, grid, cheirality):
                     cost += q
                 else:
                     cost += thr2
+                    # even with every remaining pair an inlier it would count fewer than
+                    # the best hypothesis so far: it cannot be kept (nor can it decide
+                    # which of this sample's solutions is kept, which only matters when
+                    # that one beats the best), so its scoring stops (exact, when early)
+                    if prune and cnt + (n - 1 - i) < best_count:
+                        hopeless = True
+                        break
+            if hopeless:
+                continue
             if cnt > c_best or (cnt == c_best and cost < cost_best):
                 k_best = k
                 c_best = cnt
