@@ -90,7 +90,124 @@ def _trust_step(C, g, r):
 def _normal_equations(P, Nb, res, w, m0, m1, m2):
     """The weighted normal equations ``(C (6, 6), g (6,))`` of the linearised point-line
     residuals about the centroid ``m``: per point and basis vector ``n`` the row
-    ``[2 n x (P - m), n]`` (the upper triangle summed, then mirrored)."""
+    ``[2 n x (P - m), n]`` (the upper triangle summed, then mirrored). The sums are kept
+    in scalars (each entry the same operations, in the same order, as the loop over a
+    row array it replaced: ``C[a, b] += (w * row[a]) * row[b]``, ``g[a] += row[a] * (w *
+    res)``)."""
+    g0 = 0.0
+    g1 = 0.0
+    g2 = 0.0
+    g3 = 0.0
+    g4 = 0.0
+    g5 = 0.0
+    c00 = 0.0
+    c01 = 0.0
+    c02 = 0.0
+    c03 = 0.0
+    c04 = 0.0
+    c05 = 0.0
+    c11 = 0.0
+    c12 = 0.0
+    c13 = 0.0
+    c14 = 0.0
+    c15 = 0.0
+    c22 = 0.0
+    c23 = 0.0
+    c24 = 0.0
+    c25 = 0.0
+    c33 = 0.0
+    c34 = 0.0
+    c35 = 0.0
+    c44 = 0.0
+    c45 = 0.0
+    c55 = 0.0
+    for i in range(P.shape[0]):
+        wi = w[i]
+        if wi == 0.0:
+            continue
+        px = P[i, 0] - m0
+        py = P[i, 1] - m1
+        pz = P[i, 2] - m2
+        for k in range(2):
+            nx = Nb[k, i, 0]
+            ny = Nb[k, i, 1]
+            nz = Nb[k, i, 2]
+            r0 = 2.0 * (ny * pz - nz * py)
+            r1 = 2.0 * (nz * px - nx * pz)
+            r2 = 2.0 * (nx * py - ny * px)
+            r3 = nx
+            r4 = ny
+            r5 = nz
+            rk = wi * res[k, i]
+            g0 += r0 * rk
+            wa = wi * r0
+            c00 += wa * r0
+            c01 += wa * r1
+            c02 += wa * r2
+            c03 += wa * r3
+            c04 += wa * r4
+            c05 += wa * r5
+            g1 += r1 * rk
+            wa = wi * r1
+            c11 += wa * r1
+            c12 += wa * r2
+            c13 += wa * r3
+            c14 += wa * r4
+            c15 += wa * r5
+            g2 += r2 * rk
+            wa = wi * r2
+            c22 += wa * r2
+            c23 += wa * r3
+            c24 += wa * r4
+            c25 += wa * r5
+            g3 += r3 * rk
+            wa = wi * r3
+            c33 += wa * r3
+            c34 += wa * r4
+            c35 += wa * r5
+            g4 += r4 * rk
+            wa = wi * r4
+            c44 += wa * r4
+            c45 += wa * r5
+            g5 += r5 * rk
+            wa = wi * r5
+            c55 += wa * r5
+    C = np.empty((6, 6))
+    g = np.empty(6)
+    g[0] = g0
+    C[0, 0] = c00
+    C[0, 1] = C[1, 0] = c01
+    C[0, 2] = C[2, 0] = c02
+    C[0, 3] = C[3, 0] = c03
+    C[0, 4] = C[4, 0] = c04
+    C[0, 5] = C[5, 0] = c05
+    g[1] = g1
+    C[1, 1] = c11
+    C[1, 2] = C[2, 1] = c12
+    C[1, 3] = C[3, 1] = c13
+    C[1, 4] = C[4, 1] = c14
+    C[1, 5] = C[5, 1] = c15
+    g[2] = g2
+    C[2, 2] = c22
+    C[2, 3] = C[3, 2] = c23
+    C[2, 4] = C[4, 2] = c24
+    C[2, 5] = C[5, 2] = c25
+    g[3] = g3
+    C[3, 3] = c33
+    C[3, 4] = C[4, 3] = c34
+    C[3, 5] = C[5, 3] = c35
+    g[4] = g4
+    C[4, 4] = c44
+    C[4, 5] = C[5, 4] = c45
+    g[5] = g5
+    C[5, 5] = c55
+    return C, g
+
+
+@njit(cache=True)
+def normal_equations_rows(P, Nb, res, w, m0, m1, m2):
+    """:func:`_normal_equations` as it was written first, a row array per point and the
+    sums in ``C`` itself: the twin the tests compare it with, bit for bit."""
     C = np.zeros((6, 6))
     g = np.zeros(6)
     row = np.empty(6)
@@ -121,6 +238,12 @@ def _normal_equations(P, Nb, res, w, m0, m1, m2):
         for bb in range(aa):
             C[aa, bb] = C[bb, aa]
     return C, g
+
+
+@njit(cache=True)
+def normal_equations(P, Nb, res, w, m0, m1, m2):
+    """:func:`_normal_equations`, callable from Python (the tests)."""
+    return _normal_equations(P, Nb, res, w, m0, m1, m2)
 
 
 @njit(cache=True)

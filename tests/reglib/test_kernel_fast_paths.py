@@ -91,3 +91,27 @@ def test_ransac_pruned_scoring_equals_full_scoring_and_the_reference(seed):
         np.testing.assert_allclose(pruned[0], ref[0], atol=1e-8)
         # the best hypothesis holds most of the inliers (a real search, not an empty one)
         assert pruned[2] >= 3
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_linearised_normal_equations_in_scalars_equal_the_row_loop_bit_for_bit(seed):
+    """The linearised iterations' (``iterate``, and the rank test's ``rank_gram``) normal
+    equations, summed in scalars, against the row-array loop they replaced."""
+    rng = np.random.default_rng(200 + seed)
+    n = int(rng.integers(3, 500))
+    P = rng.normal(size=(n, 3)) * 40.0
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    Nb = _pose_numba.perp_basis(d)
+    res = rng.normal(size=(2, n))
+    w = np.where(rng.random(n) < 0.3, 0.0, rng.random(n))    # Tukey-like, some zero
+    m = P[w > 0].mean(axis=0)
+    C, g = _pose_numba.normal_equations(P, Nb, res, w, *m)
+    C0, g0 = _pose_numba.normal_equations_rows(P, Nb, res, w, *m)
+    np.testing.assert_array_equal(C, C0)
+    np.testing.assert_array_equal(g, g0)
+    # and they are the normal equations: C = J^T W J for the rows [2 n x (P - m), n]
+    J = np.concatenate([2.0 * np.cross(P - m, Nb, axis=-1) * -1.0, Nb], axis=-1)  # (2, n, 6)
+    Jw = J * w[None, :, None]
+    np.testing.assert_allclose(C, np.einsum("kni,knj->ij", Jw, J), rtol=1e-10, atol=1e-9)
+    np.testing.assert_allclose(g, np.einsum("kni,kn->i", Jw, res), rtol=1e-10, atol=1e-9)
