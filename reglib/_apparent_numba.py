@@ -36,16 +36,18 @@ def contour_chains(normals, ndc, twin, he_origin, he_dest, max_valence, c):
                            + normals[f, 2] * c[2]) < 0.0
     n_he = twin.shape[0]
     pos = np.full(n_he, -1, dtype=np.int64)
+    he_all = np.empty(n_he, dtype=np.int64)
     n = 0
-    for h in range(n_he):
-        t = twin[h]
-        if vis[h // 3] and t >= 0 and not vis[t // 3]:
-            pos[h] = n
-            n += 1
-    he = np.empty(n, dtype=np.int64)
-    for h in range(n_he):
-        if pos[h] >= 0:
-            he[pos[h]] = h
+    for f in range(n_faces):          # the half-edges in order, those of visible faces only
+        if not vis[f]:
+            continue
+        for h in range(3 * f, 3 * f + 3):
+            t = twin[h]
+            if t >= 0 and not vis[t // 3]:
+                pos[h] = n
+                he_all[n] = h
+                n += 1
+    he = he_all[:n]
     # link: from the edge's twin, turn counter-clockwise about the destination vertex
     nxt = np.full(n, -1, dtype=np.int64)
     has_prev = np.zeros(n, dtype=np.bool_)
