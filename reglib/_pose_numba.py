@@ -669,11 +669,12 @@ def irls(x0, o, d, nrm, use_normals, fixed, use_fixed, robust, tukey_a, max_iter
         A = np.zeros((dof, dof))
         b = np.zeros(dof)
         rows = 1 if use_normals else 3
-        if use_normals and dof == 6 and not generic:
+        fast = use_normals and dof == 6 and not generic
+        if fast:
             # the same sums, in the same order, with the loop bounds known to the compiler
             # (the generic loop below is the reference, compared in tests)
             _normals_system6(x, m, nrm, w, r, robust, A, b)
-        for i in range(n if not (use_normals and dof == 6 and not generic) else 0):
+        for i in range(0 if fast else n):
             y0, y1, y2 = x[i, 0] - m[0], x[i, 1] - m[1], x[i, 2] - m[2]
             if use_normals:
                 n0, n1, n2 = nrm[i, 0], nrm[i, 1], nrm[i, 2]
