@@ -318,8 +318,9 @@ def _crop_box(fov: np.ndarray) -> tuple[slice, slice]:
 class _Field:
     """Per field of view (and vignetting), for :func:`form_image`, on the box the chain
     computes on (:func:`_crop_box`, or the whole frame): the mask, the mask as 1.0 / 0.0, the
-    vignetting factor (0 outside), the field's pixel count, and the scatter weights by
-    sigma (:func:`_field_weight` of the box's mask)."""
+    vignetting factor (0 outside), the field's pixel count, the scatter weights by sigma
+    (:func:`_field_weight` of the box's mask), and the mask's row spans
+    (:func:`testbed._detector_numba.row_spans`)."""
 
     box: tuple[slice, slice]
     whole: bool                # the box is the whole frame
@@ -329,6 +330,7 @@ class _Field:
     n: int
     rho: np.ndarray            # held, so that its id (the cache key) stays its own
     weights: dict
+    spans: np.ndarray          # per row, the field's first column and one past its last
 
     def scatter_weight(self, sigma_px: float) -> np.ndarray:
         key = float(sigma_px)
@@ -356,9 +358,14 @@ def _field(fov: np.ndarray, rho: np.ndarray, vignetting: float, *, crop: bool = 
             sub, inside = np.ascontiguousarray(mask[box]), np.ascontiguousarray(
                 entry["inside"][box])
             vig = np.ascontiguousarray(vig[box])
-        for a in (sub, inside, vig):
+        from testbed._detector_numba import row_spans
+
+        sub = np.ascontiguousarray(sub)
+        spans = row_spans(sub)
+        for a in (sub, inside, vig, spans):
             a.flags.writeable = False
-        return _Field(box, whole, sub, inside, vig, int(np.count_nonzero(sub)), rho, {})
+        return _Field(box, whole, sub, inside, vig, int(np.count_nonzero(sub)), rho, {},
+                      spans)
 
     return _derived(entry, ("vignetting", id(rho), float(vignetting), bool(crop)), make)
 
@@ -732,12 +739,27 @@ def _after_scatter(img: np.ndarray, values, field: _Field, fluoro, *, noise: boo
                          display_range=fluoro.display_range, noise_u8=noise_u8, rng=rng,
                          reference=True)
         return img, video
-    # glare, vignetting and the logarithm's floor in one compiled pass, then numpy's log
-    from testbed._detector_numba import glare_vignetting
-
+    # glare, vignetting, the logarithm and the video in one compiled call (the logarithm
+    # computed fast and checked against the grey levels' rounding: numpy's is taken for the
+    # pixels it cannot settle)
     glare = wide_blur(img, fluoro.glare_sigma_px) if g > 0 else img
-    log_img = glare_vignetting(img, glare, g, field.vignetting, 1e-12)
-    np.log(log_img, out=log_img)
-    video = _video_of_log(log_img, fov, black_u8=fluoro.black_u8, white_u8=fluoro.white_u8,
-                          display_range=fluoro.display_range, noise_u8=noise_u8, rng=rng)
+    video = _glare_vignetting_video(img, glare, g, field, fluoro, noise_u8, rng)
     return img, video
+
+
+def _glare_vignetting_video(img: np.ndarray, glare: np.ndarray, g: float, field: _Field,
+                            fluoro, noise_u8: float, rng) -> np.ndarray:
+    """In place on ``img`` (on the box of ``field``): ``(img (1 - g) + g glare) vignetting``;
+    returns the 8-bit video of it (:func:`video_u8`, the same draws and levels), compiled
+    (:func:`testbed._detector_numba.glare_vignetting_video`, its logarithm's few undecided
+    pixels finished with numpy's)."""
+    from testbed._detector_numba import glare_vignetting_video, video_finish
+
+    black, white = int(fluoro.black_u8), int(fluoro.white_u8)
+    dr, noise_u8 = float(fluoro.display_range), float(noise_u8)
+    video, idx, x, z = glare_vignetting_video(
+        img, glare, float(g), field.vignetting, 1e-12, field.fov, field.spans, black, white,
+        dr, noise_u8, np.random.default_rng(rng))
+    if len(idx):
+        video_finish(video, idx, np.log(x), z, black, white, dr, noise_u8)
+    return video

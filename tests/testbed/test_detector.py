@@ -149,6 +149,77 @@ def test_video_gain_offset_and_camera_noise():
     assert v.dtype == np.uint8
 
 
+def test_fast_log_stays_within_its_tolerance_of_numpys_log():
+    """The compiled chain's vectorised logarithm (testbed._detector_numba.fast_log) against
+    numpy's on random values over the chain's range and far beyond: within a thousandth of
+    the tolerance the video kernel allows it (in fact about one ulp), and NaN where the
+    value is not a positive finite normal number (those pixels take numpy's logarithm)."""
+    from testbed._detector_numba import LOG_TOLERANCE, fast_log
+
+    rng = np.random.default_rng(7)
+    x = np.concatenate([np.exp(rng.uniform(-28.0, 3.0, 200_000)),
+                        10.0 ** rng.uniform(-307.0, 308.0, 100_000),
+                        [1e-12, 0.5, 1.0, 2.0, math.sqrt(0.5), math.sqrt(2.0),
+                         np.nextafter(math.sqrt(0.5), 0), 2.2250738585072014e-308,
+                         np.finfo(np.float64).max]])
+    err = np.abs(fast_log(x) - np.log(x))
+    assert err.max() < 1e-3 * LOG_TOLERANCE
+    assert np.all(err <= 2 * np.spacing(np.abs(np.log(x))) + 1e-300)
+    bad = fast_log(np.array([0.0, -1.0, np.inf, np.nan, 1e-310]))
+    assert np.isnan(bad).all()
+
+
+@pytest.mark.parametrize("case", range(4))
+def test_video_kernel_equals_the_numpy_video_also_on_rounding_boundaries(case):
+    """The compiled glare, vignetting and video (a fast logarithm, numpy's for the pixels
+    it cannot settle) against the numpy reference (glare by wide_blur, then video_u8 with
+    reference=True), on random images of which a third sit exactly where the level's
+    rounding turns (a grey level and a half): the same intensities, the same 8-bit frame,
+    the generator left in the same state; and those boundary pixels were the ones left to
+    numpy's logarithm."""
+    from testbed._detector_numba import glare_vignetting_video
+
+    rng = np.random.default_rng(case)
+    h, w = 60, 70
+    yy, xx = np.mgrid[:h, :w]
+    rho = np.hypot(xx - w / 2, yy - h / 2) / 32.0
+    fov = rho <= 1.0
+    spec = FluoroscopeSpec(glare_fraction=0.0 if case % 2 else 0.1, vignetting=0.2,
+                           video_noise_u8=0.0 if case < 2 else 1.5)
+    field = detector._field(fov, rho, spec.vignetting, crop=False)
+    img = rng.uniform(0.001, 1.2, (h, w))
+    # a third of the pixels: the intensity whose level is exactly k + 1/2 (noise off)
+    gain, dr = spec.white_u8 - spec.black_u8, spec.display_range
+    k = rng.integers(spec.black_u8, spec.white_u8, (h, w)) + 0.5
+    edge = rng.uniform(0, 1, (h, w)) < 1 / 3
+    img[edge] = np.exp(dr * ((k[edge] - spec.black_u8) / gain - 1.0))
+    img[~fov] = 0.0
+    noise_u8 = float(spec.video_noise_u8)
+    g = float(spec.glare_fraction)
+    ref_img = img.copy()
+    if g > 0:
+        glare = detector.wide_blur(ref_img, spec.glare_sigma_px)
+        glare *= g
+        ref_img *= 1.0 - g
+        ref_img += glare
+    ref_img *= field.vignetting
+    ref_rng = np.random.default_rng(case + 100)
+    ref = detector.video_u8(ref_img, fov, black_u8=spec.black_u8, white_u8=spec.white_u8,
+                            display_range=dr, noise_u8=noise_u8, rng=ref_rng, reference=True)
+    got_img = img.copy()
+    got_rng = np.random.default_rng(case + 100)
+    glare = detector.wide_blur(got_img, spec.glare_sigma_px) if g > 0 else got_img
+    got = detector._glare_vignetting_video(got_img, glare, g, field, spec, noise_u8, got_rng)
+    np.testing.assert_array_equal(got_img, ref_img)
+    np.testing.assert_array_equal(got, ref)
+    assert got_rng.standard_normal() == ref_rng.standard_normal()
+    if g == 0 and noise_u8 == 0:    # the boundary pixels are left to numpy's logarithm
+        _, idx, _, _ = glare_vignetting_video(
+            img.copy(), img, 0.0, np.ones((h, w)), 1e-12, field.fov, field.spans,
+            spec.black_u8, spec.white_u8, dr, 0.0, np.random.default_rng(0))
+        assert set(idx) >= set(np.flatnonzero(edge & fov))
+
+
 def test_ideal_values_reproduce_the_chain_without_the_clinic_sources():
     """With the ideal values the chain is noise, glare, vignetting and video only (as before
     the clinic sources existed): the same numbers from the same seed."""
