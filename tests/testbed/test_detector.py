@@ -220,6 +220,53 @@ def test_video_kernel_equals_the_numpy_video_also_on_rounding_boundaries(case):
         assert set(idx) >= set(np.flatnonzero(edge & fov))
 
 
+@pytest.mark.parametrize("seed", [0, 1, 12345])
+def test_inline_pcg64_normals_equal_numpys_stream(seed):
+    """The kernels' inline PCG64 draws (testbed._detector_numba: the Generator's state
+    stepped in compiled code) against numpy's own ``standard_normal`` and numba's call
+    through the Generator: 2 million draws (the ziggurat's rare branches included) equal,
+    and the Generator continues its stream exactly after the state is given back (its next
+    normals and uniforms equal an untouched twin's)."""
+    from testbed._detector_numba import draw_normals, inline_pcg_ok, pcg_state, set_pcg_state
+
+    assert inline_pcg_ok()
+    n = 2_000_000
+    rng = np.random.default_rng(seed)
+    state = pcg_state(rng)
+    got = draw_normals(n, state)
+    set_pcg_state(rng, state)
+    twin = np.random.default_rng(seed)
+    np.testing.assert_array_equal(got, twin.standard_normal(n))
+    np.testing.assert_array_equal(rng.standard_normal(5), twin.standard_normal(5))
+    np.testing.assert_array_equal(rng.random(5), twin.random(5))
+    generic = np.random.default_rng(seed)
+    np.testing.assert_array_equal(draw_normals(1000, generic),
+                                  np.random.default_rng(seed).standard_normal(1000))
+
+
+def test_chain_with_another_bit_generator_draws_from_it():
+    """A Generator whose bit generator is not PCG64 (Philox) has no inline state
+    (pcg_state None): the compiled chain draws from it through numba, and its frames equal
+    the numpy reference's with the same Philox stream."""
+    from testbed._detector_numba import pcg_state
+
+    assert pcg_state(np.random.Generator(np.random.Philox(3))) is None
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[:H, :W]
+    rho = np.hypot(xx - W / 2, yy - H / 2) / 70.0
+    fov = rho <= 1.0
+    trans = rng.uniform(0.01, 1.0, (H, W)) * fov
+    spec = FluoroscopeSpec(abc_photons_per_pixel=40.0, video_noise_u8=1.0)
+    kw = dict(magnification=1.5, noise=True)
+    got = detector.form_image(trans, fov, rho, spec,
+                              rng=np.random.Generator(np.random.Philox(3)), **kw)
+    ref = detector.form_image(trans, fov, rho, spec,
+                              rng=np.random.Generator(np.random.Philox(3)), reference=True,
+                              **kw)
+    np.testing.assert_array_equal(got[0], ref[0])
+    np.testing.assert_array_equal(got[1], ref[1])
+
+
 def test_ideal_values_reproduce_the_chain_without_the_clinic_sources():
     """With the ideal values the chain is noise, glare, vignetting and video only (as before
     the clinic sources existed): the same numbers from the same seed."""
