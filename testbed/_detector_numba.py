@@ -253,6 +253,56 @@ def quantum_counts(img, fov, photons, exact_below, rng):
     return low_idx[:n_low], low_lam[:n_low]
 
 
+@njit(cache=True, error_model="numpy")
+def quantum_counts_runs(img, spans, n_field, photons, exact_below, rng):
+    """:func:`quantum_counts` for a field that is one run of columns per row (``spans``,
+    :func:`row_spans`, holding every field pixel and no other; ``n_field`` of them): the
+    normals drawn first into a buffer (a tight loop), then each row's counts in one
+    vectorised loop with the same arithmetic; the same numbers and returns."""
+    H, W = img.shape
+    z = np.empty(n_field)
+    hi, lo = _rng_begin(rng)
+    for i in range(n_field):
+        z[i], hi, lo = _draw_normal(rng, hi, lo)
+    _rng_end(rng, hi, lo)
+    sixth = 1.0 / 6.0
+    n_low_row = np.zeros(H, np.int64)
+    n = 0
+    for r in range(H):
+        c0, c1 = spans[r, 0], spans[r, 1]
+        m = c1 - c0
+        row, zr = img[r, c0:c1], z[n:n + m]
+        n_low = 0
+        for k in range(m):
+            lam = max(row[k], 0.0) * photons
+            zz = zr[k]
+            q = np.sqrt(lam) * zz
+            q += lam
+            q += (zz * zz - 1.0) * sixth
+            q = max(np.rint(q), 0.0)
+            row[k] = q / photons
+            zr[k] = lam                 # the draw is used: its place keeps the expectation
+            n_low += lam < exact_below
+        n_low_row[r] = n_low
+        n += m
+    total = n_low_row.sum()
+    low_idx = np.empty(total, np.int64)
+    low_lam = np.empty(total)
+    i = 0
+    n = 0
+    for r in range(H):
+        c0, c1 = spans[r, 0], spans[r, 1]
+        if n_low_row[r]:
+            for k in range(c1 - c0):
+                lam = z[n + k]
+                if lam < exact_below:
+                    low_idx[i] = r * W + c0 + k
+                    low_lam[i] = lam
+                    i += 1
+        n += c1 - c0
+    return low_idx, low_lam
+
+
 @njit(cache=True)
 def video(log_img, fov, black_u8, white_u8, display_range, noise_u8, rng):
     """The 8-bit frame of :func:`testbed.detector.video_u8` from ``log_img``, the natural
@@ -315,6 +365,33 @@ def add_scatter_field(low, den, spr, p, fov, n_field):
                 n += 1
             else:
                 low[r, c] = 0.0
+    return values
+
+
+@njit(cache=True, error_model="numpy")
+def add_scatter_spans(low, den, spr, p, spans, n_field):
+    """:func:`add_scatter_field` for a field that is exactly one run of columns per row,
+    ``spans`` (:func:`row_spans`; the caller checks that they hold every field pixel and
+    no other): the same numbers, each row's run in one vectorised loop."""
+    H, W = low.shape
+    values = np.empty(n_field)
+    n = 0
+    for r in range(H):
+        c0, c1 = spans[r, 0], spans[r, 1]
+        row = low[r]
+        for c in range(c0):
+            row[c] = 0.0
+        for c in range(c1, W):
+            row[c] = 0.0
+        m = c1 - c0
+        seg, d, q, out = low[r, c0:c1], den[r, c0:c1], p[r, c0:c1], values[n:n + m]
+        for k in range(m):
+            v = seg[k] / d[k]
+            v *= spr
+            v += q[k]
+            seg[k] = v
+            out[k] = v
+        n += m
     return values
 
 
@@ -454,14 +531,15 @@ def row_spans(fov):
 
 
 @njit(cache=True, error_model="numpy")
-def glare_vignetting_video(img, glare, g, vignetting, floor, fov, spans, black_u8, white_u8,
-                           display_range, noise_u8, rng):
-    """:func:`glare_vignetting` (in place on ``img``), the logarithm and :func:`video` in
-    two passes, the logarithm without the C library (``spans``: :func:`row_spans` of
-    ``fov``). The first pass (vectorised) takes :func:`_fast_log` of the floored intensity
-    within the spans; the second draws the camera noise per field pixel (row-major, as
-    :func:`video`) and rounds the level. The level is computed by the same monotone steps
-    from a logarithm within ``LOG_TOLERANCE`` of the exact one, so it lies within
+def glare_vignetting_video(img, glare, g, vignetting, floor, fov, spans, runs, n_field,
+                           black_u8, white_u8, display_range, noise_u8, rng):
+    """:func:`glare_vignetting` (in place on ``img``), the logarithm and :func:`video`,
+    the logarithm without the C library (``spans``: :func:`row_spans` of ``fov``; ``runs``:
+    every row's field fills its span; ``n_field``: the field's pixel count). Passes: the
+    floored intensity's :func:`_fast_log` within the spans (vectorised); the camera noise,
+    one normal per field pixel in row-major order (as :func:`video`), into a buffer; the
+    grey levels (vectorised where ``runs``). The level is computed by the same monotone
+    steps from a logarithm within ``LOG_TOLERANCE`` of the exact one, so it lies within
     ``|gain| / display_range * LOG_TOLERANCE`` (plus a few of its ulps) of the exact level:
     where it lies farther than that from a rounding boundary, the exact logarithm gives the
     same grey level. Elsewhere (about never, or an intensity that is not a positive finite
@@ -486,38 +564,72 @@ def glare_vignetting_video(img, glare, g, vignetting, floor, fov, spans, black_u
             x = max(x_row[k], floor)
             ok = 2.2250738585072014e-308 <= x <= 1.7976931348623157e308
             lg_row[k] = _fast_log(x) if ok else np.nan
+    zb = np.zeros(n_field)
+    if noise_u8 > 0:
+        hi, lo = _rng_begin(rng)
+        if runs:
+            for i in range(n_field):
+                zb[i], hi, lo = _draw_normal(rng, hi, lo)
+        else:
+            n = 0
+            for r in range(H):
+                for c in range(spans[r, 0], spans[r, 1]):
+                    if fov[r, c]:
+                        zb[n], hi, lo = _draw_normal(rng, hi, lo)
+                        n += 1
+        _rng_end(rng, hi, lo)
     out = np.zeros((H, W), np.uint8)
     gain = float(white_u8 - black_u8)
     black = float(black_u8)
     # how far the level of the fast logarithm may lie from the exact one's (grey levels)
-    margin = abs(gain) / display_range * LOG_TOLERANCE * 1.001 + 1e-9
-    pend = np.empty(H * W, np.int64)       # untouched beyond n_pend: no cost
-    pend_z = np.empty(H * W)
-    n_pend = 0
-    hi, lo = _rng_begin(rng)
+    limit = 0.5 - (abs(gain) / display_range * LOG_TOLERANCE * 1.001 + 1e-9)
+    undecided = np.zeros(H, np.int64)
+    n = 0
     for r in range(H):
         c0, c1 = spans[r, 0], spans[r, 1]
+        m = c1 - c0
         fov_row, lg_row, out_row = fov[r, c0:c1], lg[r, c0:c1], out[r, c0:c1]
-        for k in range(c1 - c0):
-            if not fov_row[k]:
-                continue
-            z = 0.0
-            if noise_u8 > 0:
-                z, hi, lo = _draw_normal(rng, hi, lo)
-            v = _video_level(lg_row[k], z, black, gain, display_range, noise_u8)
-            vr = np.rint(v)
-            if abs(v - vr) < 0.5 - margin:     # False for NaN
+        bad = 0
+        if runs:
+            z_row = zb[n:n + m]
+            for k in range(m):
+                v = _video_level(lg_row[k], z_row[k], black, gain, display_range, noise_u8)
+                vr = np.rint(v)
                 out_row[k] = np.uint8(min(max(vr, 0.0), 255.0))
-            else:
-                pend[n_pend] = r * W + c0 + k
-                pend_z[n_pend] = z
-                n_pend += 1
-    _rng_end(rng, hi, lo)
-    idx = pend[:n_pend].copy()
+                bad += not abs(v - vr) < limit          # True for NaN
+            n += m
+        else:
+            for k in range(m):
+                if fov_row[k]:
+                    v = _video_level(lg_row[k], zb[n], black, gain, display_range,
+                                     noise_u8)
+                    vr = np.rint(v)
+                    out_row[k] = np.uint8(min(max(vr, 0.0), 255.0))
+                    bad += not abs(v - vr) < limit
+                    n += 1
+        undecided[r] = bad
+    n_pend = undecided.sum()
+    idx = np.empty(n_pend, np.int64)
     x = np.empty(n_pend)
-    for i in range(n_pend):
-        x[i] = max(img.flat[idx[i]], floor)
-    return out, idx, x, pend_z[:n_pend].copy()
+    z = np.empty(n_pend)
+    i = 0
+    n = 0
+    for r in range(H):
+        c0, c1 = spans[r, 0], spans[r, 1]
+        if undecided[r] == 0:
+            n += c1 - c0 if runs else fov[r, c0:c1].sum()
+            continue
+        for c in range(c0, c1):
+            if not fov[r, c]:
+                continue
+            v = _video_level(lg[r, c], zb[n], black, gain, display_range, noise_u8)
+            if not abs(v - np.rint(v)) < limit:
+                idx[i] = r * W + c
+                x[i] = max(img[r, c], floor)
+                z[i] = zb[n]
+                i += 1
+            n += 1
+    return out, idx, x, z
 
 
 @njit(cache=True)

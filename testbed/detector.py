@@ -320,7 +320,8 @@ class _Field:
     computes on (:func:`_crop_box`, or the whole frame): the mask, the mask as 1.0 / 0.0, the
     vignetting factor (0 outside), the field's pixel count, the scatter weights by sigma
     (:func:`_field_weight` of the box's mask), and the mask's row spans
-    (:func:`testbed._detector_numba.row_spans`)."""
+    (:func:`testbed._detector_numba.row_spans`; ``runs``: each row's field pixels fill its
+    span, as in a disc)."""
 
     box: tuple[slice, slice]
     whole: bool                # the box is the whole frame
@@ -331,6 +332,7 @@ class _Field:
     rho: np.ndarray            # held, so that its id (the cache key) stays its own
     weights: dict
     spans: np.ndarray          # per row, the field's first column and one past its last
+    runs: bool                 # every row's field is the whole of its span
 
     def scatter_weight(self, sigma_px: float) -> np.ndarray:
         key = float(sigma_px)
@@ -362,10 +364,11 @@ def _field(fov: np.ndarray, rho: np.ndarray, vignetting: float, *, crop: bool = 
 
         sub = np.ascontiguousarray(sub)
         spans = row_spans(sub)
+        n = int(np.count_nonzero(sub))
+        runs = n == int((spans[:, 1] - spans[:, 0]).sum())
         for a in (sub, inside, vig, spans):
             a.flags.writeable = False
-        return _Field(box, whole, sub, inside, vig, int(np.count_nonzero(sub)), rho, {},
-                      spans)
+        return _Field(box, whole, sub, inside, vig, n, rho, {}, spans, runs)
 
     return _derived(entry, ("vignetting", id(rho), float(vignetting), bool(crop)), make)
 
@@ -527,17 +530,23 @@ def _with_pcg(rng, kernel, *args):
     return out
 
 
-def _quantum_noise_in_field(img: np.ndarray, fov: np.ndarray, photons: float, rng) -> None:
+def _quantum_noise_in_field(img: np.ndarray, fov: np.ndarray, photons: float, rng, *,
+                            field: _Field | None = None) -> None:
     """``img[fov] = quantum_noise(img[fov], photons, rng)`` in place, compiled
-    (:func:`testbed._detector_numba.quantum_counts`): the same draws in the same order, the
-    same numbers, without gathering the field's pixels."""
-    from testbed._detector_numba import quantum_counts
+    (:func:`testbed._detector_numba.quantum_counts`, or ``quantum_counts_runs`` when
+    ``field``, the :class:`_Field` of ``fov``, is one run per row): the same draws in the
+    same order, the same numbers, without gathering the field's pixels."""
+    from testbed._detector_numba import quantum_counts, quantum_counts_runs
 
     if not photons > 0:
         raise ValueError(f"photons per pixel must be > 0, got {photons}")
-    idx, lam = _with_pcg(np.random.default_rng(rng), quantum_counts, img,
-                         np.ascontiguousarray(fov, dtype=bool), float(photons),
-                         POISSON_EXACT_BELOW)
+    rng = np.random.default_rng(rng)
+    if field is not None and field.runs:        # one run of field pixels per row
+        idx, lam = _with_pcg(rng, quantum_counts_runs, img, field.spans, field.n,
+                             float(photons), POISSON_EXACT_BELOW)
+    else:
+        idx, lam = _with_pcg(rng, quantum_counts, img, np.ascontiguousarray(fov, dtype=bool),
+                             float(photons), POISSON_EXACT_BELOW)
     if len(idx):
         img.flat[idx] = rng.poisson(lam) / photons
 
@@ -712,14 +721,18 @@ def _after_sources(p: np.ndarray, src: np.ndarray, field: _Field, fluoro, *, noi
     """The compiled chain from the scatter sources (:func:`_sources`, ``scatter_to_primary >
     0``) to ``(intensity, video)`` on the box; ``low``: the scatter source's wide blur when
     the caller has it (:class:`WideBlurUpdate`; written into)."""
-    from testbed._detector_numba import add_scatter_field
+    from testbed._detector_numba import add_scatter_field, add_scatter_spans
 
     _check_spr(fluoro.scatter_to_primary)
     sigma = fluoro.scatter_sigma_mm / float(fluoro.pixel_mm)
     if low is None:
         low = wide_blur(src, sigma)
-    values = add_scatter_field(low, field.scatter_weight(sigma),
-                               float(fluoro.scatter_to_primary), p, field.fov, field.n)
+    if field.runs:       # one run of field pixels per row: vectorised
+        values = add_scatter_spans(low, field.scatter_weight(sigma),
+                                   float(fluoro.scatter_to_primary), p, field.spans, field.n)
+    else:
+        values = add_scatter_field(low, field.scatter_weight(sigma),
+                                   float(fluoro.scatter_to_primary), p, field.fov, field.n)
     return _after_scatter(low, values, field, fluoro, noise=noise, rng=rng,
                           exact_noise=exact_noise, reference=False)
 
@@ -739,7 +752,7 @@ def _after_scatter(img: np.ndarray, values, field: _Field, fluoro, *, noise: boo
         if exact or reference:
             img[fov] = quantum_noise(img[fov], n0, rng, exact=exact)
         else:
-            _quantum_noise_in_field(img, fov, n0, rng)
+            _quantum_noise_in_field(img, fov, n0, rng, field=field)
     img = blur(img, mtf_sigma_px(fluoro.mtf50_lp_per_mm, px))
     img *= field.inside
     g = float(fluoro.glare_fraction)
@@ -775,7 +788,8 @@ def _glare_vignetting_video(img: np.ndarray, glare: np.ndarray, g: float, field:
     dr, noise_u8 = float(fluoro.display_range), float(noise_u8)
     video, idx, x, z = _with_pcg(
         np.random.default_rng(rng), glare_vignetting_video, img, glare, float(g),
-        field.vignetting, 1e-12, field.fov, field.spans, black, white, dr, noise_u8)
+        field.vignetting, 1e-12, field.fov, field.spans, field.runs, field.n, black, white,
+        dr, noise_u8)
     if len(idx):
         video_finish(video, idx, np.log(x), z, black, white, dr, noise_u8)
     return video

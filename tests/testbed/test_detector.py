@@ -169,14 +169,15 @@ def test_fast_log_stays_within_its_tolerance_of_numpys_log():
     assert np.isnan(bad).all()
 
 
-@pytest.mark.parametrize("case", range(4))
+@pytest.mark.parametrize("case", range(6))
 def test_video_kernel_equals_the_numpy_video_also_on_rounding_boundaries(case):
     """The compiled glare, vignetting and video (a fast logarithm, numpy's for the pixels
     it cannot settle) against the numpy reference (glare by wide_blur, then video_u8 with
     reference=True), on random images of which a third sit exactly where the level's
-    rounding turns (a grey level and a half): the same intensities, the same 8-bit frame,
-    the generator left in the same state; and those boundary pixels were the ones left to
-    numpy's logarithm."""
+    rounding turns (a grey level and a half), with glare and noise on and off and (cases 4
+    and 5) a field with holes (not one run per row): the same intensities, the same 8-bit
+    frame, the generator left in the same state; and those boundary pixels were the ones
+    left to numpy's logarithm."""
     from testbed._detector_numba import glare_vignetting_video
 
     rng = np.random.default_rng(case)
@@ -184,9 +185,12 @@ def test_video_kernel_equals_the_numpy_video_also_on_rounding_boundaries(case):
     yy, xx = np.mgrid[:h, :w]
     rho = np.hypot(xx - w / 2, yy - h / 2) / 32.0
     fov = rho <= 1.0
+    if case >= 4:
+        fov &= rng.uniform(0, 1, (h, w)) > 0.05
     spec = FluoroscopeSpec(glare_fraction=0.0 if case % 2 else 0.1, vignetting=0.2,
-                           video_noise_u8=0.0 if case < 2 else 1.5)
+                           video_noise_u8=0.0 if case in (0, 1, 5) else 1.5)
     field = detector._field(fov, rho, spec.vignetting, crop=False)
+    assert field.runs == (case < 4)
     img = rng.uniform(0.001, 1.2, (h, w))
     # a third of the pixels: the intensity whose level is exactly k + 1/2 (noise off)
     gain, dr = spec.white_u8 - spec.black_u8, spec.display_range
@@ -216,7 +220,8 @@ def test_video_kernel_equals_the_numpy_video_also_on_rounding_boundaries(case):
     if g == 0 and noise_u8 == 0:    # the boundary pixels are left to numpy's logarithm
         _, idx, _, _ = glare_vignetting_video(
             img.copy(), img, 0.0, np.ones((h, w)), 1e-12, field.fov, field.spans,
-            spec.black_u8, spec.white_u8, dr, 0.0, np.random.default_rng(0))
+            field.runs, field.n, spec.black_u8, spec.white_u8, dr, 0.0,
+            np.random.default_rng(0))
         assert set(idx) >= set(np.flatnonzero(edge & fov))
 
 
@@ -265,6 +270,69 @@ def test_chain_with_another_bit_generator_draws_from_it():
                               **kw)
     np.testing.assert_array_equal(got[0], ref[0])
     np.testing.assert_array_equal(got[1], ref[1])
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_scatter_sum_by_row_runs_equals_the_masked_kernel(seed):
+    """The scatter sum by each row's run of field pixels (add_scatter_spans, used when the
+    field is one run per row, as a disc) against the masked kernel (add_scatter_field) on
+    random discs, some cut by the box's edge: the same image and field values, bit for bit;
+    a field with a hole is not taken for runs."""
+    from testbed._detector_numba import add_scatter_field, add_scatter_spans
+
+    rng = np.random.default_rng(seed)
+    h, w = 90, 110
+    yy, xx = np.mgrid[:h, :w]
+    rho = np.hypot(xx - rng.uniform(20, 90), yy - rng.uniform(20, 70)) / rng.uniform(25, 60)
+    fov = rho <= 1.0
+    field = detector._field(fov, rho, 0.1, crop=False)
+    assert field.runs
+    low, den, p = (rng.uniform(0.1, 2.0, (h, w)) for _ in range(3))
+    den[rng.uniform(0, 1, (h, w)) < 0.1] = np.inf
+    a, b = low.copy(), low.copy()
+    va = add_scatter_field(a, den, 0.37, p, field.fov, field.n)
+    vb = add_scatter_spans(b, den, 0.37, p, field.spans, field.n)
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(va, vb)
+    holed = fov.copy()
+    r = int(np.argmax(fov.sum(axis=1)))                   # the widest row, at its middle
+    c0, c1 = field.spans[r]
+    holed[r, (c0 + c1) // 2] = False
+    assert not detector._field(holed, rho, 0.1, crop=False).runs
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_quantum_counts_by_row_runs_equal_the_masked_kernel(seed):
+    """quantum_counts_runs (normals drawn into a buffer, counts by row runs) against
+    quantum_counts (one pixel at a time through the mask) on random discs with expected
+    quanta spanning the exact-Poisson threshold, drawing from a Generator and from its
+    inline PCG64 state: the same counts, the same low pixels and expectations in the same
+    order, and the generators left in the same state."""
+    from testbed._detector_numba import pcg_state, quantum_counts, quantum_counts_runs
+
+    rng = np.random.default_rng(seed)
+    h, w = 80, 100
+    yy, xx = np.mgrid[:h, :w]
+    rho = np.hypot(xx - rng.uniform(30, 70), yy - rng.uniform(30, 50)) / rng.uniform(30, 60)
+    fov = rho <= 1.0
+    field = detector._field(fov, rho, 0.0, crop=False)
+    assert field.runs
+    img = rng.uniform(0.0, 1.0, (h, w)) * fov
+    for source in ("generator", "pcg"):
+        g1, g2 = np.random.default_rng(seed + 5), np.random.default_rng(seed + 5)
+        s1 = g1 if source == "generator" else pcg_state(g1)
+        s2 = g2 if source == "generator" else pcg_state(g2)
+        a, b = img.copy(), img.copy()
+        ia, la = quantum_counts(a, field.fov, 60.0, 30.0, s1)
+        ib, lb = quantum_counts_runs(b, field.spans, field.n, 60.0, 30.0, s2)
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(ia, ib)
+        np.testing.assert_array_equal(la, lb)
+        assert 0 < len(ia) < field.n
+        if source == "pcg":
+            np.testing.assert_array_equal(s1, s2)
+        else:
+            assert g1.standard_normal() == g2.standard_normal()
 
 
 def test_ideal_values_reproduce_the_chain_without_the_clinic_sources():
