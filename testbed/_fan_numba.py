@@ -41,17 +41,17 @@ from numba import njit
 
 
 @njit(cache=True)
-def bin_points(x, y, x0, y0, h, nx, ny):
-    """Counting sort of image points into an ``nx`` x ``ny`` grid of square cells of side
-    ``h`` from ``(x0, y0)`` (points outside are clamped into the border cells). Returns
+def bin_points(x, y, x0, y0, hx, hy, nx, ny):
+    """Counting sort of image points into an ``nx`` x ``ny`` grid of cells of ``hx`` by
+    ``hy`` from ``(x0, y0)`` (points outside are clamped into the border cells). Returns
     ``(start (nx*ny + 1,), order (N,))``: the points of cell ``c`` are
     ``order[start[c]:start[c + 1]]``."""
     n = x.shape[0]
     cell = np.empty(n, dtype=np.int64)
     start = np.zeros(nx * ny + 1, dtype=np.int64)
     for i in range(n):
-        cx = int((x[i] - x0) / h)
-        cy = int((y[i] - y0) / h)
+        cx = int((x[i] - x0) / hx)
+        cy = int((y[i] - y0) / hy)
         cx = min(max(cx, 0), nx - 1)
         cy = min(max(cy, 0), ny - 1)
         c = cy * nx + cx
@@ -135,13 +135,13 @@ def _edge(i, j, sig, vx, vy):
 
 
 @njit(cache=True)
-def fan_chords(vx, vy, vz, faces, xs, ys, t_scale, t_max, start, x0, y0, h, nx, ny,
+def fan_chords(vx, vy, vz, faces, xs, ys, t_scale, t_max, start, x0, y0, hx, hy, nx, ny,
                chord, balance):
     """Accumulate one closed mesh's chords for the binned rays.
 
     ``vx, vy, vz`` (V,): the vertices' image coordinates and depths (all ``vz > 0``);
     ``faces`` (F, 3) int, outward-oriented; ``xs, ys`` (N,): the rays' image points in bin
-    order (``start``, from :func:`bin_points` with ``x0, y0, h, nx, ny``); ``t_scale`` (N,)
+    order (``start``, from :func:`bin_points` with ``x0, y0, hx, hy, nx, ny``); ``t_scale`` (N,)
     ``= 1 / (d . a)`` and ``t_max`` (N,) mm, also in bin order. Adds to ``chord`` (N,) mm
     and ``balance`` (N,), also in bin order (:func:`finish` puts them in the rays' own
     order; in bin order consecutive rays of a cell are consecutive in memory, where in the
@@ -150,8 +150,8 @@ def fan_chords(vx, vy, vz, faces, xs, ys, t_scale, t_max, start, x0, y0, h, nx, 
     for every ray when the mesh's covering is consistent. Returns the range
     ``[lo, hi)`` of bin-order rays that may have been touched (what :func:`finish` reads).
     """
-    x_end = x0 + nx * h
-    y_end = y0 + ny * h
+    x_end = x0 + nx * hx
+    y_end = y0 + ny * hy
     lo = xs.shape[0]
     hi = 0
     for f in range(faces.shape[0]):
@@ -163,10 +163,10 @@ def fan_chords(vx, vy, vz, faces, xs, ys, t_scale, t_max, start, x0, y0, h, nx, 
         hiy = max(ya, max(yb, yc))
         if hix < x0 or lox > x_end or hiy < y0 or loy > y_end:
             continue                   # outside the rays' extent (e.g. outside the field)
-        cx0 = _cell(lox, x0, h, nx)
-        cx1 = min(_cell(hix, x0, h, nx), nx - 1)
-        cy0 = _cell(loy, y0, h, ny)
-        cy1 = min(_cell(hiy, y0, h, ny), ny - 1)
+        cx0 = _cell(lox, x0, hx, nx)
+        cx1 = min(_cell(hix, x0, hx, nx), nx - 1)
+        cy0 = _cell(loy, y0, hy, ny)
+        cy1 = min(_cell(hiy, y0, hy, ny), ny - 1)
         if cx1 < cx0 or cy1 < cy0:
             continue
         area2 = (xb - xa) * (yc - ya) - (yb - ya) * (xc - xa)
@@ -190,8 +190,8 @@ def fan_chords(vx, vy, vz, faces, xs, ys, t_scale, t_max, start, x0, y0, h, nx, 
             # the triangle's x extent within this row of cells (its clipped edges)
             # (the band widened by 1e-9 of a cell: a point binned by rounding into this
             # row may lie a rounding error outside it)
-            band_lo = y0 + cy * h - 1e-9 * h
-            band_hi = y0 + (cy + 1) * h + 1e-9 * h
+            band_lo = y0 + cy * hy - 1e-9 * hy
+            band_hi = y0 + (cy + 1) * hy + 1e-9 * hy
             slo, shi = _band_span(e0x, e0y, e1x, e1y, k0, band_lo, band_hi, hix, lox)
             slo, shi = _band_span(f0x, f0y, f1x, f1y, k1, band_lo, band_hi, slo, shi)
             slo, shi = _band_span(g0x, g0y, g1x, g1y, k2, band_lo, band_hi, slo, shi)
@@ -201,8 +201,8 @@ def fan_chords(vx, vy, vz, faces, xs, ys, t_scale, t_max, start, x0, y0, h, nx, 
                 slo, shi = lox, hix
             if shi < slo:
                 continue
-            rx0 = max(_cell(slo, x0, h, nx), cx0)
-            rx1 = min(_cell(shi, x0, h, nx), cx1)
+            rx0 = max(_cell(slo, x0, hx, nx), cx0)
+            rx1 = min(_cell(shi, x0, hx, nx), cx1)
             if rx1 < rx0:
                 continue
             lo = min(lo, start[cy * nx + rx0])
@@ -257,7 +257,7 @@ def finish(chord, balance, order, out, lo, hi):
 
 @njit(cache=True)
 def fan_sphere_chords(centres, radii, box_lo, box_hi, ok, dirs, t_max, order, start, x0, y0,
-                      h, nx, ny, source, out):
+                      hx, hy, nx, ny, source, out):
     """Add to ``out`` (N,) the length (mm) of every ray inside each sphere, analytically:
     only the rays binned in the cells of the sphere's image box (``box_lo``, ``box_hi``
     (K, 2), the image-plane bounds of the central projections of the sphere's bounding
@@ -268,12 +268,12 @@ def fan_sphere_chords(centres, radii, box_lo, box_hi, ok, dirs, t_max, order, st
     for k in range(centres.shape[0]):
         r2 = radii[k] * radii[k]
         if ok[k]:
-            cx0 = _cell(box_lo[k, 0], x0, h, nx)
-            cx1 = min(_cell(box_hi[k, 0], x0, h, nx), nx - 1)
-            cy0 = _cell(box_lo[k, 1], y0, h, ny)
-            cy1 = min(_cell(box_hi[k, 1], y0, h, ny), ny - 1)
-            if (box_hi[k, 0] < x0 or box_lo[k, 0] > x0 + nx * h or box_hi[k, 1] < y0
-                    or box_lo[k, 1] > y0 + ny * h or cx1 < cx0 or cy1 < cy0):
+            cx0 = _cell(box_lo[k, 0], x0, hx, nx)
+            cx1 = min(_cell(box_hi[k, 0], x0, hx, nx), nx - 1)
+            cy0 = _cell(box_lo[k, 1], y0, hy, ny)
+            cy1 = min(_cell(box_hi[k, 1], y0, hy, ny), ny - 1)
+            if (box_hi[k, 0] < x0 or box_lo[k, 0] > x0 + nx * hx or box_hi[k, 1] < y0
+                    or box_lo[k, 1] > y0 + ny * hy or cx1 < cx0 or cy1 < cy0):
                 continue
         else:
             cx0, cx1, cy0, cy1 = 0, nx - 1, 0, ny - 1

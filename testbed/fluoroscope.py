@@ -1146,7 +1146,9 @@ class SweepRenderer:
             return idx, np.zeros(0)
         # what body_path_lengths does for rays from one point (without checking that they
         # are), binned on the field fan's image plane (a subset of its rays: within its angle)
-        rays = (FanRays(o[0], d[idx], tm[idx], *self._planes[fan])
+        # in cells shaped like the rays' extent (the rod's long thin faces cross fewer
+        # cells; the chords are the same)
+        rays = (FanRays(o[0], d[idx], tm[idx], *self._planes[fan], elongation="auto")
                 if len(idx) >= FanRays.MIN_RAYS else None)
         scene = RayScene(list(rod))
         lengths = (scene.fan_path_lengths(rays) if rays is not None

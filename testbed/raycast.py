@@ -371,7 +371,8 @@ class FanRays:
     MAX_HALF_ANGLE_DEG = 80.0
     RAYS_PER_CELL = 2.0
 
-    def __init__(self, source, directions, t_max, axis, e1, e2):
+    def __init__(self, source, directions, t_max, axis, e1, e2, *,
+                 elongation: float | str = 1.0, rays_per_cell: float | None = None):
         from testbed._fan_numba import bin_points
 
         self.source = np.asarray(source, dtype=np.float64)
@@ -383,9 +384,16 @@ class FanRays:
         y = (directions @ e2) / da
         x0, y0 = float(x.min()), float(y.min())
         wx, wy = float(x.max()) - x0, float(y.max()) - y0
-        h = math.sqrt(max(wx * wy, 1e-24) * self.RAYS_PER_CELL / len(x))
+        per_cell = self.RAYS_PER_CELL if rays_per_cell is None else float(rays_per_cell)
+        if elongation == "auto":      # the rays' extent's own shape, within 1/32 to 32
+            elongation = min(max(wy / max(wx, 1e-300), 1.0 / 32.0), 32.0)
+        h = math.sqrt(max(wx * wy, 1e-24) * per_cell / len(x))
         h = max(h, 1e-12, max(wx, wy) / 4096)
-        self.grid = (x0, y0, h, int(wx / h) + 1, int(wy / h) + 1)
+        # cells of the same area, ``elongation`` times taller than wide (1: square): the
+        # chords do not depend on the cells, only the work does
+        hx = max(h / math.sqrt(elongation), 1e-12, wx / 4096)
+        hy = max(h * math.sqrt(elongation), 1e-12, wy / 4096)
+        self.grid = (x0, y0, hx, hy, int(wx / hx) + 1, int(wy / hy) + 1)
         start, order = bin_points(x, y, *self.grid)
         self.start, self.order = start, order
         self.xs = np.ascontiguousarray(x[order])

@@ -267,6 +267,50 @@ def test_fan_rasterisation_matches_the_numpy_reference(seed):
     assert np.all(fast[ties] <= near.max(axis=0) + 1e-5)
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_fan_chords_do_not_depend_on_the_cells_shape(seed):
+    """The binning's cells (square, or elongated either way, or shaped like the rays'
+    extent: elongation="auto", as the sweep casts the rod) change only the work: on a long
+    thin pin seen lengthwise, a torus and beads, from a strip of rays, and the rays aimed
+    at vertices and edge midpoints, every chord equals the square cells' bit for bit (and
+    the reference to rounding)."""
+    from testbed.raycast import FanRays
+
+    rng = np.random.default_rng(seed)
+    pin = trimesh.creation.cylinder(radius=2.0, height=120.0, sections=48)
+    pin.apply_transform(trimesh.transformations.rotation_matrix(   # across the beam
+        np.pi / 2 + rng.uniform(-0.3, 0.3), [1, 0, 0]))
+    torus = trimesh.creation.torus(major_radius=30.0, minor_radius=8.0,
+                                   major_sections=16, minor_sections=8)
+    torus.apply_transform(trimesh.transformations.random_rotation_matrix(rng.random(3)))
+    bodies = [Body("pin", "steel", mesh=pin), Body("torus", "soft_tissue", mesh=torus),
+              Body("beads", "steel", sphere_centers=rng.uniform(-20, 20, (6, 3)),
+                   sphere_radii=rng.uniform(1.0, 3.0, 6))]
+    source = np.array([0.0, 0.0, -600.0])
+    d = _fan(rng, 6000, source, np.zeros(3), 40.0)
+    d = d[np.abs(d[:, 0] / d[:, 2]) < 0.01 + 0.02 * rng.uniform()]    # a strip along y
+    for p in (pin.vertices[rng.choice(len(pin.vertices), 40, replace=False)],
+              pin.vertices[pin.edges_unique[:40]].mean(axis=1)):
+        q = p - source
+        d = np.vstack([d, q / np.linalg.norm(q, axis=1, keepdims=True)])
+    tm = rng.uniform(560.0, 700.0, len(d))
+    square = FanRays.of(source, d, tm)
+    scene = RayScene(bodies)
+    ref = scene.fan_path_lengths(square)
+    assert (ref[:, 0] > 0).sum() > 50
+    for kw in (dict(elongation="auto"), dict(elongation=16.0, rays_per_cell=4.0),
+               dict(elongation=1 / 16)):
+        fan = FanRays(source, square.directions, square.t_max, square.axis, square.e1,
+                      square.e2, **kw)
+        if kw["elongation"] == "auto":
+            hx, hy = fan.grid[2:4]
+            assert max(hx, hy) > 2 * min(hx, hy)
+        assert np.array_equal(scene.fan_path_lengths(fan), ref)
+    exact = body_path_lengths(bodies, np.broadcast_to(source, d.shape).copy(), d, tm,
+                              engine="numpy")
+    assert np.abs(ref[:-80] - exact[:-80]).max() < 1e-6
+
+
 def test_fan_rasterisation_of_an_axis_aligned_grid_through_a_box():
     """Rays from one point through a regular grid that passes exactly through a box's
     vertices, edges and face diagonals (every tie of the edge tests): each crossing is
@@ -365,12 +409,19 @@ def test_bin_points_puts_every_point_in_its_cell():
 
     rng = np.random.default_rng(2)
     x, y = rng.uniform(-1.0, 3.0, 1000), rng.uniform(2.0, 5.0, 1000)
-    start, order = bin_points(x, y, -1.0, 2.0, 0.25, 16, 12)
+    start, order = bin_points(x, y, -1.0, 2.0, 0.25, 0.25, 16, 12)
     assert sorted(order.tolist()) == list(range(1000))
     for c in range(16 * 12):
         idx = order[start[c]:start[c + 1]]
         assert np.all(np.minimum((x[idx] + 1.0) // 0.25, 15) == c % 16)
         assert np.all(np.minimum((y[idx] - 2.0) // 0.25, 11) == c // 16)
+    # cells four times taller than wide
+    start, order = bin_points(x, y, -1.0, 2.0, 0.125, 0.5, 32, 6)
+    assert sorted(order.tolist()) == list(range(1000))
+    for c in range(32 * 6):
+        idx = order[start[c]:start[c + 1]]
+        assert np.all(np.minimum((x[idx] + 1.0) // 0.125, 31) == c % 32)
+        assert np.all(np.minimum((y[idx] - 2.0) // 0.5, 5) == c // 32)
 
 
 def test_fan_narrower_than_the_meshes():
