@@ -146,7 +146,7 @@ def _rng_begin_impl(source):
     return lambda source: (np.uint64(0), np.uint64(0))
 
 
-@overload(_draw_normal, inline="always")
+@overload(_draw_normal)
 def _draw_normal_impl(source, hi, lo):
     if isinstance(source, types.Array):
         return lambda source, hi, lo: _pcg_normal(hi, lo, source[2], source[3])
