@@ -396,6 +396,21 @@ def add_scatter_spans(low, den, spr, p, spans, n_field):
 
 
 @njit(cache=True)
+def zero_outside_runs(img, spans):
+    """``img *= inside`` (the field as 1.0 / 0.0) in place for a field that is one run of
+    columns per row (``spans``, :func:`row_spans`): only the pixels outside the runs are
+    multiplied (by 0.0: the same numbers, a NaN stays NaN); inside, a product by 1.0
+    changes nothing."""
+    H, W = img.shape
+    for r in range(H):
+        row = img[r]
+        for c in range(spans[r, 0]):
+            row[c] *= 0.0
+        for c in range(spans[r, 1], W):
+            row[c] *= 0.0
+
+
+@njit(cache=True)
 def masked_transmission(trans, fov, threshold):
     """The first step of :func:`testbed.detector.form_image` in one pass: the transmission in
     ``fov`` (0 outside) and the scatterers (``fov`` and transmission below ``threshold``)."""
@@ -530,41 +545,35 @@ def row_spans(fov):
     return spans
 
 
+@njit(inline="always", error_model="numpy")
+def _floored_log(v, floor):
+    """``max(v, floor)`` and its :func:`_fast_log` (NaN unless it is a positive finite
+    normal number)."""
+    x = max(v, floor)
+    ok = 2.2250738585072014e-308 <= x <= 1.7976931348623157e308
+    return x, (_fast_log(x) if ok else np.nan)
+
+
 @njit(cache=True, error_model="numpy")
 def glare_vignetting_video(img, glare, g, vignetting, floor, fov, spans, runs, n_field,
                            black_u8, white_u8, display_range, noise_u8, rng):
     """:func:`glare_vignetting` (in place on ``img``), the logarithm and :func:`video`,
     the logarithm without the C library (``spans``: :func:`row_spans` of ``fov``; ``runs``:
-    every row's field fills its span; ``n_field``: the field's pixel count). Passes: the
-    floored intensity's :func:`_fast_log` within the spans (vectorised); the camera noise,
-    one normal per field pixel in row-major order (as :func:`video`), into a buffer; the
-    grey levels (vectorised where ``runs``). The level is computed by the same monotone
-    steps from a logarithm within ``LOG_TOLERANCE`` of the exact one, so it lies within
-    ``|gain| / display_range * LOG_TOLERANCE`` (plus a few of its ulps) of the exact level:
-    where it lies farther than that from a rounding boundary, the exact logarithm gives the
-    same grey level. Elsewhere (about never, or an intensity that is not a positive finite
-    number) the pixel is left to the caller: returns ``(video, idx, x, z)``, the box's flat
-    indices of those pixels in row-major order, their floored intensities and their draws,
-    for :func:`video_finish` with numpy's logarithm of ``x`` (the reference's own)."""
+    every row's field fills its span; ``n_field``: the field's pixel count). First the
+    camera noise, one normal per field pixel in row-major order (as :func:`video`), into a
+    buffer; then row by row (vectorised where ``runs``) the glare and vignetting, the
+    floored intensity's :func:`_fast_log` and the grey level. The level is computed by the
+    same monotone steps from a logarithm within ``LOG_TOLERANCE`` of the exact one, so it
+    lies within ``|gain| / display_range * LOG_TOLERANCE`` (plus a few of its ulps) of the
+    exact level: where it lies farther than that from a rounding boundary, the exact
+    logarithm gives the same grey level. Elsewhere (about never, or an intensity that is
+    not a positive finite number) the pixel is left to the caller: returns ``(video, idx,
+    x, z)``, the box's flat indices of those pixels in row-major order, their floored
+    intensities and their draws, for :func:`video_finish` with numpy's logarithm of ``x``
+    (the reference's own)."""
     H, W = img.shape
     keep = 1.0 - g
-    lg = np.empty((H, W))
-    for r in range(H):
-        if g > 0:
-            for c in range(W):
-                v = img[r, c] * keep
-                v += glare[r, c] * g
-                img[r, c] = v * vignetting[r, c]
-        else:
-            for c in range(W):
-                img[r, c] = img[r, c] * vignetting[r, c]
-        c0, c1 = spans[r, 0], spans[r, 1]
-        x_row, lg_row = img[r, c0:c1], lg[r, c0:c1]     # views: no negative-index checks
-        for k in range(c1 - c0):
-            x = max(x_row[k], floor)
-            ok = 2.2250738585072014e-308 <= x <= 1.7976931348623157e308
-            lg_row[k] = _fast_log(x) if ok else np.nan
-    zb = np.zeros(n_field)
+    zb = np.empty(n_field) if noise_u8 > 0 else np.zeros(n_field)
     if noise_u8 > 0:
         hi, lo = _rng_begin(rng)
         if runs:
@@ -586,14 +595,24 @@ def glare_vignetting_video(img, glare, g, vignetting, floor, fov, spans, runs, n
     undecided = np.zeros(H, np.int64)
     n = 0
     for r in range(H):
+        if g > 0:
+            for c in range(W):
+                v = img[r, c] * keep
+                v += glare[r, c] * g
+                img[r, c] = v * vignetting[r, c]
+        else:
+            for c in range(W):
+                img[r, c] = img[r, c] * vignetting[r, c]
         c0, c1 = spans[r, 0], spans[r, 1]
         m = c1 - c0
-        fov_row, lg_row, out_row = fov[r, c0:c1], lg[r, c0:c1], out[r, c0:c1]
+        # views: no negative-index checks in the vectorised loop
+        x_row, fov_row, out_row = img[r, c0:c1], fov[r, c0:c1], out[r, c0:c1]
         bad = 0
         if runs:
             z_row = zb[n:n + m]
             for k in range(m):
-                v = _video_level(lg_row[k], z_row[k], black, gain, display_range, noise_u8)
+                _, a = _floored_log(x_row[k], floor)
+                v = _video_level(a, z_row[k], black, gain, display_range, noise_u8)
                 vr = np.rint(v)
                 out_row[k] = np.uint8(min(max(vr, 0.0), 255.0))
                 bad += not abs(v - vr) < limit          # True for NaN
@@ -601,8 +620,8 @@ def glare_vignetting_video(img, glare, g, vignetting, floor, fov, spans, runs, n
         else:
             for k in range(m):
                 if fov_row[k]:
-                    v = _video_level(lg_row[k], zb[n], black, gain, display_range,
-                                     noise_u8)
+                    _, a = _floored_log(x_row[k], floor)
+                    v = _video_level(a, zb[n], black, gain, display_range, noise_u8)
                     vr = np.rint(v)
                     out_row[k] = np.uint8(min(max(vr, 0.0), 255.0))
                     bad += not abs(v - vr) < limit
@@ -622,10 +641,11 @@ def glare_vignetting_video(img, glare, g, vignetting, floor, fov, spans, runs, n
         for c in range(c0, c1):
             if not fov[r, c]:
                 continue
-            v = _video_level(lg[r, c], zb[n], black, gain, display_range, noise_u8)
+            xf, a = _floored_log(img[r, c], floor)
+            v = _video_level(a, zb[n], black, gain, display_range, noise_u8)
             if not abs(v - np.rint(v)) < limit:
                 idx[i] = r * W + c
-                x[i] = max(img[r, c], floor)
+                x[i] = xf
                 z[i] = zb[n]
                 i += 1
             n += 1

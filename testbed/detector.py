@@ -754,7 +754,12 @@ def _after_scatter(img: np.ndarray, values, field: _Field, fluoro, *, noise: boo
         else:
             _quantum_noise_in_field(img, fov, n0, rng, field=field)
     img = blur(img, mtf_sigma_px(fluoro.mtf50_lp_per_mm, px))
-    img *= field.inside
+    if field.runs and not reference:     # the same product, outside the runs only
+        from testbed._detector_numba import zero_outside_runs
+
+        zero_outside_runs(img, field.spans)
+    else:
+        img *= field.inside
     g = float(fluoro.glare_fraction)
     noise_u8 = fluoro.video_noise_u8 if noise else 0.0
     if reference:

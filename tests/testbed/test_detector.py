@@ -277,7 +277,8 @@ def test_scatter_sum_by_row_runs_equals_the_masked_kernel(seed):
     """The scatter sum by each row's run of field pixels (add_scatter_spans, used when the
     field is one run per row, as a disc) against the masked kernel (add_scatter_field) on
     random discs, some cut by the box's edge: the same image and field values, bit for bit;
-    a field with a hole is not taken for runs."""
+    zero_outside_runs equals the product by the field as 1.0 / 0.0 (infinities and NaNs
+    included); a field with a hole is not taken for runs."""
     from testbed._detector_numba import add_scatter_field, add_scatter_spans
 
     rng = np.random.default_rng(seed)
@@ -294,6 +295,17 @@ def test_scatter_sum_by_row_runs_equals_the_masked_kernel(seed):
     vb = add_scatter_spans(b, den, 0.37, p, field.spans, field.n)
     np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(va, vb)
+    # the product by the field as 1.0 / 0.0, taken outside the runs only
+    from testbed._detector_numba import zero_outside_runs
+
+    img = rng.normal(0.0, 1.0, (h, w))
+    img[rng.uniform(0, 1, (h, w)) < 0.02] = np.inf
+    img[rng.uniform(0, 1, (h, w)) < 0.02] = np.nan
+    with np.errstate(invalid="ignore"):                  # inf * 0
+        ref = img * field.inside
+    zero_outside_runs(img, field.spans)
+    np.testing.assert_array_equal(img, ref)
+    assert np.array_equal(np.signbit(img), np.signbit(ref))      # -0.0 where ref has it
     holed = fov.copy()
     r = int(np.argmax(fov.sum(axis=1)))                   # the widest row, at its middle
     c0, c1 = field.spans[r]
