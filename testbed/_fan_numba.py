@@ -304,6 +304,21 @@ def points_in_hull(uv, lo, hi, equations, margin):
                                  uv.shape[0], lo, hi, equations, margin)
 
 
+@njit(cache=True, inline="always")
+def _box_outside(x0, y0, x1, y1, equations, margin):
+    """Whether the box ``[x0, x1] x [y0, y1]`` lies beyond one half-plane's margin at all
+    four corners by more than 1e-6 (then no point of the box passes that half-plane's test:
+    a linear function's largest value over a box is at a corner, and 1e-6 covers the
+    rounding of the pixel-scale products many times over)."""
+    for e in range(equations.shape[0]):
+        a, b, c = equations[e, 0], equations[e, 1], equations[e, 2]
+        lim = margin + 1e-6
+        if (a * x0 + b * y0 + c > lim and a * x1 + b * y0 + c > lim
+                and a * x0 + b * y1 + c > lim and a * x1 + b * y1 + c > lim):
+            return True
+    return False
+
+
 @njit(cache=True)
 def points_in_hull_blocks(uv, block_lo, block_hi, block, lo, hi, equations, margin):
     """:func:`points_in_hull` skipping the blocks of ``block`` consecutive points whose
@@ -314,6 +329,9 @@ def points_in_hull_blocks(uv, block_lo, block_hi, block, lo, hi, equations, marg
     for b in range(block_lo.shape[0]):
         if (block_hi[b, 0] < lo[0] or block_lo[b, 0] > hi[0] or block_hi[b, 1] < lo[1]
                 or block_lo[b, 1] > hi[1]):
+            continue
+        if _box_outside(block_lo[b, 0], block_lo[b, 1], block_hi[b, 0], block_hi[b, 1],
+                        equations, margin):
             continue
         for i in range(b * block, min((b + 1) * block, uv.shape[0])):
             x, y = uv[i, 0], uv[i, 1]

@@ -264,7 +264,7 @@ def test_an_instrument_moved_into_the_field_is_a_stray_blob(clean_sweep):
 def test_compiled_hull_culling_equals_the_numpy_reference(seed):
     """The rays a rod can meet (points within the margin of a convex hull, compiled) against
     the numpy selection, on random point clouds and hulls, a flat hull (a rod seen end-on)
-    included."""
+    and a thin slanted one included, with and without the block culling."""
     from testbed.fluoroscope import SweepRenderer
 
     rng = np.random.default_rng(seed)
@@ -272,10 +272,15 @@ def test_compiled_hull_culling_equals_the_numpy_reference(seed):
     centre = rng.uniform(100, 540, 2)
     pts = centre + rng.normal(0, 1, (40, 2)) @ np.diag(rng.uniform(2, 150, 2))
     flat = centre + np.outer(rng.uniform(-100, 100, 12), [1.0, 0.5])
+    # a thin rod across the frame at a slant: its hull's box is mostly outside the hull
+    # (blocks there are skipped by the hull's half-planes, not by its box)
+    ang = rng.uniform(0.3, 1.2)
+    rod = centre + rng.normal(0, 1, (40, 2)) @ np.diag([200.0, 6.0]) @ np.array(
+        [[np.cos(ang), np.sin(ang)], [-np.sin(ang), np.cos(ang)]])
     from testbed._fan_numba import block_boxes
 
     rows = uv[np.lexsort((uv[:, 0], uv[:, 1] // 8))]     # coherent blocks, as rays of a frame
-    for p in (pts, flat):
+    for p in (pts, flat, rod):
         got = SweepRenderer._inside_hull(uv, p)
         ref = SweepRenderer._inside_hull(uv, p, reference=True)
         np.testing.assert_array_equal(got, ref)
