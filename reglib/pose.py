@@ -819,7 +819,8 @@ def _solve_irls(points, origins, directions, *, normals=None, fixed_point=None,
             np.ascontiguousarray(x), np.ascontiguousarray(o), np.ascontiguousarray(d),
             np.ascontiguousarray(nrm) if normals is not None else np.zeros((0, 3)),
             normals is not None, f if f is not None else np.zeros(3), f is not None,
-            bool(robust), float(tukey_a), int(max_iterations), float(tol), int(need))
+            bool(robust), float(tukey_a), int(max_iterations), float(tol), int(need),
+            False)   # generic=False, given: a signature tools/precompile.py can compile
         message = {kernel.IRLS_OK: "",
                    kernel.IRLS_FEW_WEIGHTS: f"fewer than {need} matches kept by the biweight",
                    kernel.IRLS_UNDETERMINED: "the update is undetermined by the matches "
