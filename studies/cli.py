@@ -14,6 +14,7 @@ Imports are lazy, so that ``testbed --help`` is fast and prints no library banne
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import json
 import math
@@ -693,13 +694,23 @@ def main(argv=None) -> int:
         if not getattr(args, "command", None):
             raise UsageError(f"{PROG}: a command is needed: run, study, generate, score, "
                              f"render, bench, scenes (see {PROG} --help)")
-        from studies.threads import freeze_work_modules, single_threaded_kernels
+        from studies.threads import (
+            freeze_before_exit,
+            freeze_work_modules,
+            hold_full_collections,
+            single_threaded_kernels,
+        )
 
-        single_threaded_kernels()   # and OpenCV's threads off (studies/threads.py)
-        if argv is None and args.command in FREEZING_COMMANDS:
-            _quiet_pybullet()       # imported by the freeze: without its banner on stderr
-            freeze_work_modules()   # a process that does the work and exits (threads.py)
-        return int(args.func(args) or 0)
+        freezing = argv is None and args.command in FREEZING_COMMANDS
+        with hold_full_collections() if freezing else contextlib.nullcontext():
+            single_threaded_kernels()   # and OpenCV's threads off (studies/threads.py)
+            if freezing:
+                _quiet_pybullet()       # imported by the freeze: without its banner on stderr
+                freeze_work_modules()   # a process that does the work and exits (threads.py)
+        code = int(args.func(args) or 0)
+        if freezing:
+            freeze_before_exit()    # the exit's full collection scans none of it
+        return code
     except UsageError as exc:
         msg = _one_line(str(exc))
         print(msg if msg.startswith(PROG) else f"{PROG}: {msg}", file=sys.stderr)

@@ -391,10 +391,17 @@ def test_work_processes_freeze_their_imports_out_of_the_collector():
         return out.stdout.split()
 
     # the command's own process: argv from the command line, a freezing command
-    frozen = py("import gc, sys; from studies import cli; "
+    # (no full collection during its imports, the thresholds restored after them; at the
+    # end what the work left alive frozen too, so that the exit's collection skips it)
+    frozen = py("import gc, sys; from studies import cli, threads; "
                 "cli.FREEZING_COMMANDS = ('scenes',); sys.argv = ['testbed', 'scenes']; "
-                "cli.main(); print(gc.get_freeze_count(), 'reglib.pipeline' in sys.modules)")
-    assert int(frozen[-2]) > 50_000 and frozen[-1] == "True"
+                "t = gc.get_threshold(); full = []; "
+                "gc.callbacks.append(lambda ph, info: full.append(info['generation']) "
+                "if ph == 'start' and info['generation'] == 2 else None); "
+                "threads.freeze_before_exit = lambda: full.append('exit'); "
+                "cli.main(); print(gc.get_freeze_count(), gc.get_threshold() == t, "
+                "full == ['exit'], 'reglib.pipeline' in sys.modules)")
+    assert int(frozen[-4]) > 50_000 and frozen[-3:] == ["True", "True", "True"]
     # in-process callers and the study's own process: nothing frozen
     kept = py("import gc; from studies import cli, threads; "
               "cli.FREEZING_COMMANDS = ('scenes',); cli.main(['scenes']); "
