@@ -20,6 +20,7 @@ seeded noise, never made here.
 
 from __future__ import annotations
 
+import functools
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -156,6 +157,9 @@ def _outward(c: np.ndarray, n: np.ndarray, closed: bool) -> np.ndarray:
     # _normals gives (dy, -dx): outward for a contour with positive signed area in (x, y).
     return n if area2 > 0 else -n
 
+
+SNAKE_INVERSES_KEPT = 32
+"""How many of :func:`_snake_inverse`'s matrices are kept (at most 600 x 600 each)."""
 
 SPLINE_PAD_PX = 12
 """Edge padding before the cubic B-spline prefilter: what ``ndimage.map_coordinates`` pads
@@ -320,7 +324,20 @@ def _snake_steps(img, init_xy, *, alpha, beta, gamma, max_iter, boundary,
     tx, ty, c = (np.ascontiguousarray(v, dtype=np.float64) for v in intp.tck)
     x = np.array(init_xy[:, 0], dtype=np.float64)
     y = np.array(init_xy[:, 1], dtype=np.float64)
-    n = len(x)
+    inv, (sfixed, efixed, sfree, efree) = _snake_inverse(len(x), alpha, beta, gamma, boundary)
+    snake_loop(inv, x, y, tx, ty, c, float(gamma), float(max_px_move), float(convergence),
+               int(convergence_order), int(max_iter), sfixed, efixed, sfree, efree)
+    return np.column_stack([x, y])
+
+
+@functools.lru_cache(maxsize=SNAKE_INVERSES_KEPT)
+def _snake_inverse(n: int, alpha, beta, gamma, boundary: str):
+    """The inverse of the snake's implicit step, ``(A + gamma I)^-1`` (n, n), and its
+    boundary flags ``(sfixed, efixed, sfree, efree)``, as scikit-image's ``active_contour``
+    builds them; kept for the last :data:`SNAKE_INVERSES_KEPT` sizes and weights (a CT's
+    snakes repeat their sizes: 220 snakes of experiment2 have 96 of them, and the matrix
+    and its inverse were 0.14 s of a run). The array is shared: read it only
+    (:func:`reglib._snake_numba.snake_loop` does)."""
     eye = np.eye(n)
     a = np.roll(eye, -1, axis=0) + np.roll(eye, -1, axis=1) - 2 * eye
     b = (np.roll(eye, -2, axis=0) + np.roll(eye, -2, axis=1) - 4 * np.roll(eye, -1, axis=0)
@@ -350,9 +367,7 @@ def _snake_steps(img, init_xy, *, alpha, beta, gamma, max_iter, boundary,
         A[-2, -4:] = [-1, 3, -3, 1]
         efree = True
     inv = np.linalg.inv(A + gamma * eye)
-    snake_loop(inv, x, y, tx, ty, c, float(gamma), float(max_px_move), float(convergence),
-               int(convergence_order), int(max_iter), sfixed, efixed, sfree, efree)
-    return np.column_stack([x, y])
+    return inv, (sfixed, efixed, sfree, efree)
 
 
 # --------------------------------------------------------------------------- the snake

@@ -250,6 +250,39 @@ def test_coarse_ct_pixels_keep_the_snake_off_the_skin():
         assert worst_fixed > 1.0, (px, worst_fixed)
 
 
+@pytest.mark.parametrize("boundary", ["periodic", "free", "fixed", "free-fixed"])
+def test_snake_inverse_kept_equals_a_fresh_one_and_the_snake_its_uncached_self(boundary):
+    """The snake's step matrix is kept per (size, weights, boundary): the kept inverse is
+    bit-for-bit the one built afresh, it is not changed by a snake that used it, and a
+    snake is the same whether its matrix was kept or built (each snake after the cache was
+    emptied, and again from a full cache, with other sizes in between)."""
+    from reglib import contours as C
+
+    rng = np.random.default_rng(7)
+    pot = C.gradient_potential(rng.random((60, 80)) * 50, 2.0)
+    kw = dict(alpha=0.01, beta=0.1, gamma=0.05, max_iter=60, closed=boundary == "periodic",
+              boundary=boundary)
+    inits = []
+    for n in (23, 40, 23, 57, 40):
+        t = np.linspace(0, 2 * np.pi, n, endpoint=boundary != "periodic")
+        inits.append(np.column_stack([40 + 25 * np.cos(t), 30 + 22 * np.sin(t)])
+                     + rng.normal(0, 1, (n, 2)))
+    cold = []
+    for init in inits:
+        C._snake_inverse.cache_clear()
+        cold.append(C._run_snake(pot, init, **kw))
+    C._snake_inverse.cache_clear()
+    warm = [C._run_snake(pot, init, **kw) for init in inits]
+    assert C._snake_inverse.cache_info().hits == 2
+    for a, b, init in zip(cold, warm, inits):
+        assert np.array_equal(a, b) and np.abs(a - init).max() > 0.1
+    kept, flags = C._snake_inverse(40, 0.01, 0.1, 0.05, boundary)
+    fresh, flags2 = C._snake_inverse.__wrapped__(40, 0.01, 0.1, 0.05, boundary)
+    assert np.array_equal(kept, fresh) and flags == flags2
+    assert flags == (boundary.startswith("fixed"), boundary.endswith("fixed"),
+                     boundary.startswith("free"), boundary.endswith("free"))
+
+
 @pytest.mark.parametrize("seed", range(3))
 @pytest.mark.parametrize("boundary", ["periodic", "free", "fixed", "free-fixed"])
 def test_fast_snake_steps_equal_scikit_image(seed, boundary):
