@@ -661,3 +661,155 @@ def video_finish(out, idx, log_x, z, black_u8, white_u8, display_range, noise_u8
     for i in range(idx.shape[0]):
         v = _video_level(log_x[i], z[i], black, gain, display_range, noise_u8)
         out.flat[idx[i]] = np.uint8(min(max(np.rint(v), 0.0), 255.0))
+
+
+# ------------------------------------------- the MTF blur, the field mask, the block mean
+# OpenCV's 5-tap GaussianBlur (CV_64F, BORDER_REPLICATE) and its area resize by a whole
+# factor, replicated operation by operation as this machine's build computes them (found by
+# experiment; testbed.detector checks the replica against cv2 once per shape and falls back
+# to cv2 when they differ), so that the MTF blur, the field mask's product and the glare's
+# block mean are one pass over the box.
+
+@intrinsic
+def _fma(typingctx, a, b, c):
+    """``a * b + c`` rounded once (LLVM's fma)."""
+    sig = types.float64(types.float64, types.float64, types.float64)
+
+    def codegen(context, builder, signature, args):
+        from numba.core import cgutils
+
+        d = ir.DoubleType()
+        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(d, [d, d, d]),
+                                            "llvm.fma.f64")
+        return builder.call(fn, args)
+
+    return sig, codegen
+
+
+@njit(inline="always")
+def _blur_row5(src, dst, k0, k1, k2, k3, k4):
+    """OpenCV's row filter of a 5-tap kernel (edges replicated) of ``src`` (W,) into ``dst``:
+    a multiply then fused multiply-adds in tap order, in 4-wide column blocks; the last
+    ``W % 4`` columns by plain multiply-adds."""
+    W = src.shape[0]
+    nv = W - W % 4
+    for c in range(min(2, nv)):
+        x0, x1 = src[max(c - 2, 0)], src[max(c - 1, 0)]
+        x2, x3, x4 = src[c], src[min(c + 1, W - 1)], src[min(c + 2, W - 1)]
+        s = x0 * k0
+        s = _fma(x1, k1, s)
+        s = _fma(x2, k2, s)
+        s = _fma(x3, k3, s)
+        dst[c] = _fma(x4, k4, s)
+    hi = min(nv, W - 2)
+    if hi > 2:
+        a0, a1, a2, a3, a4 = src[0:hi - 2], src[1:hi - 1], src[2:hi], src[3:hi + 1], src[4:hi + 2]
+        out = dst[2:hi]
+        for c in range(hi - 2):
+            s = a0[c] * k0
+            s = _fma(a1[c], k1, s)
+            s = _fma(a2[c], k2, s)
+            s = _fma(a3[c], k3, s)
+            out[c] = _fma(a4[c], k4, s)
+    for c in range(max(hi, 2), nv):
+        x0, x1 = src[max(c - 2, 0)], src[max(c - 1, 0)]
+        x2, x3, x4 = src[c], src[min(c + 1, W - 1)], src[min(c + 2, W - 1)]
+        s = x0 * k0
+        s = _fma(x1, k1, s)
+        s = _fma(x2, k2, s)
+        s = _fma(x3, k3, s)
+        dst[c] = _fma(x4, k4, s)
+    for c in range(nv, W):
+        x0, x1 = src[max(c - 2, 0)], src[max(c - 1, 0)]
+        x2, x3, x4 = src[c], src[min(c + 1, W - 1)], src[min(c + 2, W - 1)]
+        s = x0 * k0
+        s += x1 * k1
+        s += x2 * k2
+        s += x3 * k3
+        s += x4 * k4
+        dst[c] = s
+
+
+@njit(inline="always")
+def _block_row(prow, dst, f, scale):
+    """One row of cv2's area resize by ``f`` (2, 3 or 4) of the rows ``prow`` (f, w f):
+    each block's values in row-major order summed 4 at a time into a running sum from 0,
+    times ``scale``."""
+    w = dst.shape[0]
+    if f == 2:
+        a, b = prow[0], prow[1]
+        for j in range(w):
+            c = 2 * j
+            s = 0.0
+            s += ((a[c] + a[c + 1]) + b[c]) + b[c + 1]
+            dst[j] = s * scale
+    elif f == 3:
+        a, b, d = prow[0], prow[1], prow[2]
+        for j in range(w):
+            c = 3 * j
+            s = 0.0
+            s += ((a[c] + a[c + 1]) + a[c + 2]) + b[c]
+            s += ((b[c + 1] + b[c + 2]) + d[c]) + d[c + 1]
+            s += d[c + 2]
+            dst[j] = s * scale
+    else:
+        a, b, d, e = prow[0], prow[1], prow[2], prow[3]
+        for j in range(w):
+            c = 4 * j
+            s = 0.0
+            s += ((a[c] + a[c + 1]) + a[c + 2]) + a[c + 3]
+            s += ((b[c] + b[c + 1]) + b[c + 2]) + b[c + 3]
+            s += ((d[c] + d[c + 1]) + d[c + 2]) + d[c + 3]
+            s += ((e[c] + e[c + 1]) + e[c + 2]) + e[c + 3]
+            dst[j] = s * scale
+
+
+@njit(cache=True, error_model="numpy")
+def mtf_blur_runs(img, taps, spans, f):
+    """``detector.blur(img, sigma)`` for a 5-tap kernel ``taps`` (cv2's GaussianBlur, edges
+    replicated), times the field as 1.0 / 0.0 (:func:`zero_outside_runs` of ``spans``), and,
+    for ``f >= 2``, the means of its ``f`` x ``f`` blocks zero-padded to whole blocks
+    (``detector._block_mean(.., fast=True)``, cv2's area resize: each block's values in
+    row-major order summed 4 at a time into a running sum, times ``float32(1 / f**2)``), in
+    one pass over the rows (the row filter's rows in a ring of 5). Returns ``(blurred,
+    block_means)`` (``block_means`` (0, 0) when ``f < 2``). Equal to OpenCV's on the builds
+    the caller's check accepts (``detector._mtf_replica_ok``)."""
+    H, W = img.shape
+    k0, k1, k2, k3, k4 = taps[0], taps[1], taps[2], taps[3], taps[4]
+    out = np.empty((H, W))
+    ring = np.empty((5, W))
+    done = -1                          # the last source row filtered into the ring
+    fb = f if f >= 2 else 1
+    h, w = -(-H // fb), -(-W // fb)
+    small = np.zeros((h, w)) if f >= 2 else np.zeros((0, 0))
+    scale = float(np.float32(1.0) / np.float32(fb * fb))
+    prow = np.zeros((fb, w * fb))
+    for r in range(H):
+        need = min(r + 2, H - 1)
+        while done < need:
+            done += 1
+            _blur_row5(img[done], ring[done % 5], k0, k1, k2, k3, k4)
+        t0, t1 = ring[max(r - 2, 0) % 5], ring[max(r - 1, 0) % 5]
+        t2 = ring[r % 5]
+        t3, t4 = ring[min(r + 1, H - 1) % 5], ring[min(r + 2, H - 1) % 5]
+        row = out[r]
+        for c in range(W):
+            s = t2[c] * k2
+            s = s + k3 * (t1[c] + t3[c])
+            row[c] = s + k4 * (t0[c] + t4[c])
+        for c in range(spans[r, 0]):
+            row[c] *= 0.0
+        for c in range(spans[r, 1], W):
+            row[c] *= 0.0
+        if f >= 2 and (r % f == f - 1 or r == H - 1):
+            bi = r // f
+            if (bi + 1) * f <= H and w * f == W:
+                _block_row(out[bi * f:(bi + 1) * f], small[bi], f, scale)
+            else:
+                for dy in range(f):           # the block row, zero-padded to whole blocks
+                    if bi * f + dy < H:
+                        prow[dy, :W] = out[bi * f + dy]
+                    else:
+                        prow[dy, :W] = 0.0
+                _block_row(prow, small[bi], f, scale)
+    return out, small

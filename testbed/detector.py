@@ -179,11 +179,69 @@ def wide_blur(img: np.ndarray, sigma_px: float) -> np.ndarray:
     if f == 1:
         return _gaussian(img, sigma_px, cv2.BORDER_CONSTANT)
     H, W = img.shape
-    small = _gaussian_small(_block_mean(img, f, fast=True), sigma_px / f)
+    return _wide_blur_of_blocks(_block_mean(img, f, fast=True), sigma_px, f, (H, W))
+
+
+def _wide_blur_of_blocks(blocks: np.ndarray, sigma_px: float, f: int, shape) -> np.ndarray:
+    """:func:`wide_blur`'s steps after its block mean ``blocks`` (``f > 1``) of an image of
+    ``shape``: the coarse blur and the interpolation back."""
+    H, W = shape
+    small = _gaussian_small(blocks, sigma_px / f)
     h, w = small.shape
     # back to full resolution: small pixel (i, j) is centred at full (f i + (f-1)/2, ...),
     # OpenCV's pixel-centre convention for a resize by f; bilinear, edges held
     return cv2.resize(small, (w * f, h * f), interpolation=cv2.INTER_LINEAR)[:H, :W]
+
+
+_MTF_REPLICA_OK: dict = {}
+
+
+def _mtf_taps(sigma_px: float) -> np.ndarray | None:
+    """The 5 taps of :func:`blur`'s kernel (OpenCV's), or None for another kernel size."""
+    if not sigma_px > 0 or int(4.0 * sigma_px + 0.5) != 2:
+        return None
+    return cv2.getGaussianKernel(5, sigma_px, cv2.CV_64F).ravel()
+
+
+def _mtf_blur_in_field(img: np.ndarray, sigma_px: float, spans: np.ndarray, f: int
+                       ) -> tuple[np.ndarray, np.ndarray | None]:
+    """``blur(img, sigma_px)`` times the field (one run per row, ``spans``), and for ``f >=
+    2`` its ``_block_mean(.., f, fast=True)`` (else None): one compiled pass
+    (:func:`testbed._detector_numba.mtf_blur_runs`, a replica of OpenCV's arithmetic) when
+    the replica equals OpenCV for this shape, kernel and factor in this process (checked
+    once on random values); else OpenCV's calls, the reference."""
+    from testbed._detector_numba import mtf_blur_runs, zero_outside_runs
+
+    taps = _mtf_taps(sigma_px)
+    key = (img.shape, float(sigma_px), int(f))
+    if taps is not None and key not in _MTF_REPLICA_OK:
+        if len(_MTF_REPLICA_OK) >= 64:
+            _MTF_REPLICA_OK.pop(next(iter(_MTF_REPLICA_OK)))
+        _MTF_REPLICA_OK[key] = _mtf_replica_check(img.shape, sigma_px, spans, f, taps)
+    if taps is not None and _MTF_REPLICA_OK[key]:
+        out, blocks = mtf_blur_runs(np.ascontiguousarray(img, dtype=np.float64), taps,
+                                    spans, int(f))
+        return out, (blocks if f >= 2 else None)
+    out = blur(img, sigma_px)
+    zero_outside_runs(out, spans)
+    return out, (_block_mean(out, f, fast=True) if f >= 2 else None)
+
+
+def _mtf_replica_check(shape, sigma_px: float, spans: np.ndarray, f: int,
+                       taps: np.ndarray) -> bool:
+    """Whether :func:`testbed._detector_numba.mtf_blur_runs` equals OpenCV's blur and area
+    resize bit for bit on random values of ``shape`` (values of widely different scales)."""
+    from testbed._detector_numba import mtf_blur_runs, zero_outside_runs
+
+    rng = np.random.default_rng(20261127)
+    img = rng.uniform(0.0, 2.0, shape) * 10.0 ** rng.uniform(-3.0, 3.0, shape)
+    ref = blur(img, sigma_px)
+    zero_outside_runs(ref, spans)
+    out, blocks = mtf_blur_runs(img, taps, spans, int(f))
+    ok = np.array_equal(out, ref)
+    if f >= 2:
+        ok = ok and np.array_equal(blocks, _block_mean(ref, f, fast=True))
+    return bool(ok)
 
 
 class WideBlurUpdate:
@@ -753,14 +811,22 @@ def _after_scatter(img: np.ndarray, values, field: _Field, fluoro, *, noise: boo
             img[fov] = quantum_noise(img[fov], n0, rng, exact=exact)
         else:
             _quantum_noise_in_field(img, fov, n0, rng, field=field)
-    img = blur(img, mtf_sigma_px(fluoro.mtf50_lp_per_mm, px))
-    if field.runs and not reference:     # the same product, outside the runs only
+    g = float(fluoro.glare_fraction)
+    sigma = mtf_sigma_px(fluoro.mtf50_lp_per_mm, px)
+    f = _coarsening(fluoro.glare_sigma_px) if g > 0 else 1
+    blocks = None
+    if field.runs and not reference and sigma > 0:
+        # the MTF blur, the same product outside the runs only, and the glare's block mean
+        # in one pass
+        img, blocks = _mtf_blur_in_field(img, sigma, field.spans, f if f > 1 else 0)
+    elif field.runs and not reference:
         from testbed._detector_numba import zero_outside_runs
 
+        img = blur(img, sigma)
         zero_outside_runs(img, field.spans)
     else:
+        img = blur(img, sigma)
         img *= field.inside
-    g = float(fluoro.glare_fraction)
     noise_u8 = fluoro.video_noise_u8 if noise else 0.0
     if reference:
         if g > 0:
@@ -776,7 +842,11 @@ def _after_scatter(img: np.ndarray, values, field: _Field, fluoro, *, noise: boo
     # glare, vignetting, the logarithm and the video in one compiled call (the logarithm
     # computed fast and checked against the grey levels' rounding: numpy's is taken for the
     # pixels it cannot settle)
-    glare = wide_blur(img, fluoro.glare_sigma_px) if g > 0 else img
+    if g > 0:
+        glare = (_wide_blur_of_blocks(blocks, fluoro.glare_sigma_px, f, img.shape)
+                 if blocks is not None else wide_blur(img, fluoro.glare_sigma_px))
+    else:
+        glare = img
     video = _glare_vignetting_video(img, glare, g, field, fluoro, noise_u8, rng)
     return img, video
 

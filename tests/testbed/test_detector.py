@@ -510,6 +510,51 @@ def _rms_px(field, fov):
     return float(np.sqrt(np.mean(np.sum(field[fov] ** 2, axis=-1))))
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_fused_mtf_blur_and_block_mean_equal_opencv(seed):
+    """The MTF blur, the field's product and the glare's block mean in one compiled pass
+    (mtf_blur_runs, a replica of OpenCV's arithmetic) against OpenCV's GaussianBlur,
+    zero_outside_runs and the area resize (the reference) on random shapes (odd sizes,
+    blocks cut by the edge), 5-tap kernels, factors 0 and 2-4 and values of widely
+    different scales: where the once-per-shape check accepts the replica, bit for bit
+    equal; the chain's call (_mtf_blur_in_field) equals the reference either way; the
+    check rejects a replica given other taps."""
+    from testbed._detector_numba import mtf_blur_runs, row_spans, zero_outside_runs
+
+    rng = np.random.default_rng(seed)
+    accepted = 0
+    for case in range(6):
+        h, w = (int(v) for v in rng.integers(3, 70, 2))
+        if case == 0:
+            h, w = 96, 123
+        sigma = float(rng.uniform(0.375, 0.624))
+        f = int(rng.choice([0, 2, 3, 4]))
+        yy, xx = np.mgrid[:h, :w]
+        fov = np.hypot(xx - w / 2, yy - h / 2) <= max(h, w) / 2.2
+        spans = row_spans(fov)
+        img = rng.uniform(0.0, 2.0, (h, w)) * 10.0 ** rng.uniform(-3, 3, (h, w))
+        ref = detector.blur(img, sigma)
+        zero_outside_runs(ref, spans)
+        ref_blocks = detector._block_mean(ref, f, fast=True) if f else None
+        out, blocks = detector._mtf_blur_in_field(img, sigma, spans, f)
+        np.testing.assert_array_equal(out, ref)
+        if f:
+            np.testing.assert_array_equal(blocks, ref_blocks)
+        else:
+            assert blocks is None
+        taps = detector._mtf_taps(sigma)
+        if detector._mtf_replica_check((h, w), sigma, spans, f, taps):
+            accepted += 1
+            got, got_blocks = mtf_blur_runs(img, taps, spans, f)
+            np.testing.assert_array_equal(got, ref)
+            if f:
+                np.testing.assert_array_equal(got_blocks, ref_blocks)
+        other = taps * (1.0 + 1e-9)
+        assert not detector._mtf_replica_check((h, w), sigma, spans, f, other)
+    assert detector._mtf_taps(0.7) is None and detector._mtf_taps(0.0) is None
+    print(f"replica accepted for {accepted} of 6 shapes")
+
+
 def test_drift_changes_the_field_between_sweep_and_acquisition_by_its_magnitude():
     fluoro = FluoroscopeSpec(distortion_drift_mm=0.2)
     cal = make_carm(fluoro, VIEW, stage="calibration")
