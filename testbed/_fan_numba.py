@@ -326,19 +326,31 @@ def points_in_hull_blocks(uv, block_lo, block_hi, block, lo, hi, equations, marg
     point outside that box is never kept). Rays in row-major order make compact blocks."""
     out = np.empty(uv.shape[0], np.int64)
     n = 0
+    active = np.empty(equations.shape[0], np.int64)
     for b in range(block_lo.shape[0]):
-        if (block_hi[b, 0] < lo[0] or block_lo[b, 0] > hi[0] or block_hi[b, 1] < lo[1]
-                or block_lo[b, 1] > hi[1]):
+        x0, y0, x1, y1 = block_lo[b, 0], block_lo[b, 1], block_hi[b, 0], block_hi[b, 1]
+        if x1 < lo[0] or x0 > hi[0] or y1 < lo[1] or y0 > hi[1]:
             continue
-        if _box_outside(block_lo[b, 0], block_lo[b, 1], block_hi[b, 0], block_hi[b, 1],
-                        equations, margin):
+        if _box_outside(x0, y0, x1, y1, equations, margin):
             continue
+        # the half-planes the block's box straddles: one that holds the whole box within
+        # its margin by more than 1e-6 at all four corners holds every point of the block
+        # (the converse of _box_outside's argument), so only the others are tested
+        na = 0
+        lim = margin - 1e-6
+        for e in range(equations.shape[0]):
+            a, bb, c = equations[e, 0], equations[e, 1], equations[e, 2]
+            if not (a * x0 + bb * y0 + c < lim and a * x1 + bb * y0 + c < lim
+                    and a * x0 + bb * y1 + c < lim and a * x1 + bb * y1 + c < lim):
+                active[na] = e
+                na += 1
         for i in range(b * block, min((b + 1) * block, uv.shape[0])):
             x, y = uv[i, 0], uv[i, 1]
             if x < lo[0] or x > hi[0] or y < lo[1] or y > hi[1]:
                 continue
             inside = True
-            for e in range(equations.shape[0]):
+            for j in range(na):
+                e = active[j]
                 if equations[e, 0] * x + equations[e, 1] * y + equations[e, 2] > margin:
                     inside = False
                     break

@@ -290,6 +290,30 @@ def test_compiled_hull_culling_equals_the_numpy_reference(seed):
                 SweepRenderer._inside_hull(pts_uv, p, blocks=blocks),
                 SweepRenderer._inside_hull(pts_uv, p, reference=True))
     assert len(SweepRenderer._inside_hull(uv, pts)) > 10
+    # a many-sided hull (a rod's rounded outline) with points on and about its margin:
+    # the block path tests only the half-planes a block's box straddles, and keeps
+    # exactly the points the all-half-plane test keeps with the same half-planes
+    from testbed._fan_numba import hull_equations, points_in_hull, points_in_hull_blocks
+
+    t = np.linspace(0, 2 * np.pi, 60, endpoint=False)
+    oval = centre + np.c_[220 * np.cos(t), 9 * np.sin(t)] @ np.array(
+        [[np.cos(ang), np.sin(ang)], [-np.sin(ang), np.cos(ang)]])
+    order = np.lexsort((oval[:, 1], oval[:, 0]))
+    eq = np.ascontiguousarray(hull_equations(np.ascontiguousarray(oval[order]), 1e-6))
+    assert len(eq) > 40
+    m = SweepRenderer.HULL_MARGIN_PX
+    e = eq[rng.integers(0, len(eq), 4000)]       # points at the margin of random edges
+    along = rng.uniform(-300, 300, (4000, 1)) * np.c_[-e[:, 1], e[:, 0]]
+    foot = (m - e[:, 2] + rng.choice([-1e-9, 0.0, 1e-9], 4000))[:, None] * e[:, :2]
+    near = np.vstack([centre + rng.normal(0, 1, (8000, 2)) @ np.diag([150.0, 20.0]),
+                      foot + along])
+    near = near[np.lexsort((near[:, 0], near[:, 1] // 4))]
+    lo, hi = oval.min(axis=0) - m, oval.max(axis=0) + m
+    for block in (16, 64):
+        got = points_in_hull_blocks(near, *block_boxes(near, block), block, lo, hi, eq, m)
+        ref = points_in_hull(near, lo, hi, eq, m)
+        np.testing.assert_array_equal(got, ref)
+        assert 100 < len(ref) < len(near)
 
 
 def test_compiled_hull_equations_equal_scipys_convex_hull():
