@@ -808,9 +808,13 @@ def _relabel_plane(rows, blobs, names, beads, plane_of, problems, p: int) -> Non
     xy = np.concatenate([rows["xy"][i] for i in idx])
     A_all = D[row_of, bead_of]                                      # (M, T)
     R = len(idx)
+    # each row's markers are one run of row_of (rows not empty): where each run starts
+    starts = np.concatenate([[0], np.cumsum([len(rows["bead"][i]) for i in idx])[:-1]])
 
     def fit(use):
-        sel = np.isin(row_of, use)
+        # a pair of rows (the consensus loop, 0.04 ms a pair less than np.isin)
+        sel = (row_of == use[0]) | (row_of == use[1]) if len(use) == 2 \
+            else np.isin(row_of, use)
         if sel.sum() < len(_PLANE_TERMS) + 2:
             return None
         return np.linalg.lstsq(A_all[sel], xy[sel], rcond=None)[0]
@@ -819,8 +823,8 @@ def _relabel_plane(rows, blobs, names, beads, plane_of, problems, p: int) -> Non
         pred = D @ coef                                             # (R, n, 2)
         gap = np.maximum(np.linalg.norm(np.diff(pred, axis=1), axis=2).min(axis=1), 1e-9)
         off = np.linalg.norm(xy - pred[row_of, bead_of], axis=1) / gap[row_of]
-        worst = np.zeros(R)
-        np.maximum.at(worst, row_of, off)
+        # the worst marker of each row: np.maximum.at(zeros(R), row_of, off), over the runs
+        worst = np.maximum(np.maximum.reduceat(off, starts), 0.0)
         return worst, pred, gap
 
     best = None
