@@ -687,6 +687,19 @@ def _fma(typingctx, a, b, c):
 
 
 @njit(inline="always")
+def _row5_fma_at(src, c, W, k0, k1, k2, k3, k4):
+    """:func:`_blur_row5`'s value at column ``c`` near an edge (taps clamped to the row):
+    a multiply then fused multiply-adds in tap order."""
+    x0, x1 = src[max(c - 2, 0)], src[max(c - 1, 0)]
+    x2, x3, x4 = src[c], src[min(c + 1, W - 1)], src[min(c + 2, W - 1)]
+    s = x0 * k0
+    s = _fma(x1, k1, s)
+    s = _fma(x2, k2, s)
+    s = _fma(x3, k3, s)
+    return _fma(x4, k4, s)
+
+
+@njit(inline="always")
 def _blur_row5(src, dst, k0, k1, k2, k3, k4):
     """OpenCV's row filter of a 5-tap kernel (edges replicated) of ``src`` (W,) into ``dst``:
     a multiply then fused multiply-adds in tap order, in 4-wide column blocks; the last
@@ -694,13 +707,7 @@ def _blur_row5(src, dst, k0, k1, k2, k3, k4):
     W = src.shape[0]
     nv = W - W % 4
     for c in range(min(2, nv)):
-        x0, x1 = src[max(c - 2, 0)], src[max(c - 1, 0)]
-        x2, x3, x4 = src[c], src[min(c + 1, W - 1)], src[min(c + 2, W - 1)]
-        s = x0 * k0
-        s = _fma(x1, k1, s)
-        s = _fma(x2, k2, s)
-        s = _fma(x3, k3, s)
-        dst[c] = _fma(x4, k4, s)
+        dst[c] = _row5_fma_at(src, c, W, k0, k1, k2, k3, k4)
     hi = min(nv, W - 2)
     if hi > 2:
         a0, a1, a2, a3, a4 = src[0:hi - 2], src[1:hi - 1], src[2:hi], src[3:hi + 1], src[4:hi + 2]
@@ -712,13 +719,7 @@ def _blur_row5(src, dst, k0, k1, k2, k3, k4):
             s = _fma(a3[c], k3, s)
             out[c] = _fma(a4[c], k4, s)
     for c in range(max(hi, 2), nv):
-        x0, x1 = src[max(c - 2, 0)], src[max(c - 1, 0)]
-        x2, x3, x4 = src[c], src[min(c + 1, W - 1)], src[min(c + 2, W - 1)]
-        s = x0 * k0
-        s = _fma(x1, k1, s)
-        s = _fma(x2, k2, s)
-        s = _fma(x3, k3, s)
-        dst[c] = _fma(x4, k4, s)
+        dst[c] = _row5_fma_at(src, c, W, k0, k1, k2, k3, k4)
     for c in range(nv, W):
         x0, x1 = src[max(c - 2, 0)], src[max(c - 1, 0)]
         x2, x3, x4 = src[c], src[min(c + 1, W - 1)], src[min(c + 2, W - 1)]

@@ -272,6 +272,15 @@ def test_chain_with_another_bit_generator_draws_from_it():
     np.testing.assert_array_equal(got[1], ref[1])
 
 
+def _random_disc(rng, h: int, w: int, cx_px, cy_px, radius_px):
+    """A field of view ``(rho (h, w), fov)``: a disc of a radius drawn from ``radius_px``
+    centred at a point drawn from ``cx_px`` x ``cy_px`` (ranges, px; drawn in that order),
+    cut by the frame where it reaches past it."""
+    yy, xx = np.mgrid[:h, :w]
+    rho = np.hypot(xx - rng.uniform(*cx_px), yy - rng.uniform(*cy_px)) / rng.uniform(*radius_px)
+    return rho, rho <= 1.0
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_scatter_sum_by_row_runs_equals_the_masked_kernel(seed):
     """The scatter sum by each row's run of field pixels (add_scatter_spans, used when the
@@ -283,9 +292,7 @@ def test_scatter_sum_by_row_runs_equals_the_masked_kernel(seed):
 
     rng = np.random.default_rng(seed)
     h, w = 90, 110
-    yy, xx = np.mgrid[:h, :w]
-    rho = np.hypot(xx - rng.uniform(20, 90), yy - rng.uniform(20, 70)) / rng.uniform(25, 60)
-    fov = rho <= 1.0
+    rho, fov = _random_disc(rng, h, w, (20, 90), (20, 70), (25, 60))
     field = detector._field(fov, rho, 0.1, crop=False)
     assert field.runs
     low, den, p = (rng.uniform(0.1, 2.0, (h, w)) for _ in range(3))
@@ -324,9 +331,7 @@ def test_quantum_counts_by_row_runs_equal_the_masked_kernel(seed):
 
     rng = np.random.default_rng(seed)
     h, w = 80, 100
-    yy, xx = np.mgrid[:h, :w]
-    rho = np.hypot(xx - rng.uniform(30, 70), yy - rng.uniform(30, 50)) / rng.uniform(30, 60)
-    fov = rho <= 1.0
+    rho, fov = _random_disc(rng, h, w, (30, 70), (30, 50), (30, 60))
     field = detector._field(fov, rho, 0.0, crop=False)
     assert field.runs
     img = rng.uniform(0.0, 1.0, (h, w)) * fov
