@@ -423,3 +423,74 @@ def hull_equations(pts, flat_area):
 def _cross(pts, o, a, b):
     return ((pts[a, 0] - pts[o, 0]) * (pts[b, 1] - pts[o, 1])
             - (pts[a, 1] - pts[o, 1]) * (pts[b, 0] - pts[o, 0]))
+
+
+@njit(cache=True)
+def source_near_bodies(pts, mesh_seg, centres, radii, src):
+    """Whether the point ``src (3,)`` may lie inside one of a set of bodies, a fast filter of
+    ``testbed.fluoroscope._check_source_outside`` (which the caller then runs, the exact
+    test): True when ``src`` lies within the bounds (the exact minimum and maximum) of the
+    points ``pts[mesh_seg[k, 0]:mesh_seg[k, 1]]`` of a mesh ``k``, or within a sphere
+    ``centres (C, 3)``, ``radii (C,)`` enlarged by a relative 1e-9 (far more than the
+    rounding of its distance); False when ``src`` is certainly outside them all."""
+    for k in range(mesh_seg.shape[0]):
+        i0, i1 = mesh_seg[k, 0], mesh_seg[k, 1]
+        if i1 <= i0:
+            continue
+        inside = True
+        for c in range(3):
+            lo = hi = pts[i0, c]
+            for i in range(i0 + 1, i1):
+                lo = min(lo, pts[i, c])
+                hi = max(hi, pts[i, c])
+            if not (src[c] >= lo and src[c] <= hi):
+                inside = False
+                break
+        if inside:
+            return True
+    for k in range(centres.shape[0]):
+        dx = centres[k, 0] - src[0]
+        dy = centres[k, 1] - src[1]
+        dz = centres[k, 2] - src[2]
+        if not dx * dx + dy * dy + dz * dz > radii[k] * radii[k] * (1.0 + 1e-9):
+            return True
+    return False
+
+
+@njit(cache=True)
+def projected_hull(q, principal_x, principal_y, sid, pixel, margin, flat_area):
+    """The culling hull of the points ``q (K, 3)`` in the C-arm frame (source at the origin,
+    +z the beam): their undistorted pixels (the pinhole expressions of
+    ``CArm.project_undistorted``, term for term), ``lo``/``hi`` their bounds less/plus
+    ``margin``, and :func:`hull_equations` of them sorted by x then y (as
+    ``np.lexsort((y, x))``: points of equal x and y are equal, so the order among them does
+    not change the rows). Returns ``(ok, pts (K, 2), lo, hi, equations)``; ``ok`` False (and
+    nothing else computed) when a point lies at or behind the source (``q_z <= 1e-9``)."""
+    k = q.shape[0]
+    pts = np.empty((k, 2))
+    lo = np.empty(2)
+    hi = np.empty(2)
+    for i in range(k):
+        if q[i, 2] <= 1e-9:
+            return False, pts, lo, hi, np.zeros((0, 3))
+    for i in range(k):
+        pts[i, 0] = principal_x + sid * q[i, 0] / (q[i, 2] * pixel)
+        pts[i, 1] = principal_y + sid * q[i, 1] / (q[i, 2] * pixel)
+    for c in range(2):
+        a = b = pts[0, c]
+        for i in range(1, k):
+            a = min(a, pts[i, c])
+            b = max(b, pts[i, c])
+        lo[c] = a - margin
+        hi[c] = b + margin
+    by_y = np.argsort(pts[:, 1], kind="mergesort")
+    xs = np.empty(k)
+    for i in range(k):
+        xs[i] = pts[by_y[i], 0]
+    by_x = np.argsort(xs, kind="mergesort")
+    srt = np.empty((k, 2))
+    for i in range(k):
+        j = by_y[by_x[i]]
+        srt[i, 0] = pts[j, 0]
+        srt[i, 1] = pts[j, 1]
+    return True, pts, lo, hi, hull_equations(srt, flat_area)

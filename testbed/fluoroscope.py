@@ -90,6 +90,10 @@ _Field_uT = Annotated[float, Field(ge=-200.0, le=200.0)]
 #: the most rays a frame may cast (width x height x oversample^2): 2**24, a 2048 x 2048
 #: image with oversample 2 (the default frame casts 307,200)
 MAX_RAYS_PER_FRAME = 2**24
+#: a unit cube's corners (x slowest, z fastest): a bead's bounding cube is its centre plus
+#: its radius times these
+_CUBE_CORNERS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)],
+                         dtype=np.float64)
 
 
 class FluoroscopeSpec(Spec):
@@ -1044,6 +1048,9 @@ class SweepRenderer:
         for b in self.bodies:
             material(b.material)
         _check_source_outside(carm, self.bodies)
+        self._source = carm.source_robot
+        self._robot2carm = carm.carm2robot.inverse()
+        self._by_name = {b.name: b for b in self.bodies}
         self.fov = carm.fov_mask()
         from testbed._fan_numba import block_boxes
 
@@ -1087,27 +1094,70 @@ class SweepRenderer:
 
     def _hull_px(self, rod: list[Body]) -> np.ndarray:
         """Undistorted pixels (K, 2) of the rod's vertices (bead cubes' corners)."""
-        pts = []
+        return self.carm.project_undistorted(self._rod_points(rod)[0])
+
+    def _rod_points(self, rod: list[Body]):
+        """The rod's vertices and bead cubes' corners ``(K, 3)`` (robot frame, in the rod's
+        order), the rows ``(start, stop)`` of each mesh's vertices among them ``(M, 2)``,
+        and the beads' centres ``(C, 3)`` and radii ``(C,)``."""
+        pts, seg, centres, radii = [], [], [], []
+        k = 0
         for b in rod:
             if b.mesh is not None:
-                pts.append(np.asarray(b.mesh.vertices))
+                v = np.asarray(b.mesh.vertices)
+                seg.append((k, k + len(v)))
             else:
-                corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1)
-                                    for z in (-1, 1)], dtype=np.float64)
-                pts.append((b.sphere_centers[:, None, :] + b.sphere_radii[:, None, None]
-                            * corners[None]).reshape(-1, 3))
-        return self.carm.project_undistorted(np.vstack(pts))
+                v = (b.sphere_centers[:, None, :] + b.sphere_radii[:, None, None]
+                     * _CUBE_CORNERS[None]).reshape(-1, 3)
+                centres.append(b.sphere_centers)
+                radii.append(np.broadcast_to(b.sphere_radii, (len(b.sphere_centers),)))
+            pts.append(v)
+            k += len(v)
+        seg = np.array(seg, dtype=np.int64).reshape(-1, 2)
+        centres = (np.vstack(centres).astype(np.float64) if centres else np.zeros((0, 3)))
+        radii = np.concatenate(radii).astype(np.float64) if radii else np.zeros(0)
+        return np.vstack(pts), seg, centres, radii
+
+    def _rod_hull(self, rod: list[Body]):
+        """``(pts, lo, hi, equations)``: :meth:`_hull_px` of the rod (the same pixels: the
+        same product by the inverse pose, then the pinhole expressions compiled), the bounds
+        and half-planes :meth:`_inside_hull` derives from them (one compiled call,
+        :func:`testbed._fan_numba.projected_hull`); before them the source's check of
+        :func:`_check_source_outside` (run only when
+        :func:`testbed._fan_numba.source_near_bodies` cannot rule the rod out)."""
+        from testbed._fan_numba import projected_hull, source_near_bodies
+
+        p, seg, centres, radii = self._rod_points(rod)
+        if source_near_bodies(p, seg, centres, radii, self._source):
+            _check_source_outside(self.carm, rod)
+        inv = self._robot2carm
+        q = p @ inv.R.T + inv.t            # as RigidTransform.apply
+        carm = self.carm
+        ok, pts, lo, hi, equations = projected_hull(
+            q, float(carm.principal_px[0]), float(carm.principal_px[1]), float(carm.sid_mm),
+            float(carm.pixel_mm), float(self.HULL_MARGIN_PX), float(self.FLAT_HULL_PX2))
+        if not ok:
+            raise ValueError(f"view {carm.name!r}: points at or behind the X-ray source")
+        return pts, lo, hi, equations
 
     @classmethod
     def _inside_hull(cls, uv, pts: np.ndarray, *, reference: bool = False,
-                     blocks=None) -> np.ndarray:
+                     blocks=None, hull=None) -> np.ndarray:
         """Indices (ascending) of the points ``uv`` (M, 2) within the margin of the convex
         hull of ``pts`` (K, 2); compiled (the hull by :func:`testbed._fan_numba.hull_equations`,
         the points by :func:`testbed._fan_numba.points_in_hull`; ``blocks``: ``(block_lo,
         block_hi, block)`` of ``uv`` from :func:`testbed._fan_numba.block_boxes`, so that
-        blocks outside the hull's box are skipped). ``reference=True``: scipy's convex hull
-        and the same tests in numpy (compared in tests)."""
+        blocks outside the hull's box are skipped; ``hull``: ``(lo, hi, equations)`` of
+        ``pts`` when the caller has them, :meth:`_rod_hull`'s). ``reference=True``: scipy's
+        convex hull and the same tests in numpy (compared in tests)."""
         m = cls.HULL_MARGIN_PX
+        if hull is not None and not reference:
+            from testbed._fan_numba import points_in_hull, points_in_hull_blocks
+
+            lo, hi, equations = hull
+            if blocks is not None:
+                return points_in_hull_blocks(uv, *blocks, lo, hi, equations, m)
+            return points_in_hull(uv, lo, hi, equations, m)
         lo, hi = pts.min(axis=0) - m, pts.max(axis=0) + m
         if not reference:
             from testbed._fan_numba import hull_equations, points_in_hull, points_in_hull_blocks
@@ -1136,12 +1186,13 @@ class SweepRenderer:
             cand, x, y = cand[keep], x[keep], y[keep]
         return cand
 
-    def _with_rod(self, fan: int, rod: list[Body], pts: np.ndarray, weights: np.ndarray
+    def _with_rod(self, fan: int, rod: list[Body], hull, weights: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:
         """The rays of fan ``fan`` the rod can meet (indices) and their transmission with the
-        static bodies and the rod."""
+        static bodies and the rod (``hull``: :meth:`_rod_hull`'s)."""
         (o, d, tm), a_static = self._rays[fan], self._static[fan]
-        idx = self._inside_hull(self._uv[fan], pts, blocks=self._blocks[fan])
+        idx = self._inside_hull(self._uv[fan], hull[0], blocks=self._blocks[fan],
+                                hull=hull[1:])
         if not len(idx):
             return idx, np.zeros(0)
         # what body_path_lengths does for rays from one point (without checking that they
@@ -1171,28 +1222,47 @@ class SweepRenderer:
             box = self._static_box.copy()
             box.flat[px] = e
             return box, px
-        weights, pts = self._rod_setup(rod)
+        weights, hull = self._rod_setup(rod)
         trans = np.zeros(len(self._static[0]))
         for fan in range(k):
             e = self._static_exp[fan].copy()
-            idx, e_rod = self._with_rod(fan, rod, pts, weights)
+            idx, e_rod = self._with_rod(fan, rod, hull, weights)
             e[idx] = e_rod
             trans += e / k
         box = np.zeros(self._fov_box.shape)
         box[self._fov_box] = trans
         return box, None
 
-    def _rod_setup(self, rod: list[Body]) -> tuple[np.ndarray, np.ndarray]:
-        """The rod's attenuation weights and the undistorted pixels of its vertices."""
-        weights = attenuation_weights(self.bodies + list(rod))[len(self.bodies):]
-        _check_source_outside(self.carm, list(rod))
-        return weights, self._hull_px(rod)
+    def _rod_setup(self, rod: list[Body]):
+        """The rod's attenuation weights and its culling hull (:meth:`_rod_hull`)."""
+        rod = list(rod)
+        return self._rod_weights(rod), self._rod_hull(rod)
+
+    def _rod_weights(self, rod: list[Body]) -> np.ndarray:
+        """``attenuation_weights(self.bodies + rod)[len(self.bodies):]`` (the same numbers,
+        the static bodies' names looked up once); that call itself (which raises) when a
+        name repeats or an ``inside`` names no body."""
+        names = [b.name for b in rod]
+        by_name = self._by_name
+        if len(set(names)) != len(names) or any(n in by_name for n in names):
+            return attenuation_weights(self.bodies + rod)[len(self.bodies):]
+        own = dict(zip(names, rod))
+        w = np.zeros(len(rod))
+        for j, b in enumerate(rod):
+            outer = 0.0
+            if b.inside is not None:
+                host = own.get(b.inside, by_name.get(b.inside))
+                if host is None:
+                    return attenuation_weights(self.bodies + rod)[len(self.bodies):]
+                outer = material(host.material).mu_per_mm
+            w[j] = material(b.material).mu_per_mm - outer
+        return w
 
     def _rod_rays(self, rod: list[Body]) -> tuple[np.ndarray, np.ndarray]:
         """Without oversampling: the box's flat indices of the rays the rod can meet, and
         their transmission (the static frame holds everywhere else)."""
-        weights, pts = self._rod_setup(rod)
-        idx, e = self._with_rod(0, rod, pts, weights)
+        weights, hull = self._rod_setup(rod)
+        idx, e = self._with_rod(0, rod, hull, weights)
         return self._field_px[idx], e
 
     def _local_sources(self, px: np.ndarray, e: np.ndarray):

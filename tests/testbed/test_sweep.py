@@ -343,6 +343,69 @@ def test_compiled_hull_equations_equal_scipys_convex_hull():
     assert hull_equations(np.ascontiguousarray(line[order]), 1e-6).shape == (0, 3)
 
 
+def test_compiled_rod_hull_equals_its_numpy_twin():
+    """The sweep renderer's rod set-up in one compiled call (the source's check filtered,
+    the projection, the hull's bounds and half-planes) against the numpy steps it replaces
+    (_check_source_outside, _hull_px, the lexsort and hull_equations), bit for bit: random
+    poses of a rod-like cloud with repeated points, and a source inside a body's bounds (the
+    exact check then runs: inside the mesh it raises) or behind the points (raises)."""
+    import trimesh
+
+    from testbed._fan_numba import hull_equations, projected_hull, source_near_bodies
+    from testbed.bodies import Body
+    from testbed.fluoroscope import SweepRenderer, _check_source_outside
+
+    fl = FluoroscopeSpec(distortion=False, noise=False).ideal()
+    carm = make_carm(fl, VIEW)
+    sr = SweepRenderer(carm, fl, [])
+    src = carm.source_robot
+    rng = np.random.default_rng(5)
+    for _ in range(40):
+        centre = src + carm.axis_robot * rng.uniform(300, 900) + rng.normal(0, 40, 3)
+        cyl = trimesh.creation.cylinder(radius=rng.uniform(1, 6), height=rng.uniform(20, 200),
+                                        sections=int(rng.integers(6, 40)))
+        cyl.apply_transform(trimesh.transformations.random_rotation_matrix(rng.random(3)))
+        cyl.apply_translation(centre)
+        tip = cyl.copy()
+        tip.vertices[: len(tip.vertices) // 2] = tip.vertices[0]     # repeated points
+        beads = rng.normal(0, 20, (int(rng.integers(1, 9)), 3)) + centre
+        rod = [Body(name="rod", material="ultem", mesh=cyl),
+               Body(name="beads", material="steel", sphere_centers=beads,
+                    sphere_radii=np.full(len(beads), rng.uniform(0.5, 2.0))),
+               Body(name="tip", material="steel", mesh=tip)]
+        pts, lo, hi, eq = sr._rod_hull(rod)
+        ref = sr._hull_px(rod)
+        np.testing.assert_array_equal(pts, ref)
+        m = SweepRenderer.HULL_MARGIN_PX
+        np.testing.assert_array_equal(lo, ref.min(axis=0) - m)
+        np.testing.assert_array_equal(hi, ref.max(axis=0) + m)
+        order = np.lexsort((ref[:, 1], ref[:, 0]))
+        np.testing.assert_array_equal(
+            eq, hull_equations(np.ascontiguousarray(ref[order]), SweepRenderer.FLAT_HULL_PX2))
+        p3, seg, c, r = sr._rod_points(rod)
+        assert not source_near_bodies(p3, seg, c, r, src)
+        # the filter flags a source within a mesh's bounds or near a bead: never a miss
+        for probe in (cyl.vertices.mean(axis=0), beads[0] + 0.999 * r[0] * np.eye(3)[0],
+                      beads[0] + 1.001 * r[0] * np.eye(3)[1]):
+            inside = False
+            try:
+                _check_source_outside(type(carm)(carm2robot=_at(carm, probe), sid_mm=1000.0,
+                                                 width_px=8, height_px=8), rod)
+            except ValueError:
+                inside = True
+            assert source_near_bodies(p3, seg, c, r, probe) or not inside
+    ok = projected_hull(np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]), 0.0, 0.0, 1.0, 1.0,
+                        0.5, 1e-6)[0]
+    assert not ok
+
+
+def _at(carm, point):
+    """The pose ``carm.carm2robot`` moved to put its source at ``point``."""
+    from reglib.geometry import RigidTransform
+
+    return RigidTransform(carm.carm2robot.R, np.asarray(point, dtype=np.float64))
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("oversample", [1, 2])
 def test_sweep_renderer_gives_the_frames_of_a_full_render(oversample):
