@@ -494,3 +494,117 @@ def projected_hull(q, principal_x, principal_y, sid, pixel, margin, flat_area):
         srt[i, 0] = pts[j, 0]
         srt[i, 1] = pts[j, 1]
     return True, pts, lo, hi, hull_equations(srt, flat_area)
+
+
+@njit(cache=True)
+def gather_rays(d, tm, a, idx):
+    """``(d[idx], tm[idx], a[idx])`` of directions ``d (N, 3)`` and values ``tm``, ``a``
+    (N,): the rows at the indices ``idx``, contiguous (numpy's gathers, the same values)."""
+    m = idx.shape[0]
+    dd = np.empty((m, 3))
+    tt = np.empty(m)
+    aa = np.empty(m)
+    for i in range(m):
+        j = idx[i]
+        dd[i, 0] = d[j, 0]
+        dd[i, 1] = d[j, 1]
+        dd[i, 2] = d[j, 2]
+        tt[i] = tm[j]
+        aa[i] = a[j]
+    return dd, tt, aa
+
+
+@njit(cache=True)
+def plane_coords(da, de1, de2):
+    """The image-plane coordinates ``x = de1 / da``, ``y = de2 / da`` of a fan's rays (``da``,
+    ``de1``, ``de2``: their directions' products with the plane's axis and in-plane unit
+    vectors) and their bounds ``(x, y, x_min, y_min, x_max, y_max)``: ``FanRays``' numpy
+    expressions, the same numbers (NaN bounds where a coordinate is NaN, as numpy's)."""
+    n = da.shape[0]
+    x = np.empty(n)
+    y = np.empty(n)
+    for i in range(n):
+        x[i] = de1[i] / da[i]
+        y[i] = de2[i] / da[i]
+    x0 = x1 = x[0]
+    y0 = y1 = y[0]
+    nan_x = nan_y = False
+    for i in range(n):
+        x0 = min(x0, x[i])
+        x1 = max(x1, x[i])
+        y0 = min(y0, y[i])
+        y1 = max(y1, y[i])
+        nan_x |= np.isnan(x[i])
+        nan_y |= np.isnan(y[i])
+    if nan_x:                   # numpy's minimum and maximum propagate NaN
+        x0 = x1 = np.nan
+    if nan_y:
+        y0 = y1 = np.nan
+    return x, y, x0, y0, x1, y1
+
+
+@njit(cache=True)
+def binned_fan(x, y, da, t_max, x0, y0, hx, hy, nx, ny):
+    """:func:`bin_points` of the rays' image points and their coordinates, ``1 / da`` and
+    ``t_max`` in the bins' order: ``(start, order, xs, ys, t_scale, t_max_sorted)`` (as
+    ``FanRays``' numpy gathers, the same numbers)."""
+    start, order = bin_points(x, y, x0, y0, hx, hy, nx, ny)
+    n = order.shape[0]
+    xs = np.empty(n)
+    ys = np.empty(n)
+    ts = np.empty(n)
+    tms = np.empty(n)
+    for i in range(n):
+        j = order[i]
+        xs[i] = x[j]
+        ys[i] = y[j]
+        ts[i] = 1.0 / da[j]
+        tms[i] = t_max[j]
+    return start, order, xs, ys, ts, tms
+
+
+@njit(cache=True)
+def sphere_image_boxes(z, u, v):
+    """The image-plane boxes of spheres' bounding cubes from their corners' depths ``z`` and
+    in-plane products ``u``, ``v`` (K, 8) (relative to the source): ``(ok (K,), lo (K, 2),
+    hi (K, 2))``, ``ok`` where the cube lies wholly in front of the source (every depth
+    above 1e-9); the corners' coordinates ``u / z``, ``v / z`` (depth 1 where not in
+    front). ``FanRays.sphere_chords``' numpy expressions, the same numbers."""
+    k = z.shape[0]
+    ok = np.empty(k, np.bool_)
+    lo = np.empty((k, 2))
+    hi = np.empty((k, 2))
+    for i in range(k):
+        good = True
+        for j in range(z.shape[1]):
+            zj = z[i, j]
+            good &= zj > 1e-9
+            zs = zj if zj > 1e-9 else 1.0
+            px = u[i, j] / zs
+            py = v[i, j] / zs
+            if j == 0:
+                lo[i, 0] = hi[i, 0] = px
+                lo[i, 1] = hi[i, 1] = py
+            else:
+                lo[i, 0] = _nan_min(lo[i, 0], px)
+                hi[i, 0] = _nan_max(hi[i, 0], px)
+                lo[i, 1] = _nan_min(lo[i, 1], py)
+                hi[i, 1] = _nan_max(hi[i, 1], py)
+        ok[i] = good
+    return ok, lo, hi
+
+
+@njit(cache=True, inline="always")
+def _nan_min(a, b):
+    """``np.minimum``'s NaN-propagating minimum of two numbers."""
+    if np.isnan(a) or np.isnan(b):
+        return np.nan
+    return min(a, b)
+
+
+@njit(cache=True, inline="always")
+def _nan_max(a, b):
+    """``np.maximum``'s NaN-propagating maximum of two numbers."""
+    if np.isnan(a) or np.isnan(b):
+        return np.nan
+    return max(a, b)

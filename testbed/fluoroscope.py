@@ -55,7 +55,13 @@ from testbed import detector
 from testbed.bodies import Body
 from testbed.detector import form_image
 from testbed.materials import material
-from testbed.raycast import FanRays, RayScene, attenuation_weights, body_path_lengths
+from testbed.raycast import (
+    _CUBE_CORNERS,
+    FanRays,
+    RayScene,
+    attenuation_weights,
+    body_path_lengths,
+)
 from testbed.spec import NAME_MAX, Positive, RoomVec3, Spec, Vec2
 
 __all__ = [
@@ -90,10 +96,6 @@ _Field_uT = Annotated[float, Field(ge=-200.0, le=200.0)]
 #: the most rays a frame may cast (width x height x oversample^2): 2**24, a 2048 x 2048
 #: image with oversample 2 (the default frame casts 307,200)
 MAX_RAYS_PER_FRAME = 2**24
-#: a unit cube's corners (x slowest, z fastest): a bead's bounding cube is its centre plus
-#: its radius times these
-_CUBE_CORNERS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)],
-                         dtype=np.float64)
 
 
 class FluoroscopeSpec(Spec):
@@ -1199,12 +1201,16 @@ class SweepRenderer:
         # are), binned on the field fan's image plane (a subset of its rays: within its angle)
         # in cells shaped like the rays' extent (the rod's long thin faces cross fewer
         # cells; the chords are the same)
-        rays = (FanRays(o[0], d[idx], tm[idx], *self._planes[fan], elongation="auto")
+        from testbed._fan_numba import gather_rays
+
+        # d[idx], tm[idx], a_static[idx] in one compiled gather (the same arrays)
+        d_idx, tm_idx, a_idx = gather_rays(d, tm, a_static, idx)
+        rays = (FanRays(o[0], d_idx, tm_idx, *self._planes[fan], elongation="auto")
                 if len(idx) >= FanRays.MIN_RAYS else None)
         scene = RayScene(list(rod))
         lengths = (scene.fan_path_lengths(rays) if rays is not None
-                   else scene.path_lengths(o[idx], d[idx], tm[idx]))
-        a = a_static[idx] + lengths @ weights
+                   else scene.path_lengths(o[idx], d_idx, tm_idx))
+        a = a_idx + lengths @ weights
         return idx, np.exp(-a)
 
     def transmission(self, rod: list[Body]) -> np.ndarray:

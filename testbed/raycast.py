@@ -356,6 +356,11 @@ class _ConvexMesh:
                                  self.normals, self.offsets)
 
 
+#: a unit cube's corners (x slowest, z fastest)
+_CUBE_CORNERS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)],
+                         dtype=np.float64)
+
+
 class FanRays:
     """Rays from one point (an X-ray source), binned on an image plane for rasterising
     closed meshes: :mod:`testbed._fan_numba` explains the method and why it is exact.
@@ -372,18 +377,26 @@ class FanRays:
     RAYS_PER_CELL = 2.0
 
     def __init__(self, source, directions, t_max, axis, e1, e2, *,
-                 elongation: float | str = 1.0, rays_per_cell: float | None = None):
-        from testbed._fan_numba import bin_points
+                 elongation: float | str = 1.0, rays_per_cell: float | None = None,
+                 reference: bool = False):
+        from testbed._fan_numba import bin_points, binned_fan, plane_coords
 
         self.source = np.asarray(source, dtype=np.float64)
         self.directions = directions
         self.t_max = t_max
         self.axis, self.e1, self.e2 = axis, e1, e2
+        # the products by BLAS (as they were); the rest compiled (plane_coords,
+        # binned_fan: the same numbers), or in numpy with ``reference`` (compared in tests)
         da = directions @ axis
-        x = (directions @ e1) / da
-        y = (directions @ e2) / da
-        x0, y0 = float(x.min()), float(y.min())
-        wx, wy = float(x.max()) - x0, float(y.max()) - y0
+        compiled = (not reference and len(da) > 0 and da.dtype == np.float64
+                    and t_max.dtype == np.float64)
+        if compiled:
+            x, y, x0, y0, x1, y1 = plane_coords(da, directions @ e1, directions @ e2)
+        else:
+            x = (directions @ e1) / da
+            y = (directions @ e2) / da
+            x0, y0, x1, y1 = float(x.min()), float(y.min()), float(x.max()), float(y.max())
+        wx, wy = x1 - x0, y1 - y0
         per_cell = self.RAYS_PER_CELL if rays_per_cell is None else float(rays_per_cell)
         if elongation == "auto":      # the rays' extent's own shape, within 1/32 to 32
             elongation = min(max(wy / max(wx, 1e-300), 1.0 / 32.0), 32.0)
@@ -394,12 +407,16 @@ class FanRays:
         hx = max(h / math.sqrt(elongation), 1e-12, wx / 4096)
         hy = max(h * math.sqrt(elongation), 1e-12, wy / 4096)
         self.grid = (x0, y0, hx, hy, int(wx / hx) + 1, int(wy / hy) + 1)
-        start, order = bin_points(x, y, *self.grid)
-        self.start, self.order = start, order
-        self.xs = np.ascontiguousarray(x[order])
-        self.ys = np.ascontiguousarray(y[order])
-        self.t_scale = np.ascontiguousarray(1.0 / da[order])
-        self.t_max_sorted = np.ascontiguousarray(t_max[order])
+        if compiled:
+            (self.start, self.order, self.xs, self.ys, self.t_scale,
+             self.t_max_sorted) = binned_fan(x, y, da, t_max, *self.grid)
+        else:
+            start, order = bin_points(x, y, *self.grid)
+            self.start, self.order = start, order
+            self.xs = np.ascontiguousarray(x[order])
+            self.ys = np.ascontiguousarray(y[order])
+            self.t_scale = np.ascontiguousarray(1.0 / da[order])
+            self.t_max_sorted = np.ascontiguousarray(t_max[order])
         self._balance = None
         self._columns = None
 
@@ -431,39 +448,49 @@ class FanRays:
     def can_rasterise(self, mesh: trimesh.Trimesh) -> bool:
         """True when every vertex lies in front of the source (depth > 1e-6 of the mesh's
         distance)."""
-        p = np.asarray(mesh.vertices) - self.source
-        z = p @ self.axis
+        return self._in_front(*self._depths(mesh))
+
+    def _depths(self, mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
+        """The mesh's vertices relative to the source ``p (V, 3)`` and their depths ``z``."""
+        p = np.asarray(mesh.vertices, dtype=np.float64) - self.source
+        return p, p @ self.axis
+
+    @staticmethod
+    def _in_front(p: np.ndarray, z: np.ndarray) -> bool:
         return bool(z.min() > 1e-6 * max(float(np.abs(p).max()), 1.0))
 
-    def sphere_chords(self, centres, radii) -> np.ndarray:
+    def sphere_chords(self, centres, radii, *, reference: bool = False) -> np.ndarray:
         """Length (mm) of every ray inside the spheres (summed over them), ``(N,)``, in the
-        rays' order: :func:`sphere_chords` for the rays near each sphere's image only."""
-        from testbed._fan_numba import fan_sphere_chords
+        rays' order: :func:`sphere_chords` for the rays near each sphere's image only (the
+        image boxes after the products compiled, :func:`testbed._fan_numba.
+        sphere_image_boxes`; in numpy with ``reference``, compared in tests)."""
+        from testbed._fan_numba import fan_sphere_chords, sphere_image_boxes
 
         c = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
         r = np.broadcast_to(np.asarray(radii, dtype=np.float64), (len(c),))
-        corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)],
-                           dtype=np.float64)
-        p = (c[:, None, :] + r[:, None, None] * corners[None]) - self.source   # (K, 8, 3)
+        p = (c[:, None, :] + r[:, None, None] * _CUBE_CORNERS[None]) - self.source  # (K, 8, 3)
         z = p @ self.axis
-        ok = np.all(z > 1e-9, axis=1)        # the bounding cube wholly in front of the source
-        zs = np.where(z > 1e-9, z, 1.0)
-        px, py = (p @ self.e1) / zs, (p @ self.e2) / zs
-        lo = np.stack([px.min(axis=1), py.min(axis=1)], 1)
-        hi = np.stack([px.max(axis=1), py.max(axis=1)], 1)
+        if not reference and len(c):
+            ok, lo, hi = sphere_image_boxes(z, p @ self.e1, p @ self.e2)
+        else:
+            ok = np.all(z > 1e-9, axis=1)    # the bounding cube wholly in front of the source
+            zs = np.where(z > 1e-9, z, 1.0)
+            px, py = (p @ self.e1) / zs, (p @ self.e2) / zs
+            lo = np.stack([px.min(axis=1), py.min(axis=1)], 1)
+            hi = np.stack([px.max(axis=1), py.max(axis=1)], 1)
         out = np.zeros(len(self.xs))
         fan_sphere_chords(c, np.ascontiguousarray(r), lo, hi, ok, self.directions,
                           self.t_max, self.order, self.start, *self.grid, self.source, out)
         return out
 
     def chords(self, mesh: trimesh.Trimesh, *, name: str = "mesh",
-               out: np.ndarray | None = None) -> np.ndarray:
+               out: np.ndarray | None = None, depths=None) -> np.ndarray:
         """Length (mm) of every ray inside the closed ``mesh`` (N,), in the rays' order;
-        written into ``out`` (N,) float64 when given (it must hold zeros)."""
+        written into ``out`` (N,) float64 when given (it must hold zeros). ``depths``:
+        :meth:`_depths` of the mesh when the caller has them."""
         from testbed._fan_numba import fan_chords, finish
 
-        p = np.asarray(mesh.vertices, dtype=np.float64) - self.source
-        z = p @ self.axis
+        p, z = self._depths(mesh) if depths is None else depths
         vx = (p @ self.e1) / z
         vy = (p @ self.e2) / z
         faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
@@ -545,11 +572,13 @@ class RayScene:
             elif j in self._convex:
                 out[j] = (self._convex[j].chords(o, d, tm) if fan is None
                           else self._convex[j].fan_chords(fan))
-            elif fan is not None and fan.can_rasterise(body.mesh):
-                fan.chords(body.mesh, name=body.name, out=out[j])
             else:
-                out[j] = mesh_chords(body.mesh, np.ascontiguousarray(o), d, tm,
-                                     name=body.name, _prepared=self._embree_mesh(j))
+                depths = fan._depths(body.mesh) if fan is not None else None
+                if depths is not None and fan._in_front(*depths):   # can_rasterise
+                    fan.chords(body.mesh, name=body.name, out=out[j], depths=depths)
+                else:
+                    out[j] = mesh_chords(body.mesh, np.ascontiguousarray(o), d, tm,
+                                         name=body.name, _prepared=self._embree_mesh(j))
         return out.T
 
 

@@ -311,6 +311,64 @@ def test_fan_chords_do_not_depend_on_the_cells_shape(seed):
     assert np.abs(ref[:-80] - exact[:-80]).max() < 1e-6
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_compiled_fan_binning_equals_its_numpy_twin(seed):
+    """FanRays' image-plane coordinates, grid, bins and sorted arrays compiled
+    (plane_coords, binned_fan) against its numpy expressions (``reference=True``), bit for
+    bit, on random fans of various sizes and shapes; and the compiled gather of rays
+    (gather_rays) against numpy's fancy indexing."""
+    from testbed._fan_numba import gather_rays, plane_coords
+    from testbed.raycast import FanRays
+
+    rng = np.random.default_rng(seed)
+    source = rng.normal(0, 100, 3)
+    for n in (64, 65, 333, 5000):
+        d = _fan(rng, n, source, source + rng.normal(0, 1, 3) * 600, rng.uniform(1, 40))
+        tm = rng.uniform(100, 900, len(d))
+        base = FanRays.of(source, d, tm)
+        idx = np.sort(rng.choice(len(d), int(rng.integers(1, len(d))), replace=False))
+        a = rng.normal(size=len(d))
+        dd, tt, aa = gather_rays(d, tm, a, idx)
+        for got, ref in ((dd, d[idx]), (tt, tm[idx]), (aa, a[idx])):
+            assert np.array_equal(got, ref) and got.flags.c_contiguous
+        for kw in (dict(elongation="auto"), dict(elongation=4.0, rays_per_cell=3.0), {}):
+            args = (source, d, tm, base.axis, base.e1, base.e2)
+            fast, ref = FanRays(*args, **kw), FanRays(*args, reference=True, **kw)
+            assert fast.grid == ref.grid
+            for k in ("start", "order", "xs", "ys", "t_scale", "t_max_sorted"):
+                assert np.array_equal(getattr(fast, k), getattr(ref, k)), k
+    x, y, x0, y0, x1, y1 = plane_coords(np.array([1.0, 1.0]), np.array([np.nan, 2.0]),
+                                        np.array([1.0, 3.0]))
+    assert np.isnan(x0) and np.isnan(x1) and (y0, y1) == (1.0, 3.0)
+
+
+def test_compiled_sphere_image_boxes_equal_their_numpy_twin():
+    """FanRays.sphere_chords with the spheres' image boxes compiled (sphere_image_boxes)
+    against its numpy expressions (``reference=True``), bit for bit: beads in front of the
+    source, straddling it and behind it; and the boxes themselves with a NaN corner."""
+    from testbed._fan_numba import sphere_image_boxes
+    from testbed.raycast import FanRays
+
+    rng = np.random.default_rng(3)
+    source = np.array([0.0, 0.0, -600.0])
+    d = _fan(rng, 4000, source, np.zeros(3), 40.0)
+    fan = FanRays.of(source, d, rng.uniform(500.0, 800.0, len(d)))
+    for _ in range(10):
+        c = np.vstack([rng.uniform(-30, 30, (6, 3)),
+                       source + rng.normal(0, 3, (2, 3)),        # about the source
+                       source - [0, 0, 50] + rng.normal(0, 5, (2, 3))])  # behind it
+        r = rng.uniform(0.5, 4.0, len(c))
+        assert np.array_equal(fan.sphere_chords(c, r), fan.sphere_chords(c, r, reference=True))
+    z = rng.normal(1, 1, (5, 8))
+    u, v = rng.normal(size=(5, 8)), rng.normal(size=(5, 8))
+    u[2, 3] = np.nan
+    ok, lo, hi = sphere_image_boxes(z, u, v)
+    zs = np.where(z > 1e-9, z, 1.0)
+    np.testing.assert_array_equal(ok, np.all(z > 1e-9, axis=1))
+    np.testing.assert_array_equal(lo, np.stack([(u / zs).min(1), (v / zs).min(1)], 1))
+    np.testing.assert_array_equal(hi, np.stack([(u / zs).max(1), (v / zs).max(1)], 1))
+
+
 def test_fan_rasterisation_of_an_axis_aligned_grid_through_a_box():
     """Rays from one point through a regular grid that passes exactly through a box's
     vertices, edges and face diagonals (every tie of the edge tests): each crossing is
