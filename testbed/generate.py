@@ -271,8 +271,15 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
                   "again", file=sys.stderr)
             hashes.pop(case_dir.name)
             write_index()
-        sim = simulate(scene, case_seed(int(seed), i), truth_rays=True, progress=progress,
-                       prepared=first if i == 0 else None)
+        try:
+            sim = simulate(scene, case_seed(int(seed), i), truth_rays=True, progress=progress,
+                           prepared=first if i == 0 else None)
+        except ValueError as exc:   # a case of its own femur or placement: say which (a review)
+            if type(exc).__name__ not in ("ValueError", "SceneError", "WorkspaceError"):
+                raise
+            done = f"; the {i} before it are written" if i else ""
+            raise type(exc)(f"{exc}; in {case_dir.name} (case {i} of seed {seed}{done})") \
+                from None
         if on_case is not None:
             on_case(i, sim)
         case, truth = case_entries(sim)

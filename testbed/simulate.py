@@ -50,6 +50,7 @@ __all__ = [
     "case_seed",
     "case_world",
     "checked_world",
+    "placement_note",
     "simulate",
     "simulate_case",
     "simulate_ct",
@@ -168,6 +169,27 @@ def _moved(ct2robot, turn, shift_mm, length_mm: float):
                           turn.apply(ct2robot.t - middle) + middle + shift_mm)
 
 
+def placement_note(given, case) -> str:
+    """``""``, or, when ``given`` (a scene) draws each case's patient placement (``[patient]
+    position_sd_mm``, ``rotation_sd_deg``), a clause to add to a refusal of the case
+    ``case`` (its resolved scene): how far the draw moved the patient, so that a line blaming
+    a view or the soft tissue does not send the user to fields that are right for the
+    scene's own placement (a review: ``generate`` stopped at a case, naming neither)."""
+    p = given.patient
+    if not p.varies:
+        return ""
+    length = float(case.phantom.length_mm)
+    mid = np.array([0.0, 0.0, 0.5 * length])
+    a, b = p.ct2robot(), case.patient.ct2robot()
+    shift = float(np.linalg.norm(b.apply(mid) - a.apply(mid)))
+    turn = float(np.degrees((b @ a.inverse()).angle_rad))
+    return (f" (this case's patient lies where [patient] position_sd_mm = "
+            f"{tuple(p.position_sd_mm)} and rotation_sd_deg = {tuple(p.rotation_sd_deg)} drew "
+            f"it for the case's seed: the femur's middle {shift:.0f} mm and {turn:.1f} deg from "
+            "where position_mm and rotation_deg put it; other seeds may be feasible, and "
+            "smaller standard deviations keep every case's anatomy in the views)")
+
+
 def view_bodies(world, ct2robot) -> list:
     """The world's bodies (robot frame) with the patient's at ``ct2robot`` (the table and
     the instruments where they are): ``world.bodies`` when that is the world's own pose."""
@@ -251,10 +273,17 @@ def checked_world(scene, seed=0, *, index: int = 0):
     """:func:`case_world` and its workspace check (``testbed.workspace.require_feasible``,
     which raises for a view that cannot be taken): ``(scene, world, reports)``, as
     :func:`simulate` makes them; pass it to :func:`simulate` as ``prepared``."""
-    from testbed.workspace import require_feasible
+    from testbed.workspace import WorkspaceError, require_feasible
 
+    given = scene
     scene, world = case_world(scene, seed, index=index)
-    return scene, world, require_feasible(scene, world)
+    try:
+        return scene, world, require_feasible(scene, world)
+    except WorkspaceError as exc:
+        note = placement_note(given, scene)
+        if not note:
+            raise
+        raise WorkspaceError(f"{exc}{note}") from None
 
 
 def simulate_ct(scene, seed=0, *, index: int = 0, world=None) -> CtCase:
@@ -333,6 +362,7 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
 
     # 1. the world, and the check that every view and sweep pose can be taken
     t0 = time.perf_counter()
+    given = scene
     scene, world, workspace = checked_world(scene, css) if prepared is None else prepared
     tick("world+workspace", t0)
     # 2. CT and the operator's clicks on it
@@ -448,7 +478,8 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
             clicks = xray_clicks(frame, femur_bodies=FEMUR_BODIES, instrument_bodies=instruments,
                                  spec=op_spec, rng=op_rngs[i], view=vspec.name)
             if not clicks.traces:
-                raise ValueError(_no_trace_message(i, vspec, frame, scene))
+                raise ValueError(_no_trace_message(i, vspec, frame, scene)
+                                 + placement_note(given, scene))
             obs["arrays"][f"xray_clicks_{v}"] = clicks.to_arrays()
             tick(f"xray {vspec.name}", t0)
         if robot is not None:

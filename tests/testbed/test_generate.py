@@ -660,3 +660,48 @@ def test_a_fixed_pin_scene_scores_from_its_dataset_as_testbed_run(tmp_path):
     assert scored == result["pins"]
     # the located pin is held where the start put it: the pin-based registration's error
     assert abs(scored["distal_1"] - result["start_pins"]["distal_1"]) < 0.05
+
+
+def test_a_case_refused_for_its_drawn_placement_says_so_and_which_case(tmp_path, monkeypatch):
+    """[patient] position_sd_mm / rotation_sd_deg draw each case's placement: a case whose
+    draw takes the femur out of a view, or puts the patient in the robot's way, was refused
+    naming the view's aim, the soft tissue or position_mm (right for the scene's own
+    placement) and not the draw, and `generate` stopped without naming the case (a review,
+    50 mm / 15 deg). The refusal now says how far the draw moved the patient; generate names
+    the case and its seed."""
+    import testbed.simulate as sim
+    from testbed.generate import generate_command
+    from testbed.scene import find_scene, load_scene
+    from testbed.simulate import checked_world, placement_note, simulate
+    from testbed.workspace import WorkspaceError
+
+    def varied(scene, sd_mm, sd_deg):
+        return scene.model_copy(update={"patient": scene.patient.model_copy(
+            update={"position_sd_mm": sd_mm, "rotation_sd_deg": sd_deg})})
+
+    still = parse_scene(SMALL)
+    assert placement_note(still, still) == ""
+    view = {**SMALL["views"][0], "isocenter_mm": [805.0, 900.0, 200.0]}
+    aside = parse_scene({**SMALL, "views": [view]})
+    with pytest.raises(ValueError, match="the femur is outside the field") as err:
+        simulate(aside, 0, sweeps=False)
+    assert "drew it" not in str(err.value)
+    with pytest.raises(ValueError, match=r"the femur is outside the field; .*\(this case's "
+                       r"patient lies where \[patient\] position_sd_mm = \(1\.0, 1\.0, 1\.0\) "
+                       r"and rotation_sd_deg = \(0\.0, 0\.0, 0\.0\) drew it .*: the femur's "
+                       r"middle \d+ mm and \d+\.\d deg from"):
+        simulate(varied(aside, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0)), 0, sweeps=False)
+    # the workspace check of a drawn placement (experiment2, case 0 of its seed: the rod
+    # meets the thigh's soft tissue)
+    clinic = load_scene(find_scene("experiment2"))
+    with pytest.raises(WorkspaceError, match=r"collides with .*\(this case's patient lies "
+                       r"where \[patient\] position_sd_mm = \(50\.0, 50\.0, 50\.0\)"):
+        checked_world(varied(clinic, (50.0, 50.0, 50.0), (15.0, 15.0, 15.0)), 1996)
+
+    def refuse(*args, **kwargs):
+        raise ValueError("views[0] ('distal_ap'): refused")
+
+    monkeypatch.setattr(sim, "simulate", refuse)
+    with pytest.raises(ValueError, match=r"refused; in case_0000 \(case 0 of seed 3\)$"):
+        generate_command(still, scene_path="x", cases=2, out=tmp_path / "ds", seed=3,
+                             progress=False)
