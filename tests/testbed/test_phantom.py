@@ -516,3 +516,21 @@ def test_cached_csg_meshes_equal_the_built_ones(seed, tmp_path, monkeypatch):
     assert P._cache_file(other) != path                 # another femur, another file
     monkeypatch.setenv(P.CACHE_ENV, "")
     assert P._cache_file(spec) is None
+
+
+def test_mesh_pins_in_metres_or_cm_are_told_their_units():
+    """A femur mesh and its pins exported in metres (a review) were refused for two pins
+    "0.381 mm apart ... place each pin where it is", before the mesh's own units check could
+    say what was wrong: the refusal now says that all three lie within a few mm and that
+    mesh_pins_mm are millimetres. Two pins close on a femur in mm are not told so."""
+    mm = {"proximal": (17.6, -4.9, 400.4), "distal_1": (-24.5, -5.2, 21.6),
+          "distal_2": (24.5, -5.2, 29.4)}
+    for scale, span in ((0.001, r"0\.38\d"), (0.1, r"38\.\d")):
+        small = {k: tuple(scale * x for x in v) for k, v in mm.items()}
+        with pytest.raises(ValueError, match=rf"closer than a pin is long .*; all three lie "
+                           rf"within {span} mm, .*metres or centimetres need scaling"):
+            PhantomSpec(mesh_path="femur.stl", mesh_pins_mm=small)
+    near = {**mm, "distal_2": (-24.5, -0.2, 21.6)}
+    with pytest.raises(ValueError, match=r"place each pin where it is \[") as err:
+        PhantomSpec(mesh_path="femur.stl", mesh_pins_mm=near)
+    assert "need scaling" not in str(err.value)
