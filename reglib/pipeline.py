@@ -771,6 +771,9 @@ def xray_contours(view: str, image, clicks: Mapping, *, pixel_mm=None) -> ViewCo
                          f"(external lists {len(ext)} traces), got {tr.min()}..{tr.max()}")
     if not np.all(np.isfinite(xy)):
         raise ValueError(f"observation: {name}: clicks_xy holds NaN or inf")
+    if len(ext) == 0:   # said, not left to "no bone contour could be traced" alone (a review)
+        return failed(f"{name} holds no trace (its external and closed are empty): the "
+                      "operator traced nothing on this frame")
     try:
         mask = field_of_view_mask(img)
         filled = prepare_xray(img, fov_mask=mask)

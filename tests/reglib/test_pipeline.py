@@ -328,6 +328,14 @@ def test_xray_contours_trace_a_bright_disk_edge_and_name_bad_traces():
         con = xray_contours("v", frame, arrays)
         assert len(con.xy) == 0 and "xray_v" in con.problems[0] and re.search(
             match, con.problems[0]), con.problems
+    # no trace at all: said (a review's view was left out as "no bone contour could be
+    # traced on the X-ray frame", with no reason)
+    none = {"clicks_xy": np.zeros((0, 2)), "trace": np.zeros(0, int),
+            "external": np.zeros(0, bool), "closed": np.zeros(0, bool)}
+    con = xray_contours("v", img.astype(np.uint8), none)
+    assert len(con.xy) == 0 and con.problems == (
+        "view v: xray_clicks_v holds no trace (its external and closed are empty): the "
+        "operator traced nothing on this frame",)
 
 
 def test_entries_of_the_wrong_kind_and_stages_given_are_named():
