@@ -260,8 +260,11 @@ def slice_schedule(phantom, spec: CTSpec) -> tuple[np.ndarray, dict]:
     check("distal_range_mm", d_lo, d_hi)
     check("proximal_range_mm", p_lo, p_hi)
     if d_hi >= p_lo:
+        # (a review: a distal range above a 450 mm femur was told only of the overlap)
         raise ValueError(f"ct: the distal region (to z = {d_hi:.1f} mm) overlaps the proximal "
-                         f"one (from z = {p_lo:.1f} mm)")
+                         f"one (from z = {p_lo:.1f} mm); the femur spans z = {flo:.1f} to "
+                         f"{fhi:.1f} mm (ct frame, distal end at the bottom): distal_range_mm "
+                         "covers its lower end, proximal_range_mm its upper end")
     zd = _region_slices(d_lo, d_hi, pins_z, spec)
     zp = _region_slices(p_lo, p_hi, pins_z, spec)
     z = np.concatenate([zd, zp])

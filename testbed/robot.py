@@ -132,8 +132,11 @@ class RodSpec(Spec):
                                  "frames (the default: an ULTEM rod, steel beads and tip)")
         if len(self.bead_spacings_mm) < 3:
             raise ValueError("bead_spacings_mm: at least 3 gaps (4 beads) are needed")
-        if min(self.bead_spacings_mm) <= 3 * self.bead_diameter_mm:
-            raise ValueError("bead_spacings_mm: every gap must exceed 3 bead diameters")
+        small = [float(g) for g in self.bead_spacings_mm if g <= 3 * self.bead_diameter_mm]
+        if small:   # (a review: a negative gap was refused without being named)
+            raise ValueError(f"bead_spacings_mm: every gap must exceed 3 bead diameters "
+                             f"({3 * self.bead_diameter_mm:g} mm with bead_diameter_mm = "
+                             f"{self.bead_diameter_mm:g}); got {small} mm")
         if self.bead_diameter_mm >= self.diameter_mm:
             raise ValueError("bead_diameter_mm must be smaller than the rod diameter_mm")
         length = (self.mount_mm + sum(self.bead_spacings_mm) + self.tip_gap_mm

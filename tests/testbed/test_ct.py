@@ -154,6 +154,11 @@ def test_schedule_outside_the_volume_raises(cylinders):
         scan(cylinders, CTSpec(proximal_range_mm=(60.0, 130.0), distal_range_mm=(6.0, 40.0)))
     with pytest.raises(ValueError, match="strictly increasing"):
         scan(cylinders, CTSpec(schedule="explicit", slice_z_mm=(50.0, 40.0)))
+    # a distal range above the proximal one is told where the femur's ends lie (a review:
+    # only "overlaps the proximal one")
+    with pytest.raises(ValueError, match=r"overlaps the proximal one .*; the femur spans z = "
+                                         r".* distal_range_mm covers its lower end"):
+        scan(cylinders, CTSpec(distal_range_mm=(60.0, 94.0), proximal_range_mm=(6.0, 40.0)))
 
 
 def test_a_given_slice_thickness_is_kept_even_above_the_spacing(cylinders):

@@ -102,6 +102,10 @@ def test_rod_spec_rejects_too_few_or_too_close_beads():
         RodSpec(bead_spacings_mm=(20.0, 30.0))
     with pytest.raises(ValueError, match="3 bead diameters"):
         RodSpec(bead_spacings_mm=(20.0, 5.0, 30.0))
+    # the offending gap is named, a negative one too (a review: not shown)
+    with pytest.raises(ValueError, match=r"3 bead diameters \(6 mm with bead_diameter_mm = "
+                                         r"2\); got \[-27.0\] mm"):
+        RodSpec(bead_spacings_mm=(14.0, -27.0, 16.0), bead_diameter_mm=2.0)
     # gaps that do not tell the beads apart (a held-out scene's equal gaps loaded, then
     # every view's calibration failed after a whole simulation)
     with pytest.raises(ValueError, match="beads 0-3 read backwards look like themselves"):
