@@ -9,7 +9,9 @@ fast one in tests/reglib/test_calibration.py.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.extending import intrinsic
 
 
 @njit(cache=True)
@@ -75,6 +77,179 @@ def band(g1, g2):
             v = g1[r, c] - g2[r, c]
             ds[r, c] = v if g1[r, c] + g1[r, c] > v else np.float32(0.0)
     return ds
+
+
+# ------------------------------------------------------------- the two Gaussians at once
+# OpenCV's GaussianBlur of a float32 image with BORDER_REFLECT (reglib.markers._gaussian),
+# replicated operation by operation as this machine's build computes it (found by experiment,
+# as testbed._detector_numba's MTF blur): the row filter a multiply by the first tap then
+# fused multiply-adds in tap order on the columns of its vector blocks (all but the last
+# W % 4), plain multiply-adds on the rest; the column filter (symmetric) the centre row
+# times the centre tap, then per tap pair a fused multiply-add of the pair's sum (the row
+# below plus the row above), plain multiply-adds on the last W % 8 columns.
+# reglib.markers checks the replica against cv2 once per shape and falls back to cv2 when
+# they differ.
+
+@intrinsic
+def _fma32(typingctx, a, b, c):
+    """``a * b + c`` in float32 rounded once (LLVM's fma)."""
+    sig = types.float32(types.float32, types.float32, types.float32)
+
+    def codegen(context, builder, signature, args):
+        from numba.core import cgutils
+
+        f = ir.FloatType()
+        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(f, [f, f, f]),
+                                            "llvm.fma.f32")
+        return builder.call(fn, args)
+
+    return sig, codegen
+
+
+@njit(inline="always")
+def _reflect(j, n):
+    """Index ``j`` of a sequence of ``n`` reflected at its ends as OpenCV's BORDER_REFLECT
+    (``fedcba|abcdef|fedcba``), for ``-n <= j < 2 n``."""
+    return -j - 1 if j < 0 else (2 * n - j - 1 if j >= n else j)
+
+
+@njit(inline="always")
+def _row_filter(xe, k, W, acc):
+    """OpenCV's row filter of taps ``k`` (float32, odd count) into ``acc`` (W,): ``xe`` is
+    the row extended by the border (``acc[c]`` from ``xe[c:c + len(k)]``). Nine taps, then
+    eight at a time, per pass over the columns (the running sums in ``acc``)."""
+    n = k.shape[0]
+    nv = W - W % 4
+    j = 1
+    if n >= 9:
+        a0, a1, a2, a3, a4 = k[0], k[1], k[2], k[3], k[4]
+        a5, a6, a7, a8 = k[5], k[6], k[7], k[8]
+        for c in range(nv):
+            s = xe[c] * a0
+            s = _fma32(xe[c + 1], a1, s)
+            s = _fma32(xe[c + 2], a2, s)
+            s = _fma32(xe[c + 3], a3, s)
+            s = _fma32(xe[c + 4], a4, s)
+            s = _fma32(xe[c + 5], a5, s)
+            s = _fma32(xe[c + 6], a6, s)
+            s = _fma32(xe[c + 7], a7, s)
+            acc[c] = _fma32(xe[c + 8], a8, s)
+        j = 9
+    else:
+        a0 = k[0]
+        for c in range(nv):
+            acc[c] = xe[c] * a0
+    while j + 8 <= n:
+        a0, a1, a2, a3 = k[j], k[j + 1], k[j + 2], k[j + 3]
+        a4, a5, a6, a7 = k[j + 4], k[j + 5], k[j + 6], k[j + 7]
+        for c in range(nv):
+            s = acc[c]
+            s = _fma32(xe[c + j], a0, s)
+            s = _fma32(xe[c + j + 1], a1, s)
+            s = _fma32(xe[c + j + 2], a2, s)
+            s = _fma32(xe[c + j + 3], a3, s)
+            s = _fma32(xe[c + j + 4], a4, s)
+            s = _fma32(xe[c + j + 5], a5, s)
+            s = _fma32(xe[c + j + 6], a6, s)
+            acc[c] = _fma32(xe[c + j + 7], a7, s)
+        j += 8
+    while j < n:
+        a0 = k[j]
+        for c in range(nv):
+            acc[c] = _fma32(xe[c + j], a0, acc[c])
+        j += 1
+    for c in range(nv, W):
+        s = xe[c] * k[0]
+        for t in range(1, n):
+            s = s + xe[c + t] * k[t]
+        acc[c] = s
+
+
+@njit(inline="always")
+def _col_filter(ring, L, k, R, r, H, out):
+    """OpenCV's (symmetric) column filter of taps ``k`` (``2 R + 1``) at row ``r`` of ``H``
+    into ``out`` (W,): row ``i`` of the row-filtered image is ``ring[i % L]``. The centre
+    and four tap pairs, then four pairs at a time, per pass over the columns."""
+    W = out.shape[0]
+    nv = W - W % 8
+    kc = k[R]
+    t = ring[r % L]
+    j = 1
+    if R >= 4:
+        u1, d1 = ring[_reflect(r - 1, H) % L], ring[_reflect(r + 1, H) % L]
+        u2, d2 = ring[_reflect(r - 2, H) % L], ring[_reflect(r + 2, H) % L]
+        u3, d3 = ring[_reflect(r - 3, H) % L], ring[_reflect(r + 3, H) % L]
+        u4, d4 = ring[_reflect(r - 4, H) % L], ring[_reflect(r + 4, H) % L]
+        b1, b2, b3, b4 = k[R + 1], k[R + 2], k[R + 3], k[R + 4]
+        for c in range(nv):
+            s = t[c] * kc
+            s = _fma32(d1[c] + u1[c], b1, s)
+            s = _fma32(d2[c] + u2[c], b2, s)
+            s = _fma32(d3[c] + u3[c], b3, s)
+            out[c] = _fma32(d4[c] + u4[c], b4, s)
+        j = 5
+    else:
+        for c in range(nv):
+            out[c] = t[c] * kc
+    while j + 4 <= R + 1:
+        u1, d1 = ring[_reflect(r - j, H) % L], ring[_reflect(r + j, H) % L]
+        u2, d2 = ring[_reflect(r - j - 1, H) % L], ring[_reflect(r + j + 1, H) % L]
+        u3, d3 = ring[_reflect(r - j - 2, H) % L], ring[_reflect(r + j + 2, H) % L]
+        u4, d4 = ring[_reflect(r - j - 3, H) % L], ring[_reflect(r + j + 3, H) % L]
+        b1, b2, b3, b4 = k[R + j], k[R + j + 1], k[R + j + 2], k[R + j + 3]
+        for c in range(nv):
+            s = out[c]
+            s = _fma32(d1[c] + u1[c], b1, s)
+            s = _fma32(d2[c] + u2[c], b2, s)
+            s = _fma32(d3[c] + u3[c], b3, s)
+            out[c] = _fma32(d4[c] + u4[c], b4, s)
+        j += 4
+    while j <= R:
+        u1, d1 = ring[_reflect(r - j, H) % L], ring[_reflect(r + j, H) % L]
+        b1 = k[R + j]
+        for c in range(nv):
+            out[c] = _fma32(d1[c] + u1[c], b1, out[c])
+        j += 1
+    for c in range(nv, W):
+        s = t[c] * kc
+        for i in range(1, R + 1):
+            s = s + (ring[_reflect(r + i, H) % L, c] + ring[_reflect(r - i, H) % L, c]) * k[R + i]
+        out[c] = s
+
+
+@njit(cache=True)
+def gaussian_pair(d, ka, kb):
+    """OpenCV's GaussianBlur of ``d`` (H, W) float32 (BORDER_REFLECT) with the taps ``ka``
+    and with the taps ``kb`` (float32, ``2 R + 1`` each: ``cv2.getGaussianKernel``), in one
+    pass over the rows (each row's border extension shared, the row-filtered rows in a
+    ring per kernel), replicating OpenCV's arithmetic (above). Needs ``H, W > 2 R`` for the
+    larger ``R``. Returns ``(blurred by ka, blurred by kb)``."""
+    H, W = d.shape
+    Ra = (ka.shape[0] - 1) // 2
+    Rb = (kb.shape[0] - 1) // 2
+    R = max(Ra, Rb)
+    xe = np.empty(W + 2 * R, dtype=np.float32)
+    # each ring holds the rows from the oldest its next output row needs to the newest read
+    La, Lb = R + Ra + 1, R + Rb + 1
+    ring_a = np.empty((La, W), dtype=np.float32)
+    ring_b = np.empty((Lb, W), dtype=np.float32)
+    ga = np.empty((H, W), dtype=np.float32)
+    gb = np.empty((H, W), dtype=np.float32)
+    done = -1                      # the last row filtered into the rings
+    for r in range(H):
+        while done < min(r + R, H - 1):
+            done += 1
+            src = d[done]
+            for c in range(W):
+                xe[R + c] = src[c]
+            for j in range(R):
+                xe[R - 1 - j] = src[j]
+                xe[R + W + j] = src[W - 1 - j]
+            _row_filter(xe[R - Ra:], ka, W, ring_a[done % La])
+            _row_filter(xe[R - Rb:], kb, W, ring_b[done % Lb])
+        _col_filter(ring_a, La, ka, Ra, r, H, ga[r])
+        _col_filter(ring_b, Lb, kb, Rb, r, H, gb[r])
+    return ga, gb
 
 
 @njit(cache=True)

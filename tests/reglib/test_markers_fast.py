@@ -77,6 +77,43 @@ def test_band_noise_equals_band_and_tile_noise():
                     assert tiles[by, bx] == pytest.approx(M._clipped_std(x), rel=1e-9)
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_gaussian_pair_equals_opencv(seed):
+    """Both Gaussians of the detector in one compiled pass (gaussian_pair, a replica of
+    OpenCV's float32 arithmetic) against OpenCV's GaussianBlur (the fast path's reference,
+    _gaussian) on random shapes (widths of every remainder by 4 and 8, the detector's field
+    box among them) and values (of widely different scales, and the detector's half-integer
+    differences with a zero border): where the once-per-shape check accepts the replica,
+    bit for bit equal; _gaussians equals OpenCV's two calls either way, also on shapes too
+    small for the replica (the check refuses them)."""
+    rng = np.random.default_rng(seed)
+    ka, kb = M._gaussian_taps(M.BLOB_SIGMA_PX), M._gaussian_taps(M.BACKGROUND_SIGMA_PX)
+    accepted = 0
+    shapes = [(480, 505), (20, 60), (60, 33)] + [tuple(int(v) for v in rng.integers(34, 140, 2))
+                                                 for _ in range(6)]
+    for shape in shapes:
+        if seed == 0:
+            img = rng.uniform(-2, 2, shape) * 10.0 ** rng.uniform(-3, 3, shape)
+        else:     # as the detector's d: half-integers, 0 outside a disc
+            yy, xx = np.mgrid[:shape[0], :shape[1]]
+            disc = np.hypot(yy - shape[0] / 2, xx - shape[1] / 2) < 0.45 * max(shape)
+            img = np.where(disc, rng.integers(-60, 60, shape) * 0.5, 0.0)
+        img = img.astype(np.float32)
+        ref = (M._gaussian(img, M.BLOB_SIGMA_PX, False),
+               M._gaussian(img, M.BACKGROUND_SIGMA_PX, False))
+        got = M._gaussians(img, False)
+        for g, r in zip(got, ref, strict=True):
+            np.testing.assert_array_equal(g, r)
+        ok = M._gaussian_replica_check(shape)
+        if min(shape) <= len(kb) - 1:
+            assert not ok
+        if ok:
+            accepted += 1
+            for g, r in zip(mk.gaussian_pair(img, ka, kb), ref, strict=True):
+                np.testing.assert_array_equal(g, r)
+    print(f"replica accepted for {accepted} of {len(shapes)} shapes")
+
+
 def test_spread_tiles_equals_the_maximum_filter():
     """The neighbours' maximum of the block figures and the need of the field's figure
     against scipy.ndimage.maximum_filter and the numpy test of _noise_tiles."""
