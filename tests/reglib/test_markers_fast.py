@@ -89,8 +89,8 @@ def test_gaussian_pair_equals_opencv(seed):
     rng = np.random.default_rng(seed)
     ka, kb = M._gaussian_taps(M.BLOB_SIGMA_PX), M._gaussian_taps(M.BACKGROUND_SIGMA_PX)
     accepted = 0
-    shapes = [(480, 505), (20, 60), (60, 33)] + [(int(rng.integers(34, 140)), 34 + 9 * i)
-                                                 for i in range(8)]
+    shapes = [(480, 505), (20, 60), (60, 33), (61, 77)] + [
+        (int(rng.integers(34, 140)), 34 + 9 * i) for i in range(8)]
     for shape in shapes:
         if seed == 0:
             img = rng.uniform(-2, 2, shape) * 10.0 ** rng.uniform(-3, 3, shape)
@@ -112,6 +112,12 @@ def test_gaussian_pair_equals_opencv(seed):
         if ok:
             accepted += 1
             for g, r in zip(mk.gaussian_pair(img, ka, kb), ref, strict=True):
+                np.testing.assert_array_equal(g.view(np.int32), r.view(np.int32))
+            # other radii (R 6 and 10: the column filter's rows one at a time; 8 and 12)
+            sa, sb = (1.5, 2.5) if seed % 2 else (2.0, 3.0)
+            got = mk.gaussian_pair(img, M._gaussian_taps(sa), M._gaussian_taps(sb))
+            for g, sigma in zip(got, (sa, sb), strict=True):
+                r = M._gaussian(img, sigma, False)
                 np.testing.assert_array_equal(g.view(np.int32), r.view(np.int32))
     print(f"replica accepted for {accepted} of {len(shapes)} shapes")
 
