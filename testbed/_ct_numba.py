@@ -71,3 +71,33 @@ def add_section(tri, zmin, zmax, sign, z, y_rows, dy, x0, px, width, weight, par
             fl = int(np.floor(u))
             full[r, min(fl + 1, width)] += w
             part[r, fl] += w * (1.0 - (u - fl))
+
+
+@njit(cache=True)
+def finish_slice(part, full, ss, width, base, out):
+    """``out[:] = base + (part + cumsum(full, axis=1))[:, :width].reshape(n, ss, width)
+    .mean(axis=1)`` (:meth:`testbed.ct._Accumulator.result`, then the mean of each pixel
+    row's ``ss`` sub-rows as numpy takes it: the sub-rows summed in order, divided by
+    ``ss``) without the intermediate arrays; the same arithmetic in the same order, so the
+    same bits (``tests/testbed/test_ct.py`` compares them).
+
+    ``part``, ``full`` ``(n * ss, width + 1)`` the accumulator's arrays (``full`` is left as
+    it was), ``out`` ``(n, width)`` float64."""
+    n = out.shape[0]
+    row = np.empty(width)
+    for i in range(n):
+        for q in range(ss):
+            r = i * ss + q
+            s = full[r, 0]
+            if q == 0:
+                row[0] = part[r, 0] + s
+            else:
+                row[0] += part[r, 0] + s
+            for c in range(1, width):
+                s += full[r, c]
+                if q == 0:
+                    row[c] = part[r, c] + s
+                else:
+                    row[c] += part[r, c] + s
+        for c in range(width):
+            out[i, c] = base + row[c] / ss

@@ -392,6 +392,20 @@ class _Accumulator:
     def result(self) -> np.ndarray:
         return (self.part + np.cumsum(self.full, axis=1))[:, :self.width]
 
+    def slice_image(self, ss: int, base: float, *, reference: bool = False) -> np.ndarray:
+        """``base + result()`` averaged over each ``ss`` consecutive sub-rows: the slice's
+        ``(rows / ss, width)`` image, compiled (:func:`testbed._ct_numba.finish_slice`, the
+        same sums in the same order: the same bits, without the cumulative sum's and the
+        mean's arrays: 0.18 ms a 240 x 240 slice of 3 sub-rows against 0.66 ms);
+        ``reference=True`` runs that numpy code."""
+        if reference:
+            return base + self.result().reshape(-1, ss, self.width).mean(axis=1)
+        from testbed._ct_numba import finish_slice
+
+        out = np.empty((self.part.shape[0] // ss, self.width))
+        finish_slice(self.part, self.full, int(ss), int(self.width), float(base), out)
+        return out
+
 
 #: the largest CT volume a scan makes (voxels; float32: 1.5 GiB): a whole femur in 0.5 mm
 #: slices at 512 x 512 px (2.4e8, a review's thin-slice protocol) fits
@@ -437,8 +451,9 @@ def _thickness(z: np.ndarray, spec: CTSpec) -> np.ndarray:
     return np.minimum(gap, spec.max_slice_thickness_mm)
 
 
-def _streaks(shape, origin, px, centres_xy, amp, rng) -> np.ndarray:
-    """Bright and dark streaks radiating from metal in one slice (HU), a simple model."""
+def _streaks_reference(shape, origin, px, centres_xy, amp, rng) -> np.ndarray:
+    """Bright and dark streaks radiating from metal in one slice (HU), a simple model (the
+    reference of :func:`_streaks`)."""
     rows, cols = shape
     y = origin[1] + np.arange(rows)[:, None] * px
     x = origin[0] + np.arange(cols)[None, :] * px
@@ -449,6 +464,37 @@ def _streaks(shape, origin, px, centres_xy, amp, rng) -> np.ndarray:
         for i, th in enumerate(rng.uniform(0, np.pi, 4)):
             d_perp = np.abs(-np.sin(th) * dx + np.cos(th) * dy)
             out += (1 if i % 2 else -1) * amp * np.exp(-0.5 * (d_perp / 1.5) ** 2) * fade
+    return out
+
+
+def _streaks(shape, origin, px, centres_xy, amp, rng, fades: dict | None = None
+             ) -> np.ndarray:
+    """:func:`_streaks_reference`'s streaks, the same bits (``tests/testbed/test_ct.py``):
+    each centre's fade kept in ``fades`` (a scan's pins stand at the same (x, y) on every
+    slice they cross), the absolute value left out (it is squared: the same number), and
+    each streak's terms made in place in one array (half the run's streak time).
+    ``fades``: the fades already made on this grid (one scan's; keyed by the centre)."""
+    rows, cols = shape
+    y = origin[1] + np.arange(rows)[:, None] * px
+    x = origin[0] + np.arange(cols)[None, :] * px
+    out = np.zeros(shape)
+    term = np.empty(shape)
+    fades = {} if fades is None else fades
+    for c in centres_xy:
+        dx, dy = x - c[0], y - c[1]
+        key = (float(c[0]), float(c[1]))
+        fade = fades.get(key)
+        if fade is None:
+            fade = fades[key] = np.exp(-np.hypot(dx, dy) / 60.0)
+        for i, th in enumerate(rng.uniform(0, np.pi, 4)):
+            np.add(-np.sin(th) * dx, np.cos(th) * dy, out=term)
+            term /= 1.5
+            np.square(term, out=term)
+            term *= -0.5
+            np.exp(term, out=term)
+            term *= (1 if i % 2 else -1) * amp
+            term *= fade
+            out += term
     return out
 
 
@@ -501,6 +547,7 @@ def scan(phantom, spec: CTSpec | None = None, rng=None, *, bodies: list[Body] | 
     slicers = [(_MeshSlicer(b.mesh), dhu, b) for b, dhu in steps]
     air = material("air").hu
     vol = np.empty((len(z), n, n), dtype=np.float32)
+    fades: dict = {}                 # the streaks' fade about each pin (_streaks)
     for k, (zk, tk) in enumerate(zip(z, thick, strict=True)):
         n_sub = max(1, int(round(tk / spec.subslice_mm)))
         zs = zk + ((np.arange(n_sub) + 0.5) / n_sub - 0.5) * tk
@@ -510,15 +557,16 @@ def scan(phantom, spec: CTSpec | None = None, rng=None, *, bodies: list[Body] | 
             for zz in zs:
                 if bz[0] < zz < bz[1]:
                     slicer.add_to(acc, zz, y_sub, origin[0], px, n, dhu / n_sub)
-        img = air + acc.result().reshape(n, ss, n).mean(axis=1)
+        img = acc.slice_image(ss, air)
         if spec.metal_streaks:
             metal = [p[:2] for name, p in phantom.pins.items()
                      if abs(p[2] - zk) < 0.5 * (tk + phantom.spec.pin_length_mm)]
             if metal:
-                img += _streaks(img.shape, origin, px, metal, spec.streak_hu, rng)
+                img += _streaks(img.shape, origin, px, metal, spec.streak_hu, rng, fades)
         if spec.noise_hu > 0:
             img += rng.normal(0.0, noise_sd_hu(spec, tk), img.shape)
-        vol[k] = np.rint(np.clip(img, -1024.0, 3071.0))
+        np.clip(img, -1024.0, 3071.0, out=img)
+        vol[k] = np.rint(img, out=img)
     return CTScan(volume_hu=vol, slice_z_mm=z, slice_thickness_mm=thick, pixel_mm=px,
                   origin_xy_mm=np.asarray(origin, dtype=np.float64), regions=regions)
 

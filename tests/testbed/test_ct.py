@@ -299,3 +299,47 @@ def test_a_slice_through_a_ring_of_vertices_is_the_section_beside_it():
     assert at.sum() > 100
     assert np.abs(at - below).sum() < 0.002 * at.sum()
     assert at.min() >= -1e-9 and at.max() <= 1 + 1e-9
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_compiled_slice_image_equals_the_numpy_reference(seed):
+    """The compiled finish of a slice (cumulative sums, sub-row means and the base HU)
+    against its numpy reference on random accumulators: the same image, bit for bit."""
+    from testbed.ct import _Accumulator
+
+    rng = np.random.default_rng(seed)
+    for _ in range(6):
+        n, ss = int(rng.integers(1, 60)), int(rng.integers(1, 5))
+        acc = _Accumulator(n * ss, n)
+        for a in (acc.part, acc.full):
+            a[:] = rng.normal(0.0, 300.0, a.shape) * (rng.random(a.shape) < 0.3)
+        acc.full[rng.random(acc.full.shape) < 0.05] = -0.0
+        base = float(rng.choice([-1000.0, 0.0, rng.uniform(-2000, 2000)]))
+        full = acc.full.copy()
+        got = acc.slice_image(ss, base)
+        ref = acc.slice_image(ss, base, reference=True)
+        assert got.shape == ref.shape == (n, n)
+        np.testing.assert_array_equal(got, ref)
+        assert np.array_equal(np.signbit(got), np.signbit(ref))
+        np.testing.assert_array_equal(acc.full, full)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_streaks_equal_the_reference(seed):
+    """The streaks made in place, their fades kept across slices, against the reference:
+    the same bits, the same draws of the generator."""
+    from testbed.ct import _streaks, _streaks_reference
+
+    rng = np.random.default_rng(seed)
+    shape = (int(rng.integers(5, 90)), int(rng.integers(5, 90)))
+    origin = rng.uniform(-100, 100, 2)
+    px = float(rng.uniform(0.2, 1.5))
+    pins = rng.uniform(-100, 100, (4, 2))
+    fades: dict = {}
+    for _ in range(5):
+        centres = [p for p in pins if rng.random() < 0.6]
+        amp = float(rng.uniform(0, 5000))
+        s = int(rng.integers(1 << 30))
+        got = _streaks(shape, origin, px, centres, amp, np.random.default_rng(s), fades)
+        ref = _streaks_reference(shape, origin, px, centres, amp, np.random.default_rng(s))
+        np.testing.assert_array_equal(got, ref)
