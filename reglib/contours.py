@@ -131,10 +131,34 @@ def gradient_potential(image, sigma_px: float, *, clip_percentile: float = 98.0)
     if not np.all(np.isfinite(img)):      # a review: an all-NaN potential, unsaid
         raise ValueError("gradient_potential: image holds NaN or infinite values")
     g = ndimage.gaussian_gradient_magnitude(img, positive_number(sigma_px, "sigma_px", unit="px"))
-    q = float(np.percentile(g, clip_percentile))
+    q = _percentile_linear(g, clip_percentile)
     if q <= 0:
         q = float(g.max()) or 1.0
     return np.minimum(g / q, 1.0)
+
+
+def _percentile_linear(a, q: float, *, reference: bool = False) -> float:
+    """``float(np.percentile(a, q))`` (the default "linear" method, q in [0, 100]) of a
+    finite array, the same number: the two order statistics about the virtual index
+    ``(n - 1) q / 100`` by one partition and numpy's own interpolation (its ``_lerp``),
+    without numpy's general machinery (50 us a call against 100 us on 100 x 100 px; a
+    run of experiment2 makes 220 snake potentials). ``reference=True`` calls numpy."""
+    if reference:
+        return float(np.percentile(a, q))
+    flat = np.asarray(a, dtype=np.float64).ravel()
+    n = flat.size
+    v = (n - 1) * (q / 100)
+    lo = hi = -1                         # numpy's indices at the top: the largest value
+    if v < n - 1:
+        lo = int(np.floor(v))
+        hi = lo + 1
+    # numpy's own selection (its kth: the ends too), so that even the sign of a zero
+    # picked among equal values is numpy's
+    part = np.partition(flat, sorted({0, -1, lo, hi}))
+    below, above = float(part[lo]), float(part[hi])
+    t = v - lo
+    diff = above - below
+    return above - diff * (1 - t) if t >= 0.5 else below + diff * t
 
 
 def _normals(c: np.ndarray, closed: bool) -> np.ndarray:

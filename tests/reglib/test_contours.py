@@ -443,3 +443,23 @@ def test_degenerate_options_and_images_are_refused_by_name():
     # the same calls with sound values still work
     assert len(snake_contour(disc, clicks)) >= 8
     assert refine_edge_profile(ramp, xy).shape == (2, 2)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_percentile_linear_equals_numpy(seed):
+    """The snake potential's clip level by one partition against ``np.percentile``: the
+    same number on random arrays (sizes 1 up, ties, integers as floats, q at the ends)."""
+    from reglib.contours import _percentile_linear
+
+    rng = np.random.default_rng(seed)
+    for _ in range(200):
+        shape = (int(rng.integers(1, 40)), int(rng.integers(1, 40)))
+        a = rng.normal(0.0, 10.0 ** rng.uniform(-3, 4), shape)
+        if rng.random() < 0.3:
+            a = np.round(a)                    # ties
+        q = float(rng.choice([0.0, 100.0, 50.0, 98.0, rng.uniform(0, 100),
+                              int(rng.integers(0, 101))]))
+        got = _percentile_linear(a, q)
+        ref = _percentile_linear(a, q, reference=True)
+        assert got == ref or (np.isnan(got) and np.isnan(ref)), (shape, q, got, ref)
+        assert np.array_equal(np.signbit(got), np.signbit(ref))
