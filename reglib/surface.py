@@ -104,7 +104,28 @@ def _ccw(idx: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return idx if _polygon_area(pts[idx]) >= 0 else idx[::-1]
 
 
-def _tri_cost(p, q, r, quality: Quality) -> np.ndarray:
+def _tri_cost(p, q, r, quality: Quality, *, reference: bool = False) -> np.ndarray:
+    """Cost of the triangles ``(p, q, r)`` (broadcast (..., 3) arrays, mm). The area is
+    made from the coordinates' planes ((...) arrays, contiguous): np.cross's and
+    np.linalg.norm's products, differences and sum in their order, so the same bits (the
+    interleaved (..., 3) arrays were 0.13 s of a run's 384 calls); ``reference=True`` runs
+    np.cross and np.linalg.norm (compared in tests)."""
+    if quality == "area" and not reference:
+        p, q, r = np.asarray(p), np.asarray(q), np.asarray(r)
+        a0, a1, a2 = (q[..., k] - p[..., k] for k in range(3))      # e1
+        b0, b1, b2 = (r[..., k] - p[..., k] for k in range(3))      # e2
+        c = a1 * b2
+        c -= a2 * b1
+        s = c * c
+        np.multiply(a2, b0, out=c)
+        c -= a0 * b2
+        s += c * c
+        np.multiply(a0, b1, out=c)
+        c -= a1 * b0
+        s += c * c
+        np.sqrt(s, out=s)
+        s *= 0.5
+        return s
     e1, e2 = q - p, r - p
     area = 0.5 * np.linalg.norm(np.cross(e1, e2), axis=-1)
     if quality == "area":

@@ -459,3 +459,22 @@ def test_a_cylinder_from_slices_much_closer_than_a_pixel_keeps_its_normals():
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     # tilt out of the slice plane (every slice tiled: median 0.30, half the faces > 0.3)
     assert np.median(np.abs(n[:, 2])) < 0.12 and np.mean(np.abs(n[:, 2]) > 0.3) < 0.05
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_triangle_areas_from_coordinate_planes_equal_the_reference(seed):
+    """The tiling's triangle areas made from the coordinates' planes against np.cross and
+    np.linalg.norm, on the broadcast shapes of both cost tables: the same bits."""
+    from reglib.surface import _tri_cost
+
+    rng = np.random.default_rng(seed)
+    for _ in range(40):
+        m, n = (int(v) for v in rng.integers(3, 60, 2))
+        a = rng.normal(0.0, 10.0 ** rng.uniform(-1, 3), (m, 3))
+        b = rng.normal(0.0, 10.0 ** rng.uniform(-1, 3), (n, 3))
+        for args in ((a[:-1, None], a[1:, None], b[None, :]),
+                     (a[:, None], b[None, 1:], b[None, :-1])):
+            got = _tri_cost(*args, "area")
+            ref = _tri_cost(*args, "area", reference=True)
+            assert got.shape == ref.shape
+            np.testing.assert_array_equal(got, ref)
