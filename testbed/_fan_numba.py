@@ -608,3 +608,24 @@ def _nan_max(a, b):
     if np.isnan(a) or np.isnan(b):
         return np.nan
     return max(a, b)
+
+
+@njit(cache=True)
+def column_means(d):
+    """``d.mean(axis=0)`` of a C-contiguous ``(N, K)`` array, ``K >= 2``, the same bits:
+    numpy sums along the outer axis row by row, in order (no pairwise summation there; it
+    sums a single column pairwise), then divides by N; here in one pass (a field's ~175k
+    ray directions: 2.5 ms in numpy, whose inner loop is 3 elements long)."""
+    n, k = d.shape
+    out = np.zeros(k)
+    if n == 0:
+        out[:] = np.nan
+        return out
+    for j in range(k):
+        out[j] = d[0, j]
+    for i in range(1, n):
+        for j in range(k):
+            out[j] += d[i, j]
+    for j in range(k):
+        out[j] = out[j] / n
+    return out

@@ -530,3 +530,15 @@ def test_fan_sphere_chords_match_the_analytic_reference(seed):
     assert (ref > 0).sum() > 200
     # (1e-6 mm: the square root amplifies rounding for a ray grazing a sphere)
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_compiled_column_means_equal_numpys(seed):
+    """The fan axis's mean of the ray directions, compiled, against ``d.mean(axis=0)``:
+    the same bits on random arrays up to a field's size."""
+    from testbed._fan_numba import column_means
+
+    rng = np.random.default_rng(seed)
+    for n in (1, 2, 7, int(rng.integers(10, 5000)), 200_000):
+        d = rng.normal(0.0, 10.0 ** rng.uniform(-3, 3), (n, int(rng.integers(2, 5))))
+        np.testing.assert_array_equal(column_means(d), d.mean(axis=0))
