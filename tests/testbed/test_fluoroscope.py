@@ -336,3 +336,35 @@ def test_the_focal_spot_widens_a_rendered_bone_edge_by_its_magnified_blur():
     assert sigma > 1.0
     expect = np.hypot(widths[0.0], 2.563 * sigma)
     assert widths[1.2] == pytest.approx(expect, rel=0.15), (widths, expect)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_field_candidates_without_the_grid_equal_the_reference(seed):
+    """The field's candidate pixels from broadcast distances and the mask's indices
+    against the pixel grid's: the same mask and centres, bit for bit (random frame sizes,
+    principal points off centre, reaches inside and beyond the frame); and the field
+    itself is unchanged by them."""
+    from testbed.fluoroscope import FluoroscopeSpec, ViewSpec, make_carm
+
+    rng = np.random.default_rng(seed)
+    for _ in range(4):
+        w, h = int(rng.integers(40, 400)), int(rng.integers(40, 300))
+        fluoro = FluoroscopeSpec(width_px=w, height_px=h, pixel_mm=228.6 / min(w, h),
+                                 principal_offset_px=tuple(rng.uniform(-9.0, 9.0, 2)))
+        carm = make_carm(fluoro, ViewSpec(orbital_deg=float(rng.uniform(-30, 30))))
+        for reach in (float(rng.uniform(1.0, 0.7 * max(w, h))), 0.3, 2.0 * max(w, h)):
+            cand, pts = carm._candidate_pixels(reach)
+            cand_r, pts_r = carm._candidate_pixels(reach, reference=True)
+            np.testing.assert_array_equal(cand, cand_r)
+            np.testing.assert_array_equal(pts, pts_r)
+            assert pts.shape == pts_r.shape and pts.dtype == pts_r.dtype
+        fov, uv, rho = carm._field()
+        reach = carm.fov_radius_mm / carm.pixel_mm + 1.0
+        reach += carm.distortion.displacement_bound(carm.principal_px, reach - 1.0)
+        cand_r, pts_r = carm._candidate_pixels(reach, reference=True)
+        uv_c = carm.undistort_px(pts_r)             # the field as it was made before
+        rho_c = carm._rho_of_undistorted(uv_c)
+        np.testing.assert_array_equal(fov[cand_r], rho_c <= 1.0)
+        assert not fov[~cand_r].any()
+        np.testing.assert_array_equal(rho[cand_r], rho_c)
+        np.testing.assert_array_equal(uv, uv_c[rho_c <= 1.0])
