@@ -1265,24 +1265,9 @@ class SweepRenderer:
         return self._rod_weights(rod), self._rod_hull(rod)
 
     def _rod_weights(self, rod: list[Body]) -> np.ndarray:
-        """``attenuation_weights(self.bodies + rod)[len(self.bodies):]`` (the same numbers,
-        the static bodies' names looked up once); that call itself (which raises) when a
-        name repeats or an ``inside`` names no body."""
-        names = [b.name for b in rod]
-        by_name = self._by_name
-        if len(set(names)) != len(names) or any(n in by_name for n in names):
-            return attenuation_weights(self.bodies + rod)[len(self.bodies):]
-        own = dict(zip(names, rod))
-        w = np.zeros(len(rod))
-        for j, b in enumerate(rod):
-            outer = 0.0
-            if b.inside is not None:
-                host = own.get(b.inside, by_name.get(b.inside))
-                if host is None:
-                    return attenuation_weights(self.bodies + rod)[len(self.bodies):]
-                outer = material(host.material).mu_per_mm
-            w[j] = material(b.material).mu_per_mm - outer
-        return w
+        """``attenuation_weights(self.bodies + rod)[len(self.bodies):]`` (the same numbers
+        and refusals), with the static bodies' names looked up once (``enclosing``)."""
+        return attenuation_weights(rod, enclosing=self._by_name)
 
     def _rod_rays(self, rod: list[Body]) -> tuple[np.ndarray, np.ndarray]:
         """Without oversampling: the box's flat indices of the rays the rod can meet, and

@@ -163,12 +163,6 @@ class PhantomSpec(Spec):
             # scored with the pin counted twice): their steel would overlap. All three within
             # a few cm: pins (and mesh) in metres or cm, not a misplaced pin (a review's
             # femur in metres was told to "place each pin where it is")
-            pins = np.array([self.mesh_pins_mm[n] for n in PIN_NAMES], dtype=np.float64)
-            span = float(np.max(np.linalg.norm(pins[:, None] - pins[None], axis=-1)))
-            units = ("" if span >= 50.0 else
-                     f"; all three lie within {span:.3g} mm, where a femur's proximal and "
-                     "distal pins lie hundreds of mm apart: mesh_pins_mm and the mesh are in "
-                     "millimetres (pins in metres or centimetres need scaling)")
             for i, a in enumerate(PIN_NAMES):
                 for b in PIN_NAMES[i + 1:]:
                     gap = float(np.linalg.norm(np.subtract(self.mesh_pins_mm[a],
@@ -177,8 +171,21 @@ class PhantomSpec(Spec):
                         raise ValueError(
                             f"mesh_pins_mm: pins {a!r} and {b!r} lie {gap:.3g} mm apart, "
                             f"closer than a pin is long (pin_length_mm = "
-                            f"{self.pin_length_mm:g}): place each pin where it is{units}")
+                            f"{self.pin_length_mm:g}): place each pin where it is"
+                            f"{self._pin_units_hint()}")
         return self
+
+    def _pin_units_hint(self) -> str:
+        """``""``, or, when all three ``mesh_pins_mm`` lie within 50 mm, a clause saying
+        they look like metres or centimetres (a femur's proximal and distal pins lie
+        hundreds of mm apart)."""
+        pins = np.array([self.mesh_pins_mm[n] for n in PIN_NAMES], dtype=np.float64)
+        span = float(np.max(np.linalg.norm(pins[:, None] - pins[None], axis=-1)))
+        if span >= 50.0:
+            return ""
+        return (f"; all three lie within {span:.3g} mm, where a femur's proximal and distal "
+                "pins lie hundreds of mm apart: mesh_pins_mm and the mesh are in millimetres "
+                "(pins in metres or centimetres need scaling)")
 
 
 @dataclass(frozen=True)

@@ -614,17 +614,21 @@ def body_path_lengths(bodies: list[Body], origins, directions, t_max, *,
     return out
 
 
-def attenuation_weights(bodies: list[Body]) -> np.ndarray:
+def attenuation_weights(bodies: list[Body], *, enclosing: dict | None = None) -> np.ndarray:
     """``mu(body) - mu(enclosing body)`` (1/mm) for each body, shape ``(B,)``.
 
     The line integral of attenuation along a ray is ``path_lengths @ weights``. ``inside``
-    must name another body of the list (or be None: air); otherwise ``ValueError``.
+    must name another body of the list or of ``enclosing`` (name -> Body: bodies that are
+    not weighed here, e.g. a sweep's static world around its rod; the list's names must not
+    repeat theirs), or be None: air; otherwise ``ValueError``.
     """
+    others = {} if enclosing is None else enclosing
     names = [b.name for b in bodies]
-    if len(set(names)) != len(names):
-        dup = sorted({n for n in names if names.count(n) > 1})
+    if len(set(names)) != len(names) or any(n in others for n in names):
+        every = [*others, *names]
+        dup = sorted({n for n in every if every.count(n) > 1})
         raise ValueError(f"bodies: names must be unique, repeated: {dup}")
-    by_name = {b.name: b for b in bodies}
+    by_name = {**others, **{b.name: b for b in bodies}}
     w = np.zeros(len(bodies))
     for j, b in enumerate(bodies):
         outer = 0.0
@@ -632,7 +636,7 @@ def attenuation_weights(bodies: list[Body]) -> np.ndarray:
             if b.inside not in by_name:
                 raise ValueError(
                     f"body {b.name!r}: inside={b.inside!r} names no body of the world "
-                    f"(bodies: {names})"
+                    f"(bodies: {list(by_name)})"
                 )
             outer = material(by_name[b.inside].material).mu_per_mm
         w[j] = material(b.material).mu_per_mm - outer

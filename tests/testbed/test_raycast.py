@@ -142,6 +142,20 @@ def test_nesting_and_source_inside():
         mesh_chords(outer, [[0.0, 0.0, 0.0]], d, 400.0, name="tissue")
     with pytest.raises(ValueError, match="unique"):
         attenuation_weights([bodies[0], bodies[0]])
+    # bodies weighed inside others that are not (a sweep's rod in its static world): the
+    # same weights and refusals as the whole list's
+    rod = [Body("rod", "soft_tissue", mesh=inner, inside="tissue"),
+           Body("bead", "cortical_bone", mesh=inner, inside="rod")]
+    whole = attenuation_weights(bodies + rod)[len(bodies):]
+    part = attenuation_weights(rod, enclosing={b.name: b for b in bodies})
+    assert np.array_equal(part, whole)
+    for bad in ([Body("bone", "steel", mesh=inner)], [rod[0], rod[0]],
+                [Body("bead", "steel", mesh=inner, inside="nowhere")]):
+        with pytest.raises(ValueError) as want:
+            attenuation_weights(bodies + bad)
+        with pytest.raises(ValueError) as got:
+            attenuation_weights(bad, enclosing={b.name: b for b in bodies})
+        assert str(got.value) == str(want.value)
 
 
 def test_ray_scene_matches_reference_with_shared_surfaces():
