@@ -440,6 +440,7 @@ def test_bench_quick_prints_every_workload_with_value_unit_goal_reference():
         assert {"value", "unit", "goal", "reference"} <= set(row), key
         assert row["value"] is not None and np.isfinite(row["value"]) and row["value"] > 0, key
         assert row["unit"] and row["goal"] is not None, key
+        assert row["machine"] == result["frame_ms"]["machine"], key
     # the two workers ran side by side: their registrations' summed wall time is about twice
     # the run's (one after the other: about once). The speed-up itself is a benchmark figure,
     # not asserted here: with 8 starts and one pair, another job on the machine moved it
@@ -452,6 +453,20 @@ def test_bench_quick_prints_every_workload_with_value_unit_goal_reference():
     # registration until 2026-11-26, its rate equal to the simulation's)
     capture = result["capture_trials_per_min"]
     assert capture["value"] < 0.95 * capture["reference"], capture
+
+
+def test_bench_rows_name_the_machine_they_were_measured_on():
+    """Every row carries the CPU and the cores it ran on, and the table says them first: the
+    same code's figures differed 1.5-1.7x between two 2-core machines."""
+    from studies.bench.suite import format_table, run_bench
+
+    rows = run_bench(only=["help_s"], progress=False)
+    where = rows["help_s"]["machine"]
+    assert where["cores"] == len(os.sched_getaffinity(0))
+    assert where["cpu"] and where["python"] == ".".join(map(str, sys.version_info[:3]))
+    assert where["numpy"] == np.__version__
+    first = format_table(rows).splitlines()[0]
+    assert first.startswith(f"machine: {where['cpu']}, {where['cores']} cores"), first
 
 
 def test_json_output_has_no_nan_or_infinity():

@@ -1,7 +1,8 @@
 """``testbed bench [--quick] [--json]``: every performance target of the project, measured.
 
 Each workload gives ``{"value", "unit", "goal", "reference"}`` (DESIGN.md), plus ``"met"``
-(the value meets the goal), ``"reference_is"`` (what the reference is) and ``"note"``. The
+(the value meets the goal), ``"reference_is"`` (what the reference is), ``"note"`` and
+``"machine"`` (:func:`machine`: the CPU and the cores the figures were measured on). The
 reference is measured in the same run, so a figure can be read against this machine:
 
 - ``frame_ms``: one 640x480 patient frame (all bodies), CPU ms, one core; reference: the
@@ -65,6 +66,36 @@ GOALS = {
 }
 RANSAC_FACTOR = 3.0
 SCENE = "experiment2"
+
+
+def machine() -> dict:
+    """What the figures were measured on: the CPU's model name, the cores this process may
+    run on, the CPU numba compiles for, Python's and numpy's versions. The same code ran 1.5
+    to 1.7 times slower on a 2-core Xeon at 2.1 GHz than on a 2-core Zen 4 EPYC (2026-11-27):
+    a row read without its machine says little."""
+    import platform
+
+    model = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    model = line.split(":", 1)[1].strip()
+                    break
+    except OSError:  # not Linux: platform's name
+        pass
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:
+        cores = os.cpu_count() or 0
+    try:
+        import llvmlite.binding as ll
+
+        target = ll.get_host_cpu_name()
+    except Exception:  # noqa: BLE001 - no numba: the figure still stands
+        target = ""
+    return {"cpu": model, "cores": int(cores), "numba_target": target,
+            "python": platform.python_version(), "numpy": np.__version__}
 
 
 def _row(key, value, reference, reference_is, note=""):
@@ -444,11 +475,16 @@ def run_bench(*, quick: bool = False, only=None, progress: bool = True) -> dict:
         except Exception as exc:  # a broken workload is reported, the others still run
             res = {k: {**_row(k, None, None, ""), "note": f"failed: {exc}"} for k in keys}
         out.update({k: v for k, v in res.items() if k in wanted})
-    return {k: out[k] for k in GOALS if k in out}
+    where = machine()
+    return {k: {**out[k], "machine": where} for k in GOALS if k in out}
 
 
 def format_table(rows: dict) -> str:
-    lines = [f"{'workload':24s} {'value':>10s} {'unit':6s} {'goal':>10s} {'reference':>10s}  "
+    where = next((r["machine"] for r in rows.values() if "machine" in r), None)
+    lines = [] if where is None else [
+        f"machine: {where['cpu']}, {where['cores']} cores (numba target "
+        f"{where['numba_target'] or '-'}), Python {where['python']}, numpy {where['numpy']}"]
+    lines += [f"{'workload':24s} {'value':>10s} {'unit':6s} {'goal':>10s} {'reference':>10s}  "
              "met   reference is / note"]
     for k, r in rows.items():
         def f(x):
