@@ -9,7 +9,8 @@ inversions 40x slower; AVX-512 kernels round otherwise and moved it in the secon
 -m pytest`` (the README's command) and ``.ci/run`` then run alike.
 
 Also: the procedural phantoms' disk cache in a folder of the session (below), and the
-number of pytest-xdist workers that ``-n auto`` (pyproject's addopts) starts.
+number of pytest-xdist workers that ``-n auto`` (pyproject's addopts) starts, and the slow
+tests run first.
 """
 
 import atexit
@@ -44,3 +45,10 @@ def pytest_xdist_auto_num_workers(config):
     except AttributeError:  # not on Linux
         cores = os.cpu_count() or 1
     return max(1, min(cores, MAX_TEST_WORKERS))
+
+
+def pytest_collection_modifyitems(config, items):
+    """The tests marked ``slow`` first (otherwise in their usual order): on workers, a long
+    test near the end of the collection (tests/testbed/test_generate.py's, 100 s) ran alone
+    after the other worker had finished. Started first, the long ones overlap the short."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)

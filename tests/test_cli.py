@@ -455,12 +455,24 @@ def test_bench_quick_prints_every_workload_with_value_unit_goal_reference():
     assert capture["value"] < 0.95 * capture["reference"], capture
 
 
-def test_bench_rows_name_the_machine_they_were_measured_on():
+def test_bench_rows_name_the_machine_they_were_measured_on(monkeypatch):
     """Every row carries the CPU and the cores it ran on, and the table says them first: the
-    same code's figures differed 1.5-1.7x between two 2-core machines."""
+    same code's figures differed 1.5-1.7x between two 2-core machines. ``--only help_s``
+    runs no job (it ran `testbed run` four times and `generate` three, 256 s here)."""
+    from studies.bench import suite
     from studies.bench.suite import format_table, run_bench
 
+    commands = []
+    child = suite._child
+
+    def recording(cmd, env=None):
+        commands.append(cmd)
+        return child(cmd, env)
+
+    monkeypatch.setattr(suite, "_child", recording)
     rows = run_bench(only=["help_s"], progress=False)
+    assert set(rows) == {"help_s"}
+    assert commands and not [c for c in commands if "run" in c or "generate" in c], commands
     where = rows["help_s"]["machine"]
     assert where["cores"] == len(os.sched_getaffinity(0))
     assert where["cpu"] and where["python"] == ".".join(map(str, sys.version_info[:3]))

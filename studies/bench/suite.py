@@ -286,9 +286,19 @@ def _first_run_note(env, warm_cpu: float) -> str:
             f"{pre[0]:.1f} s CPU, {pre[1]:.1f} s wall, is part of pip install -e .)")
 
 
-def bench_commands(quick: bool) -> dict:
+def bench_commands(quick: bool, wanted=("run_cpu_s", "generate_case_s", "help_s")) -> dict:
+    """``testbed run`` and ``testbed generate`` (CPU s) and ``testbed --help`` (wall s) as
+    commands; only the ``wanted`` rows (``run_cpu_s`` is measured for ``generate_case_s``'s
+    reference too): ``--only help_s`` used to run both jobs three times first."""
     env = _env()
     out = {}
+    if "help_s" in wanted:
+        walls = [_child(_testbed() + ["--help"], env)[1] for _ in range(3)]
+        py = [_child([sys.executable, "-c", "pass"], env)[1] for _ in range(3)]
+        out["help_s"] = _row("help_s", float(np.median(walls)), float(np.median(py)),
+                             "python -c pass")
+    if not {"run_cpu_s", "generate_case_s"} & set(wanted):
+        return out
     repeat = 1 if quick else COMMAND_REPEATS
     floor = float(np.median([_child([sys.executable, "-c", "import numpy, scipy, trimesh, "
                                      "pybullet, numba, skimage, cv2"], env)[0]
@@ -298,6 +308,8 @@ def bench_commands(quick: bool) -> dict:
     cpu = float(np.median([r[0] for r in runs]))
     out["run_cpu_s"] = _row("run_cpu_s", cpu, floor, "import floor (python + libraries)",
                             _runs_note(runs) + ("" if quick else _first_run_note(env, cpu)))
+    if "generate_case_s" not in wanted:
+        return out
     gens = []
     for _ in range(repeat):
         with tempfile.TemporaryDirectory() as d:
@@ -305,11 +317,7 @@ def bench_commands(quick: bool) -> dict:
                                              str(Path(d) / "ds")], env))
     out["generate_case_s"] = _row("generate_case_s", float(np.median([g[0] for g in gens])),
                                   cpu, "run_cpu_s of this run", _runs_note(gens))
-    walls = [_child(_testbed() + ["--help"], env)[1] for _ in range(3)]
-    py = [_child([sys.executable, "-c", "pass"], env)[1] for _ in range(3)]
-    out["help_s"] = _row("help_s", float(np.median(walls)), float(np.median(py)),
-                         "python -c pass")
-    return out
+    return {k: out[k] for k in ("run_cpu_s", "generate_case_s", "help_s") if k in out}
 
 
 _SHARED: dict = {}
@@ -462,8 +470,8 @@ def run_bench(*, quick: bool = False, only=None, progress: bool = True) -> dict:
               ({"registrations_per_min", "scaling_2_workers"},
                lambda c: bench_throughput(c, quick), True),
               ({"capture_trials_per_min"}, lambda c: bench_capture(quick), False),
-              ({"run_cpu_s", "generate_case_s", "help_s"}, lambda c: bench_commands(quick),
-               False)]
+              ({"run_cpu_s", "generate_case_s", "help_s"},
+               lambda c: bench_commands(quick, wanted), False)]
     case = None
     for keys, fn, needs_case in tqdm(groups, desc="bench", disable=not progress, leave=False):
         if not keys & wanted:
