@@ -40,11 +40,7 @@ def pytest_xdist_auto_num_workers(config):
     :data:`MAX_TEST_WORKERS`. On a 2-core machine (a Xeon at 2.1 GHz, 2026-11-27) the suite
     took 751 s on one core and 414 s on two workers with work stealing (494 s with whole
     files per worker: the kernels' precompile test alone takes 175 s)."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cores = os.cpu_count() or 1
-    return max(1, min(cores, MAX_TEST_WORKERS))
+    return min(numerics.usable_cores(), MAX_TEST_WORKERS)
 
 
 def pytest_collection_modifyitems(config, items):

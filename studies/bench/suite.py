@@ -75,26 +75,15 @@ def machine() -> dict:
     a row read without its machine says little."""
     import platform
 
-    model = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    model = line.split(":", 1)[1].strip()
-                    break
-    except OSError:  # not Linux: platform's name
-        pass
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:
-        cores = os.cpu_count() or 0
+    from studies.numerics import cpu_model, usable_cores
+
     try:
         import llvmlite.binding as ll
 
         target = ll.get_host_cpu_name()
     except Exception:  # noqa: BLE001 - no numba: the figure still stands
         target = ""
-    return {"cpu": model, "cores": int(cores), "numba_target": target,
+    return {"cpu": cpu_model(), "cores": usable_cores(), "numba_target": target,
             "python": platform.python_version(), "numpy": np.__version__}
 
 
@@ -317,7 +306,7 @@ def bench_commands(quick: bool, wanted=("run_cpu_s", "generate_case_s", "help_s"
                                              str(Path(d) / "ds")], env))
     out["generate_case_s"] = _row("generate_case_s", float(np.median([g[0] for g in gens])),
                                   cpu, "run_cpu_s of this run", _runs_note(gens))
-    return {k: out[k] for k in ("run_cpu_s", "generate_case_s", "help_s") if k in out}
+    return out
 
 
 _SHARED: dict = {}

@@ -65,11 +65,10 @@ def main(argv=None) -> None:
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:
-        cores = os.cpu_count()
-    print(f"CT surface chain, default phantom and clinical protocol ({cores} cores visible, "
+    from studies.numerics import usable_cores
+
+    print(f"CT surface chain, default phantom and clinical protocol ({usable_cores()} cores "
+          "visible, "
           f"load average {os.getloadavg()[0]:.1f})")
     for r in range(args.repeat):
         res = bench(args.seed + r)

@@ -32,6 +32,10 @@ def test_cpu_flags_reads_the_flags_line(tmp_path):
                  "processor\t: 1\nflags\t\t: fpu avx2 fma\n")
     assert numerics.cpu_flags(str(f)) == {"fpu", "avx2", "fma"}
     assert numerics.cpu_flags(str(tmp_path / "none")) == frozenset()
+    # the model name from the same list (bench rows name their machine by it)
+    assert numerics.cpu_model(str(f)) == "X"
+    assert numerics.cpuinfo_field("flags", str(tmp_path / "none")) is None
+    assert numerics.cpu_model(str(tmp_path / "none"))  # platform's name instead
 
 
 def test_apply_keeps_what_the_environment_sets():
