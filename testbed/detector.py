@@ -801,6 +801,12 @@ def _after_scatter(img: np.ndarray, values, field: _Field, fluoro, *, noise: boo
     in row-major order, or None) to ``(intensity, video)``."""
     px = float(fluoro.pixel_mm)
     fov = field.fov
+    # the quanta and the camera each draw from a stream of their own (children of ``rng``'s
+    # seed, which is not drawn from): how many Poisson draws the quanta take depends on the
+    # image, and a source that changes the image (scatter, blur, the photons) must not
+    # redraw the camera's noise, nor the next frame's (the error budget compares
+    # configurations that differ by one source only)
+    quanta_rng, camera_rng = _frame_streams(rng)
     if noise:
         if fluoro.abc_photons_per_pixel > 0:
             n0 = abc_photons(img, fov, fluoro.abc_photons_per_pixel, field_values=values)
@@ -808,9 +814,9 @@ def _after_scatter(img: np.ndarray, values, field: _Field, fluoro, *, noise: boo
             n0 = fluoro.photons_per_pixel
         exact = exact_noise or getattr(fluoro, "quantum_sampler", "fast") == "exact"
         if exact or reference:
-            img[fov] = quantum_noise(img[fov], n0, rng, exact=exact)
+            img[fov] = quantum_noise(img[fov], n0, quanta_rng, exact=exact)
         else:
-            _quantum_noise_in_field(img, fov, n0, rng, field=field)
+            _quantum_noise_in_field(img, fov, n0, quanta_rng, field=field)
     g = float(fluoro.glare_fraction)
     sigma = mtf_sigma_px(fluoro.mtf50_lp_per_mm, px)
     f = _coarsening(fluoro.glare_sigma_px) if g > 0 else 1
@@ -836,8 +842,8 @@ def _after_scatter(img: np.ndarray, values, field: _Field, fluoro, *, noise: boo
             img += glare
         img *= field.vignetting          # 1 - v rho^2 in the field, 0 outside
         video = video_u8(img, fov, black_u8=fluoro.black_u8, white_u8=fluoro.white_u8,
-                         display_range=fluoro.display_range, noise_u8=noise_u8, rng=rng,
-                         reference=True)
+                         display_range=fluoro.display_range, noise_u8=noise_u8,
+                         rng=camera_rng, reference=True)
         return img, video
     # glare, vignetting, the logarithm and the video in one compiled call (the logarithm
     # computed fast and checked against the grey levels' rounding: numpy's is taken for the
@@ -847,8 +853,18 @@ def _after_scatter(img: np.ndarray, values, field: _Field, fluoro, *, noise: boo
                  if blocks is not None else wide_blur(img, fluoro.glare_sigma_px))
     else:
         glare = img
-    video = _glare_vignetting_video(img, glare, g, field, fluoro, noise_u8, rng)
+    video = _glare_vignetting_video(img, glare, g, field, fluoro, noise_u8, camera_rng)
     return img, video
+
+
+def _frame_streams(rng) -> tuple[np.random.Generator, np.random.Generator]:
+    """The quanta's and the camera's random streams of one frame: two children spawned from
+    ``rng`` (a Generator, a seed or None); ``rng``'s own stream is not drawn from, so that
+    every frame rendered with it (a sweep's) has streams of its own whatever the others
+    drew."""
+    rng = np.random.default_rng(rng)
+    quanta, camera = rng.spawn(2)
+    return quanta, camera
 
 
 def _glare_vignetting_video(img: np.ndarray, glare: np.ndarray, g: float, field: _Field,

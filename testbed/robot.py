@@ -526,24 +526,27 @@ class Robot:
         self.client = pybullet.connect(pybullet.DIRECT)
         self._closed = False
         sp = self.spec
+        # each error source draws from a stream of its own (children of the seed; ``self.rng``
+        # keeps the encoders' per-move noise), so that switching one off leaves the others'
+        # draws as they were (the error budget compares configurations one source apart)
+        kin_rng, mount_rng, along_rng, across_rng = self.rng.spawn(4)
         off = np.zeros((5, 6))
-        off[:, :3] = self.rng.normal(0.0, sp.kinematic_offset_mm, (5, 3))
-        off[:, 3:] = np.radians(self.rng.normal(0.0, sp.kinematic_offset_deg, (5, 3)))
+        off[:, :3] = kin_rng.normal(0.0, sp.kinematic_offset_mm, (5, 3))
+        off[:, 3:] = np.radians(kin_rng.normal(0.0, sp.kinematic_offset_deg, (5, 3)))
         self.kinematic_offsets = off
-        # the rod as mounted and as made (drawn only when on, so the ideal profile's random
-        # stream is today's)
+        # the rod as mounted and as made
         self.rod_mount_error = RigidTransform(np.eye(3), np.zeros(3))
         if sp.rod_mount_error_mm > 0 or sp.rod_mount_error_deg > 0:
-            t = self.rng.normal(0.0, sp.rod_mount_error_mm, 3)
-            rv = np.radians(self.rng.normal(0.0, sp.rod_mount_error_deg, 3))
+            t = mount_rng.normal(0.0, sp.rod_mount_error_mm, 3)
+            rv = np.radians(mount_rng.normal(0.0, sp.rod_mount_error_deg, 3))
             self.rod_mount_error = RigidTransform.from_rotvec(rv, t)
         n_b = sp.rod.n_beads
         self.bead_errors_mm = np.zeros((n_b, 3))
         if sp.rod.bead_along_error_mm > 0:
-            self.bead_errors_mm[:, 0] = self.rng.normal(0.0, sp.rod.bead_along_error_mm, n_b)
+            self.bead_errors_mm[:, 0] = along_rng.normal(0.0, sp.rod.bead_along_error_mm, n_b)
         if sp.rod.bead_across_error_mm > 0:
-            self.bead_errors_mm[:, 1:] = self.rng.normal(0.0, sp.rod.bead_across_error_mm,
-                                                         (n_b, 2))
+            self.bead_errors_mm[:, 1:] = across_rng.normal(0.0, sp.rod.bead_across_error_mm,
+                                                           (n_b, 2))
         self._dir = tempfile.TemporaryDirectory(prefix="testbed_robot_")
         if sp.urdf == "builtin":
             nominal_text, true_text = robot_urdf(sp), robot_urdf(sp, offsets=off)

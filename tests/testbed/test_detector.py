@@ -352,21 +352,29 @@ def test_quantum_counts_by_row_runs_equal_the_masked_kernel(seed):
             assert g1.standard_normal() == g2.standard_normal()
 
 
-def test_ideal_values_reproduce_the_chain_without_the_clinic_sources():
-    """With the ideal values the chain is noise, glare, vignetting and video only (as before
-    the clinic sources existed): the same numbers from the same seed."""
-    rng = np.random.default_rng(0)
-    trans = rng.uniform(0.01, 1.0, (H, W))
+def _disc_field(seed: int, low: float):
+    """A random transmission in ``[low, 1)`` on a disc-shaped field of view (H, W), its
+    normalised radius and the field: ``(trans, rho, fov)``."""
+    rng = np.random.default_rng(seed)
+    trans = rng.uniform(low, 1.0, (H, W))
     yy, xx = np.mgrid[:H, :W]
     rho = np.hypot(xx - W / 2, yy - H / 2) / 70.0
     fov = rho <= 1.0
     trans[~fov] = 0
+    return trans, rho, fov
+
+
+def test_ideal_values_reproduce_the_chain_without_the_clinic_sources():
+    """With the ideal values the chain is noise, glare, vignetting and video only (as before
+    the clinic sources existed): the same numbers from the same seed."""
+    trans, rho, fov = _disc_field(0, 0.01)
     spec = FluoroscopeSpec(photons_per_pixel=5000.0).ideal()
     assert spec == FluoroscopeSpec(**IDEAL, photons_per_pixel=5000.0)
     out, video = detector.form_image(trans, fov, rho, spec, magnification=1.5, noise=True,
                                      rng=np.random.default_rng(7), exact_noise=True)
-    # the old chain, written out (the exact Poisson sampler)
-    r = np.random.default_rng(7)
+    # the old chain, written out (the exact Poisson sampler), drawing from the quanta's
+    # stream (the first child of the frame's seed, detector._frame_streams)
+    r = np.random.default_rng(7).spawn(2)[0]
     full = np.zeros((H, W))
     full[fov] = r.poisson(5000.0 * trans[fov]) / 5000.0
     g = spec.glare_fraction
@@ -722,3 +730,35 @@ def test_brightness_control_sets_the_median_detected_count_to_its_target():
     fov[:20] = False                                   # outside the field: not counted
     n0 = detector.abc_photons(fluence, fov, 150.0)
     assert float(np.median(fluence[fov] * n0)) == pytest.approx(150.0, rel=1e-9)
+
+
+@pytest.mark.parametrize("reference", [False, True])
+def test_a_source_that_changes_the_image_does_not_redraw_the_camera_noise(reference):
+    """The quanta and the camera draw from streams of their own: darkening part of the
+    image (more pixels under the exact Poisson sampler's threshold, so more Poisson draws,
+    as scatter or the photons change them) leaves the camera's noise where the image is
+    unchanged; and two frames rendered from one generator (a sweep's) have the same camera
+    noise whatever the first frame's image was. Before the streams were split, every draw
+    after the first frame's Poisson draws moved."""
+    trans, rho, fov = _disc_field(3, 0.2)
+    dark = trans.copy()
+    dark[:H // 4] *= 1e-3                      # a band with few quanta: Poisson draws
+    spec = FluoroscopeSpec(photons_per_pixel=2000.0, video_noise_u8=3.0,
+                           abc_photons_per_pixel=0.0, scatter_to_primary=0.0,
+                           focal_spot_mm=0.0, mtf50_lp_per_mm=0.0, glare_fraction=0.0)
+
+    def frames(first):
+        gen = np.random.default_rng(11)
+        out = []
+        for t in (first, trans):
+            out.append(detector.form_image(t, fov, rho, spec, magnification=1.0, noise=True,
+                                           rng=gen, reference=reference)[1].astype(int))
+        return out
+
+    (a1, a2), (b1, b2) = frames(trans), frames(dark)
+    same = fov.copy()
+    same[:H // 4] = False
+    assert (a1[same] == b1[same]).all()
+    assert (a1[:H // 4] != b1[:H // 4]).any()          # the band did change
+    np.testing.assert_array_equal(a2, b2)               # the next frame: untouched
+    assert (a1 != a2).any()                             # and it is a frame of its own

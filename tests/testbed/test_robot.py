@@ -228,6 +228,29 @@ def test_rod_mounting_error_moves_the_true_rod():
     assert 0.05 < np.mean(shifts) < 0.3
 
 
+def test_each_robot_error_source_keeps_its_draws_when_another_is_switched_off():
+    """Kinematic offsets, rod mounting, bead placement and the encoders draw from streams
+    of their own: switching the mounting off leaves the beads' errors, the offsets and the
+    encoders' noise of the same seed as they were (the error budget compares
+    configurations one source apart)."""
+    spec = RobotSpec()
+    assert spec.rod_mount_error_mm > 0 and spec.rod.bead_along_error_mm > 0
+    no_mount = spec.model_copy(update=dict(rod_mount_error_mm=0.0, rod_mount_error_deg=0.0))
+    out = []
+    for s in (spec, no_mount):
+        with Robot(s, rng=4) as robot:
+            robot.place_rod((700.0, 100.0, 150.0), (0.0, 1.0, 0.0))
+            out.append((robot.kinematic_offsets.copy(), robot.bead_errors_mm.copy(),
+                        robot.q_true - robot.q_commanded,
+                        np.linalg.norm(robot.rod_mount_error.t)))
+    (k1, b1, q1, m1), (k2, b2, q2, m2) = out
+    assert m1 > 0 and m2 == 0
+    np.testing.assert_array_equal(k1, k2)
+    np.testing.assert_array_equal(b1, b2)
+    np.testing.assert_array_equal(q1, q2)
+    assert np.abs(b1).max() > 0 and np.abs(q1).max() > 0
+
+
 def test_a_user_urdf_is_loaded_and_a_file_that_is_none_is_named(tmp_path):
     """The builtin robot's URDF written to a file loads as a user URDF with the same joints;
     a file that is no URDF is refused in one line (a review's urdf = '/etc/passwd' let
