@@ -707,6 +707,29 @@ def ransac_min_inliers(n: int) -> int:
     return int(min(n, max(6, np.ceil(0.1 * n))))
 
 
+def _ransac_mirror(p, o, d, samples, loop, thr, confidence, max_trials, grid, k,
+                   refine) -> int:
+    """When a weak consensus (``k`` inliers, less than half the pairs) may be a pose found
+    only because the pose that fits the pairs best lies behind the source (directions given
+    reversed: the other solvers end there and their cheirality test says so; RANSAC's
+    samples skip it and a chance pose gathers a third of the pairs, a held-out review): the
+    same samples without the cheirality test, the best hypothesis refined as RANSAC's own
+    (``refine(R, t)`` -> its inliers' mask). Returns how many pairs that mirror pose fits
+    when it is more than :func:`ransac_min_inliers`, at least 1.5 times ``k``, and most of
+    them lie behind their lines' origins; else 0."""
+    n = len(p)
+    R, t, count, *_ = loop(p, o, d, samples, float(thr), float(confidence), int(max_trials),
+                           int(grid), False)
+    if count < 3:
+        return 0
+    R, t, inl = refine(np.asarray(R), np.asarray(t))
+    m = int(np.count_nonzero(inl))
+    if m < max(1.5 * k, ransac_min_inliers(n)):
+        return 0
+    behind = inl & ~(np.sum((p @ R.T + t - o) * d, axis=1) > 0)
+    return m if np.count_nonzero(behind) > 0.5 * m else 0
+
+
 def _solve_ransac(p, o, d, R0, t0, *, threshold, max_trials, confidence, rng,
                   max_iterations, tol, a, r, backend, cheirality=True, grid=200):
     n = len(p)
@@ -730,13 +753,17 @@ def _solve_ransac(p, o, d, R0, t0, *, threshold, max_trials, confidence, rng,
         return PoseResult(R0, t0, dist, w, w > 0, 0, False, "ransac",
                           f"no minimal sample gave a pose in {trial} trials{why}", trial)
     best_R, best_t = np.asarray(best_R), np.asarray(best_t)
-    # refine: Tukey with a scale fixed from the inliers of the best hypothesis
-    dist = _distances(p @ best_R.T + best_t, o, d)
-    inl = dist < thr
-    s = max(robust_scale(dist[inl]), thr / (2 * a))
-    res = _iterate_linearised(p, o, d, best_R, best_t, robust=True, r=r,
-                              max_iterations=max_iterations, tol=tol, a=max(a, 3.0),
-                              fixed_scale=s, method="ransac", backend=backend)
+
+    def refine(R, t):
+        # Tukey with a scale fixed from the inliers of the hypothesis
+        dist = _distances(p @ R.T + t, o, d)
+        inl = dist < thr
+        s = max(robust_scale(dist[inl]), thr / (2 * a))
+        return _iterate_linearised(p, o, d, R, t, robust=True, r=r,
+                                   max_iterations=max_iterations, tol=tol, a=max(a, 3.0),
+                                   fixed_scale=s, method="ransac", backend=backend)
+
+    res = refine(best_R, best_t)
     converged, message = res.converged, res.message
     need = ransac_min_inliers(n)
     k = int(np.count_nonzero(res.inliers))
@@ -745,6 +772,15 @@ def _solve_ransac(p, o, d, R0, t0, *, threshold, max_trials, confidence, rng,
             f"only {k} of {n} pairs are inliers (the best hypothesis had {best_count}); at "
             f"least {need} are needed for the pose to mean anything (a minimal sample fits "
             "its own 3 exactly): the points do not fit the lines")
+    if cheirality and (not converged or k < 0.5 * n):
+        mirror = _ransac_mirror(p, o, d, samples, loop, thr, confidence, max_trials, grid,
+                                k, lambda R, t: (lambda x: (x.R, x.t, x.inliers))(
+                                    refine(R, t)))
+        if mirror:
+            converged, message = False, (
+                f"{k} of {n} pairs fit the pose found, but {mirror} fit a pose that puts "
+                "most of them behind their lines' origins (the mirror pose behind the "
+                "source): are the lines' directions reversed?")
     return PoseResult(res.R, res.t, res.residuals, res.weights, res.inliers, res.iterations,
                       converged, "ransac", message, trial)
 

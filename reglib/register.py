@@ -48,6 +48,11 @@ __all__ = [
 ]
 
 
+#: the largest median distance (mm) of a view's paths from its center of perspective:
+#: calibrated views of the testbed pass at 0.8-1.2 mm (at most 2.7-5.1 mm) from theirs
+CENTER_TOLERANCE_MM = 10.0
+
+
 @dataclass(frozen=True, eq=False)
 class View:
     """One calibrated view: its center of perspective and its X-ray paths (robot frame).
@@ -90,6 +95,19 @@ class View:
             raise ValueError(f"{label}: {err}") from None
         if ext.shape != (len(o),):
             raise ValueError(f"{label}: external must have shape ({len(o)},), got {ext.shape}")
+        if len(o) >= 3:
+            # the paths leave one focal spot: a center given elsewhere (a review's +100 mm)
+            # turns the external-contour rule and the apparent contours to the wrong
+            # viewpoint, and the registration degrades without a word
+            w = c - o
+            off = np.linalg.norm(w - np.sum(w * d, axis=1)[:, None] * d, axis=1)
+            if np.median(off) > CENTER_TOLERANCE_MM:
+                raise ValueError(
+                    f"{label}: center {np.round(c, 1).tolist()} mm is not where the view's "
+                    f"paths meet: they pass at a median {np.median(off):.1f} mm from it "
+                    f"(at most {CENTER_TOLERANCE_MM:g} mm expected; a calibrated view's "
+                    "pass within about 1 mm of its center of perspective, "
+                    "reglib.geometry.closest_point_to_lines of the paths)")
         object.__setattr__(self, "center", c)
         object.__setattr__(self, "origins", o)
         object.__setattr__(self, "directions", d)

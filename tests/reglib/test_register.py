@@ -726,3 +726,18 @@ def test_a_cycle_with_a_long_step_anywhere_in_it_has_not_settled():
     assert _settled_cycle(placed, [SimpleNamespace(step_mm=x) for x in steps], 0.1, (2,)) == 0
     short = [0.5] * 9
     assert _settled_cycle(placed, [SimpleNamespace(step_mm=x) for x in short], 0.1, (2,)) == 2
+
+
+def test_a_view_whose_center_is_not_where_its_paths_meet_is_refused():
+    """The center of perspective given 100 mm off the paths' meeting point: a review's
+    registration ran, degraded, and said converged; it is refused with the distance."""
+    rng = np.random.default_rng(0)
+    c = np.array([0.0, 0.0, -1000.0])
+    pts = rng.uniform(-50.0, 50.0, (40, 3))
+    d = pts - c
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = c + 10.0 * d
+    View(center=c + (3.0, 0.0, 0.0), origins=o, directions=d)        # within tolerance
+    with pytest.raises(ValueError, match=r"view 'v': center .* is not where the view's "
+                                         r"paths meet: they pass at a median (9\d|10\d)\.\d mm"):
+        View(center=c + (100.0, 0.0, 0.0), origins=o, directions=d, name="v")
