@@ -474,9 +474,11 @@ def cmd_scenes(args) -> int:
     from testbed.scene import scenes_dir
 
     if not scenes_dir().is_dir():
-        raise UsageError(f"the folder of named scenes {scenes_dir()} does not exist (is "
-                         "TESTBED_SCENES set to a missing folder?)")
-    for p in sorted(scenes_dir().glob("*.toml")):
+        what, hint = (("is not a folder", "a file") if scenes_dir().exists()
+                      else ("does not exist", "a missing folder"))
+        raise UsageError(f"the folder of named scenes {scenes_dir()} {what} (is "
+                         f"TESTBED_SCENES set to {hint}?)")
+    for p in sorted(x for x in scenes_dir().glob("*.toml") if x.is_file()):
         try:
             meta = tomllib.loads(p.read_bytes().decode("utf-8-sig")).get("scene", {})
             desc = str(meta.get("description", "")) if isinstance(meta, dict) else ""

@@ -109,8 +109,12 @@ def _check_truth(truth, case_dir) -> None:
     if "ct2robot" not in truth.transforms:
         raise ValueError(f"{case_dir}: the truth lacks transforms/ct2robot")
     pins = truth.points.get("pins_ct")
-    if not isinstance(pins, dict):
+    if pins is None:
         raise ValueError(f"{case_dir}: the truth lacks points/pins_ct")
+    if not isinstance(pins, dict):
+        raise ValueError(f"{case_dir}: the truth's points/pins_ct must be a table of named "
+                         f"pins (name -> 3 numbers, mm), got {type(pins).__name__} "
+                         f"{np.shape(pins)}")
     for name in PIN_NAMES:
         if name not in pins:
             raise ValueError(f"{case_dir}: the truth's points/pins_ct lacks the pin {name!r} "

@@ -495,10 +495,13 @@ def find_scene(name_or_path: str | os.PathLike | None) -> Path:
     cand = scenes_dir() / (p.name if p.suffix == ".toml" else p.name + ".toml")
     if cand.is_file():
         return cand
+    if cand.exists():
+        raise SceneError(f"{text}: the named scene {cand} is a folder or a device, not a "
+                         "scene file")
     if not scenes_dir().is_dir():
         what = "is not a folder" if scenes_dir().exists() else "does not exist"
         raise SceneError(f"{text}: no such scene file, and the folder of named scenes "
                          f"{scenes_dir()} {what} (TESTBED_SCENES="
                          f"{os.environ.get('TESTBED_SCENES', '')!r})")
-    known = sorted(x.stem for x in scenes_dir().glob("*.toml"))
+    known = sorted(x.stem for x in scenes_dir().glob("*.toml") if x.is_file())
     raise SceneError(f"{text}: no such scene file or named scene (known: {', '.join(known)})")

@@ -74,6 +74,25 @@ def test_a_dangling_link_and_a_scenes_folder_that_is_a_file_are_named(tmp_path, 
         find_scene("nosuch")
 
 
+def test_a_named_scene_that_is_a_folder_is_named_so(tmp_path, monkeypatch, capsys):
+    """A folder called x.toml among the named scenes: 'is a folder', not 'no such scene'
+    with x listed as known (a review); `testbed scenes` on a TESTBED_SCENES that is a file
+    says so (it said 'does not exist')."""
+    from studies.cli import main
+
+    (tmp_path / "dir.toml").mkdir()
+    monkeypatch.setenv("TESTBED_SCENES", str(tmp_path))
+    monkeypatch.chdir(tmp_path / "dir.toml")
+    with pytest.raises(SceneError, match="dir.toml is a folder"):
+        find_scene("dir")
+    with pytest.raises(SceneError, match=r"no such scene file or named scene \(known: \)"):
+        find_scene("other")
+    (tmp_path / "f").write_text("")
+    monkeypatch.setenv("TESTBED_SCENES", str(tmp_path / "f"))
+    assert main(["scenes"]) == 2
+    assert "is not a folder (is TESTBED_SCENES set to a file?)" in capsys.readouterr().err
+
+
 def test_syntax_error_names_file(tmp_path):
     f = tmp_path / "bad.toml"
     f.write_text("[scene\nname = 1\n")
