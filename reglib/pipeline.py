@@ -266,6 +266,16 @@ class EstimateOptions:
             _check_register_options(f"EstimateOptions.{name}", getattr(self, name))
 
 
+def _past(value: float, limit: float) -> str:
+    """``value`` with two decimals, or as many more (up to six) as it takes not to read as
+    ``limit`` itself (a review read "largest distance 1.00 mm > 1 mm")."""
+    for digits in range(2, 7):
+        text = f"{value:.{digits}f}"
+        if float(text) != limit:
+            return text
+    return repr(float(value))
+
+
 def _check_register_options(label: str, opts) -> None:
     """``opts`` holds only keyword options of :func:`reglib.register.register`, each a value
     it can take (:func:`reglib.register.check_options`, the checks register itself makes): a
@@ -589,7 +599,8 @@ def calibrate_view(view: str, frames, arrays: Mapping, *, fov=None,
     if len(d) and d.max() > options.max_validation_mm:
         return ViewCalibration(view, cal, d, ok=False, problems=problems,
                                message=f"calibration fails its validation: largest distance "
-                               f"{d.max():.2f} mm > {options.max_validation_mm:g} mm")
+                               f"{_past(d.max(), options.max_validation_mm)} mm > "
+                               f"{options.max_validation_mm:g} mm")
     return ViewCalibration(view, cal, d, ok=True, problems=problems)
 
 
@@ -1151,10 +1162,12 @@ def verdict(converged: bool, quality: dict, failed: str, options: EstimateOption
                                    else f" ({failed})" if failed else ""))
     med = quality.get("median_residual_mm", float("nan"))
     if not np.isfinite(med) or med > options.accept_max_median_mm:
-        reasons.append(f"median point-to-path distance {med:.2f} mm > "
+        reasons.append(f"median point-to-path distance "
+                       f"{_past(med, options.accept_max_median_mm)} mm > "
                        f"{options.accept_max_median_mm:g} mm")
     if quality.get("inlier_fraction", 0.0) < options.accept_min_inlier_fraction:
-        reasons.append(f"inlier fraction {quality.get('inlier_fraction', 0.0):.2f} < "
+        frac = quality.get("inlier_fraction", 0.0)
+        reasons.append(f"inlier fraction {_past(frac, options.accept_min_inlier_fraction)} < "
                        f"{options.accept_min_inlier_fraction:g}")
     fit = quality.get("worst_view_fit", float("nan"))
     if fit < options.accept_min_view_fit and n_views > 1:

@@ -600,3 +600,14 @@ def test_restarts_about_a_fixed_point_keep_it_where_the_start_put_it(monkeypatch
     want = start.apply(fp)
     assert len(starts) > 3
     assert max(float(np.linalg.norm(p.apply(fp) - want)) for p in starts) < 1e-6
+
+
+@pytest.mark.parametrize("value, limit, text", [(1.0042, 1.0, "1.004"), (1.2345, 1.0, "1.23"),
+                                                (0.4999, 0.5, "0.4999"),
+                                                (1.0000001, 1.0, "1.0000001")])
+def test_a_figure_past_its_limit_never_reads_as_the_limit(value, limit, text):
+    """A review read 'largest distance 1.00 mm > 1 mm': the verdicts' figures take the
+    digits that tell them from their limit."""
+    from reglib.pipeline import _past
+
+    assert _past(value, limit) == text
