@@ -522,16 +522,25 @@ def _tornado(ctx, t: pd.DataFrame) -> None:
     t = t[~t.source.str.startswith("(")].iloc[::-1]
     if t.empty:
         return
-    fig, ax = plt.subplots(figsize=(7, 0.45 * len(t) + 1.5))
+    fig, ax = plt.subplots(figsize=(7, 0.5 * len(t) + 1.5))
     y = np.arange(len(t))
-    ax.barh(y, -t["removed"], color="tab:blue", label="removed when off (clinic - off)")
-    ax.barh(y, t["added"], color="tab:red", label="added alone (alone - ideal)")
+    h = 0.38
+    # both signed on one axis: > 0, the source accounts for that much of the error; < 0,
+    # the error was larger without it (sources' errors cancel in part within a case).
+    # Until 2026-11-27 the removal was drawn negated on the left, so a negative removal
+    # showed as a bar on the right, read as an added error.
+    ax.barh(y + h / 2, t["removed"], height=h, color="tab:blue",
+            label="clinic - off (removed when switched off)")
+    ax.barh(y - h / 2, t["added"], height=h, color="tab:red",
+            label="alone - ideal (added when on alone)")
     ax.axvline(0, color="k", lw=0.8)
     ax.set_yticks(y, t["source"])
-    ax.set_xlabel("change of the mean pin error (mm)")
+    ax.set_xlabel("mean pin error the source accounts for (mm; < 0: larger without it)")
     ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
     fig.savefig(ctx.figure("error_budget_tornado.png", "Each error source's share of the mean "
-                           "pin error: removed when switched off in the clinic (left), added "
-                           "when on alone in the ideal profile (right)"), dpi=110)
+                           "pin error, two ways: the clinic less the clinic with the source "
+                           "off (blue), and the ideal profile with the source alone less "
+                           "the ideal (red); a bar left of 0 means the mean pin error was "
+                           "larger without the source"), dpi=110)
     plt.close(fig)

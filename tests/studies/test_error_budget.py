@@ -241,3 +241,36 @@ def test_the_shipped_fallback_skips_what_the_scene_refuses_or_already_has_smalle
     moved.write_text(re.sub(r"(?m)^position_mm = .*$", "position_mm = [835.0, 205.0, 200.0]",
                             text, count=1))
     assert {p["ideal"] for p in trial_params(moved, cases=1)} == {SHIPPED}
+
+
+def test_the_tornado_draws_both_shares_signed_on_one_axis(tmp_path, monkeypatch):
+    """A source whose removal made the error larger (removed < 0) is drawn left of 0, and
+    one that adds error right of it, for both bars: the chart drew the removal negated,
+    so a negative removal showed as a bar on the right, read as an added error."""
+    import matplotlib.figure
+
+    from studies.error_budget import _tornado
+
+    t = pd.DataFrame({"source": ["(clinic)", "a", "b"], "removed": [None, -0.12, 0.10],
+                      "added": [None, 0.07, 0.26]})
+    seen = {}
+
+    def keep(fig, *args, **kwargs):
+        seen["fig"] = fig
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", keep)
+
+    class Ctx:
+        def figure(self, name, caption):
+            return tmp_path / name
+
+    _tornado(Ctx(), t)
+    ax = seen["fig"].axes[0]
+    bars = {(round(p.get_y() + p.get_height() / 2, 2), p.get_facecolor()[:3]): p.get_width()
+            for p in ax.patches}
+    labels = [x.get_text() for x in ax.get_yticklabels()]
+    widths = sorted(bars.values())
+    assert labels == ["b", "a"] and widths == sorted([-0.12, 0.10, 0.07, 0.26])
+    # each source's bars sit about its tick: "a" (tick 1) has the negative removal
+    a = [w for (y, _), w in bars.items() if abs(y - 1) < 0.5]
+    assert sorted(a) == [-0.12, 0.07]
