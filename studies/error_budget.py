@@ -371,7 +371,10 @@ def run(ctx) -> pd.DataFrame:
                    "`clinic`: every source at its clinic magnitude; `ideal`: every source at "
                    "its ideal magnitude. `off`: the clinic with this source at its ideal "
                    "magnitude; `alone`: the ideal configuration with only this source at its "
-                   "clinic magnitude. `removed` = clinic - off, `added` = alone - ideal.\n\n"
+                   "clinic magnitude. `removed` = clinic - off, `added` = alone - ideal. "
+                   "Each source draws from a random stream of its own, so `off` and "
+                   "`alone` differ from `clinic` and `ideal` by that source only."
+                   + _negative_note(t, len({p["case"] for p in params})) + "\n\n"
                    + markdown_table(t, ".3f"))
         _tornado(ctx, t)
         from studies.table2 import set_up_note
@@ -511,6 +514,18 @@ def gap_markdown(t: pd.DataFrame) -> str:
             "published figures (docs/error-model.md) says the gap lies elsewhere (an error "
             "source not modelled, or the paper's conditions).\n\n"
             + markdown_table(g, ".2f"))
+
+
+def _negative_note(t: pd.DataFrame, cases: int) -> str:
+    """A sentence on the sources whose removal made the mean error larger, if any."""
+    neg = t[~t.source.str.startswith("(") & (t["removed"] < 0)]
+    if neg.empty:
+        return ""
+    names = ", ".join(f"{r.source} ({r.removed:+.3f} mm)" for r in neg.itertuples())
+    return (f" Switching off {len(neg)} source(s) made the mean pin error larger: {names}. "
+            f"Errors of several sources cancel in part within a case, and over {cases} "
+            f"case(s) that is not averaged out: read `added` first; ranking by `removed` "
+            f"needs more cases.")
 
 
 def _tornado(ctx, t: pd.DataFrame) -> None:

@@ -274,3 +274,14 @@ def test_the_tornado_draws_both_shares_signed_on_one_axis(tmp_path, monkeypatch)
     # each source's bars sit about its tick: "a" (tick 1) has the negative removal
     a = [w for (y, _), w in bars.items() if abs(y - 1) < 0.5]
     assert sorted(a) == [-0.12, 0.07]
+
+
+def test_the_report_names_the_sources_whose_removal_made_the_error_larger():
+    from studies.error_budget import _negative_note
+
+    t = pd.DataFrame({"source": ["(clinic)", "a", "b"], "removed": [None, -0.12, 0.10],
+                      "added": [None, 0.07, 0.26]})
+    note = _negative_note(t, 3)
+    assert "Switching off 1 source(s)" in note and "a (-0.120 mm)" in note
+    assert "b (" not in note and "over 3 case(s)" in note
+    assert _negative_note(t.assign(removed=[None, 0.12, 0.10]), 3) == ""
