@@ -214,11 +214,27 @@ def _warnings(scene, phantom, ct2robot, carms, z_mm, groups, *, aim: bool = True
     ``carms``: view name -> CArm; ``z_mm``: the CT slices' z, ``groups``: each region's
     contoured slice indices (``z_mm`` None: no CT to judge)."""
     centres = _centres(phantom)
-    out = [*_region_label_warnings(scene, phantom),
+    out = [*motion_warnings(scene), *_region_label_warnings(scene, phantom),
            *(aim_warnings(scene.views, carms, ct2robot, centres) if aim else [])]
     if centres is not None and z_mm is not None:
         out += ct_coverage_warnings(scene.views, centres, z_mm, groups)
     return out
+
+
+def motion_warnings(scene) -> list[str]:
+    """A line when the scene moves the femur during the procedure (``[patient] motion_mm``,
+    ``motion_deg``): the pins are scored against where it was when they were touched, and
+    the method's verdict does not see the motion (a held-out review ran 3 mm / 1 deg per
+    step, accepted 8.5-10 mm off, with no word of the motion in the run's output)."""
+    patient = getattr(scene, "patient", None)
+    mm = float(getattr(patient, "motion_mm", 0.0) or 0.0)
+    deg = float(getattr(patient, "motion_deg", 0.0) or 0.0)
+    if mm <= 0 and deg <= 0:
+        return []
+    return [f"[patient] motion_mm = {mm:g}, motion_deg = {deg:g}: the femur moves before "
+            "each view (a random walk from where its pins were touched, against which they "
+            "are scored); the method's verdict does not see such motion, and registrations "
+            "were accepted 1-10 mm off at 0.5-3 mm / 0.1-1 deg per step (docs/verdict.md)"]
 
 
 def sim_warnings(sim) -> list[str]:

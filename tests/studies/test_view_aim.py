@@ -77,3 +77,24 @@ def test_views_of_a_region_the_ct_did_not_scan_are_named():
     z_far = np.array([0.0, 50.0, zc - 80.0, zc - CT_COVERAGE_MARGIN_MM - 1.0])
     assert len(ct_coverage_warnings(views, region_centres(phantom), z_far,
                                     [[0, 1], [2, 3]])) == 2
+
+
+def test_a_moving_femur_is_announced_first():
+    """[patient] motion_mm / motion_deg > 0: one warning line naming both fields, and
+    testbed run's text puts it first (a review: accepted 8.5-10 mm off at 3 mm / 1 deg with
+    no word of the motion in the output)."""
+    from studies.end_to_end import motion_warnings
+    from studies.main_job import format_result
+    from testbed.scene import find_scene, load_scene
+
+    scene = load_scene(find_scene("experiment2"))
+    assert motion_warnings(scene) == []
+    moved = scene.model_copy(update={"patient": scene.patient.model_copy(
+        update={"motion_mm": 3.0, "motion_deg": 1.0})})
+    (w,) = motion_warnings(moved)
+    assert "motion_mm = 3" in w and "motion_deg = 1" in w and "verdict" in w
+    text = format_result({"scene": "s", "kind": "operating_room", "seed": 1,
+                          "scene_warnings": [w], "pins": {"proximal": 1.0}, "mtre_mm": 1.0,
+                          "converged": True, "accepted": True, "outputs": {},
+                          "timings": {}})
+    assert text.splitlines()[0] == f"WARNING: {w}"
