@@ -698,16 +698,40 @@ def _user_phantom(spec: PhantomSpec) -> Phantom:
     cancellous = _user_interior(mesh)
     pin_inside = {k: "femur" for k in PIN_NAMES}
     if cancellous is not None:
+        crossing = []
         for k, pm in pin_meshes.items():
             held = cancellous.contains(np.asarray(pm.vertices))
             if held.all():
                 pin_inside[k] = "cancellous"
-            elif held.any():     # a pin across the cortex's inner surface: no nesting holds
-                cancellous, pin_inside = None, {k: "femur" for k in PIN_NAMES}
-                break
+            elif held.any():     # a pin across the cortex's inner surface
+                crossing.append(k)
+        if crossing:
+            # the pin carved out of the interior, so that it lies in the cortex alone and
+            # nests in the femur (until 2026-11-27 the interior was dropped for the whole
+            # femur, without a word: a review's wide femur with a pin 1.4 mm under its
+            # surface turned solid cortical bone and lost its distal views' beads)
+            cancellous = _carve(cancellous, [pin_meshes[k] for k in crossing])
+            if cancellous is None:
+                pin_inside = {k: "femur" for k in PIN_NAMES}
     return Phantom(femur=mesh, canal=None, cancellous=cancellous, soft_tissue=soft, pins=pins,
                    pin_meshes=pin_meshes, pin_inside=pin_inside, side=spec.side,
                    landmarks={}, spec=spec)
+
+
+def _carve(body: trimesh.Trimesh, tools: list[trimesh.Trimesh]) -> trimesh.Trimesh | None:
+    """``body`` less the union of ``tools`` (manifold3d), or None when the result is not a
+    closed mesh (the caller then drops the interior, as before)."""
+    def to_mf(m):
+        return mf.Manifold(mf.Mesh(vert_properties=np.asarray(m.vertices, dtype=np.float32),
+                                   tri_verts=np.asarray(m.faces, dtype=np.uint32)))
+
+    try:
+        out = to_mf(body) - mf.Manifold.batch_boolean([to_mf(t) for t in tools],
+                                                       mf.OpType.Add)
+        mesh = _to_trimesh(out)
+    except (ValueError, RuntimeError, TypeError):   # manifold3d cannot read a mesh
+        return None
+    return mesh if len(mesh.faces) and mesh.is_watertight and mesh.volume > 0 else None
 
 
 #: a user femur's cortex (mm): the voxels deeper than this under its surface are cancellous
