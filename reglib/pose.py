@@ -731,7 +731,8 @@ def _ransac_mirror(p, o, d, samples, loop, thr, confidence, max_trials, grid, k,
 
 
 def _solve_ransac(p, o, d, R0, t0, *, threshold, max_trials, confidence, rng,
-                  max_iterations, tol, a, r, backend, cheirality=True, grid=200):
+                  max_iterations, tol, a, r, backend, cheirality=True, grid=200,
+                  mirror_check=True):
     n = len(p)
     scale = _scale_of(p)
     thr = threshold if threshold is not None else 0.02 * scale
@@ -772,7 +773,7 @@ def _solve_ransac(p, o, d, R0, t0, *, threshold, max_trials, confidence, rng,
             f"only {k} of {n} pairs are inliers (the best hypothesis had {best_count}); at "
             f"least {need} are needed for the pose to mean anything (a minimal sample fits "
             "its own 3 exactly): the points do not fit the lines")
-    if cheirality and (not converged or k < 0.5 * n):
+    if mirror_check and cheirality and (not converged or k < 0.5 * n):
         mirror = _ransac_mirror(p, o, d, samples, loop, thr, confidence, max_trials, grid,
                                 k, lambda R, t: (lambda x: (x.R, x.t, x.inliers))(
                                     refine(R, t)))
@@ -1002,7 +1003,8 @@ def solve_pose(points, origins, directions, method: Method = "robust", *, initia
                tukey_a: float = 2.0, threshold: float | None = None, max_trials: int = 2000,
                confidence: float = 0.999, rng=0, check: bool = True,
                backend: Literal["auto", "numpy", "numba"] = "auto", normals=None,
-               fixed_point=None, cheirality: bool = True) -> PoseResult:
+               fixed_point=None, cheirality: bool = True,
+               mirror_check: bool = True) -> PoseResult:
     """Rigid transform that puts ``points`` on their ``lines``.
 
     Parameters
@@ -1041,6 +1043,13 @@ def solve_pose(points, origins, directions, method: Method = "robust", *, initia
         points behind its origin and never counts a point behind as an inlier, and no
         method reports ``converged`` when an inlier lies behind its origin (the mirror
         pose that planar points admit). False: full lines, origins anywhere on them.
+    mirror_check : "ransac" with ``cheirality`` only: when its consensus is weak (less than
+        half the pairs) or it did not converge, the same samples are tried without the
+        cheirality test, and a pose that fits far more pairs with most of them behind their
+        origins (the lines' directions given reversed) makes the result not converged,
+        saying so. About as much again as the RANSAC itself when it runs; a caller that
+        judges the final pose's cheirality itself (``reglib.register``, whose matches are
+        often under half inliers) turns it off.
 
     Returns
     -------
@@ -1060,7 +1069,8 @@ def solve_pose(points, origins, directions, method: Method = "robust", *, initia
     _check_options(method, max_iterations=max_iterations, tol=tol, r=r, tukey_a=tukey_a,
                    threshold=threshold, max_trials=max_trials, confidence=confidence,
                    backend=backend)
-    for name, flag in (("cheirality", cheirality), ("check", check)):
+    for name, flag in (("cheirality", cheirality), ("check", check),
+                       ("mirror_check", mirror_check)):
         if not isinstance(flag, bool | np.bool_):
             raise ValueError(f"{name}: expected True or False, got {flag!r}")
     if normals is not None or fixed_point is not None:
@@ -1106,5 +1116,6 @@ def solve_pose(points, origins, directions, method: Method = "robust", *, initia
     else:
         res = _solve_ransac(p, o, d, R0, t0, threshold=threshold, max_trials=max_trials,
                             confidence=confidence, rng=rng, max_iterations=max_iterations,
-                            tol=tol, a=tukey_a, r=r, backend=backend, cheirality=cheirality)
+                            tol=tol, a=tukey_a, r=r, backend=backend, cheirality=cheirality,
+                            mirror_check=bool(mirror_check))
     return _verdict(res, p, o, d, cheirality)

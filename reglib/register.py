@@ -819,7 +819,8 @@ def register(surfaces, views, initial: RigidTransform, *,
                 res = solve_pose(p_ct, src_r if method == "ransac" else o_r, d_r,
                                  method=method, initial=T,
                                  **{"cheirality": method == "ransac", "check": it == 1,
-                                    **opts})
+                                    # the final pose's cheirality is judged below
+                                    "mirror_check": False, **opts})
             except ValueError as err:
                 return fail(f"pose solve refused the matches at iteration {it}: {err}", T=T,
                             it=it, history=history)

@@ -301,6 +301,11 @@ def test_reversed_directions_are_named_by_every_method(n):
             assert "reversed" in r.message and "behind" in r.message, r.message
         else:
             assert r.message.startswith("cheirality:"), (method, r.message)
+    # a caller that judges cheirality itself (reglib.register) turns the check off
+    r = solve_pose(p, o, -d, "ransac", rng=0, mirror_check=False)
+    assert "reversed" not in r.message
+    with pytest.raises(ValueError, match="mirror_check: expected True or False"):
+        solve_pose(p, o, d, "ransac", mirror_check="no")
 
 
 # --------------------------------------------------------------------------- verdicts
