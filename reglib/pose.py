@@ -714,7 +714,7 @@ def _ransac_mirror(p, o, d, samples, loop, thr, confidence, max_trials, grid, k,
     reversed: the other solvers end there and their cheirality test says so; RANSAC's
     samples skip it and a chance pose gathers a third of the pairs, a held-out review): the
     same samples without the cheirality test, the best hypothesis refined as RANSAC's own
-    (``refine(R, t)`` -> its inliers' mask). Returns how many pairs that mirror pose fits
+    (``refine(R, t)`` -> its PoseResult). Returns how many pairs that mirror pose fits
     when it is more than :func:`ransac_min_inliers`, at least 1.5 times ``k``, and most of
     them lie behind their lines' origins; else 0."""
     n = len(p)
@@ -722,11 +722,12 @@ def _ransac_mirror(p, o, d, samples, loop, thr, confidence, max_trials, grid, k,
                            int(grid), False)
     if count < 3:
         return 0
-    R, t, inl = refine(np.asarray(R), np.asarray(t))
+    res = refine(np.asarray(R), np.asarray(t))
+    inl = res.inliers
     m = int(np.count_nonzero(inl))
     if m < max(1.5 * k, ransac_min_inliers(n)):
         return 0
-    behind = inl & ~(np.sum((p @ R.T + t - o) * d, axis=1) > 0)
+    behind = inl & ~(np.sum((p @ res.R.T + res.t - o) * d, axis=1) > 0)
     return m if np.count_nonzero(behind) > 0.5 * m else 0
 
 
@@ -775,8 +776,7 @@ def _solve_ransac(p, o, d, R0, t0, *, threshold, max_trials, confidence, rng,
             "its own 3 exactly): the points do not fit the lines")
     if mirror_check and cheirality and (not converged or k < 0.5 * n):
         mirror = _ransac_mirror(p, o, d, samples, loop, thr, confidence, max_trials, grid,
-                                k, lambda R, t: (lambda x: (x.R, x.t, x.inliers))(
-                                    refine(R, t)))
+                                k, refine)
         if mirror:
             converged, message = False, (
                 f"{k} of {n} pairs fit the pose found, but {mirror} fit a pose that puts "

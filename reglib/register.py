@@ -35,7 +35,14 @@ import numpy as np
 
 from reglib.apparent import SurfaceTopology, prepare_surface
 from reglib.closest import ContourSet, _match_contours, closest_points, select_contours
-from reglib.geometry import RigidTransform, as_flags, as_lines, as_rigid_transform, skew
+from reglib.geometry import (
+    RigidTransform,
+    as_flags,
+    as_lines,
+    as_rigid_transform,
+    point_line_distances,
+    skew,
+)
 from reglib.pose import _check_options as _check_pose_options
 from reglib.pose import solve_pose
 
@@ -99,8 +106,7 @@ class View:
             # the paths leave one focal spot: a center given elsewhere (a review's +100 mm)
             # turns the external-contour rule and the apparent contours to the wrong
             # viewpoint, and the registration degrades without a word
-            w = c - o
-            off = np.linalg.norm(w - np.sum(w * d, axis=1)[:, None] * d, axis=1)
+            off = point_line_distances(np.broadcast_to(c, o.shape), o, d)
             if np.median(off) > CENTER_TOLERANCE_MM:
                 raise ValueError(
                     f"{label}: center {np.round(c, 1).tolist()} mm is not where the view's "

@@ -471,14 +471,14 @@ def cmd_scenes(args) -> int:
     import tomllib
 
     _quiet_pybullet()
-    from testbed.scene import scenes_dir
+    from testbed.scene import named_scene_files, scenes_dir, scenes_dir_problem
 
-    if not scenes_dir().is_dir():
-        what, hint = (("is not a folder", "a file") if scenes_dir().exists()
-                      else ("does not exist", "a missing folder"))
+    what = scenes_dir_problem()
+    if what:
+        hint = "a file" if what == "is not a folder" else "a missing folder"
         raise UsageError(f"the folder of named scenes {scenes_dir()} {what} (is "
                          f"TESTBED_SCENES set to {hint}?)")
-    for p in sorted(x for x in scenes_dir().glob("*.toml") if x.is_file()):
+    for p in named_scene_files():
         try:
             meta = tomllib.loads(p.read_bytes().decode("utf-8-sig")).get("scene", {})
             desc = str(meta.get("description", "")) if isinstance(meta, dict) else ""

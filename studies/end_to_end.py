@@ -226,11 +226,10 @@ def motion_warnings(scene) -> list[str]:
     ``motion_deg``): the pins are scored against where it was when they were touched, and
     the method's verdict does not see the motion (a held-out review ran 3 mm / 1 deg per
     step, accepted 8.5-10 mm off, with no word of the motion in the run's output)."""
-    patient = getattr(scene, "patient", None)
-    mm = float(getattr(patient, "motion_mm", 0.0) or 0.0)
-    deg = float(getattr(patient, "motion_deg", 0.0) or 0.0)
-    if mm <= 0 and deg <= 0:
+    patient = scene.patient
+    if patient is None or (patient.motion_mm <= 0 and patient.motion_deg <= 0):
         return []
+    mm, deg = float(patient.motion_mm), float(patient.motion_deg)
     return [f"[patient] motion_mm = {mm:g}, motion_deg = {deg:g}: the femur moves before "
             "each view (a random walk from where its pins were touched, against which they "
             "are scored); the method's verdict does not see such motion, and registrations "

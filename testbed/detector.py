@@ -805,8 +805,8 @@ def _after_scatter(img: np.ndarray, values, field: _Field, fluoro, *, noise: boo
     # seed, which is not drawn from): how many Poisson draws the quanta take depends on the
     # image, and a source that changes the image (scatter, blur, the photons) must not
     # redraw the camera's noise, nor the next frame's (the error budget compares
-    # configurations that differ by one source only)
-    quanta_rng, camera_rng = _frame_streams(rng)
+    # configurations that differ by one source only); a frame without noise draws nothing
+    quanta_rng, camera_rng = _frame_streams(rng) if noise else (rng, rng)
     if noise:
         if fluoro.abc_photons_per_pixel > 0:
             n0 = abc_photons(img, fov, fluoro.abc_photons_per_pixel, field_values=values)

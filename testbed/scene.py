@@ -457,6 +457,20 @@ def scenes_dir() -> Path:
         return Path(__file__).resolve().parents[1] / "scenes"
 
 
+def scenes_dir_problem() -> str | None:
+    """What is wrong with :func:`scenes_dir` ("is not a folder", "does not exist"), or None."""
+    d = scenes_dir()
+    if d.is_dir():
+        return None
+    return "is not a folder" if d.exists() else "does not exist"
+
+
+def named_scene_files() -> list[Path]:
+    """The named scenes: the ``.toml`` files (not folders or devices) of :func:`scenes_dir`,
+    sorted."""
+    return sorted(x for x in scenes_dir().glob("*.toml") if x.is_file())
+
+
 DEFAULT_SCENE = "experiment2"
 
 
@@ -498,10 +512,10 @@ def find_scene(name_or_path: str | os.PathLike | None) -> Path:
     if cand.exists():
         raise SceneError(f"{text}: the named scene {cand} is a folder or a device, not a "
                          "scene file")
-    if not scenes_dir().is_dir():
-        what = "is not a folder" if scenes_dir().exists() else "does not exist"
+    what = scenes_dir_problem()
+    if what:
         raise SceneError(f"{text}: no such scene file, and the folder of named scenes "
                          f"{scenes_dir()} {what} (TESTBED_SCENES="
                          f"{os.environ.get('TESTBED_SCENES', '')!r})")
-    known = sorted(x.stem for x in scenes_dir().glob("*.toml") if x.is_file())
+    known = [x.stem for x in named_scene_files()]
     raise SceneError(f"{text}: no such scene file or named scene (known: {', '.join(known)})")
