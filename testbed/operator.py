@@ -260,6 +260,19 @@ def _too_few_sections(region: str, vol, slices, spec, n_bone: int) -> str:
             "scan the region with more slices ([ct] schedule and spacing, or slice_z_mm)")
 
 
+#: the spawn-key element of the CT clicks' per-slice streams (apart from spawn()'s children)
+_CT_CLICK_KEY = 0xC7C1
+
+
+def _seed_sequence(rng) -> np.random.SeedSequence:
+    """The SeedSequence behind ``rng`` (a Generator, a seed or None)."""
+    seq = getattr(np.random.default_rng(rng).bit_generator, "seed_seq", None)
+    if not isinstance(seq, np.random.SeedSequence):
+        raise ValueError("rng: expected a numpy Generator made from a seed or SeedSequence "
+                         f"(its bit generator has no SeedSequence: {rng!r})")
+    return seq
+
+
 def ct_clicks(volume_hu, slice_z_mm, region_slices: dict, *, pixel_mm: float,
               spec: OperatorSpec, rng) -> dict[str, CtClicks]:
     """The operator's clicks on every CT region.
@@ -278,6 +291,7 @@ def ct_clicks(volume_hu, slice_z_mm, region_slices: dict, *, pixel_mm: float,
     vol = np.asarray(volume_hu)
     z = np.asarray(slice_z_mm, dtype=np.float64)
     min_area_px = spec.ct_min_section_mm2 / pixel_mm**2
+    seq = _seed_sequence(rng)
     out = {}
     for region in sorted(region_slices):
         sections = {}
@@ -299,8 +313,14 @@ def ct_clicks(volume_hu, slice_z_mm, region_slices: dict, *, pixel_mm: float,
         for k in slices:
             sec = sections[k]
             if len(sec) != last_n or z[k] - last_z >= spec.ct_reclick_every_mm:
+                # each slice's clicks from a stream of its own (keyed by the slice): a CT
+                # that changes which slices are clicked (thickness, noise, streaks) leaves
+                # the others' clicks as they were (the error budget's pairs)
+                k_rng = np.random.default_rng(np.random.SeedSequence(
+                    seq.entropy, spawn_key=(*seq.spawn_key, _CT_CLICK_KEY, int(k))))
                 clicks[k] = [np.clip(clicks_along(p, spec.ct_clicks, spec.ct_click_noise_px,
-                                                  rng, closed=True), 0.0, hi_xy) for p in sec]
+                                                  k_rng, closed=True), 0.0, hi_xy)
+                             for p in sec]
                 last_z, last_n = z[k], len(sec)
         out[region] = CtClicks(region, np.asarray(slices, dtype=np.int64), clicks)
     return out

@@ -154,6 +154,27 @@ def test_ct_clicks_are_placed_again_every_reclick_distance():
         assert list(got.slices) == list(range(10))
 
 
+def test_a_slice_keeps_its_clicks_whichever_other_slices_are_clicked():
+    """Each slice's clicks come from a stream keyed by the slice: when the CT changes which
+    slices show bone (a thicker slice, noise, a streak), the other slices' clicks stay as
+    they were; before, every click after the first change was redrawn, and the error budget
+    credited the CT's sources with the operator's redraws."""
+    yy, xx = np.mgrid[0:80, 0:80]
+    vol = np.repeat(np.where(np.hypot(xx - 40, yy - 40) < 20, 1500.0, 0.0)[None], 10, axis=0)
+    spec = OperatorSpec(ct_click_noise_px=1.5, ct_reclick_every_mm=0.0)
+    z = np.arange(10) * 5.0
+    full = ct_clicks(vol, z, {"distal": np.arange(10)}, pixel_mm=1.0, spec=spec,
+                     rng=np.random.default_rng(3))["distal"]
+    gone = vol.copy()
+    gone[1] = 0.0                                # slice 1 shows no bone now
+    part = ct_clicks(gone, z, {"distal": np.arange(10)}, pixel_mm=1.0, spec=spec,
+                     rng=np.random.default_rng(3))["distal"]
+    assert 1 in full.clicks and 1 not in part.clicks
+    for k in range(2, 10):
+        np.testing.assert_array_equal(full.clicks[k][0], part.clicks[k][0])
+    assert not np.array_equal(full.clicks[2][0], full.clicks[3][0])   # slices differ
+
+
 def test_xray_clicks_keep_off_the_frame_edge_of_a_zoomed_field():
     """A zoomed intensifier's circle is cut by the video's rectangle: the frame's edge is
     the field's edge too, and the outline's runs stop short of it (before, they ran to the
