@@ -288,7 +288,8 @@ def field_bounds(name: str) -> tuple[float, float]:
 
 _BOUNDS = {k: field_bounds(k) for k in (
     "length_mm", "head_radius_mm", "neck_length_mm", "neck_radius_mm", "shaft_diameter_mm",
-    "cortical_thickness_mm", "condyle_width_mm", "notch_width_mm", "condyle_depth_mm")}
+    "cortical_thickness_mm", "condyle_width_mm", "notch_width_mm", "condyle_depth_mm",
+    "neck_shaft_angle_deg", "anteversion_deg", "shaft_bow_mm", "distal_joint_angle_deg")}
 
 
 def _resolve(spec: PhantomSpec) -> _Dims:
@@ -312,17 +313,17 @@ def _resolve(spec: PhantomSpec) -> _Dims:
         head_r=within("head_radius_mm", spec.head_radius_mm * s_wid * (1 + 0.04 * z[2])),
         neck_len=within("neck_length_mm", spec.neck_length_mm * s_wid * (1 + 0.06 * z[3])),
         neck_r=within("neck_radius_mm", spec.neck_radius_mm * s_wid * (1 + 0.05 * z[4])),
-        nsa=np.clip(spec.neck_shaft_angle_deg + 4.5 * z[5], 112, 145),
-        antev=np.clip(spec.anteversion_deg + 6.0 * z[6], -5, 35),
+        nsa=within("neck_shaft_angle_deg", spec.neck_shaft_angle_deg + 4.5 * z[5]),
+        antev=within("anteversion_deg", spec.anteversion_deg + 6.0 * z[6]),
         shaft_r=shaft_r,
         cortex=cortex,
         end_cortex=spec.end_cortex_mm,
-        bow=max(0.0, spec.shaft_bow_mm * (1 + 0.3 * z[9])),
+        bow=within("shaft_bow_mm", spec.shaft_bow_mm * (1 + 0.3 * z[9])),
         condyle_w=within("condyle_width_mm", spec.condyle_width_mm * s_wid * (1 + 0.04 * z[10])),
         notch_w=within("notch_width_mm", spec.notch_width_mm * s_wid * (1 + 0.08 * z[11])),
         condyle_d=within("condyle_depth_mm", spec.condyle_depth_mm * s_wid),
         n=int(spec.segments),
-        aldfa=float(np.clip(spec.distal_joint_angle_deg + 2.0 * z[12], 75.0, 90.0)),
+        aldfa=within("distal_joint_angle_deg", spec.distal_joint_angle_deg + 2.0 * z[12]),
         width_scale=float(s_wid),
     )
 
@@ -435,6 +436,34 @@ def _canal_manifold(d: _Dims, g: dict) -> mf.Manifold:
     rings = [_ring((0.0, _bow_y(z, d, g), z), ex, ey, 1.05 * r_in * s, r_in * s, n)
              for z, s in zip(zs, taper, strict=True)]
     return mf.Manifold.batch_boolean(_loft(rings), mf.OpType.Add)
+
+
+#: the step (mm) by which a pin that reaches out of the procedural femur is moved along its
+#: axis into the bone (:func:`_seat_pin`)
+PIN_SEAT_STEP_MM = 0.5
+
+
+def _seat_pin(name: str, center, axis, femur: trimesh.Trimesh, spec: PhantomSpec, n: int):
+    """``(center, mesh)`` of a procedural femur's pin, moved along its axis until the whole
+    pin lies in the femur (as a surgeon implants it), or where it was when it already does.
+    A held-out review (2026-11-27) found a 20 mm pin reaching 2.4 mm out of a small femur's
+    trochanter, its outer part attenuated as if it were bone. Raises ``ValueError`` naming
+    the pin's fields when no place along the axis holds it."""
+    c0 = np.asarray(center, dtype=np.float64)
+    a = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    mesh = _pin_mesh(c0, a, spec.pin_diameter_mm, spec.pin_length_mm, n)
+    if femur.contains(mesh.vertices).all():
+        return c0, mesh
+    for k in range(1, int(np.ceil(spec.pin_length_mm / PIN_SEAT_STEP_MM)) + 1):
+        for sign in (-1.0, 1.0):
+            c = c0 + sign * k * PIN_SEAT_STEP_MM * a
+            mesh = _pin_mesh(c, a, spec.pin_diameter_mm, spec.pin_length_mm, n)
+            if femur.contains(mesh.vertices).all():
+                return c, mesh
+    raise ValueError(
+        f"the {name} pin ({spec.pin_diameter_mm:g} mm x {spec.pin_length_mm:g} mm) does not "
+        "fit inside the femur anywhere along its axis; make pin_diameter_mm or pin_length_mm "
+        "smaller, or the femur larger")
 
 
 def _pin_mesh(center, axis, diameter, length, n) -> trimesh.Trimesh:
@@ -1018,13 +1047,25 @@ def _procedural_phantom(spec: PhantomSpec) -> Phantom:
     }
     axes = {"proximal": (1.0, 0.0, 0.0), "distal_1": (0.0, 1.0, 0.0),
             "distal_2": (0.0, 1.0, 0.0)}
-    pin_meshes = {k: _pin_mesh(p, axes[k], spec.pin_diameter_mm, spec.pin_length_mm, d.n)
-                  for k, p in pins.items()}
+    pin_inside = {k: "cancellous" for k in PIN_NAMES}
+    pin_meshes = {}
+    for k in PIN_NAMES:
+        pins[k], pin_meshes[k] = _seat_pin(k, pins[k], axes[k], femur, spec, d.n)
+    crossing = [k for k in PIN_NAMES
+                if canc is not None and not canc.contains(pin_meshes[k].vertices).all()]
+    if crossing:
+        # a pin across the cortex's inner surface (a wide or long pin, a thick end cortex):
+        # carved out of the cancellous bone and nested in the femur, so that each part of
+        # it displaces the bone it lies in (as in a user mesh)
+        carved = _carve(canc, [pin_meshes[k] for k in crossing])
+        if carved is not None:
+            canc = carved
+            pin_inside.update({k: "femur" for k in crossing})
     gl = {"head_center": g["head_c"], "neck_base": g["neck_base"],
           "greater_trochanter": gt, "lesser_trochanter": g["lt"]["c"],
           "medial_condyle": np.array([-g["cond_x"], c["y"], c["z"]]),
           "lateral_condyle": np.array([g["cond_x"], c["y"], c["z"] + c["lat_dz"]])}
     landmarks = {k: np.asarray(v, dtype=np.float64) * flip for k, v in gl.items()}
     return Phantom(femur=femur, canal=canal, cancellous=canc, soft_tissue=soft, pins=pins,
-                   pin_meshes=pin_meshes, pin_inside={k: "cancellous" for k in PIN_NAMES},
+                   pin_meshes=pin_meshes, pin_inside=pin_inside,
                    side=spec.side, landmarks=landmarks, spec=spec)

@@ -543,3 +543,65 @@ def test_mesh_pins_in_metres_or_cm_are_told_their_units():
     with pytest.raises(ValueError, match=r"place each pin where it is \[") as err:
         PhantomSpec(mesh_path="femur.stl", mesh_pins_mm=near)
     assert "need scaling" not in str(err.value)
+
+
+@pytest.mark.parametrize("nsa, antev", [(110.0, -10.0), (150.0, 40.0)])
+def test_the_angles_given_at_their_bounds_are_the_angles_built(nsa, antev):
+    """A held-out review (2026-11-27) set neck_shaft_angle_deg 110 / 150 and anteversion_deg
+    -10 / 40, all allowed: the femur was built at 112 / 145 and -5 / 35 (a clip to narrower
+    limits than the fields') while the scene and the truth recorded the angles given. The
+    drawn angles now stay within the fields' own bounds, and given ones are built as given."""
+    ph = make_phantom(PhantomSpec(neck_shaft_angle_deg=nsa, anteversion_deg=antev,
+                                  segments=24))
+    assert _closed(ph.femur)
+    neck = ph.landmarks["head_center"] - ph.landmarks["neck_base"]
+    neck /= np.linalg.norm(neck)
+    # the shaft runs along +z from the knee; the neck leaves it at the neck-shaft angle and
+    # turns out of the x-z plane (towards +y) by the anteversion
+    assert np.degrees(np.arccos(-neck[2])) == pytest.approx(nsa, abs=1e-6)
+    assert np.degrees(np.arctan2(neck[1], -neck[0])) == pytest.approx(antev, abs=1e-6)
+
+
+def test_a_drawn_shaft_bow_stays_within_its_field():
+    """shaft_bow_mm = 25 with shape_variation = 3 drew bows above 25 mm for 47 % of seeds (up
+    to 81 mm; a review), and the femur then left its thigh under a message that blamed the
+    thigh's radius. The draw is held to the field's bound like every drawn dimension."""
+    from testbed.phantom import _resolve, field_bounds
+
+    lo, hi = field_bounds("shaft_bow_mm")
+    bows = [_resolve(PhantomSpec(shaft_bow_mm=25.0, shape_variation=3.0, shape_seed=s)).bow
+            for s in range(200)]
+    assert lo <= min(bows) and max(bows) == hi
+    for name, dim in (("neck_shaft_angle_deg", "nsa"), ("anteversion_deg", "antev"),
+                      ("distal_joint_angle_deg", "aldfa")):
+        lo, hi = field_bounds(name)
+        vals = [getattr(_resolve(PhantomSpec(shape_variation=3.0, shape_seed=s, **{name: hi})),
+                        dim) for s in range(50)]
+        assert lo <= min(vals) and max(vals) == hi, name
+
+
+def test_a_pin_too_long_for_a_small_femur_is_moved_into_the_bone_and_carved_out():
+    """A review (2026-11-27) put 20 mm pins in the smallest femur the fields allow: 12 % of
+    the proximal pin lay outside the bone and 31 % outside the cancellous bone, all of it
+    counted as displacing cancellous bone. The pin is now moved along its axis until it lies
+    in the femur, and carved out of the cancellous bone it crosses (nested in the femur)."""
+    small = dict(length_mm=300, head_radius_mm=15, neck_length_mm=30, neck_radius_mm=8,
+                 shaft_diameter_mm=18, cortical_thickness_mm=2, condyle_width_mm=60,
+                 notch_width_mm=10, condyle_depth_mm=45, thigh_radius_mm=50,
+                 knee_radius_mm=45, segments=24)
+    short = make_phantom(PhantomSpec(**small))
+    long_ = make_phantom(PhantomSpec(**small, pin_length_mm=20.0))
+    for k in PIN_NAMES:
+        pm = long_.pin_meshes[k]
+        assert long_.femur.contains(pm.vertices).all(), k
+        moved = long_.pins[k] - short.pins[k]
+        axis = pm.vertices.mean(axis=0) - long_.pins[k]   # ~0: the mesh is centred on it
+        assert np.linalg.norm(axis) < 1e-6
+        # only along the pin's axis (x for the proximal pin, y for the distal ones)
+        along = 0 if k == "proximal" else 1
+        assert np.allclose(np.delete(moved, along), 0.0, atol=1e-9), k
+    assert np.linalg.norm(long_.pins["proximal"] - short.pins["proximal"]) >= 0.5
+    assert long_.pin_inside["proximal"] == "femur"
+    assert pytest.approx(0.0, abs=0.02 * long_.pin_meshes["proximal"].volume) == \
+        long_.pin_meshes["proximal"].intersection(long_.cancellous).volume
+    assert short.pin_inside == {k: "cancellous" for k in PIN_NAMES}
