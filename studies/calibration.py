@@ -279,7 +279,8 @@ def _write_report(ctx, df: pd.DataFrame) -> None:
                 ax.plot(x, d["ray_error_iso_mean"], "s--", label="ray error at iso, mean")
                 if exp == "smoothing":
                     ax.set_xscale("log")
-                ax.axhline(GOAL_MM, color="grey", lw=0.8)
+                ax.axhline(GOAL_MM, color="grey", lw=0.8,
+                           label=f"the ideal profile's goal, {GOAL_MM:g} mm")
                 ax.set_xlabel(exp)
                 ax.set_ylabel("mm")
             axes[0].legend(fontsize=8)

@@ -82,9 +82,11 @@ def check_out_folder(out, name: str, *, study: str | None = None) -> None:
         # a study interrupted before its report leaves only its database: a review's other
         # study then ran there, replaced its results.csv and mixed both in trials.sqlite;
         # the same study of another scene or seed did the same (a review)
+        # the stored run's own flags (studies.study_owner ends in ", quick" for --quick);
+        # a review was told to add --quick to resume a run made without it
+        quick = " and --quick" if owner.endswith(", quick") else " (without --quick)"
         again = ("the same testbed score of that dataset" if owner.startswith("score ")
-                 else f"testbed study {owner.split(' ', 1)[0]} with that scene, seed and "
-                      "--quick")
+                 else f"testbed study {owner.split(' ', 1)[0]} with that scene, seed{quick}")
         raise ValueError(f"--out {out}: holds the trials of {owner!r} ({DB_NAME}), not of "
                          f"{want!r}; give another folder (or run {again} with this --out to "
                          "resume it)")

@@ -826,8 +826,9 @@ class Frame:
     """One rendered fluoroscopic frame and its truth.
 
     ``image_u8`` (H, W) uint8: the 8-bit video frame (what the clinic has).
-    ``image`` (H, W) float32: detected intensity before quantisation, relative to the
-    unattenuated beam at the centre (blur, scatter, noise, glare and vignetting included).
+    ``image`` (H, W) float32: detected intensity, linear, relative to the unattenuated beam
+    at the centre (blur, scatter, quantum noise, glare and vignetting included), before the
+    video's logarithmic amplifier, its camera noise and the 8-bit quantisation.
     ``attenuation`` (H, W) float32: the line integral of mu along each pixel's X-ray path
     (dimensionless; mean over the sub-rays when oversampling).
     ``path_mm``: body name -> (H, W) float32 path length through that body (mm).

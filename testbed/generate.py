@@ -61,8 +61,10 @@ ENTRY_DOC = {
                                   "clicks_xy (P, 2) px, trace (P,) the trace of each click, "
                                   "external (T,) bool (the bone's external outline), closed "
                                   "(T,) bool"),
-    "arrays/xray_float_{view}": ("truth", "(H, W) float32 detected intensity before 8-bit "
-                                 "quantisation (noise, glare, vignetting included)"),
+    "arrays/xray_float_{view}": ("truth", "(H, W) float32 detected intensity, linear, "
+                                 "relative to the unattenuated beam (quantum noise, blur, "
+                                 "scatter, glare, vignetting included), before the video's "
+                                 "logarithmic amplifier, camera noise and 8-bit quantisation"),
     "images/sweep_{view}": ("observation", "(F, H, W) 8-bit frames of the calibration sweep, "
                             "one after each rod move"),
     "arrays/sweep_{view}": ("observation", "npz: plane (F,) int plane code (-1 reference, 0 "

@@ -905,3 +905,19 @@ def test_scene_option_and_positional_scene_are_one_argument(command):
     args = build_parser().parse_args([command, *extra])
     _merge_scene(args)
     assert args.scene is None          # the command's default scene
+
+
+def test_a_surface_failure_names_every_operator_field_that_made_the_clicks():
+    """A review (2026-11-27) set [operator] ct_bone_threshold_hu = 150 (allowed): seeds 1 and
+    2 ended in the surfaces' tiling error, whose message listed the operator's fields but not
+    the one that was changed."""
+    from reglib.pipeline import SurfaceError
+    from studies.end_to_end import _surface_failure
+    from testbed.scene import find_scene, load_scene, parse_scene
+
+    d = load_scene(find_scene("experiment2")).model_dump(mode="json")
+    d["operator"]["ct_bone_threshold_hu"] = 150.0
+    msg = _surface_failure(parse_scene(d), SurfaceError("two contours cannot be tiled"))
+    assert msg.startswith("operator: ")
+    assert "ct_bone_threshold_hu = 150 HU" in msg and "ct_clicks = " in msg
+    assert msg.endswith("two contours cannot be tiled")

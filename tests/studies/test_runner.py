@@ -877,9 +877,16 @@ def test_a_study_interrupted_before_its_report_keeps_its_folder(tmp_path):
         check_out_folder(out, "fig9", study="fig9 of /s.toml, seed 1")
     with pytest.raises(ValueError, match="holds the trials of 'surfaces' .* not of 'fig9'; "
                                          r"give another folder \(or run testbed study "
-                                         "surfaces with that scene, seed and --quick with this "
-                                         "--out to resume it"):
+                                         r"surfaces with that scene, seed \(without --quick\) "
+                                         "with this --out to resume it"):
         check_out_folder(out, "fig9")
+    # the advice gives the stored run's --quick (a review was told to add it to resume a
+    # run made without it)
+    quick = tmp_path / "q"
+    run_trials(toy_trial, trials, out_dir=quick, progress=False,
+               study="surfaces of /s.toml, seed 1, quick")
+    with pytest.raises(ValueError, match="surfaces with that scene, seed and --quick with "):
+        check_out_folder(quick, "fig9", study="fig9 of /s.toml, seed 1")
     score = tmp_path / "score"      # a score's owner is no study name: the message says so
     run_trials(toy_trial, trials, out_dir=score, progress=False, study="score m of data")
     with pytest.raises(ValueError, match="run the same testbed score of that dataset with "

@@ -61,6 +61,13 @@ def test_the_targets_say_when_the_method_refused_registrations_they_include():
     assert "met: mean pin error 2.80 mm" in text
     every = verdict.assign(value=1.0)
     assert "**note**" not in targets_markdown(pd.concat([rows, every], ignore_index=True))
+    # every pose refused (a review: 5 of 5, the mean "met"): the pins' targets are not judged,
+    # the calibration's still are
+    none = verdict.assign(value=0.0)
+    text = targets_markdown(pd.concat([rows, none], ignore_index=True))
+    assert "**not judged** (every pose refused): mean pin error 2.80 mm" in text
+    assert "met: mean pin error" not in text and "met: proximal" not in text
+    assert "met: calibration validation 0.30-0.30 mm" in text
 
 
 def test_a_scene_other_than_the_papers_set_up_is_said_before_the_targets():
