@@ -343,6 +343,9 @@ class Stages:
     #: region -> (vertices, faces, SurfaceTopology): the surfaces' edge tables, made by the
     #: first estimate on these stages and reused while ``surfaces`` holds the same arrays
     topologies: dict = field(default_factory=dict, repr=False, compare=False)
+    #: what the stages left out besides views (e.g. CT slices whose contours continue no
+    #: neighbour's), each a sentence; the estimate's warnings carry them
+    notes: tuple = ()
 
     def topology(self, region):
         """The :class:`reglib.apparent.SurfaceTopology` of ``surfaces[region]``, made once
@@ -671,7 +674,7 @@ def _check_slice_geometry(s2c: np.ndarray, used, axes: np.ndarray) -> None:
 
 
 def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
-                options: EstimateOptions | None = None) -> dict:
+                options: EstimateOptions | None = None, notes: list | None = None) -> dict:
     """Bone surfaces from the CT: snake contours from the operator's clicks, tiled.
 
     Parameters
@@ -722,6 +725,12 @@ def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
                                       simplify_tol_mm=options.simplify_tol_mm)
         except ValueError as exc:
             raise SurfaceError(f"CT region {region!r}: {exc}") from None
+        gone = surf.info.get("left_out_z_mm", ())
+        if gone and notes is not None:
+            notes.append(f"CT region {region!r}: {len(gone)} slice(s) left out of its surface "
+                         f"(z = {', '.join(f'{z:.1f}' for z in gone)} mm): their contours "
+                         "continue no neighbouring slice's (something other than the bone "
+                         "outlined? check the clicks there)")
         out[region] = (np.asarray(surf.vertices, dtype=np.float64),
                        np.asarray(surf.faces, dtype=np.int64))
     return out
@@ -965,6 +974,7 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
                              f"views: {', '.join(map(str, names))})")
     pixel_mm = _xray_pixel_mm(_part(observation, "meta"))
     timings: dict[str, float] = {}
+    notes: list[str] = []
 
     t0 = time.perf_counter()
     if surfaces is None:
@@ -981,7 +991,7 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
         if not clicks:
             raise ValueError("observation: meta['regions'] lists no CT region to contour")
         surfaces = ct_surfaces(getattr(vol, "data", vol), np.asarray(slices["slice2ct"]),
-                               clicks, options=options)
+                               clicks, options=options, notes=notes)
     timings["surfaces"] = time.perf_counter() - t0
 
     cals, conts, views, failed = {}, {}, [], {}
@@ -1037,7 +1047,7 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
         o, d = cal.calibration.paths(con.xy)
         views.append(View(center=cal.calibration.center_of_perspective(), origins=o,
                           directions=d, external=con.external, name=v))
-    return Stages(cals, dict(surfaces), conts, views, failed, timings)
+    return Stages(cals, dict(surfaces), conts, views, failed, timings, notes=tuple(notes))
 
 
 def _as_options(options) -> EstimateOptions:
@@ -1273,8 +1283,9 @@ def restart_poses(start: RigidTransform, pivot_robot, angle_deg: float, n: int) 
 
 
 def _left_out(stages) -> tuple:
-    """The estimate's warnings: each view left out, and why."""
-    return tuple(f"view {k} left out: {m}" for k, m in stages.failed.items())
+    """The estimate's warnings: each view left out, and why; then the stages' notes."""
+    return (tuple(f"view {k} left out: {m}" for k, m in stages.failed.items())
+            + tuple(getattr(stages, "notes", ())))
 
 
 def best_try(tries):

@@ -321,7 +321,10 @@ def surface_from_contours(slices, *, quality: Quality = "area",
     Returns
     -------
     Surface with ``info`` keys ``n_slices``, ``n_triangles_tiled``, ``simplify_tol_mm``,
-    ``hausdorff_mm`` (the verified distance, 0 if not simplified).
+    ``hausdorff_mm`` (the verified distance, 0 if not simplified), ``left_out_z_mm``: the
+    z of slices left out when the whole stack could not be tiled because some slices'
+    contours continue no neighbour's (the largest run of slices that continue one another
+    is tiled; empty when none was left out).
     """
     stack = _slice_list(slices)
     if len(stack) < 2:
@@ -329,9 +332,22 @@ def surface_from_contours(slices, *, quality: Quality = "area",
     z = [np.mean(np.concatenate(s)[:, 2]) for s in stack]
     if np.any(np.diff(z) <= 0):
         raise ValueError("slices must be given in order of increasing z")
-    vertices, faces = _tile_stack(stack, quality)
+    try:
+        vertices, faces = _tile_stack(stack, quality)
+        left_out = ()
+    except ValueError:
+        # a slice whose contours continue none of its neighbours' (a streak or a blob
+        # outlined beyond the bone's end: a review's CT threshold of 150 HU, 2026-11-27)
+        # ended the whole surface; the bone's own stack is tiled without it
+        keep = _connected_slices(stack)
+        if keep is None:
+            raise
+        left_out = tuple(float(z[k]) for k in range(len(stack)) if k not in keep)
+        stack = [stack[k] for k in keep]
+        vertices, faces = _tile_stack(stack, quality)
     surf = Surface(vertices, faces, {"n_slices": len(stack), "n_triangles_tiled": len(faces),
-                                     "simplify_tol_mm": 0.0, "hausdorff_mm": 0.0})
+                                     "simplify_tol_mm": 0.0, "hausdorff_mm": 0.0,
+                                     "left_out_z_mm": left_out})
     if simplify_tol_mm is not None and (isinstance(simplify_tol_mm, bool) or not isinstance(
             simplify_tol_mm, int | float | np.number) or not np.isfinite(simplify_tol_mm)):
         raise ValueError("surface_from_contours: simplify_tol_mm: expected a number of mm in "
@@ -357,6 +373,28 @@ def surface_from_contours(slices, *, quality: Quality = "area",
             return Surface(v, f, dict(surf.info, simplify_tol_mm=simplify_tol_mm,
                                       hausdorff_mm=h, contour_tol_mm=frac * simplify_tol_mm))
     return surf
+
+
+def _connected_slices(stack) -> list[int] | None:
+    """The slices of the stack's largest run of slices that continue one another, each
+    with a contour that overlaps one of the next slice's (seen along z); the run with the
+    most contour area. None when every slice continues the next (nothing to leave out) or
+    the run has fewer than 2 slices."""
+    joined = [any(contours_overlap(a, b) for a in stack[k] for b in stack[k + 1])
+              for k in range(len(stack) - 1)]
+    if all(joined):
+        return None
+    runs, run = [], [0]
+    for k, j in enumerate(joined):
+        if j:
+            run.append(k + 1)
+        else:
+            runs.append(run)
+            run = [k + 1]
+    runs.append(run)
+    best = max(runs, key=lambda r: sum(abs(_polygon_area(c[:, :2])) for k in r
+                                       for c in stack[k]))
+    return best if len(best) >= 2 else None
 
 
 def _decimate(c: np.ndarray, tol_mm: float, *, reference: bool = False) -> np.ndarray:

@@ -478,3 +478,27 @@ def test_triangle_areas_from_coordinate_planes_equal_the_reference(seed):
             ref = _tri_cost(*args, "area", reference=True)
             assert got.shape == ref.shape
             np.testing.assert_array_equal(got, ref)
+
+
+@pytest.mark.parametrize("where", ["end", "middle"])
+def test_a_slice_whose_contours_continue_no_neighbour_is_left_out_of_the_surface(where):
+    """A review (2026-11-27) set the simulated operator's bone threshold to 150 HU: slices at
+    the femur's end were outlined around something 20 mm off the bone, and the whole CT
+    surface failed ("cannot be tiled"). Such slices are now left out, the largest run of
+    slices that continue one another is tiled, and the surface says which z it left out."""
+    zs = np.arange(0.0, 16.0, 2.0)
+    # two condyles per slice; the stray slice holds two small blobs 40 mm away
+    stack = [[_ellipse(-15, 0, 10, 8, z, 40), _ellipse(15, 0, 10, 8, z, 40)] for z in zs]
+    k = 0 if where == "end" else 3
+    stack[k] = [_ellipse(-15, 40, 3, 3, zs[k], 16), _ellipse(15, 40, 3, 3, zs[k], 16)]
+    surf = surface_from_contours(stack)
+    assert surf.info["left_out_z_mm"] == ((zs[0],) if where == "end" else tuple(zs[:4]))
+    kept = len(zs) - len(surf.info["left_out_z_mm"])
+    assert surf.info["n_slices"] == kept
+    assert check_manifold(surf.vertices, surf.faces)["manifold"]
+    # the surface is the condyles': nothing of the blobs, every kept slice's contour in it
+    assert surf.vertices[:, 1].max() < 8.0 + 1e-9
+    assert np.ptp(surf.vertices[:, 2]) == pytest.approx(zs[-1] - zs[len(zs) - kept])
+    # a stack that continues throughout leaves nothing out
+    whole = [[_ellipse(-15, 0, 10, 8, z, 40), _ellipse(15, 0, 10, 8, z, 40)] for z in zs]
+    assert surface_from_contours(whole).info["left_out_z_mm"] == ()
