@@ -605,3 +605,18 @@ def test_a_pin_too_long_for_a_small_femur_is_moved_into_the_bone_and_carved_out(
     assert pytest.approx(0.0, abs=0.02 * long_.pin_meshes["proximal"].volume) == \
         long_.pin_meshes["proximal"].intersection(long_.cancellous).volume
     assert short.pin_inside == {k: "cancellous" for k in PIN_NAMES}
+
+
+def test_a_pin_that_fits_nowhere_along_its_axis_is_refused_naming_its_fields():
+    from testbed.phantom import _seat_pin
+
+    bone = trimesh.creation.icosphere(subdivisions=2, radius=5.0)    # 10 mm across
+    spec = PhantomSpec(pin_diameter_mm=4.0, pin_length_mm=20.0)
+    with pytest.raises(ValueError, match=r"the proximal pin \(4 mm x 20 mm\) does not fit "
+                                         r"inside the femur .* pin_diameter_mm or "
+                                         "pin_length_mm smaller"):
+        _seat_pin("proximal", (0.0, 0.0, 0.0), (1.0, 0.0, 0.0), bone, spec, 24)
+    short = PhantomSpec(pin_diameter_mm=2.0, pin_length_mm=4.0)
+    # off centre by 3 mm along its axis: moved back until the whole pin lies in the sphere
+    c, mesh = _seat_pin("proximal", (3.0, 0.0, 0.0), (1.0, 0.0, 0.0), bone, short, 24)
+    assert bone.contains(mesh.vertices).all() and c[0] < 3.0 and c[1] == c[2] == 0.0
