@@ -1285,7 +1285,7 @@ def restart_poses(start: RigidTransform, pivot_robot, angle_deg: float, n: int) 
 def _left_out(stages) -> tuple:
     """The estimate's warnings: each view left out, and why; then the stages' notes."""
     return (tuple(f"view {k} left out: {m}" for k, m in stages.failed.items())
-            + tuple(getattr(stages, "notes", ())))
+            + tuple(stages.notes))
 
 
 def best_try(tries):

@@ -707,19 +707,18 @@ def ransac_min_inliers(n: int) -> int:
     return int(min(n, max(6, np.ceil(0.1 * n))))
 
 
-def _ransac_mirror(p, o, d, samples, loop, thr, confidence, max_trials, grid, k,
-                   refine) -> int:
+def _ransac_mirror(p, o, d, k, hypotheses, refine) -> int:
     """When a weak consensus (``k`` inliers, less than half the pairs) may be a pose found
     only because the pose that fits the pairs best lies behind the source (directions given
     reversed: the other solvers end there and their cheirality test says so; RANSAC's
     samples skip it and a chance pose gathers a third of the pairs, a held-out review): the
-    same samples without the cheirality test, the best hypothesis refined as RANSAC's own
-    (``refine(R, t)`` -> its PoseResult). Returns how many pairs that mirror pose fits
+    same samples without the cheirality test (``hypotheses(cheirality)``: RANSAC's loop over
+    its samples), the best hypothesis refined as RANSAC's own (``refine(R, t)`` -> its
+    PoseResult). Returns how many pairs that mirror pose fits
     when it is more than :func:`ransac_min_inliers`, at least 1.5 times ``k``, and most of
     them lie behind their lines' origins; else 0."""
     n = len(p)
-    R, t, count, *_ = loop(p, o, d, samples, float(thr), float(confidence), int(max_trials),
-                           int(grid), False)
+    R, t, count, *_ = hypotheses(False)
     if count < 3:
         return 0
     res = refine(np.asarray(R), np.asarray(t))
@@ -745,9 +744,12 @@ def _solve_ransac(p, o, d, R0, t0, *, threshold, max_trials, confidence, rng,
     samples = _ransac_samples(rng, n, max_trials)
     kernel = _ransac_kernel(backend)
     loop = kernel.hypotheses if kernel is not None else _ransac_hypotheses_numpy
-    best_R, best_t, best_count, _, trial, behind = loop(
-        p, o, d, samples, float(thr), float(confidence), int(max_trials), int(grid),
-        bool(cheirality))
+
+    def hypotheses(cheirality):
+        return loop(p, o, d, samples, float(thr), float(confidence), int(max_trials),
+                    int(grid), bool(cheirality))
+
+    best_R, best_t, best_count, _, trial, behind = hypotheses(cheirality)
     if best_count < 3:
         dist = _distances(p @ R0.T + t0, o, d)
         w = np.zeros(n)
@@ -775,8 +777,7 @@ def _solve_ransac(p, o, d, R0, t0, *, threshold, max_trials, confidence, rng,
             f"least {need} are needed for the pose to mean anything (a minimal sample fits "
             "its own 3 exactly): the points do not fit the lines")
     if mirror_check and cheirality and (not converged or k < 0.5 * n):
-        mirror = _ransac_mirror(p, o, d, samples, loop, thr, confidence, max_trials, grid,
-                                k, refine)
+        mirror = _ransac_mirror(p, o, d, k, hypotheses, refine)
         if mirror:
             converged, message = False, (
                 f"{k} of {n} pairs fit the pose found, but {mirror} fit a pose that puts "

@@ -10,6 +10,7 @@ import numpy as np
 
 from reglib.geometry import RigidTransform
 from testbed.phantom import PIN_NAMES
+from testbed.seeds import keyed_seed
 
 __all__ = [
     "JUDGE_STREAM",
@@ -56,8 +57,7 @@ def mtre(pose, truth, targets_ct) -> float:
 
 def judge_seed(case_ss: np.random.SeedSequence, *salt: int) -> np.random.SeedSequence:
     """The judge's own SeedSequence for a case (its starts), optionally salted further."""
-    return np.random.SeedSequence(case_ss.entropy,
-                                  spawn_key=(*case_ss.spawn_key, JUDGE_STREAM, *salt))
+    return keyed_seed(case_ss, JUDGE_STREAM, *salt)
 
 
 def perturbed_start(ct2robot, pins_ct: dict, angle_deg: float, rng, *,

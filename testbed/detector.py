@@ -862,8 +862,7 @@ def _frame_streams(rng) -> tuple[np.random.Generator, np.random.Generator]:
     ``rng`` (a Generator, a seed or None); ``rng``'s own stream is not drawn from, so that
     every frame rendered with it (a sweep's) has streams of its own whatever the others
     drew."""
-    rng = np.random.default_rng(rng)
-    quanta, camera = rng.spawn(2)
+    quanta, camera = np.random.default_rng(rng).spawn(2)
     return quanta, camera
 
 

@@ -35,6 +35,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from reglib.geometry import arc_length
+from testbed.seeds import keyed_seed, seed_sequence_of
 from testbed.spec import NonNegative, Spec
 
 __all__ = [
@@ -264,15 +265,6 @@ def _too_few_sections(region: str, vol, slices, spec, n_bone: int) -> str:
 _CT_CLICK_KEY = 0xC7C1
 
 
-def _seed_sequence(rng) -> np.random.SeedSequence:
-    """The SeedSequence behind ``rng`` (a Generator, a seed or None)."""
-    seq = getattr(np.random.default_rng(rng).bit_generator, "seed_seq", None)
-    if not isinstance(seq, np.random.SeedSequence):
-        raise ValueError("rng: expected a numpy Generator made from a seed or SeedSequence "
-                         f"(its bit generator has no SeedSequence: {rng!r})")
-    return seq
-
-
 def ct_clicks(volume_hu, slice_z_mm, region_slices: dict, *, pixel_mm: float,
               spec: OperatorSpec, rng) -> dict[str, CtClicks]:
     """The operator's clicks on every CT region.
@@ -291,7 +283,7 @@ def ct_clicks(volume_hu, slice_z_mm, region_slices: dict, *, pixel_mm: float,
     vol = np.asarray(volume_hu)
     z = np.asarray(slice_z_mm, dtype=np.float64)
     min_area_px = spec.ct_min_section_mm2 / pixel_mm**2
-    seq = _seed_sequence(rng)
+    seq = seed_sequence_of(rng)
     out = {}
     for region in sorted(region_slices):
         sections = {}
@@ -316,8 +308,7 @@ def ct_clicks(volume_hu, slice_z_mm, region_slices: dict, *, pixel_mm: float,
                 # each slice's clicks from a stream of its own (keyed by the slice): a CT
                 # that changes which slices are clicked (thickness, noise, streaks) leaves
                 # the others' clicks as they were (the error budget's pairs)
-                k_rng = np.random.default_rng(np.random.SeedSequence(
-                    seq.entropy, spawn_key=(*seq.spawn_key, _CT_CLICK_KEY, int(k))))
+                k_rng = np.random.default_rng(keyed_seed(seq, _CT_CLICK_KEY, k))
                 clicks[k] = [np.clip(clicks_along(p, spec.ct_clicks, spec.ct_click_noise_px,
                                                   k_rng, closed=True), 0.0, hi_xy)
                              for p in sec]

@@ -452,14 +452,12 @@ def _seat_pin(name: str, center, axis, femur: trimesh.Trimesh, spec: PhantomSpec
     c0 = np.asarray(center, dtype=np.float64)
     a = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
     mesh = _pin_mesh(c0, a, spec.pin_diameter_mm, spec.pin_length_mm, n)
-    if femur.contains(mesh.vertices).all():
-        return c0, mesh
-    for k in range(1, int(np.ceil(spec.pin_length_mm / PIN_SEAT_STEP_MM)) + 1):
-        for sign in (-1.0, 1.0):
-            c = c0 + sign * k * PIN_SEAT_STEP_MM * a
-            mesh = _pin_mesh(c, a, spec.pin_diameter_mm, spec.pin_length_mm, n)
-            if femur.contains(mesh.vertices).all():
-                return c, mesh
+    steps = int(np.ceil(spec.pin_length_mm / PIN_SEAT_STEP_MM))
+    for k in [0, *(s * j for j in range(1, steps + 1) for s in (-1, 1))]:
+        shift = k * PIN_SEAT_STEP_MM * a
+        if femur.contains(mesh.vertices + shift).all():
+            mesh.apply_translation(shift)
+            return c0 + shift, mesh
     raise ValueError(
         f"the {name} pin ({spec.pin_diameter_mm:g} mm x {spec.pin_length_mm:g} mm) does not "
         "fit inside the femur anywhere along its axis; make pin_diameter_mm or pin_length_mm "
@@ -727,24 +725,31 @@ def _user_phantom(spec: PhantomSpec) -> Phantom:
     cancellous = _user_interior(mesh)
     pin_inside = {k: "femur" for k in PIN_NAMES}
     if cancellous is not None:
-        crossing = []
-        for k, pm in pin_meshes.items():
-            held = cancellous.contains(np.asarray(pm.vertices))
-            if held.all():
-                pin_inside[k] = "cancellous"
-            elif held.any():     # a pin across the cortex's inner surface
-                crossing.append(k)
-        if crossing:
-            # the pin carved out of the interior, so that it lies in the cortex alone and
-            # nests in the femur (until 2026-11-27 the interior was dropped for the whole
-            # femur, without a word: a review's wide femur with a pin 1.4 mm under its
-            # surface turned solid cortical bone and lost its distal views' beads)
-            cancellous = _carve(cancellous, [pin_meshes[k] for k in crossing])
-            if cancellous is None:
-                pin_inside = {k: "femur" for k in PIN_NAMES}
+        # (until 2026-11-27 a crossing pin dropped the interior for the whole femur, without
+        # a word: a review's wide femur with a pin 1.4 mm under its surface turned solid
+        # cortical bone and lost its distal views' beads)
+        nested = _nest_pins(cancellous, pin_meshes)
+        cancellous, pin_inside = nested if nested is not None else (None, pin_inside)
     return Phantom(femur=mesh, canal=None, cancellous=cancellous, soft_tissue=soft, pins=pins,
                    pin_meshes=pin_meshes, pin_inside=pin_inside, side=spec.side,
                    landmarks={}, spec=spec)
+
+
+def _nest_pins(cancellous: trimesh.Trimesh, pin_meshes: dict):
+    """``(cancellous, pin_inside)``: each pin nested in the body it lies in, "cancellous"
+    when the cancellous bone holds the whole pin, else "femur"; a pin across the cortex's
+    inner surface is carved out of the cancellous bone, so that each part of it displaces
+    the bone it lies in. None when the carving fails (the caller keeps its fallback)."""
+    pin_inside, crossing = {}, []
+    for k, pm in pin_meshes.items():
+        held = cancellous.contains(np.asarray(pm.vertices))
+        pin_inside[k] = "cancellous" if held.all() else "femur"
+        if held.any() and not held.all():
+            crossing.append(k)
+    if not crossing:
+        return cancellous, pin_inside
+    carved = _carve(cancellous, [pin_meshes[k] for k in crossing])
+    return None if carved is None else (carved, pin_inside)
 
 
 def _carve(body: trimesh.Trimesh, tools: list[trimesh.Trimesh]) -> trimesh.Trimesh | None:
@@ -1051,16 +1056,10 @@ def _procedural_phantom(spec: PhantomSpec) -> Phantom:
     pin_meshes = {}
     for k in PIN_NAMES:
         pins[k], pin_meshes[k] = _seat_pin(k, pins[k], axes[k], femur, spec, d.n)
-    crossing = [k for k in PIN_NAMES
-                if canc is not None and not canc.contains(pin_meshes[k].vertices).all()]
-    if crossing:
-        # a pin across the cortex's inner surface (a wide or long pin, a thick end cortex):
-        # carved out of the cancellous bone and nested in the femur, so that each part of
-        # it displaces the bone it lies in (as in a user mesh)
-        carved = _carve(canc, [pin_meshes[k] for k in crossing])
-        if carved is not None:
-            canc = carved
-            pin_inside.update({k: "femur" for k in crossing})
+    # a wide or long pin, a thick end cortex: a pin across the cortex's inner surface
+    nested = _nest_pins(canc, pin_meshes) if canc is not None else None
+    if nested is not None:
+        canc, pin_inside = nested
     gl = {"head_center": g["head_c"], "neck_base": g["neck_base"],
           "greater_trochanter": gt, "lesser_trochanter": g["lt"]["c"],
           "medial_condyle": np.array([-g["cond_x"], c["y"], c["z"]]),

@@ -39,6 +39,7 @@ import numpy as np
 
 from testbed.dataset import Observation, Truth, Volume
 from testbed.instruments import file_key
+from testbed.seeds import keyed_seed
 
 __all__ = [
     "CtCase",
@@ -79,9 +80,7 @@ def case_streams(seed, index: int = 0) -> dict[str, np.random.SeedSequence]:
     """Stream name -> SeedSequence of case ``index`` of ``seed`` (see :data:`STREAM_KEYS`);
     the case seed itself is not modified."""
     css = case_seed(seed, index)
-    return {name: np.random.SeedSequence(css.entropy, spawn_key=(*css.spawn_key, k),
-                                         pool_size=css.pool_size)
-            for name, k in STREAM_KEYS.items()}
+    return {name: keyed_seed(css, k) for name, k in STREAM_KEYS.items()}
 
 
 def case_seed(seed, index: int = 0) -> np.random.SeedSequence:
@@ -419,8 +418,7 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
     # one robot holding one rod sweeps every view of the case: its imperfections (kinematic
     # offsets, the rod's mounting, its beads' placement) are drawn once, from a child of
     # the robot stream at a fixed key, and every move then draws its encoder error
-    robot_gen = np.random.default_rng(np.random.SeedSequence(
-        robot_ss.entropy, spawn_key=(*robot_ss.spawn_key, ROBOT_KEY)))
+    robot_gen = np.random.default_rng(keyed_seed(robot_ss, ROBOT_KEY))
     robot = Robot(scene.robot, rng=robot_gen) if sweeps else None
     try:
         for i, vspec in enumerate(scene.views):
