@@ -594,10 +594,16 @@ def _lost(trial: Trial, why: str) -> TrialResult:
                              f"alone ({why})")
 
 
-def _timed_out(trial: Trial, timeout_s: float) -> TrialResult:
-    return TrialResult(trial.key, trial.index, "failed", (),
-                       error=f"TimedOut: the trial still ran after {timeout_s:g} s (the "
-                             "per-trial time limit) and its worker process was stopped",
+def _timed_out(trial: Trial, timeout_s: float, started: bool = True) -> TrialResult:
+    if started:
+        error = (f"TimedOut: the trial still ran after {timeout_s:g} s (the per-trial time "
+                 "limit) and its worker process was stopped")
+    else:
+        error = (f"TimedOut: no worker had started the trial {timeout_s + START_GRACE_S:g} s "
+                 f"after it was handed over (the per-trial time limit, {timeout_s:g} s, "
+                 f"plus {START_GRACE_S:g} s for a worker's start and imports) and the "
+                 "workers were stopped")
+    return TrialResult(trial.key, trial.index, "failed", (), error=error,
                        seconds=float(timeout_s))
 
 
@@ -639,6 +645,9 @@ PARENT_POLL_S = 1.0
 #: longest wait of the study's main thread for its workers, so that a signal's Python
 #: handler (Ctrl-Z, SIGCONT, Ctrl-C) runs within it whichever thread received the signal
 SIGNAL_POLL_S = 0.25
+#: seconds a pool worker may take to start a trial handed to it (its process's start, the
+#: imports its first trial's unpickling makes) before a per-trial time limit counts anyway
+START_GRACE_S = 120.0
 
 
 def _process_alive(pid: int) -> bool:
@@ -673,7 +682,21 @@ def _no_tqdm_process_lock() -> None:
         TqdmDefaultWriteLock.mp_lock = None
 
 
-def _worker_start(parent_pid: int) -> None:
+#: in a pool worker: the queue on which it tells the study's process when it starts a trial
+_STARTS = None
+
+
+def _pool_trial(trial_fn, trial: Trial) -> TrialResult:
+    """:func:`execute_trial` in a pool worker, first telling the pool's owner the moment it
+    starts (``trial.key``, ``time.monotonic()``): a per-trial time limit counts from there.
+    It counted from the hand-over, which included the worker's start and the imports its
+    first trial's unpickling makes: under load a trial of 0.3 s passed a limit of 4 s."""
+    if _STARTS is not None:
+        _STARTS.put((trial.key, time.monotonic()))
+    return execute_trial(trial_fn, trial)
+
+
+def _worker_start(parent_pid: int, starts=None) -> None:
     """Pool worker initializer: a process group of its own (below), pybullet imported
     without its banner (a study's workers each printed it on stderr), and a daemon thread
     that ends this worker when the study's process ``parent_pid`` is gone. A study killed
@@ -689,7 +712,8 @@ def _worker_start(parent_pid: int) -> None:
     # method's helper programs outlived its worker when a time limit or Ctrl-C ended it, a
     # review). The terminal's Ctrl-C then reaches the study's process alone, which kills
     # its workers (_run_pool); a worker started and interrupted printed its traceback.
-    global _OWN_GROUP
+    global _OWN_GROUP, _STARTS
+    _STARTS = starts
     try:
         os.setpgid(0, 0)
         _OWN_GROUP = True
@@ -737,7 +761,7 @@ def _run_pool(trial_fn, todo, record, *, workers: int, mp_context: str,
     (BrokenProcessPool) the suspects are known: they are rerun one at a time in a fresh
     one-worker pool (``retries`` more times if the worker dies again), and a trial that
     kills its worker every time even alone is recorded as failed. A trial still running
-    ``timeout_s`` after it was handed to a worker is recorded as failed and the pool's
+    ``timeout_s`` after its worker started it is recorded as failed and the pool's
     workers are killed; the other trials then in flight go back to the queue (not suspects:
     they did nothing wrong) and a new pool takes over."""
     ctx = multiprocessing.get_context(mp_context)
@@ -758,10 +782,60 @@ _POOLS: weakref.WeakSet = weakref.WeakSet()
 
 
 def _new_pool(workers: int, ctx) -> cf.ProcessPoolExecutor:
+    """A pool whose workers report each trial's start on ``ex.trial_starts`` (a queue of
+    its own: a worker killed while writing to it could hold its lock, and a killed pool is
+    never used again)."""
+    starts = ctx.SimpleQueue()
     ex = cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_start,
-                                initargs=(os.getpid(),))
+                                initargs=(os.getpid(), starts))
+    ex.trial_starts = starts
     _POOLS.add(ex)
     return ex
+
+
+def _started(ex: cf.ProcessPoolExecutor) -> dict[str, float]:
+    """The trials ``ex``'s workers have started since the last call: key -> monotonic
+    time (CLOCK_MONOTONIC is one clock for every process of the machine)."""
+    out = {}
+    q = ex.trial_starts
+    while not q.empty():
+        key, t0 = q.get()
+        out[key] = min(t0, time.monotonic())
+    return out
+
+
+class _Deadlines:
+    """When each trial in flight must be done: ``timeout_s`` after its worker started it
+    (:func:`_pool_trial`), or ``timeout_s + START_GRACE_S`` after the hand-over while no
+    worker has reported its start."""
+
+    def __init__(self, ex: cf.ProcessPoolExecutor, timeout_s: float | None):
+        self.ex, self.timeout_s = ex, timeout_s
+        self.at: dict[str, float] = {}
+        self.started: set[str] = set()
+
+    def handed(self, trial: Trial) -> None:
+        if self.timeout_s is not None:
+            self.at[trial.key] = time.monotonic() + self.timeout_s + START_GRACE_S
+
+    def update(self) -> None:
+        for key, t0 in _started(self.ex).items():
+            if key in self.at and self.timeout_s is not None:
+                self.at[key] = t0 + self.timeout_s
+                self.started.add(key)
+
+    def wait_s(self, trials) -> float:
+        """Seconds until the first of ``trials`` is due, in slices of SIGNAL_POLL_S."""
+        due = [self.at[t.key] for t in trials if t.key in self.at]
+        if not due:
+            return SIGNAL_POLL_S
+        return min(SIGNAL_POLL_S, max(0.0, min(due) - time.monotonic()))
+
+    def late(self, trial: Trial, now: float) -> bool:
+        return trial.key in self.at and self.at[trial.key] <= now
+
+    def timed_out(self, trial: Trial) -> TrialResult:
+        return _timed_out(trial, self.timeout_s, trial.key in self.started)
 
 
 def _signal_workers(sig) -> None:
@@ -800,16 +874,15 @@ def _job_control():
         signal.signal(signal.SIGCONT, before[1])
 
 
-def _result_in_slices(fut: cf.Future, timeout_s: float | None):
-    """``fut.result(timeout=timeout_s)``, waited for in slices of :data:`SIGNAL_POLL_S`
-    (signal handlers run between them); ``cf.TimeoutError`` past ``timeout_s``."""
-    end = None if timeout_s is None else time.monotonic() + timeout_s
+def _result_in_slices(fut: cf.Future, trial: Trial, deadlines: _Deadlines):
+    """``fut.result()``, waited for in slices of :data:`SIGNAL_POLL_S` (signal handlers run
+    between them); ``cf.TimeoutError`` once ``trial`` is past its deadline."""
     while True:
-        left = SIGNAL_POLL_S if end is None else max(0.0, end - time.monotonic())
+        deadlines.update()
         try:
-            return fut.result(timeout=min(left, SIGNAL_POLL_S))
+            return fut.result(timeout=deadlines.wait_s([trial]))
         except cf.TimeoutError:
-            if end is not None and time.monotonic() >= end:
+            if deadlines.late(trial, time.monotonic()):
                 raise
 
 
@@ -823,10 +896,12 @@ def _pool_loop(trial_fn, todo, record, *, workers: int, ctx, retries: int,
             trial = suspects.pop(0)
             for attempt in range(retries + 1):
                 ex = _new_pool(1, ctx)
+                deadlines = _Deadlines(ex, timeout_s)
                 killed = False
                 try:
-                    res = _result_in_slices(ex.submit(execute_trial, trial_fn, trial),
-                                            timeout_s)
+                    fut = ex.submit(_pool_trial, trial_fn, trial)
+                    deadlines.handed(trial)
+                    res = _result_in_slices(fut, trial, deadlines)
                     break
                 except BrokenProcessPool as exc:
                     res = _lost(trial, f"{str(exc) or type(exc).__name__}; "
@@ -836,15 +911,16 @@ def _pool_loop(trial_fn, todo, record, *, workers: int, ctx, retries: int,
                     killed = True
                     if not isinstance(exc, cf.TimeoutError):
                         raise
-                    res = _timed_out(trial, timeout_s)
+                    res = deadlines.timed_out(trial)
                     break
                 finally:
                     ex.shutdown(wait=not killed, cancel_futures=True)
+                    ex.trial_starts.close()
             record(trial, res)
             continue
         ex = _new_pool(workers, ctx)
         running: dict[cf.Future, Trial] = {}
-        deadline: dict[cf.Future, float] = {}   # with timeout_s: when each must be done
+        deadlines = _Deadlines(ex, timeout_s)
         killed = False
         try:
             while queue or running:
@@ -852,32 +928,31 @@ def _pool_loop(trial_fn, todo, record, *, workers: int, ctx, retries: int,
                 while queue and len(running) < workers:
                     t = queue.pop()
                     try:
-                        fut = ex.submit(execute_trial, trial_fn, t)
+                        fut = ex.submit(_pool_trial, trial_fn, t)
                     except BrokenProcessPool:  # a worker died since the last wait
                         queue.append(t)  # never started: back in line, not a suspect
                         broken = True
                         break
                     running[fut] = t
-                    if timeout_s is not None:   # at most `workers` in flight: it starts now
-                        deadline[fut] = time.monotonic() + timeout_s
+                    deadlines.handed(t)
                 if not broken:
-                    wait_s = None if timeout_s is None else max(
-                        0.0, min(deadline[f] for f in running) - time.monotonic())
+                    deadlines.update()
                     # in slices: a signal the kernel hands to another of this process's
                     # threads runs its Python handler only when the main thread wakes, and
                     # a wait without end on stopped workers never did (SIGCONT after Ctrl-Z
                     # left them stopped, a CI run)
-                    wait_s = SIGNAL_POLL_S if wait_s is None else min(wait_s, SIGNAL_POLL_S)
-                    done, _ = cf.wait(running, timeout=wait_s, return_when=cf.FIRST_COMPLETED)
+                    done, _ = cf.wait(running, timeout=deadlines.wait_s(running.values()),
+                                      return_when=cf.FIRST_COMPLETED)
                     broken = _collect(done, running, record, suspects)
+                    deadlines.update()
                     now = time.monotonic()
-                    late = [f for f in running if timeout_s is not None and deadline[f] <= now]
+                    late = [f for f, t in running.items() if deadlines.late(t, now)]
                     if late and not broken:
                         _kill_workers(ex)
                         killed = True
                         for f in late:
                             t = running.pop(f)
-                            record(t, _timed_out(t, timeout_s))
+                            record(t, deadlines.timed_out(t))
                         # the others in flight start again in the next pool, in trial order
                         queue.extend(sorted(running.values(), key=lambda tr: -tr.index))
                         running.clear()
@@ -901,6 +976,7 @@ def _pool_loop(trial_fn, todo, record, *, workers: int, ctx, retries: int,
             for fut in running:
                 fut.cancel()
             ex.shutdown(wait=not (running or killed), cancel_futures=True)
+            ex.trial_starts.close()
 
 
 #: error types of a lost worker or connection (Dask), not of the trial itself: retried

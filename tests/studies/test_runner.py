@@ -613,6 +613,52 @@ def test_ctrl_z_stops_the_workers_with_the_study_and_sigcont_resumes_them(tmp_pa
         proc.stderr.close()
 
 
+@pytest.mark.slow
+def test_a_time_limit_counts_from_the_trials_start_not_its_workers(tmp_path):
+    """A worker's start and the imports it makes before its first trial are not the trial's
+    time: a trial of 0.2 s whose worker took 5 s to import the method's module finishes
+    under a limit of 2 s (the limit counted from the hand-over, and a loaded CI machine
+    timed out a toy trial). A worker that has not started a trial within the limit plus
+    START_GRACE_S is still stopped, with a message that says so."""
+    (tmp_path / "slow_import.py").write_text(textwrap.dedent("""
+        import os
+        import time
+        if os.getpid() != int(os.environ["STUDY_PID"]):  # slow in the workers alone
+            time.sleep(5.0)
+
+        def trial(t):
+            time.sleep(0.2)
+            return [{"metric": "x", "value": 1.0, "unit": "1"}]
+    """))
+    script = tmp_path / "study.py"
+    script.write_text(textwrap.dedent(f"""
+        import os
+        import sys
+        os.environ.setdefault("STUDY_PID", str(os.getpid()))  # a spawned worker keeps it
+        sys.path.insert(0, {str(ROOT)!r})
+        import studies.runner as runner
+        from studies.runner import make_trials, read_failures, run_trials
+        from slow_import import trial
+
+        if __name__ == "__main__":
+            out = {str(tmp_path)!r}
+            # each spawned worker imports this script's modules first: 5 s
+            runner.START_GRACE_S = 2.0
+            df = run_trials(trial, make_trials("a", 1, [{{}}]), out_dir=out + "/a",
+                            workers=1, progress=False, timeout_s=1.0, mp_context="spawn")
+            assert list(df.metric) == ["failed"], df
+            err = read_failures(out + "/a").error[0]
+            assert err.startswith("TimedOut: no worker had started the trial 3 s"), err
+            runner.START_GRACE_S = 120.0
+            df = run_trials(trial, make_trials("b", 2, [{{}}, {{}}]), out_dir=out + "/b",
+                            workers=2, progress=False, timeout_s=2.0, mp_context="spawn")
+            assert list(df.metric) == ["x", "x"], (df, read_failures(out + "/b"))
+    """))
+    out = subprocess.run([sys.executable, str(script)], cwd=ROOT, capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+
+
 def test_a_killed_worker_leaves_no_semaphore_behind(tmp_path):
     """A trial that drew a (disabled) tqdm bar made tqdm's inter-process lock, a semaphore;
     its worker killed at the time limit never released it, and every interrupted or
@@ -929,19 +975,39 @@ def test_an_output_the_study_cannot_replace_is_refused_before_the_work(tmp_path,
         check_out_folder(tmp_path / "b", "fig9")
 
 
-def test_result_in_slices_returns_the_result_and_times_out_as_result_does():
+def test_result_in_slices_returns_the_result_and_times_out_as_result_does(monkeypatch):
     """The study's waits on its workers are sliced so that a signal's Python handler runs
     whichever thread received it (a CI run: SIGCONT after Ctrl-Z left the workers stopped
-    while the main thread waited without end); the semantics stay result()'s."""
+    while the main thread waited without end); the semantics stay result()'s, with the
+    time limit counted from the start the worker reports (or, with none reported, from the
+    hand-over plus START_GRACE_S)."""
     import concurrent.futures as cf
+    import multiprocessing
     import threading
 
-    from studies.runner import SIGNAL_POLL_S, _result_in_slices
+    import studies.runner as runner
+    from studies.runner import SIGNAL_POLL_S, _Deadlines, _result_in_slices
 
+    class Pool:
+        trial_starts = multiprocessing.get_context("spawn").SimpleQueue()
+
+    (trial,) = make_trials("points-lines", 0, [{}])
     fut = cf.Future()
     threading.Timer(3 * SIGNAL_POLL_S, fut.set_result, args=(42,)).start()
-    assert _result_in_slices(fut, None) == 42
-    t0 = time.monotonic()
-    with pytest.raises(cf.TimeoutError):
-        _result_in_slices(cf.Future(), 2.5 * SIGNAL_POLL_S)
-    assert 2.5 * SIGNAL_POLL_S <= time.monotonic() - t0 < 2.5 * SIGNAL_POLL_S + 1.0
+    deadlines = _Deadlines(Pool(), None)
+    deadlines.handed(trial)
+    assert _result_in_slices(fut, trial, deadlines) == 42
+    limit = 2.5 * SIGNAL_POLL_S
+    monkeypatch.setattr(runner, "START_GRACE_S", 2 * SIGNAL_POLL_S)
+    for started in (True, False):
+        deadlines = _Deadlines(Pool(), limit)
+        t0 = time.monotonic()
+        deadlines.handed(trial)
+        if started:
+            Pool.trial_starts.put((trial.key, time.monotonic()))
+        with pytest.raises(cf.TimeoutError):
+            _result_in_slices(cf.Future(), trial, deadlines)
+        due = limit if started else limit + runner.START_GRACE_S
+        assert due <= time.monotonic() - t0 < due + 1.0
+        assert deadlines.timed_out(trial).error.startswith(
+            "TimedOut: the trial still ran" if started else "TimedOut: no worker had started")
