@@ -402,14 +402,21 @@ class RigidTransform:
         )
 
 
+#: largest |R^T R - I| of a (4, 4) pose read from outside that is taken as a rounded
+#: rotation and made orthonormal (the nearest rotation; 1e-3 is 0.06 deg or a scale of
+#: 1.0005); beyond it the matrix is refused
+ROUNDED_ROTATION_TOL = 1e-3
+
+
 def as_rigid_transform(value, name: str = "initial") -> RigidTransform:
     """A :class:`RigidTransform` from ``value``: one already, or a (4, 4) homogeneous
     matrix of real numbers (lists too). ``ValueError`` starting with ``name`` for anything
     else: a value that is no array of numbers (None, a string; booleans, strings and
     objects are not read as numbers, nor complex values, whose imaginary part a cast would
-    drop), another shape, NaN or inf, a matrix that is no rigid transform. The one reading
-    of a pose from outside (``reglib.estimate``'s ``initial``; ``testbed score``'s method
-    results)."""
+    drop), another shape, NaN or inf, a matrix that is no rigid transform. A rotation
+    rounded (within :data:`ROUNDED_ROTATION_TOL`) is replaced by its nearest rotation. The
+    one reading of a pose from outside (``reglib.estimate``'s ``initial``; ``testbed
+    score``'s method results)."""
     if isinstance(value, RigidTransform):
         return value
     try:
@@ -431,10 +438,16 @@ def as_rigid_transform(value, name: str = "initial") -> RigidTransform:
     if not np.all(np.isfinite(m)):
         raise ValueError(f"{name}: the (4, 4) ct2robot matrix holds NaN or inf")
     R = m[:3, :3]
-    if (not np.allclose(m[3], [0, 0, 0, 1]) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6)
+    off = float(np.abs(R.T @ R - np.eye(3)).max())
+    if (not np.allclose(m[3], [0, 0, 0, 1]) or off > ROUNDED_ROTATION_TOL
             or np.linalg.det(R) < 0):
         raise ValueError(f"{name}: the (4, 4) matrix is not a rigid transform (its 3x3 part "
-                         "must be a rotation, its last row [0, 0, 0, 1])")
+                         f"must be a rotation: |R^T R - I| = {off:.2g}, at most "
+                         f"{ROUNDED_ROTATION_TOL:g}, det {np.linalg.det(R):.4g}; its last row "
+                         "[0, 0, 0, 1])")
+    if off > 1e-9:   # a matrix printed or stored rounded (4 decimals: 1e-5-1e-4): the
+        u, _, vt = np.linalg.svd(R)   # nearest rotation (a review fed back print(estimate))
+        R = u @ vt
     try:    # the class's own, stricter tests (a rotation 1e-6 off, a translation of 1e300)
         return RigidTransform(R, m[:3, 3])
     except ValueError as exc:

@@ -962,6 +962,11 @@ def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int =
             f"view {sweep.view}: frames {frames.shape}, plane {plane.shape} and beads_robot "
             f"{beads.shape} disagree (expected (F, H, W), (F,), (F, {len(s)}, 3))")
     plane = check_planes(sweep.view, plane, F)
+    if np.isinf(beads).any():   # NaN marks a reading the robot did not make; inf is no reading
+        f, b = np.argwhere(np.isinf(beads).any(axis=-1))[0]
+        raise ValueError(f"view {sweep.view}: beads_reported holds infinite values (first at "
+                         f"frame {f}, bead {b}); expected robot positions in mm, NaN where "
+                         "the robot reported none")
     rows = {k: [] for k in ("frame", "plane", "bead", "xy", "robot")}
     problems: list[str] = []
     weak = []  # rows too short to identify on their own: (frame, name, blobs, message)

@@ -38,6 +38,7 @@ starts of one case, or with some inputs replaced (the judge's oracles).
 from __future__ import annotations
 
 import time
+import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -94,6 +95,18 @@ MIN_VALIDATION_OFFSET = 0.2
 #: limit accepted one view per end 4.3 mm off (at 7.8 mm); 6 mm refuses most three-view
 #: clinic set-ups, which were within 2 mm in 8 of 9 held-out runs but whose pins reached 3 mm.
 MAX_WEAK_MOTION_MM = 6.0
+#: ...set on CTs contoured on slices at most this far apart (mm; the paper's coarse spacing,
+#: the clinical schedule's 6 mm). The weakest motion scales with the contours' median
+#: distance, not with the surfaces' own error between slices, which a coarser stack makes
+#: systematic: a held-out review (2026-11-28, experiment1: two views and a located pin,
+#: seeds 1996 and 1-7) had the mTRE at 0.06-0.41 times the weakest motion on slices 2 and 6
+#: mm apart, but up to 1.16 times on 10 mm slices, where 4 of 8 runs were accepted with a
+#: distal pin 4.0-8.7 mm off (weakest motion 4.1-5.8 mm), and 8 mm slices over the two
+#: regions alone accepted 2 of 8 at 4.1-5.5 mm. On stacks coarser than this the limit
+#: shrinks in proportion (:func:`weak_motion_limit`): 3.6 mm at 10 mm, 4.5 mm at 8 mm.
+#: Four views on 10 mm slices (experiment2, 6 seeds: weakest motion 2.3-3.1 mm, pins up to
+#: 2.6 mm) stay accepted.
+WEAK_MOTION_GAP_MM = 6.0
 #: the verdict's limit on the worst view's fit (:func:`view_fit`: the share of a view's X-ray
 #: paths within VIEW_FIT_MM of the nearest apparent contour at the final pose). The whole
 #: median can pass while one view fits nothing: a held-out review (66 runs, 2026-11-25)
@@ -143,6 +156,24 @@ MAX_SWEEP_SHIFT_PX = 1.5
 #: the tries that reached one pose (1.01-1.03 mm there).
 AMBIGUOUS_POSE_MM = 2.0
 AMBIGUOUS_FIT = 1.15
+#: the verdict's handedness test: an accepted pose is refused when the CT surfaces mirrored
+#: (about the plane through their centre across the views' mean beam) and registered from
+#: it fit the X-ray contours with a median point-to-path distance below MIRROR_FIT_RATIO
+#: times the pose's own. A held-out review (2026-11-28) registered a femur surface flipped
+#: front to back (a CT axis reversed, or the other side's bone): accepted with a pin
+#: 26.9 mm off (median 0.77 mm, worst view fit 0.45, weakest motion 4.4 mm, every figure
+#: inside its limit; the AP views' outlines hardly change under that flip). Its mirror,
+#: the true bone, fitted at 0.27 mm (ratio 0.35); on the same case the true surfaces'
+#: mirrors fitted 2.1-2.4 times worse than they did (the CT surfaces 1.05-1.10 against
+#: 0.51 mm). 0.8 asks the mirror to fit clearly better, not as well: a bone the views
+#: cannot tell from its mirror is no wrong input.
+MIRROR_FIT_RATIO = 0.8
+#: iterations of the mirrored surfaces' registration: on that case the mirror of the wrong
+#: surface fitted at 0.44, 0.27 and 0.27 mm after 1, 2 and 3 (50: 0.27), the right
+#: surfaces' mirrors at 1.00 / 0.79 / 0.78 mm (50: 0.77) and 1.39 / 1.15 / 1.08 mm (50:
+#: 1.10); a mirror that does not fit runs all 50 otherwise (0.48 s, five times a whole
+#: registration), 2 take 15-25 ms
+MIRROR_ITERATIONS = 2
 #: the coarse stage of the "coarse-fine" strategy: keyword options of register over the
 #: estimate's registration options. It hands over once an update moves the surfaces by less
 #: than 0.5 mm (``tol_step_mm``): its job is to bring a far start into the fine stage's
@@ -189,7 +220,9 @@ class EstimateOptions:
     bone (its contour paths over the median of the views'; 0: not checked);
     ``accept_max_alternative_mm``: when several starts were tried, how far (mm, RMS over the
     surfaces) another try that fits about as well may end from the pose
-    (:func:`alternative_pose`; inf: not checked).
+    (:func:`alternative_pose`; inf: not checked); ``accept_max_mirror_ratio``: an accepted
+    pose is refused when the surfaces mirrored across the views' beam fit with a median
+    below this times its own (:func:`mirror_fit`, :data:`MIRROR_FIT_RATIO`; 0: not checked).
     """
 
     tps_smoothing: float = TPS_SMOOTHING
@@ -211,6 +244,7 @@ class EstimateOptions:
     accept_min_view_fit: float = MIN_VIEW_FIT
     accept_min_contour_share: float = MIN_CONTOUR_SHARE
     accept_max_alternative_mm: float = AMBIGUOUS_POSE_MM
+    accept_max_mirror_ratio: float = MIRROR_FIT_RATIO
     min_sweep_agreement: float = MIN_SWEEP_AGREEMENT
 
     def __post_init__(self):
@@ -227,7 +261,8 @@ class EstimateOptions:
             if not (is_real(v) and v > 0):
                 raise ValueError(f"EstimateOptions.{name}: expected a number > 0, got {v!r}")
         for name in ("accept_min_inlier_fraction", "accept_min_view_fit",
-                     "accept_min_contour_share", "min_sweep_agreement"):
+                     "accept_min_contour_share", "min_sweep_agreement",
+                     "accept_max_mirror_ratio"):
             v = getattr(self, name)
             if not (is_real(v) and 0.0 <= v <= 1.0):
                 raise ValueError(f"EstimateOptions.{name}: expected a value in [0, 1], got "
@@ -346,6 +381,10 @@ class Stages:
     #: what the stages left out besides views (e.g. CT slices whose contours continue no
     #: neighbour's), each a sentence; the estimate's warnings carry them
     notes: tuple = ()
+    #: the largest gap (mm) between consecutive contoured CT slices of a region, when the
+    #: surfaces were made from the CT here (None: surfaces given); the verdict's
+    #: weakest-motion limit shrinks beyond WEAK_MOTION_GAP_MM (:func:`weak_motion_limit`)
+    slice_gap_mm: float | None = None
 
     def topology(self, region):
         """The :class:`reglib.apparent.SurfaceTopology` of ``surfaces[region]``, made once
@@ -464,8 +503,11 @@ def _part(observation, group: str) -> Mapping:
 def _view_names(observation) -> list[str]:
     meta = _part(observation, "meta")
     views = meta.get("views")
+    if isinstance(views, np.ndarray) and views.ndim == 1:
+        views = views.tolist()
     if not isinstance(views, list | tuple) or not views:
-        raise ValueError("observation: meta['views'] must list the view names")
+        raise ValueError(f"observation: meta['views'] must list the view names, got "
+                         f"{views!r:.80}")
     names = [str(v) for v in views]
     twice = sorted({v for v in names if names.count(v) > 1})
     if twice:   # the same frames and sweep would count twice in the registration
@@ -600,10 +642,17 @@ def calibrate_view(view: str, frames, arrays: Mapping, *, fov=None,
         return ViewCalibration(view, None, d, ok=False, problems=problems,
                                message="calibration gives non-finite X-ray paths")
     if len(d) and d.max() > options.max_validation_mm:
+        # beads missing from many rows (the rod's ends outside the field, a review: 19 rows
+        # of a 150 mm field) leave the field's edge to the spline's extrapolation: say so
+        lacking = [p for p in problems if "not found" in p]
         return ViewCalibration(view, cal, d, ok=False, problems=problems,
                                message=f"calibration fails its validation: largest distance "
                                f"{_past(d.max(), options.max_validation_mm)} mm > "
-                               f"{options.max_validation_mm:g} mm")
+                               f"{options.max_validation_mm:g} mm"
+                               + (f"; {len(lacking)} sweep row(s) lack beads (outside the "
+                                  "field, hidden or too faint), which leaves the field's edge "
+                                  "uncalibrated: keep the rod's beads inside the field: "
+                                  f"{summarise_problems(lacking, limit=2)}" if lacking else ""))
     return ViewCalibration(view, cal, d, ok=True, problems=problems)
 
 
@@ -674,7 +723,8 @@ def _check_slice_geometry(s2c: np.ndarray, used, axes: np.ndarray) -> None:
 
 
 def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
-                options: EstimateOptions | None = None, notes: list | None = None) -> dict:
+                options: EstimateOptions | None = None, notes: list | None = None,
+                gaps: dict | None = None) -> dict:
     """Bone surfaces from the CT: snake contours from the operator's clicks, tiled.
 
     Parameters
@@ -685,7 +735,9 @@ def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
         ``clicks_xy`` (P, 2) (x, y) px, ``slice`` (P,) and ``contour`` (P,) the slice and the
         polygon of each click.
 
-    Returns region -> ``(vertices (V, 3) ct mm, faces (F, 3) int)``.
+    Returns region -> ``(vertices (V, 3) ct mm, faces (F, 3) int)``. ``notes`` (a list):
+    sentences on slices left out are appended; ``gaps`` (a dict): region -> the largest gap
+    (mm, along the stack) between its consecutive contoured slices.
     """
     from reglib.surface import surface_from_ct
 
@@ -710,11 +762,25 @@ def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
     if flat.size:
         raise ValueError(f"slice2ct: the column and row axes of slices {flat[:5].tolist()} are "
                          "zero or parallel; they span no slice plane")
+    # a stack stored top-down (z decreasing with the slice index, as many DICOM series are)
+    # is read bottom-up: the clicks' reuse from slice to slice and the tiling walk the
+    # slices in index order, and the same CT stored the other way gave another surface
+    # (a review: the distal one 2180 vertices instead of 6219)
+    K = vol.shape[2]
+    top_down = K > 1 and bool(np.all(np.diff(s2c[:, 2, 3]) < 0))
+    if top_down:
+        vol, s2c, axes = vol[:, :, ::-1], s2c[::-1], axes[::-1]
     vol_hu = vol.transpose(2, 1, 0)  # [slice, row, col], as reglib.contours reads it
     out = {}
     for region in sorted(ct_clicks):
-        xy, sl, co, slices = _region_clicks(region, ct_clicks[region], vol.shape[2])
+        xy, sl, co, slices = _region_clicks(region, ct_clicks[region], K)
+        if top_down:
+            sl, slices = K - 1 - sl, sorted(K - 1 - k for k in slices)
         _check_slice_geometry(s2c, np.asarray(slices), axes)
+        if gaps is not None:
+            o = s2c[np.asarray(slices, dtype=np.int64), :3, 3]
+            n = axes[0] / np.linalg.norm(axes[0])
+            gaps[region] = float(np.diff(np.sort(o @ n)).max()) if len(o) > 1 else 0.0
         clicks = {}
         for k in np.unique(sl):
             m = sl == k
@@ -834,7 +900,7 @@ def frame_size_problem(view: str, frame_shape, sweep_frames, fov=None) -> str:
         sweep_shape = None
     if sweep_shape is not None and sweep_shape != shape:
         problems.append(f"its X-ray frame is {shape[0]} x {shape[1]} px (rows x columns) and "
-                        f"its sweep's frames {sweep_shape[0]} x {sweep_shape[1]} px: the "
+                        f"its sweep's frames {' x '.join(map(str, sweep_shape))} px: the "
                         "calibration maps pixels of frames of the sweep's size (a frame "
                         "cropped or scaled, or taken in another video mode?)")
     if fov is not None and tuple(np.shape(fov)) != shape:
@@ -950,8 +1016,12 @@ def _check_given(calibrations, contours, surfaces) -> None:
         except (TypeError, ValueError):
             ok = False
         if not ok:
+            try:
+                got = " and ".join(f"shape {np.shape(x)}" for x in sf)
+            except TypeError:
+                got = type(sf).__name__
             raise ValueError(f"surfaces[{region!r}]: expected (vertices (V, 3) mm, faces (F, "
-                             f"3)), got {type(sf).__name__}")
+                             f"3)), got {got or type(sf).__name__}")
 
 
 def prepare(observation, *, options: EstimateOptions | None = None, calibrations=None,
@@ -977,6 +1047,7 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
     notes: list[str] = []
 
     t0 = time.perf_counter()
+    slice_gap_mm = None
     if surfaces is None:
         meta = _part(observation, "meta")
         regions = meta.get("regions") or []
@@ -990,13 +1061,24 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
         clicks = {r: _entry(arrays, f"ct_clicks_{r}", "arrays", table=()) for r in regions}
         if not clicks:
             raise ValueError("observation: meta['regions'] lists no CT region to contour")
+        gaps: dict = {}
         surfaces = ct_surfaces(getattr(vol, "data", vol), np.asarray(slices["slice2ct"]),
-                               clicks, options=options, notes=notes)
+                               clicks, options=options, notes=notes, gaps=gaps)
+        slice_gap_mm = max(gaps.values(), default=None)
     timings["surfaces"] = time.perf_counter() - t0
 
     cals, conts, views, failed = {}, {}, [], {}
     for v in names:
         t0 = time.perf_counter()
+        sweep = images.get(f"sweep_{v}")
+        try:
+            sweep_ndim = None if sweep is None else np.ndim(sweep)
+        except ValueError:          # ragged: _entry below names it
+            sweep_ndim = None
+        if (calibrations is None or v not in calibrations) and sweep_ndim is not None \
+                and sweep_ndim != 3:    # one frame, or colour frames: malformed input
+            raise ValueError(f"view {v}: images/sweep_{v}: sweep frames must be (F, H, W) "
+                             f"grey-level images, got shape {np.shape(sweep)}")
         # the frame and its mask against the sweep frames' size, before anything reads them
         # (calibrate_view refuses a mask of another size, which ended the whole estimate)
         size_problem = frame_size_problem(
@@ -1047,7 +1129,8 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
         o, d = cal.calibration.paths(con.xy)
         views.append(View(center=cal.calibration.center_of_perspective(), origins=o,
                           directions=d, external=con.external, name=v))
-    return Stages(cals, dict(surfaces), conts, views, failed, timings, notes=tuple(notes))
+    return Stages(cals, dict(surfaces), conts, views, failed, timings, notes=tuple(notes),
+                  slice_gap_mm=slice_gap_mm)
 
 
 def _as_options(options) -> EstimateOptions:
@@ -1155,13 +1238,15 @@ def view_fit(surfaces, views, ct2robot: RigidTransform,
 
 
 def verdict(converged: bool, quality: dict, failed: str, options: EstimateOptions,
-            n_views: int, view_names=(), failed_views=()) -> list:
+            n_views: int, view_names=(), failed_views=(), slice_gap_mm=None) -> list:
     """The objections to a registration (empty: accepted), from what a clinic has.
 
     A failed view is no objection by itself (it is left out and named in the estimate's
     ``warnings``) as long as ``options.accept_min_views`` views remain. ``view_names``:
     the registered views' names, to name the worst one; ``failed_views``: the names of the
-    views left out, named when the remaining ones hold the pose too loosely."""
+    views left out, named when the remaining ones hold the pose too loosely;
+    ``slice_gap_mm``: the CT's largest gap between contoured slices
+    (:func:`weak_motion_limit`)."""
     reasons = []
     if not converged:
         reasons.append(f"registration did not converge ({quality.get('reason', '')})")
@@ -1196,7 +1281,8 @@ def verdict(converged: bool, quality: dict, failed: str, options: EstimateOption
                        f"X-ray contour paths (at least {options.accept_min_contour_share:.0%} "
                        "needed); its region's bone may lie mostly outside its field: re-aim it")
     weak = quality.get("weak_motion_mm", float("nan"))
-    if not weak <= options.accept_max_weak_motion_mm and not np.isnan(weak):
+    weak_limit = weak_motion_limit(options, slice_gap_mm)
+    if not weak <= weak_limit and not np.isnan(weak):
         k = len(failed_views)
         advice = (f"{k} of the {n_views + k} views {'was' if k == 1 else 'were'} left out "
                   f"({', '.join(map(str, failed_views))}; why: the warnings): mend "
@@ -1207,9 +1293,17 @@ def verdict(converged: bool, quality: dict, failed: str, options: EstimateOption
             # (few quanta, a coarse CT) loosen it as much as the views' geometry does
             advice += (f"; or make the contours less noisy (it scales with the median "
                        f"distance, {med:.2f} mm here)")
+        if weak_limit < options.accept_max_weak_motion_mm:
+            limit = (f"limit {weak_limit:.1f} mm: {options.accept_max_weak_motion_mm:g} mm "
+                     f"scaled by {WEAK_MOTION_GAP_MM:g}/{slice_gap_mm:.1f} for CT slices "
+                     f"contoured up to {slice_gap_mm:.1f} mm apart, whose surfaces err "
+                     "between the slices")
+            advice += f"; or contour CT slices at most {WEAK_MOTION_GAP_MM:g} mm apart"
+        else:
+            limit = f"limit {options.accept_max_weak_motion_mm:g} mm"
         reasons.append(WEAK_GEOMETRY + f": the bone can move {weak:.1f} mm (RMS) along its least "
                        "constrained motion for the contour distances to change by their median "
-                       f"(limit {options.accept_max_weak_motion_mm:g} mm); {advice}")
+                       f"({limit}); {advice}")
     return reasons
 
 
@@ -1221,6 +1315,69 @@ LITTLE_BONE = "a view shows little of the bone"
 
 #: ...and of its objection to a pose that another try rivals
 AMBIGUOUS = "the images do not single out one pose"
+
+
+def weak_motion_limit(options: EstimateOptions, slice_gap_mm: float | None) -> float:
+    """The verdict's limit on the weakest motion (mm): ``accept_max_weak_motion_mm``, times
+    ``WEAK_MOTION_GAP_MM / slice_gap_mm`` when the CT surfaces were contoured on slices
+    farther apart than :data:`WEAK_MOTION_GAP_MM` (``slice_gap_mm``: the largest gap
+    between consecutive contoured slices of a region; None for surfaces given as meshes)."""
+    limit = float(options.accept_max_weak_motion_mm)
+    if slice_gap_mm is not None and np.isfinite(slice_gap_mm) \
+            and slice_gap_mm > WEAK_MOTION_GAP_MM:
+        limit *= WEAK_MOTION_GAP_MM / float(slice_gap_mm)
+    return limit
+#: how the verdict's handedness objection begins (:func:`mirror_fit`)
+MIRRORED = "the CT surfaces look mirrored"
+
+
+#: SurfaceTopology -> the same surface mirrored across its frame's x = 0 plane (made once:
+#: preparing it was a quarter of the handedness test)
+_MIRRORED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _mirrored_topology(top):
+    from reglib.apparent import prepare_surface
+
+    got = _MIRRORED.get(top)
+    if got is None:
+        v = np.array(top.vertices, dtype=np.float64)
+        v[:, 0] *= -1.0
+        got = _MIRRORED[top] = prepare_surface(v, np.ascontiguousarray(top.faces[:, ::-1]))
+    return got
+
+
+def mirror_fit(surfaces, views, ct2robot: RigidTransform, options: Mapping) -> float:
+    """The median point-to-path distance (mm) of the surfaces mirrored about the plane
+    through their centre across the views' mean beam direction, registered from
+    ``ct2robot`` with ``options`` (keywords of :func:`reglib.register.register`) for
+    :data:`MIRROR_ITERATIONS` iterations; inf if that registration does not solve. Under
+    that mirror the views' outlines change least, so a surface of the wrong hand (a CT axis
+    reversed, the other side's bone) fits the contours nearly as well as the right one, but
+    its mirror, the right one, better. (Every mirror is one fixed mirror, ``x -> -x``, and a
+    rotation: the surfaces mirrored once, registered from the pose times that rotation.)"""
+    from reglib.register import _as_topologies, register
+
+    tops = _as_topologies(surfaces)
+    d = np.zeros(3)
+    for v in views:   # each view's mean beam, turned to agree with the first's
+        b = np.mean(v.directions, axis=0)
+        b /= np.linalg.norm(b)
+        d += b if d @ b >= 0 else -b
+    n = ct2robot.R.T @ (d / np.linalg.norm(d))      # CT frame
+    c = np.mean(np.vstack([t.vertices for t in tops]), axis=0)
+    # p -> H p + 2 (c.n) n (the wanted mirror) equals G(m0(p)), m0: x -> -x, and G rigid
+    H = np.eye(3) - 2.0 * np.outer(n, n)
+    m0 = np.diag([-1.0, 1.0, 1.0])
+    G = RigidTransform(H @ m0, 2.0 * (c @ n) * n)
+    try:
+        res = register([_mirrored_topology(t) for t in tops], views, ct2robot @ G,
+                       **{**options, "max_iterations": MIRROR_ITERATIONS})
+    except ValueError:
+        return float("inf")
+    q = match_quality(res)
+    m = q.get("median_residual_mm", np.inf)
+    return float(m) if np.isfinite(m) else float("inf")
 
 
 def alternative_pose(tries, chosen, vertices_ct) -> tuple[float, float]:
@@ -1328,7 +1485,7 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
     tried and the best verdict is returned (not when the only objections are the views'
     geometry, the loosely held pose or a view showing little bone: no start mends them).
     """
-    from reglib.register import register
+    from reglib.register import DIVERGED, register
 
     options = _as_options(options)
     start = as_rigid_transform(initial, "initial")
@@ -1369,8 +1526,13 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
         q["worst_view_fit"], q["worst_view"] = view_fit(surfaces, stages.views, res.ct2robot)
         q["min_contour_share"], q["least_contour_view"] = contour_share(stages.views)
         seen.append((res, q))
+        gap = getattr(stages, "slice_gap_mm", None)     # stages pickled before it existed
+        q["weak_motion_limit_mm"] = weak_motion_limit(options, gap)
         return res, q, verdict(res.converged, q, failed, options, len(stages.views),
-                               [v.name for v in stages.views], list(stages.failed))
+                               [v.name for v in stages.views], list(stages.failed), gap)
+
+    fine = {**reg_opts, "residual": "normal",  # an IRLS: robust, or linear if asked
+            "method": "linear" if reg_opts.get("method") == "linear" else "robust"}
 
     def run(pose):
         if options.strategy == "single":
@@ -1378,10 +1540,11 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
         coarse = register(surfaces, stages.views, pose, **{**reg_opts, **options.coarse})
         # the fine stage from where the coarse one got (it stops unconverged when it only
         # settles slowly), and, if that is not accepted, from the start too
-        fine = {**reg_opts, "residual": "normal",  # an IRLS: robust, or linear if asked
-                "method": "linear" if reg_opts.get("method") == "linear" else "robust"}
-        tries = [judged(register(surfaces, stages.views, coarse.ct2robot, **fine))]
-        if tries[0][2] and not _only_weak_geometry(tries[0][2]):
+        # (not from a pose the coarse stage left for diverging: one view, a solve from
+        # matches that hold nothing, ended 700 mm off and the fine stage failed there)
+        first = pose if coarse.reason.startswith(DIVERGED) else coarse.ct2robot
+        tries = [judged(register(surfaces, stages.views, first, **fine))]
+        if tries[0][2] and first is not pose and not _only_weak_geometry(tries[0][2]):
             tries.append(judged(register(surfaces, stages.views, pose, **fine)))
         res, q, reasons = best_try(tries)
         q["coarse_reason"] = coarse.reason
@@ -1416,6 +1579,19 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
             f"against its {quality['median_residual_mm']:.2f} mm (limit "
             f"{options.accept_max_alternative_mm:g} mm); the CT surfaces or the X-ray "
             "contours may be too coarse or too noisy to decide"]
+    if not reasons and options.accept_max_mirror_ratio > 0:
+        # accepted so far: would the surfaces mirrored fit clearly better?
+        quality["mirror_median_mm"] = mirror_fit(
+            surfaces, stages.views, res.ct2robot,
+            fine if options.strategy == "coarse-fine" else reg_opts)
+        ratio = quality["mirror_median_mm"] / quality["median_residual_mm"]
+        if ratio < options.accept_max_mirror_ratio:
+            reasons = [
+                f"{MIRRORED}: mirrored across the views' beam, they fit the X-ray contours "
+                f"with a median point-to-path distance of {quality['mirror_median_mm']:.2f} "
+                f"mm against their {quality['median_residual_mm']:.2f} mm (ratio {ratio:.2f}, "
+                f"limit {options.accept_max_mirror_ratio:g}); is a CT axis reversed (slice "
+                "order, rows or columns), or the bone of the other side?"]
     timings["registration"] = time.perf_counter() - t0
     warnings = _left_out(stages)
     return Estimate(res.ct2robot, not reasons, bool(res.converged), quality, "; ".join(reasons),

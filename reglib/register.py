@@ -145,6 +145,10 @@ class IterationRecord:
     time_s: float
 
 
+#: how the ``reason`` of a registration that moved beyond its limits begins
+DIVERGED = "diverged"
+
+
 @dataclass(frozen=True, eq=False)
 class RegistrationResult:
     """Outcome of :func:`register`. Falsy when it did not converge; ``reason`` says why.
@@ -434,8 +438,17 @@ def _match_all(stack, views, T: RigidTransform, o_r, d_r, ext, view0, within, ma
 
 def _as_topologies(surfaces):
     out = []
-    if isinstance(surfaces, SurfaceTopology):
-        surfaces = [surfaces]
+    if isinstance(surfaces, Mapping):     # region -> surface (Stages.surfaces): by region
+        surfaces = [surfaces[k] for k in sorted(surfaces)]
+    if isinstance(surfaces, SurfaceTopology) or (
+            isinstance(surfaces, tuple | list) and len(surfaces) == 2
+            and isinstance(surfaces[0], np.ndarray) and surfaces[0].ndim == 2):
+        surfaces = [surfaces]             # one surface, not in a list
+    try:
+        surfaces = list(surfaces)
+    except TypeError:
+        raise ValueError(f"surfaces: expected a list of SurfaceTopology or (vertices, faces) "
+                         f"pairs, got {type(surfaces).__name__}") from None
     for i, s in enumerate(surfaces):
         if isinstance(s, SurfaceTopology):
             out.append(s)
@@ -714,7 +727,12 @@ def register(surfaces, views, initial: RigidTransform, *,
     """
     t_start = time.perf_counter()
     tops = _as_topologies(surfaces)
-    views = list(views)
+    if isinstance(views, View):
+        views = [views]
+    try:
+        views = list(views)
+    except TypeError:
+        raise ValueError(f"views: expected a list of View, got {type(views).__name__}") from None
     if not views:
         raise ValueError("views: at least one view is needed")
     for i, v in enumerate(views):
@@ -846,7 +864,7 @@ def register(surfaces, views, initial: RigidTransform, *,
         T = T_new
         moved_mm, moved_deg = _motion(T, initial, corners)
         if moved_mm > max_motion_mm or moved_deg > max_rotation_deg:
-            reason = (f"diverged at iteration {it}: the pose moved {moved_mm:.1f} mm / "
+            reason = (f"{DIVERGED} at iteration {it}: the pose moved {moved_mm:.1f} mm / "
                       f"{moved_deg:.1f} deg from the start (limits {max_motion_mm} mm, "
                       f"{max_rotation_deg} deg)")
             break

@@ -170,6 +170,17 @@ def _registration_line(est) -> str:
     return reason if f"after {n} iterations" in reason else f"{reason} after {n} iterations"
 
 
+def _weak_limit_text(est, options) -> str:
+    """The weakest-motion limit the verdict applied: the option's, or less on a CT contoured
+    on slices farther apart (reglib.pipeline.weak_motion_limit)."""
+    limit = est.quality.get("weak_motion_limit_mm", options.accept_max_weak_motion_mm)
+    if limit < options.accept_max_weak_motion_mm:
+        return (f"{limit:.1f} mm: {options.accept_max_weak_motion_mm:g} mm for CT slices "
+                f"contoured at most 6 mm apart, these up to "
+                f"{est.stages.slice_gap_mm:.1f} mm)")[:-1]
+    return f"{options.accept_max_weak_motion_mm:g} mm"
+
+
 def _fit_line(est, options) -> str:
     """The worst view's fit in words (``reglib.pipeline.view_fit``)."""
     from reglib.pipeline import VIEW_FIT_MM
@@ -219,6 +230,36 @@ def _warnings(scene, phantom, ct2robot, carms, z_mm, groups, *, aim: bool = True
            *(aim_warnings(scene.views, carms, ct2robot, centres) if aim else [])]
     if centres is not None and z_mm is not None:
         out += ct_coverage_warnings(scene.views, centres, z_mm, groups)
+    if z_mm is not None and getattr(phantom, "pins", None):
+        fixed = scene.registration.fixed_pin if scene.registration is not None else None
+        out += pin_coverage_warnings(phantom.pins, z_mm, fixed)
+    return out
+
+
+#: a pin farther than this (mm, along the stack) from every CT slice is shown by none
+PIN_CT_MARGIN_MM = 5.0
+
+
+def pin_coverage_warnings(pins_ct: dict, z_mm, fixed_pin: str | None = None) -> list[str]:
+    """A pin no CT slice shows (farther than :data:`PIN_CT_MARGIN_MM` from every slice):
+    one warning each. The simulated operator still locates it in the CT, exactly as if it
+    were scanned, for ``[registration] fixed_pin`` and for the pin-based reference of
+    ``table2`` (a held-out review: a fixed pin 20 mm above the last slice was used and the
+    pose accepted, without a word)."""
+    z = np.asarray(z_mm, dtype=np.float64)
+    out = []
+    if not z.size:
+        return out
+    for name, p in pins_ct.items():
+        d = float(np.abs(z - float(np.asarray(p)[2])).min())
+        if d <= PIN_CT_MARGIN_MM:
+            continue
+        use = ("registration.fixed_pin and the pin-based reference of table2"
+               if name == fixed_pin else "the pin-based reference of table2")
+        out.append(f"pin {name!r} (z = {float(np.asarray(p)[2]):.0f} mm in the ct frame) lies "
+                   f"{d:.0f} mm from the nearest CT slice: no slice shows it, yet it is located "
+                   f"in the CT for {use}, as if it were scanned: scan it ([ct] schedule and its "
+                   "ranges)")
     return out
 
 
@@ -407,8 +448,8 @@ def run_case(scene, *, seed: int, progress: bool = False):
                          else f"NOT accepted: {est.message}"),
                         *((("weakest motion", f"{est.quality.get('weak_motion_mm', np.nan):.1f} "
                             "mm of the bone for the contour distances to change by their "
-                            f"median (accepted up to {case.options.accept_max_weak_motion_mm:g}"
-                            " mm)"),
+                            "median (accepted up to "
+                            f"{_weak_limit_text(est, case.options)})"),
                            ("worst view fit", _fit_line(est, case.options)))
                           if est.registration is not None else ()),
                         *((("located pin's error", _pivot_line(est.quality)),)

@@ -708,8 +708,10 @@ def test_a_study_report_carries_the_warnings_testbed_run_gives_of_its_scene(tmp_
     bad = tmp_path / "ct_proximal.toml"
     bad.write_text(scene + '\n[ct]\nschedule = "uniform"\nuniform_range_mm = [300.0, 470.0]\n')
     warned = scene_warnings(load_scene(bad), 1996)
-    assert len(warned) == 2 and all("the CT has no slices at its anatomy" in w for w in warned)
-    assert all("distal" in w for w in warned)
+    # the two distal views, and the two distal pins no slice shows (located all the same)
+    assert len(warned) == 4 and all("distal" in w for w in warned)
+    assert all("the CT has no slices at its anatomy" in w for w in warned[:2])
+    assert all("from the nearest CT slice: no slice shows it" in w for w in warned[2:])
     assert main(["study", "calibration", "--quick", "--scene", str(bad), "--out",
                  str(tmp_path / "c")]) == 0
     report = (tmp_path / "c" / "report.md").read_text()
@@ -729,8 +731,9 @@ def test_generate_and_score_carry_the_scene_warnings(tmp_path, capsys):
     bad.write_text(scene + '\n[ct]\nschedule = "uniform"\nuniform_range_mm = [300.0, 470.0]\n')
     assert main(["generate", str(bad), "--cases", "1", "--out", str(tmp_path / "ds")]) == 0
     err = capsys.readouterr().err
-    assert err.count("testbed generate: warning:") == 2, err
-    assert "the CT has no slices at its anatomy" in err
+    assert err.count("testbed generate: warning:") == 4, err   # 2 views, 2 pins
+    assert err.count("the CT has no slices at its anatomy") == 2
+    assert err.count("no slice shows it") == 2
     assert main(["score", str(tmp_path / "ds"), "--out", str(tmp_path / "sc")]) == 0
     report = (tmp_path / "sc" / "report.md").read_text()
     assert "## Warnings about the scene" in report

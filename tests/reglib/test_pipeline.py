@@ -235,6 +235,13 @@ def test_verdict_objections():
                              "distance, 0.68 mm here)")
     assert len(loose) == 1 and "loosely determined" in loose[0] and "11.0 mm" in loose[0]
     assert verdict(True, {**good, "weak_motion_mm": 3.0}, "", opts, 4) == []
+    # on CT slices contoured farther apart than 6 mm the limit shrinks in proportion
+    assert verdict(True, {**good, "weak_motion_mm": 4.5}, "", opts, 2, slice_gap_mm=6.0) == []
+    assert verdict(True, {**good, "weak_motion_mm": 4.5}, "", opts, 2, slice_gap_mm=None) == []
+    assert verdict(True, {**good, "weak_motion_mm": 4.4}, "", opts, 2, slice_gap_mm=8.0) == []
+    coarse = verdict(True, {**good, "weak_motion_mm": 4.6}, "", opts, 2, slice_gap_mm=8.0)
+    assert "(limit 4.5 mm: 6 mm scaled by 6/8.0 for CT slices contoured up to 8.0 mm apart" \
+        in coarse[0] and coarse[0].endswith("or contour CT slices at most 6 mm apart")
     assert verdict(True, {**good, "weak_motion_mm": float("nan")}, "", opts, 4) == []
     assert verdict(True, {**good, "weak_motion_mm": float("inf")}, "", opts, 4)
     # one view that does not fit while the whole median passes: refused, the view named
@@ -611,3 +618,75 @@ def test_a_figure_past_its_limit_never_reads_as_the_limit(value, limit, text):
     from reglib.pipeline import _past
 
     assert _past(value, limit) == text
+
+
+def test_a_ct_stored_top_down_gives_the_surface_of_the_same_ct_stored_bottom_up():
+    """The clicks' reuse from slice to slice and the tiling walk the slices in index order;
+    a CT whose z decreases with the index (many DICOM series) gave another surface (a review:
+    2180 vertices instead of 6219, the pins 0.2 mm further off). It is read bottom-up."""
+    from reglib.pipeline import ct_surfaces
+
+    K = 12
+    z = np.cumsum([0.0, 1, 1, 2, 2, 3, 3, 3, 2, 2, 1, 1])       # irregular spacing, mm
+    c, r = np.meshgrid(np.arange(64.0), np.arange(64.0), indexing="ij")
+    vol = np.full((64, 64, K), -50.0)
+    for k in range(K):   # an ellipse that grows and shifts along z, bone at 900 HU
+        a, b, x0 = 10 + 0.6 * k, 8 + 0.2 * k, 30 + 0.4 * k
+        vol[:, :, k][((c - x0) / a) ** 2 + ((r - 32) / b) ** 2 <= 1] = 900.0
+    s2c = np.tile(np.eye(4), (K, 1, 1))
+    s2c[:, 2, 3] = z
+    t = np.linspace(0, 2 * np.pi, 7)[:-1]
+    clicked = [0, 4, 8]
+    xy = np.vstack([np.c_[30 + 0.4 * k + (10 + 0.6 * k) * np.cos(t),
+                          32 + (8 + 0.2 * k) * np.sin(t)] for k in clicked])
+    sl = np.repeat(clicked, len(t))
+    bottom_up = {"slices": np.arange(K), "clicks_xy": xy, "slice": sl,
+                 "contour": np.zeros(len(sl), int)}
+    top_down = {"slices": K - 1 - np.arange(K), "clicks_xy": xy, "slice": K - 1 - sl,
+                "contour": np.zeros(len(sl), int)}
+    (v1, f1), = ct_surfaces(vol, s2c, {"distal": bottom_up}).values()
+    (v2, f2), = ct_surfaces(vol[:, :, ::-1], s2c[::-1], {"distal": top_down}).values()
+    assert len(v1) > 100 and v1[:, 2].min() == 0.0 and v1[:, 2].max() == z[-1]
+    np.testing.assert_array_equal(v1, v2)
+    np.testing.assert_array_equal(f1, f2)
+
+
+def test_entries_a_user_gets_wrong_are_named_or_read_as_meant():
+    """A held-out review of the API with a user's own data: a sweep of one frame ended in
+    an IndexError, an infinite robot reading dropped its view quietly (the three views
+    left were accepted with a pin 2.7 mm off), a pose printed by print(estimate) was
+    refused as no rotation, a single View or the Stages' dict of surfaces was no list."""
+    from reglib.markers import SweepData, find_markers
+    from reglib.pipeline import prepare
+    from reglib.register import _as_topologies
+
+    tet = (np.array([[0.0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10]]),
+           np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))
+    arrays = _sweep_arrays(830.0, 950.0, 890.0)
+    frames = np.zeros((8, 48, 64), np.uint8)
+    for sweep, shape in ((frames[0], r"\(48, 64\)"), (frames[..., None], r"\(8, 48, 64, 1\)")):
+        obs = {"meta": {"views": np.array(["v"])}, "images": {"sweep_v": sweep,
+               "xray_v": frames[0]}, "arrays": {"sweep_v": arrays}, "volumes": {}}
+        with pytest.raises(ValueError, match=r"view v: images/sweep_v: sweep frames must be "
+                                             r"\(F, H, W\) grey-level images, got shape " + shape):
+            prepare(obs, surfaces={"distal": tet})
+    beads = arrays["beads_reported"].copy()
+    beads[5, 2, 1] = np.inf
+    with pytest.raises(ValueError, match="view v: beads_reported holds infinite values "
+                                         r"\(first at frame 5, bead 2\)"):
+        find_markers(SweepData("v", frames, arrays["plane"], beads,
+                               arrays["bead_positions_mm"]))
+    with pytest.raises(ValueError, match=r"surfaces\['distal'\]: expected .* got shape "
+                                         r"\(3, 4\) and shape \(4, 3\)"):
+        prepare(obs, surfaces={"distal": (tet[0].T, tet[1])})
+    # one surface or the Stages' region -> surface dict: as a list of them
+    assert len(_as_topologies(tet)) == 1
+    assert len(_as_topologies({"b": tet, "a": (tet[0] + 50, tet[1])})) == 2
+    assert _as_topologies({"b": tet, "a": (tet[0] + 50, tet[1])})[0].vertices.min() == 50
+    # a pose printed with 4 decimals is read as its nearest rotation, a scaled one refused
+    pose = RigidTransform.from_rotvec([0.3, -0.2, 0.1], [10.0, -20.0, 5.0]).as_matrix()
+    from reglib.geometry import as_rigid_transform
+    got = as_rigid_transform(np.round(pose, 4)).as_matrix()
+    assert np.abs(got - pose).max() < 1e-4
+    with pytest.raises(ValueError, match=r"initial: .* \|R\^T R - I\| = 0.019, at most 0.001"):
+        as_rigid_transform(np.diag([1.01, 1.0, 1.0, 1.0]) @ pose)

@@ -218,14 +218,19 @@ def test_a_methods_result_that_is_no_rigid_pose_is_named():
                          (np.eye(4, dtype=bool), "returned: .* got an array of bool"),
                          (m.astype(str), "returned: .* got an array of <U"),
                          (np.asarray(m, dtype=object), "returned: .* got an array of object"),
-                         # passed the loose test above; RigidTransform's message named no
-                         # method (a review, tenth session)
-                         (np.block([[m[:3, :3] * 1.0000009, m[:3, 3:]], [m[3:]]]),
-                          r"method x returned: .* not a rigid transform: .*proper rotation"),
+                         # a scale beyond a rounded rotation's: refused, with its figure
+                         (np.block([[m[:3, :3] * 1.002, m[:3, 3:]], [m[3:]]]),
+                          r"method x returned: .* not a rigid transform .*R\^T R - I\| = 0.004"),
                          (np.block([[m[:3, :3], np.full((3, 1), 1e300)], [m[3:]]]),
                           r"method x returned: .* not a rigid transform: .*translation")):
         with pytest.raises(ValueError, match=match):
             _as_pose(value, "x")
+    # a pose printed with 4 decimals (print(estimate), a review) or scaled by 1 + 1e-6 is
+    # read as its nearest rotation: within the rounding of the matrix it was printed from
+    for value in (np.round(m, 4), np.block([[m[:3, :3] * 1.0000009, m[:3, 3:]], [m[3:]]])):
+        got = _as_pose(value, "x")
+        assert np.allclose(got.R.T @ got.R, np.eye(3), atol=1e-12)
+        assert np.abs(got.as_matrix() - m).max() < 1e-4
     # whole numbers are numbers
     eye = np.eye(4, dtype=np.int64)
     eye[:3, 3] = (1, 2, 3)

@@ -77,3 +77,63 @@ def test_slices_outlined_off_the_bone_are_left_out_and_said():
     notes = [w for w in est.warnings if "left out of its surface" in w]
     assert len(notes) == 1 and notes[0].startswith("CT region 'distal': ")
     assert est.accepted and res["mtre_mm"] < 1.0
+
+
+@pytest.mark.slow
+def test_ct_surfaces_of_the_wrong_hand_are_refused_and_were_wrong():
+    """A held-out review (2026-11-28) registered a femur surface of its own (the phantom's
+    mesh) flipped front to back (a CT axis reversed, or the other side's bone): the AP
+    views' outlines hardly change, and the pose was accepted with a pin 26.9 mm off, every
+    figure inside its limit. Mirrored back across the views' beam the surface fits clearly
+    better: refused, and the truth agrees. The right surface's mirror fits worse: accepted.
+    (The operator's CT surfaces, flipped, are refused by their median distance already.)"""
+    import numpy as np
+
+    from reglib import estimate, prepare
+    from reglib.pipeline import MIRROR_FIT_RATIO, MIRRORED
+
+    scene = load_scene(find_scene("experiment2"))
+    _, case, start, est = run_case(scene, seed=scene.scene.seed)
+    obs, st = case.sim.observation, est.stages
+    mesh = case.sim.truth.meshes["femur"]
+    v, f = np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces)
+    c = v.mean(axis=0)
+
+    def flip(p):   # ct y (front to back) reversed about the mesh's centre
+        return (np.asarray(p) - c) * [1.0, -1.0, 1.0] + c
+
+    pins = case.pins_ct
+    for flipped, surface, planned in ((False, (v, f), pins),
+                                      (True, (flip(v), f[:, ::-1].copy()),
+                                       {k: flip(p) for k, p in pins.items()})):
+        st2 = prepare(obs, calibrations=st.calibrations, contours=st.contours,
+                      surfaces={"femur": surface})
+        e = estimate(obs, start, stages=st2)
+        ratio = e.quality["mirror_median_mm"] / e.quality["median_residual_mm"]
+        err = max(np.linalg.norm(e.ct2robot.apply(planned[k]) - case.ct2robot.apply(p))
+                  for k, p in pins.items())
+        if not flipped:
+            assert e.accepted and ratio > 1.5 and err < 1.0
+        else:   # the truth: the pins as planned on the flipped CT land far from the pins
+            assert not e.accepted and e.message.startswith(MIRRORED)
+            assert ratio < MIRROR_FIT_RATIO and err > 5.0
+
+
+@pytest.mark.slow
+def test_two_views_and_a_pin_on_a_coarse_ct_are_refused_and_were_wrong():
+    """experiment1 (two views and a located pin) on CT slices 10 mm apart (a held-out review,
+    2026-11-28): accepted with distal pins 5.8 and 7.5 mm off at a weakest motion of 4.8 mm;
+    the surfaces' error between coarse slices is not in the contours' median distance that
+    the weakest motion scales with. The limit shrinks with the slice gap (6/10 x 6 mm)."""
+    from reglib.pipeline import weak_motion_limit
+
+    d = load_scene(find_scene("experiment1")).model_dump(mode="json")
+    d["ct"].update(schedule="uniform", uniform_spacing_mm=10.0)
+    scene = parse_scene(d)
+    res, case, _, est = run_case(scene, seed=scene.scene.seed)
+    assert est.stages.slice_gap_mm == pytest.approx(10.0)
+    assert weak_motion_limit(case.options, est.stages.slice_gap_mm) == pytest.approx(3.6)
+    assert not est.accepted
+    assert "limit 3.6 mm: 6 mm scaled by 6/10.0 for CT slices contoured up to 10.0 mm" \
+        in est.message
+    assert max(res["pins"].values()) > 4.0     # the truth: it was wrong

@@ -98,3 +98,23 @@ def test_a_moving_femur_is_announced_first():
                           "converged": True, "accepted": True, "outputs": {},
                           "timings": {}})
     assert text.splitlines()[0] == f"WARNING: {w}"
+
+
+def test_a_pin_no_ct_slice_shows_is_warned_of():
+    """A held-out review: experiment1 with the proximal CT stretch ending 22 mm below the
+    fixed pin; the simulated operator located it in the CT all the same, and the pose was
+    accepted without a word. Pins within PIN_CT_MARGIN_MM of a slice are not warned of."""
+    import numpy as np
+
+    from studies.end_to_end import PIN_CT_MARGIN_MM, pin_coverage_warnings
+
+    pins = {"proximal": np.array([0.0, 0.0, 400.0]), "distal_1": np.array([0.0, 0.0, 30.0])}
+    z = np.r_[np.arange(0.0, 101.0, 6.0), np.arange(330.0, 379.0, 6.0)]    # 0-96, 330-378
+    (w,) = pin_coverage_warnings(pins, z, "proximal")
+    assert w.startswith("pin 'proximal' (z = 400 mm in the ct frame) lies 22 mm from the "
+                        "nearest CT slice") and "registration.fixed_pin" in w
+    (w,) = pin_coverage_warnings(pins, z, None)
+    assert "fixed_pin" not in w and "pin-based reference of table2" in w
+    near = {"p": np.array([0.0, 0.0, 378.0 + PIN_CT_MARGIN_MM])}
+    assert pin_coverage_warnings(near, z) == []
+    assert pin_coverage_warnings(pins, np.zeros(0)) == []
