@@ -213,6 +213,14 @@ def prepare_surface(vertices, faces) -> SurfaceTopology:
         )
     twin[h0] = h1
     twin[h1] = h0
+    if nf > 1 and not (twin >= 0).any():
+        # an STL-style soup: every triangle has vertices of its own, no edge is shared, and
+        # no apparent contour can be traced (a review: refused only as "no apparent contour
+        # from its center")
+        raise ValueError(
+            f"faces: the surface's {nf} triangles share no edge (a triangle soup, as STL files "
+            "store them): weld the vertices they repeat first (e.g. "
+            "trimesh.Trimesh(vertices, faces).merge_vertices())")
 
     tri = v[f]
     normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])

@@ -746,6 +746,14 @@ def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
     if vol.ndim != 3 or min(vol.shape) < 2 or not np.issubdtype(vol.dtype, np.number):
         raise ValueError(f"CT volume: expected an (I, J, K) array of numbers (col, row, slice; "
                          f"at least 2 each), got {vol.dtype} {vol.shape}")
+    if vol.dtype.kind == "f":   # one NaN voxel failed the whole estimate as a surface error
+        bad = ~np.isfinite(vol)
+        if bad.any():
+            i, j, k = np.argwhere(bad)[0]
+            raise ValueError(f"CT volume: {int(bad.sum())} voxel(s) are NaN or infinite "
+                             f"(the first at (col, row, slice) = ({i}, {j}, {k})); expected HU "
+                             "everywhere: fill padding outside the scanner's field with air "
+                             "(-1000 HU)")
     s2c = np.asarray(slice2ct, dtype=np.float64)
     if s2c.shape != (vol.shape[2], 4, 4):
         raise ValueError(f"slice2ct: expected ({vol.shape[2]}, 4, 4) matrices (one per slice of "

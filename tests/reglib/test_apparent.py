@@ -231,6 +231,16 @@ def test_bad_surfaces_are_refused():
     flat = sheet.submesh([top_face], append=True)
     for faces in (flat.faces, flat.faces[:, ::-1]):
         prepare_surface(flat.vertices, faces)
+    # an STL-style triangle soup (no vertex shared): named, with the cure (a review); one
+    # lone triangle is a surface of its own
+    soup_v = m.vertices[m.faces].reshape(-1, 3)
+    soup_f = np.arange(len(soup_v)).reshape(-1, 3)
+    with pytest.raises(ValueError, match=r"80 triangles share no edge \(a triangle soup"):
+        prepare_surface(soup_v, soup_f)
+    welded = trimesh.Trimesh(soup_v, soup_f, process=False)
+    welded.merge_vertices()
+    prepare_surface(welded.vertices, welded.faces)
+    prepare_surface(soup_v[:3], soup_f[:1])
 
 
 @pytest.mark.parametrize("seed", range(3))

@@ -202,6 +202,11 @@ def test_ct_surface_input_is_checked_and_a_failed_region_is_a_surface_error():
     assert "slice2ct" not in str(err.value), err.value
     with pytest.raises(ValueError, match=r"CT volume: expected an \(I, J, K\) array"):
         ct_surfaces(np.zeros((0, 0, 0)), s2c, {"distal": good})
+    nan = vol.copy()
+    nan[3, 4, 2] = np.nan      # NaN padding: malformed input, not a failed surface (a review)
+    with pytest.raises(ValueError, match=r"CT volume: 1 voxel\(s\) are NaN or infinite \(the "
+                                         r"first at \(col, row, slice\) = \(3, 4, 2\)\)"):
+        ct_surfaces(nan, s2c, {"distal": good})
     # well-formed clicks on an empty CT: the stage fails, as a SurfaceError naming the region
     with pytest.raises(SurfaceError, match="CT region 'distal'"):
         ct_surfaces(vol, s2c, {"distal": good})
