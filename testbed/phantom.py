@@ -663,15 +663,20 @@ def _user_phantom(spec: PhantomSpec) -> Phantom:
             "axis (proximal up, the lowest point of the condyles near z = 0, mm); its extents "
             f"are x {ext[0]:.0f}, y {ext[1]:.0f}, z {ext[2]:.0f} mm")
     centre_xy = 0.5 * (mesh.bounds[0, :2] + mesh.bounds[1, :2])
+    z0 = float(mesh.bounds[0, 2])
     if float(np.hypot(*centre_xy)) > MAX_MESH_BASE_MM:
+        # the whole move in one message (a review: the z offset came only on the next run)
+        dz = -z0 if abs(z0) > MAX_MESH_BASE_MM else 0.0
         raise ValueError(
             f"phantom.mesh_path: the femur in {str(path)!r} lies with its bounding box's "
-            f"centre at x = {centre_xy[0]:.0f}, y = {centre_xy[1]:.0f} mm; the ct frame "
-            f"puts the femur along its z axis (that centre within {MAX_MESH_BASE_MM:g} mm "
-            f"of it: the scene's views and [patient] position_mm place that frame): "
-            f"translate the mesh and mesh_pins_mm by ({-centre_xy[0]:.0f}, "
-            f"{-centre_xy[1]:.0f}, 0) mm")
-    z0 = float(mesh.bounds[0, 2])
+            f"centre at x = {centre_xy[0]:.0f}, y = {centre_xy[1]:.0f} mm"
+            + (f" and its lowest point at z = {z0:.0f} mm" if dz else "")
+            + f"; the ct frame puts the femur along its z axis (that centre within "
+            f"{MAX_MESH_BASE_MM:g} mm of it"
+            + (", the condyles' lowest point near z = 0" if dz else "")
+            + ": the scene's views and [patient] position_mm place that frame): translate "
+            f"the mesh and mesh_pins_mm by ({-centre_xy[0]:.0f}, {-centre_xy[1]:.0f}, "
+            f"{dz:.0f}) mm")
     if abs(z0) > MAX_MESH_BASE_MM:
         raise ValueError(
             f"phantom.mesh_path: the femur in {str(path)!r} has its lowest point at z = "

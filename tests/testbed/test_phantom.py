@@ -259,7 +259,10 @@ def test_user_mesh(tmp_path, monkeypatch):
     for shift, match in (([0.0, 0.0, 1000.0], r"lowest point at z = 1000 mm.*translate the "
                           r"mesh and mesh_pins_mm by \(0, 0, -1000\) mm"),
                          ([100.0, 0.0, 0.0], r"centre at x = 89, y = -3 mm.*translate the "
-                          r"mesh and mesh_pins_mm by \(-89, 3, 0\) mm")):
+                          r"mesh and mesh_pins_mm by \(-89, 3, 0\) mm"),
+                         # both at once: one message gives the whole move (a review)
+                         ([100.0, 0.0, -800.0], r"centre at x = 89, y = -3 mm and its lowest "
+                          r"point at z = -800 mm.*by \(-89, 3, 800\) mm")):
         with pytest.raises(ValueError, match=match):
             make_phantom(moved(np.array(shift), "moved.stl"))
     make_phantom(moved(np.array([0.0, 0.0, 30.0]), "near.stl"))
