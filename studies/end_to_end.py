@@ -175,9 +175,11 @@ def _weak_limit_text(est, options) -> str:
     on slices farther apart (reglib.pipeline.weak_motion_limit)."""
     limit = est.quality.get("weak_motion_limit_mm", options.accept_max_weak_motion_mm)
     if limit < options.accept_max_weak_motion_mm:
+        from reglib.pipeline import WEAK_MOTION_GAP_MM
+
         return (f"{limit:.1f} mm: {options.accept_max_weak_motion_mm:g} mm for CT slices "
-                f"contoured at most 6 mm apart, these up to "
-                f"{est.stages.slice_gap_mm:.1f} mm)")[:-1]
+                f"contoured at most {WEAK_MOTION_GAP_MM:g} mm apart, these up to "
+                f"{est.stages.slice_gap_mm:.1f} mm")
     return f"{options.accept_max_weak_motion_mm:g} mm"
 
 

@@ -240,13 +240,14 @@ def test_verdict_objections():
                              "distance, 0.68 mm here)")
     assert len(loose) == 1 and "loosely determined" in loose[0] and "11.0 mm" in loose[0]
     assert verdict(True, {**good, "weak_motion_mm": 3.0}, "", opts, 4) == []
-    # on CT slices contoured farther apart than 6 mm the limit shrinks in proportion
-    assert verdict(True, {**good, "weak_motion_mm": 4.5}, "", opts, 2, slice_gap_mm=6.0) == []
-    assert verdict(True, {**good, "weak_motion_mm": 4.5}, "", opts, 2, slice_gap_mm=None) == []
-    assert verdict(True, {**good, "weak_motion_mm": 4.4}, "", opts, 2, slice_gap_mm=8.0) == []
-    coarse = verdict(True, {**good, "weak_motion_mm": 4.6}, "", opts, 2, slice_gap_mm=8.0)
-    assert "(limit 4.5 mm: 6 mm scaled by 6/8.0 for CT slices contoured up to 8.0 mm apart" \
-        in coarse[0] and coarse[0].endswith("or contour CT slices at most 6 mm apart")
+    # on CT slices contoured farther apart than 8 mm the limit shrinks as (8 / gap)^2
+    for gap in (None, 6.0, 8.0):
+        assert verdict(True, {**good, "weak_motion_mm": 5.9}, "", opts, 2,
+                       slice_gap_mm=gap) == []
+    assert verdict(True, {**good, "weak_motion_mm": 3.8}, "", opts, 2, slice_gap_mm=10.0) == []
+    coarse = verdict(True, {**good, "weak_motion_mm": 3.9}, "", opts, 2, slice_gap_mm=10.0)
+    assert "(limit 3.8 mm: 6 mm x (8/10.0)^2 for CT slices contoured up to 10.0 mm apart" \
+        in coarse[0] and coarse[0].endswith("or contour CT slices at most 8 mm apart")
     assert verdict(True, {**good, "weak_motion_mm": float("nan")}, "", opts, 4) == []
     assert verdict(True, {**good, "weak_motion_mm": float("inf")}, "", opts, 4)
     # one view that does not fit while the whole median passes: refused, the view named
