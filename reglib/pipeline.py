@@ -696,15 +696,17 @@ def _region_clicks(region: str, a: Mapping, n_slices: int):
     return xy, sl, co, [int(k) for k in slices]
 
 
-def _check_slice_geometry(s2c: np.ndarray, used, axes: np.ndarray) -> None:
+def _check_slice_geometry(s2c: np.ndarray, used, axes: np.ndarray) -> float:
     """The geometry of the slices a region uses (``used``, slice indices), which a review
     found blamed on the contours ("1 slice(s) with a contour large enough to tile"): pixels
     of absurd size, and two slices at one position along their normal (the same slice
     twice, or the column, row and slice axes swapped, which stacks the slices within their
-    own planes). Slices no region uses are not judged (a merged series may repeat one)."""
+    own planes). Slices no region uses are not judged (a merged series may repeat one).
+    Returns the largest gap (mm) between consecutive used slices along their normal (0 for
+    fewer than 2)."""
     used = np.unique(np.asarray(used, dtype=np.int64))
     if not len(used):
-        return
+        return 0.0
     px = np.linalg.norm(s2c[used, :3, :2], axis=1)            # (K, 2) mm per column / row
     odd = np.flatnonzero(((px < 0.01) | (px > 10.0)).any(axis=1))
     if odd.size:
@@ -723,6 +725,8 @@ def _check_slice_geometry(s2c: np.ndarray, used, axes: np.ndarray) -> None:
             raise ValueError(f"slice2ct: slices {a} and {b} lie at the same position along "
                              "their normal: the same slice twice, or the column, row and "
                              "slice axes swapped (slices stacked within their own planes)?")
+        return float(np.abs(along).max())
+    return 0.0
 
 
 def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
@@ -787,11 +791,9 @@ def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
         xy, sl, co, slices = _region_clicks(region, ct_clicks[region], K)
         if top_down:
             sl, slices = K - 1 - sl, sorted(K - 1 - k for k in slices)
-        _check_slice_geometry(s2c, np.asarray(slices), axes)
+        gap = _check_slice_geometry(s2c, np.asarray(slices), axes)
         if gaps is not None:
-            o = s2c[np.asarray(slices, dtype=np.int64), :3, 3]
-            n = axes[0] / np.linalg.norm(axes[0])
-            gaps[region] = float(np.diff(np.sort(o @ n)).max()) if len(o) > 1 else 0.0
+            gaps[region] = gap
         clicks = {}
         for k in np.unique(sl):
             m = sl == k
@@ -1338,6 +1340,8 @@ def weak_motion_limit(options: EstimateOptions, slice_gap_mm: float | None) -> f
             and slice_gap_mm > WEAK_MOTION_GAP_MM:
         limit *= (WEAK_MOTION_GAP_MM / float(slice_gap_mm)) ** 2
     return limit
+
+
 #: how the verdict's handedness objection begins (:func:`mirror_fit`)
 MIRRORED = "the CT surfaces look mirrored"
 

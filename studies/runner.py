@@ -793,17 +793,6 @@ def _new_pool(workers: int, ctx) -> cf.ProcessPoolExecutor:
     return ex
 
 
-def _started(ex: cf.ProcessPoolExecutor) -> dict[str, float]:
-    """The trials ``ex``'s workers have started since the last call: key -> monotonic
-    time (CLOCK_MONOTONIC is one clock for every process of the machine)."""
-    out = {}
-    q = ex.trial_starts
-    while not q.empty():
-        key, t0 = q.get()
-        out[key] = min(t0, time.monotonic())
-    return out
-
-
 class _Deadlines:
     """When each trial in flight must be done: ``timeout_s`` after its worker started it
     (:func:`_pool_trial`), or ``timeout_s + START_GRACE_S`` after the hand-over while no
@@ -819,9 +808,13 @@ class _Deadlines:
             self.at[trial.key] = time.monotonic() + self.timeout_s + START_GRACE_S
 
     def update(self) -> None:
-        for key, t0 in _started(self.ex).items():
+        """Read the starts the workers reported (always: an unread queue would fill and
+        block them); ``time.monotonic`` is one clock for every process of the machine."""
+        q = self.ex.trial_starts
+        while not q.empty():
+            key, t0 = q.get()
             if key in self.at and self.timeout_s is not None:
-                self.at[key] = t0 + self.timeout_s
+                self.at[key] = min(t0, time.monotonic()) + self.timeout_s
                 self.started.add(key)
 
     def wait_s(self, trials) -> float:

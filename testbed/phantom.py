@@ -664,26 +664,20 @@ def _user_phantom(spec: PhantomSpec) -> Phantom:
             f"are x {ext[0]:.0f}, y {ext[1]:.0f}, z {ext[2]:.0f} mm")
     centre_xy = 0.5 * (mesh.bounds[0, :2] + mesh.bounds[1, :2])
     z0 = float(mesh.bounds[0, 2])
-    if float(np.hypot(*centre_xy)) > MAX_MESH_BASE_MM:
-        # the whole move in one message (a review: the z offset came only on the next run)
-        dz = -z0 if abs(z0) > MAX_MESH_BASE_MM else 0.0
+    off_xy = float(np.hypot(*centre_xy)) > MAX_MESH_BASE_MM
+    off_z = abs(z0) > MAX_MESH_BASE_MM
+    if off_xy or off_z:   # the whole move in one message (a review: z came on the next run)
+        dx, dy = -centre_xy if off_xy else (0.0, 0.0)
+        where = [f"its bounding box's centre at x = {centre_xy[0]:.0f}, y = "
+                 f"{centre_xy[1]:.0f} mm"] if off_xy else []
+        where += [f"its lowest point at z = {z0:.0f} mm"] if off_z else []
         raise ValueError(
-            f"phantom.mesh_path: the femur in {str(path)!r} lies with its bounding box's "
-            f"centre at x = {centre_xy[0]:.0f}, y = {centre_xy[1]:.0f} mm"
-            + (f" and its lowest point at z = {z0:.0f} mm" if dz else "")
-            + f"; the ct frame puts the femur along its z axis (that centre within "
-            f"{MAX_MESH_BASE_MM:g} mm of it"
-            + (", the condyles' lowest point near z = 0" if dz else "")
-            + ": the scene's views and [patient] position_mm place that frame): translate "
-            f"the mesh and mesh_pins_mm by ({-centre_xy[0]:.0f}, {-centre_xy[1]:.0f}, "
-            f"{dz:.0f}) mm")
-    if abs(z0) > MAX_MESH_BASE_MM:
-        raise ValueError(
-            f"phantom.mesh_path: the femur in {str(path)!r} has its lowest point at z = "
-            f"{z0:.0f} mm; the ct frame puts the condyles' lowest point near z = 0 (within "
-            f"{MAX_MESH_BASE_MM:g} mm: the scene's views and [patient] position_mm place that "
-            f"frame), as a mesh in a CT scanner's coordinates does not: translate the mesh and "
-            f"mesh_pins_mm by (0, 0, {-z0:.0f}) mm")
+            f"phantom.mesh_path: the femur in {str(path)!r} has {' and '.join(where)}; the ct "
+            f"frame puts the femur along its z axis (its bounding box's centre within "
+            f"{MAX_MESH_BASE_MM:g} mm of it) with the condyles' lowest point near z = 0 (within "
+            f"{MAX_MESH_BASE_MM:g} mm): the scene's views and [patient] position_mm place that "
+            "frame, and a mesh in a CT scanner's coordinates is not in it: translate the mesh "
+            f"and mesh_pins_mm by ({dx:.0f}, {dy:.0f}, {-z0 if off_z else 0.0:.0f}) mm")
     lo, hi = field_bounds("length_mm")
     if not lo <= ext[2] <= hi:
         raise ValueError(
