@@ -1462,8 +1462,8 @@ def _left_out(stages) -> tuple:
 
 def best_try(tries):
     """The try to report among ``(RegistrationResult, quality, objections)`` tuples: one
-    whose registration did not diverge (a diverged try stops where it ran away to, beyond
-    the divergence limits, and its few objections could rank it first: a review saw
+    whose registration did not diverge (a diverged try keeps the pose before its runaway
+    step, which told nothing, and its few objections could rank it first: a review saw
     "diverged ... moved 166.6 mm" reported for a refused estimate), then the fewest
     objections, then the smallest median distance."""
     return min(tries, key=lambda t: (str(t[0].reason).startswith("diverged"), len(t[2]),

@@ -44,7 +44,7 @@ from reglib.geometry import (
     skew,
 )
 from reglib.pose import _check_options as _check_pose_options
-from reglib.pose import solve_pose
+from reglib.pose import solve_pose, tukey_weights
 
 __all__ = [
     "IterationRecord",
@@ -155,7 +155,8 @@ class RegistrationResult:
 
     Attributes
     ----------
-    ct2robot : RigidTransform, the final pose (the start pose if it failed before a solve).
+    ct2robot : RigidTransform, the final pose (the start pose if it failed before a solve;
+        when it diverged, the last pose within the divergence limits).
     converged : bool.
     reason : str, why it stopped (converged: which test; failed: what went wrong).
     iterations : int.
@@ -380,6 +381,24 @@ def _across(directions, tangents) -> np.ndarray:
     n = np.cross(directions, tangents)
     nn = np.linalg.norm(n, axis=1, keepdims=True)
     return n / np.where(nn > 0, nn, 1.0)
+
+
+def _residuals_at(T: RigidTransform, p_ct, tans_ct, origins, directions, *, normal: bool,
+                  robust: bool, tukey_a: float) -> tuple[np.ndarray, np.ndarray]:
+    """Distances (mm) of matched CT points placed by ``T`` to their X-ray paths (robot
+    frame), across the contour when ``normal`` (the "normal" residual) else to the line,
+    and the weights a solve would give them there (Tukey's biweight at the robust scale
+    ``median / 0.6745`` when ``robust``, else ones)."""
+    p = T.apply(p_ct) - origins
+    if normal:
+        dist = np.abs(np.sum(p * _across(directions, T.apply_vectors(tans_ct)), axis=1))
+    else:
+        dist = np.linalg.norm(p - np.sum(p * directions, axis=1, keepdims=True) * directions,
+                              axis=1)
+    if not robust:
+        return dist, np.ones_like(dist)
+    s = float(np.median(dist)) / 0.6745
+    return dist, (tukey_weights(dist / s, tukey_a) if s > 0 else np.ones_like(dist))
 
 
 def _corners(surfaces) -> np.ndarray:
@@ -859,15 +878,24 @@ def register(surfaces, views, initial: RigidTransform, *,
         rms = float(np.sqrt(np.mean(dist[inl] ** 2))) if inl.any() else float("inf")
         history.append(IterationRecord(it, rms, float(np.median(dist)), step_mm, step_deg, frac,
                                        len(dist), time.perf_counter() - t0))
+        moved_mm, moved_deg = _motion(T_new, initial, corners)
+        if moved_mm > max_motion_mm or moved_deg > max_rotation_deg:
+            # the result keeps the last pose within the limits (this iteration's, whose
+            # matches were just found), with its own figures: a runaway pose (one view: 500
+            # mm off) and figures measured there mislead whoever prints or averages them
+            dist, w = _residuals_at(T, p_ct, tans_ct, o_r, d_r, normal=(
+                residual == "normal" or fixed_robot is not None),
+                robust=method != "linear", tukey_a=tukey_a)
+            last = (dist, w, p_ct, tans_ct)
+            reason = (f"{DIVERGED} at iteration {it}: the pose moved {moved_mm:.1f} mm / "
+                      f"{moved_deg:.1f} deg from the start (limits {max_motion_mm} mm, "
+                      f"{max_rotation_deg} deg); the result keeps "
+                      + ("the start" if it == 1 else f"iteration {it - 1}'s pose")
+                      + ", the last within them")
+            break
         last = (dist, w, p_ct, tans_ct)
         placed.append(T_new.apply(corners))
         T = T_new
-        moved_mm, moved_deg = _motion(T, initial, corners)
-        if moved_mm > max_motion_mm or moved_deg > max_rotation_deg:
-            reason = (f"{DIVERGED} at iteration {it}: the pose moved {moved_mm:.1f} mm / "
-                      f"{moved_deg:.1f} deg from the start (limits {max_motion_mm} mm, "
-                      f"{max_rotation_deg} deg)")
-            break
         if frac < min_inlier_fraction:
             reason = (f"too few inliers at iteration {it}: {frac:.0%} of the matches kept "
                       f"(minimum {min_inlier_fraction:.0%}); the start is probably too far off")

@@ -710,6 +710,33 @@ def test_either_divergence_limit_stops_the_loop_alone():
     for limits in ({"max_motion_mm": 2.0}, {"max_rotation_deg": 0.5}):
         out = register(s.surfaces, views, init, max_iterations=60, **limits)
         assert not out.converged and out.reason.startswith("diverged"), (limits, out.reason)
+        # the result keeps the last pose within the limits, not the one beyond them (every
+        # pin lies inside the surfaces' box, so it moves no more than the box's corners)
+        moved = np.linalg.norm(out.ct2robot.apply(PINS_CT) - init.apply(PINS_CT), axis=1)
+        turned = np.degrees(np.linalg.norm(Rotation.from_matrix(
+            out.ct2robot.R @ init.R.T).as_rotvec()))
+        assert moved.max() <= limits.get("max_motion_mm", 150.0) + 1e-6, (limits, moved)
+        assert turned <= limits.get("max_rotation_deg", 45.0) + 1e-6, (limits, turned)
+
+
+def test_a_runaway_pose_is_not_returned_nor_measured():
+    """One view: its first solve from a start 7 deg / 20 mm off runs 300 mm away (the
+    bone slides along the beam). The result is the start, the last pose within the
+    limits, and its figures are measured there (before: the runaway pose, 500 mm off in a
+    review, with a median distance measured at it)."""
+    s = make_scene()
+    view = list(s.views.values())[0]
+    init = perturbed(s.true, 7.0, 20.0, np.random.default_rng(0))
+    out = register(s.surfaces, [view], init, max_iterations=60)
+    assert not out.converged and out.reason.startswith("diverged at iteration 1"), out.reason
+    assert "keeps the start" in out.reason, out.reason
+    assert np.allclose(out.ct2robot.as_matrix(), init.as_matrix())
+    # the matches' distances at the start: the start is 25 mm off at the pins, and the
+    # paths miss the surfaces placed there by millimetres, not by the runaway's hundreds
+    assert 3.0 < np.median(out.residuals) < 25.0, np.median(out.residuals)
+    assert out.weights.shape == out.residuals.shape == out.view_index.shape
+    assert 0.3 < np.mean(out.weights > 0) <= 1.0
+    assert out.sensitivity.shape == (6,)
 
 
 def test_a_cycle_with_a_long_step_anywhere_in_it_has_not_settled():
