@@ -279,6 +279,7 @@ class Scene(Spec):
             raise ValueError(f"scene.kind is 'synthetic': its table(s) {unused} would be "
                              "ignored (a synthetic scene reads [scene] and [synthetic] only); "
                              "remove them, or set kind = 'operating_room'")
+        self._check_units()
         first: dict[str, int] = {}
         for i, v in enumerate(self.views):
             key = v.name.lower()  # file names differ in case only on some file systems
@@ -298,6 +299,55 @@ class Scene(Spec):
                                  "'.' and '-'); instrument names must be distinct")
             taken[key] = f"instruments[{i}].name {ins.name!r}"
         return self
+
+
+    def _check_units(self) -> None:
+        """Placements given in metres where millimetres are read: a view's isocentre (or the
+        patient) a few millimetres from the robot base puts the femur out of every field,
+        and the later checks then name a collision or an empty image, not the unit. Refused
+        here only when the placement given lies beyond the femur's reach of a view and the
+        same numbers read as metres lie within it."""
+        if self.scene.kind != "operating_room" or not self.views:
+            return
+        reach = 0.5 * self.phantom.length_mm + VIEW_REACH_MM
+
+        def middle(position_mm):
+            pose = PatientSpec(position_mm=position_mm,
+                               rotation_deg=self.patient.rotation_deg).ct2robot()
+            return pose.apply(np.array([0.0, 0.0, 0.5 * self.phantom.length_mm]))
+
+        m = middle(self.patient.position_mm)
+        far = [i for i, v in enumerate(self.views)
+               if np.linalg.norm(np.asarray(v.isocenter_mm) - m) > reach]
+        if not far:
+            return
+        m_si = middle(tuple(1000.0 * c for c in self.patient.position_mm))
+        if all(np.linalg.norm(np.asarray(v.isocenter_mm) - m_si) <= reach for v in self.views):
+            raise ValueError(
+                f"patient.position_mm = {list(self.patient.position_mm)} puts the femur's "
+                f"middle {np.linalg.norm(m):.0f} mm from the robot base and out of every "
+                "view's reach; read as metres it would lie among the views' isocentres: "
+                "the scene's lengths are millimetres")
+        for i in far:
+            iso = np.asarray(self.views[i].isocenter_mm)
+            if np.linalg.norm(1000.0 * iso - m) <= reach:
+                raise ValueError(
+                    f"views[{i}].isocenter_mm = {list(self.views[i].isocenter_mm)} lies "
+                    f"{np.linalg.norm(iso - m):.0f} mm from the femur's middle (the view "
+                    f"reaches {reach:.0f} mm); read as metres it would lie "
+                    f"{np.linalg.norm(1000.0 * iso - m):.0f} mm from it: the scene's lengths "
+                    "are millimetres")
+            if not {"isocenter_mm"} & self.views[i].model_fields_set:
+                raise ValueError(
+                    f"views[{i}] ({self.views[i].name!r}) gives no isocenter_mm: its default "
+                    f"[0, 0, 0] is the robot base, {np.linalg.norm(m):.0f} mm from the "
+                    "femur's middle; give the point (robot frame, mm) the C-arm turns about")
+
+
+#: how far from the femur's end (mm) a view's isocentre may lie and the femur still be in
+#: its field (a 9-12 inch intensifier shows 115-150 mm about the beam at the isocentre);
+#: used only to tell a unit slip (:meth:`Scene._check_units`), never to refuse a placement
+VIEW_REACH_MM = 250.0
 
 
 # --------------------------------------------------------------------------- errors

@@ -343,6 +343,38 @@ def test_a_relative_mesh_path_is_read_from_the_scene_files_folder(tmp_path, monk
 
 
 @pytest.mark.parametrize("edits, message", [
+    # a review: metres gave a C-arm/table collision, with no word of the unit
+    ({"isocenter_mm = [800.0, -160.0, 200.0]": "isocenter_mm = [0.8, -0.16, 0.2]"},
+     r"views\[0\]\.isocenter_mm = \[0\.8, -0\.16, 0\.2\] lies 834 mm from the femur's "
+     r"middle .* read as metres it would lie 160 mm from it"),
+    ({"position_mm = [810.0, 225.0, 200.0]": "position_mm = [0.81, 0.225, 0.2]"},
+     r"patient\.position_mm = \[0\.81, 0\.225, 0\.2\] .* read as metres"),
+    ({"isocenter_mm = [805.0, 160.0, 200.0]\n": ""},
+     r"views\[3\] \('distal_oblique'\) gives no isocenter_mm: its default \[0, 0, 0\] is "
+     r"the robot base"),
+])
+def test_lengths_in_metres_are_named_as_such(tmp_path, edits, message):
+    text = find_scene("experiment2").read_text()
+    for old, new in edits.items():
+        assert text.count(old) == 1, old
+        text = text.replace(old, new)
+    f = tmp_path / "scene.toml"
+    f.write_text(text)
+    with pytest.raises(SceneError, match=message):
+        load_scene(f)
+
+
+def test_views_far_from_the_femur_in_millimetres_are_left_to_the_later_checks(tmp_path):
+    """The unit check refuses nothing the metres would not explain: a view 2 m off is
+    loaded (the workspace and image checks name it later)."""
+    text = find_scene("experiment2").read_text().replace(
+        "isocenter_mm = [800.0, -160.0, 200.0]", "isocenter_mm = [2800.0, -160.0, 200.0]")
+    f = tmp_path / "scene.toml"
+    f.write_text(text)
+    assert load_scene(f).views[0].isocenter_mm == (2800.0, -160.0, 200.0)
+
+
+@pytest.mark.parametrize("edits, message", [
     ({"width_px = 640": "width_px = 4096", "height_px = 480": "height_px = 4096",
       "oversample = 1": "oversample = 8"},
      r"field 'fluoroscope': width_px x height_px x oversample\^2 = 4096 x 4096 x 8\^2 = "
