@@ -645,18 +645,49 @@ def calibrate_view(view: str, frames, arrays: Mapping, *, fov=None,
         return ViewCalibration(view, None, d, ok=False, problems=problems,
                                message="calibration gives non-finite X-ray paths")
     if len(d) and d.max() > options.max_validation_mm:
-        # beads missing from many rows (the rod's ends outside the field, a review: 19 rows
-        # of a 150 mm field) leave the field's edge to the spline's extrapolation: say so
-        lacking = [p for p in problems if "not found" in p]
         return ViewCalibration(view, cal, d, ok=False, problems=problems,
                                message=f"calibration fails its validation: largest distance "
                                f"{_past(d.max(), options.max_validation_mm)} mm > "
-                               f"{options.max_validation_mm:g} mm"
-                               + (f"; {len(lacking)} sweep row(s) lack beads (outside the "
-                                  "field, hidden or too faint), which leaves the field's edge "
-                                  "uncalibrated: keep the rod's beads inside the field: "
-                                  f"{summarise_problems(lacking, limit=2)}" if lacking else ""))
+                               f"{options.max_validation_mm:g} mm; "
+                               + _validation_cause(markers, xy, d, options.max_validation_mm,
+                                                   problems))
     return ViewCalibration(view, cal, d, ok=True, problems=problems)
+
+
+def _validation_cause(markers, xy_px, dist_mm, limit_mm: float, problems) -> str:
+    """Why a view's validation failed, as far as the sweep tells: where the validation
+    markers beyond ``limit_mm`` lie against the image region both calibration planes'
+    markers cover. Beyond it (beads missing from rows: the rod's ends outside the field, a
+    review's 19 rows of a 150 mm field) the spline extrapolates, and the rows lacking beads
+    are the cause; inside it the planes were calibrated there, and the sweep's geometry
+    (the rod poses the robot reports, the rod's mounting or sag) or the image (distortion
+    changing during the sweep) disagrees with them. A review saw every such failure blamed
+    on the rows lacking beads, which clinic sweeps always have (10-16 rows) whatever the
+    cause."""
+    from scipy.spatial import Delaunay, QhullError
+
+    from reglib.calibration import summarise_problems
+    from reglib.markers import FAR, NEAR
+
+    bad = np.asarray(xy_px, dtype=np.float64)[np.asarray(dist_mm) > limit_mm]
+    inside = np.ones(len(bad), dtype=bool)
+    for plane in (NEAR, FAR):
+        pts, _ = markers.select(plane)
+        try:
+            inside &= Delaunay(pts).find_simplex(bad) >= 0
+        except (QhullError, ValueError):  # too few or collinear markers: nothing covered
+            inside[:] = False
+    lacking = [p for p in problems if "not found" in p]
+    rows = (f"{len(lacking)} sweep row(s) lack beads (outside the field, hidden or too "
+            f"faint): {summarise_problems(lacking, limit=2)}") if lacking else ""
+    if not inside.all():
+        return (f"{np.count_nonzero(~inside)} of the {len(bad)} marker(s) beyond it lie where "
+                "the calibration planes' markers do not reach, so the spline extrapolates "
+                "there" + (f"; {rows}: keep the rod's beads inside the field" if rows else ""))
+    return (f"the {len(bad)} marker(s) beyond it lie where both calibration planes have "
+            "markers: the sweep's geometry (the rod poses the robot reports, the rod's "
+            "mounting or sag) or the image (distortion changing during the sweep) disagrees "
+            "with the calibration there, not the rows lacking beads")
 
 
 class SurfaceError(ValueError):

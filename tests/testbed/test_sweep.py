@@ -466,3 +466,37 @@ def test_one_validation_bead_reported_off_fails_the_view(clean_sweep):
     assert good.ok and good.validation_mm.max() < 0.1
     assert not bad.ok and "largest distance" in bad.message, bad.message
     assert np.median(bad.validation_mm) < 0.1 < bad.validation_mm.max()
+    # the bead lies amid both planes' markers: the cause is named as the sweep's geometry,
+    # not the rows lacking beads (a review: a robot's error was blamed on them)
+    assert "the 1 marker(s) beyond it lie where both calibration planes have markers" \
+        in bad.message and "the rod poses the robot reports" in bad.message, bad.message
+
+
+def test_a_validation_failure_beyond_the_calibrated_region_names_the_missing_beads():
+    """The markers beyond the limit lie where one plane's markers do not reach: the spline
+    extrapolates there, and the rows lacking beads are named as the cause."""
+    from types import SimpleNamespace
+
+    from reglib.markers import FAR, NEAR
+    from reglib.pipeline import _validation_cause
+
+    g = np.stack(np.meshgrid(np.linspace(100, 500, 9), np.linspace(100, 380, 7)), -1)
+    grid = g.reshape(-1, 2)
+    planes = {NEAR: grid, FAR: grid[grid[:, 0] < 400]}   # the far plane misses x >= 400
+
+    def select(plane):
+        return planes[plane], np.zeros((len(planes[plane]), 3))
+
+    markers = SimpleNamespace(select=select)
+    xy = np.array([[300.0, 200.0], [450.0, 200.0], [200.0, 300.0]])
+    lacking = ("view v, far plane, frame 3: beads [6, 7] not found (outside the field)",)
+    out = _validation_cause(markers, xy, np.array([0.2, 1.4, 1.2]), 1.0, lacking)
+    assert out.startswith("1 of the 2 marker(s) beyond it lie where the calibration planes' "
+                          "markers do not reach"), out
+    assert "1 sweep row(s) lack beads" in out and "keep the rod's beads inside" in out, out
+    inside = _validation_cause(markers, xy, np.array([0.2, 0.4, 1.2]), 1.0, lacking)
+    assert inside.startswith("the 1 marker(s) beyond it lie where both calibration planes "
+                             "have markers"), inside
+    # a plane with too few markers to cover anything: nothing is inside
+    planes[FAR] = grid[:2]
+    assert "do not reach" in _validation_cause(markers, xy, np.array([0.2, 0.4, 1.2]), 1.0, ())
