@@ -389,12 +389,12 @@ def _residuals_at(T: RigidTransform, p_ct, tans_ct, origins, directions, *, norm
     frame), across the contour when ``normal`` (the "normal" residual) else to the line,
     and the weights a solve would give them there (Tukey's biweight at the robust scale
     ``median / 0.6745`` when ``robust``, else ones)."""
-    p = T.apply(p_ct) - origins
+    p = T.apply(p_ct)
     if normal:
-        dist = np.abs(np.sum(p * _across(directions, T.apply_vectors(tans_ct)), axis=1))
+        dist = np.abs(np.sum((p - origins) * _across(directions, T.apply_vectors(tans_ct)),
+                             axis=1))
     else:
-        dist = np.linalg.norm(p - np.sum(p * directions, axis=1, keepdims=True) * directions,
-                              axis=1)
+        dist = point_line_distances(p, origins, directions)
     if not robust:
         return dist, np.ones_like(dist)
     s = float(np.median(dist)) / 0.6745

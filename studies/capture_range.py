@@ -68,16 +68,13 @@ JITTER_DEG = 3.0
 #: "linear", "robust-line" or "ransac" start cost 10-15x more and its success was that of
 #: the best of 13 starts, not the capture range of one registration: from 26-29 mm,
 #: "robust-line" and "ransac" reached 0.6-1.7 mm with restarts and 2.1-50 mm without.
+_ONCE = {"strategy": "single", "restarts": 0}
 METHODS = {
     "default": {},
-    "robust": {"strategy": "single", "method": "robust", "residual": "normal",
-               "restarts": 0},
-    "linear": {"strategy": "single", "method": "linear", "residual": "normal",
-               "restarts": 0},
-    "robust-line": {"strategy": "single", "method": "robust", "residual": "line",
-                    "max_iterations": 25, "restarts": 0},
-    "ransac": {"strategy": "single", "method": "ransac", "residual": "line",
-               "max_iterations": 25, "restarts": 0},
+    "robust": {**_ONCE, "method": "robust", "residual": "normal"},
+    "linear": {**_ONCE, "method": "linear", "residual": "normal"},
+    "robust-line": {**_ONCE, "method": "robust", "residual": "line", "max_iterations": 25},
+    "ransac": {**_ONCE, "method": "ransac", "residual": "line", "max_iterations": 25},
 }
 #: the default pipeline's method: it registers every start; the others the first
 #: ``others_per_bin`` starts of each bin (fewer rows of the baselines: the primary is what

@@ -300,7 +300,6 @@ class Scene(Spec):
             taken[key] = f"instruments[{i}].name {ins.name!r}"
         return self
 
-
     def _check_units(self) -> None:
         """Placements given in metres where millimetres are read: a view's isocentre (or the
         patient) a few millimetres from the robot base puts the femur out of every field,
@@ -310,18 +309,13 @@ class Scene(Spec):
         if self.scene.kind != "operating_room" or not self.views:
             return
         reach = 0.5 * self.phantom.length_mm + VIEW_REACH_MM
-
-        def middle(position_mm):
-            pose = PatientSpec(position_mm=position_mm,
-                               rotation_deg=self.patient.rotation_deg).ct2robot()
-            return pose.apply(np.array([0.0, 0.0, 0.5 * self.phantom.length_mm]))
-
-        m = middle(self.patient.position_mm)
+        m = self.patient.ct2robot().apply(np.array([0.0, 0.0, 0.5 * self.phantom.length_mm]))
         far = [i for i, v in enumerate(self.views)
                if np.linalg.norm(np.asarray(v.isocenter_mm) - m) > reach]
         if not far:
             return
-        m_si = middle(tuple(1000.0 * c for c in self.patient.position_mm))
+        # the femur's middle were position_mm metres: the translation alone scales
+        m_si = m + 999.0 * np.asarray(self.patient.position_mm)
         if all(np.linalg.norm(np.asarray(v.isocenter_mm) - m_si) <= reach for v in self.views):
             raise ValueError(
                 f"patient.position_mm = {list(self.patient.position_mm)} puts the femur's "
@@ -337,7 +331,7 @@ class Scene(Spec):
                     f"reaches {reach:.0f} mm); read as metres it would lie "
                     f"{np.linalg.norm(1000.0 * iso - m):.0f} mm from it: the scene's lengths "
                     "are millimetres")
-            if not {"isocenter_mm"} & self.views[i].model_fields_set:
+            if "isocenter_mm" not in self.views[i].model_fields_set:
                 raise ValueError(
                     f"views[{i}] ({self.views[i].name!r}) gives no isocenter_mm: its default "
                     f"[0, 0, 0] is the robot base, {np.linalg.norm(m):.0f} mm from the "
