@@ -70,6 +70,25 @@ class StudyContext:
         return self.out / filename
 
 
+def _enclosing_dataset(out) -> Path | None:
+    """The index (``dataset.json`` of ``testbed generate``) or case file (``case.json``
+    of a testbed case) of the folder that ``out`` is, or lies in; None when there is none."""
+    try:
+        here = Path(out).resolve()
+    except (OSError, RuntimeError):
+        return None
+    for folder in (here, *here.parents):
+        for name, key, value in (("dataset.json", "generator", "testbed generate"),
+                                 ("case.json", "format", "xray-reg-testbed-case")):
+            try:   # a file of that name that is not ours (a user's own dataset.json) is no
+                with open(folder / name, encoding="utf-8") as f:   # dataset of ours
+                    if json.load(f).get(key) == value:
+                        return folder / name
+            except (OSError, ValueError, AttributeError):
+                continue
+    return None
+
+
 def check_out_folder(out, name: str, *, study: str | None = None) -> None:
     """ValueError when folder ``out`` holds the report of another study than ``name`` (or a
     ``report.md`` no study wrote), or the trials of another ``study`` (default ``name``; the
@@ -77,6 +96,12 @@ def check_out_folder(out, name: str, *, study: str | None = None) -> None:
     report and leave its figures beside the new ones. The same study's folder resumes."""
     from studies.runner import DB_NAME, owner_conflict, stored_study
 
+    dataset = _enclosing_dataset(out)
+    if dataset is not None:
+        # score refused this; a study wrote its results.csv, report and database among the
+        # cases (a review)
+        raise ValueError(f"--out {out}: inside the dataset of {dataset}; a study's results "
+                         "go to a folder of their own (the dataset stays as generate wrote it)")
     owner, want = stored_study(out), name if study is None else study
     if owner_conflict(owner, want):
         # a study interrupted before its report leaves only its database: a review's other
@@ -99,6 +124,11 @@ def check_out_folder(out, name: str, *, study: str | None = None) -> None:
                              f"({'it is a folder' if path.is_dir() else 'not writable'}); "
                              "move it away or give another folder")
     report = Path(out) / "report.md"
+    if owner is not None and not owner_conflict(owner, want):
+        # the database names this very study: the folder is its own, and its report is
+        # written again at the end, whatever is left of it now (a report cut short by a full
+        # disk blocked the resume, and "give another folder" lost the stored trials)
+        return
     if not report.is_file():
         # a results.csv beside no report and no trial database is no study's: a user's file
         # that the study would replace (a review: score --out on a folder of one's own

@@ -51,6 +51,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import contextlib
 import datetime as _dt
+import functools
 import hashlib
 import json
 import math
@@ -60,6 +61,7 @@ import os
 import pickle
 import socket
 import sqlite3
+import sys
 import time
 import traceback
 import weakref
@@ -480,6 +482,18 @@ def _done_keys(con: sqlite3.Connection, *, retry_failed: bool) -> set[str]:
     else:
         q = "SELECT key FROM trials"
     return {k for (k,) in con.execute(q)}
+
+
+def _stale_count(con: sqlite3.Connection, todo: Sequence[Trial]) -> int:
+    """How many of ``todo`` have a stored trial of the same index and parameters under
+    another key (their fingerprint changed: other code, scene or files)."""
+    if not todo:
+        return 0
+    stored: dict[tuple[int, str], set[str]] = {}
+    for k, i, p in con.execute("SELECT key, trial, params FROM trials"):
+        stored.setdefault((int(i), p), set()).add(k)
+    return sum(bool(stored.get((t.index, json.dumps(t.params)), set()) - {t.key})
+               for t in todo)
 
 
 def _store(con: sqlite3.Connection, trial: Trial, res: TrialResult) -> None:
@@ -1183,6 +1197,14 @@ def run_trials(
         stored = _done_keys(con, retry_failed=retry_failed)
         todo = [t for t in sorted(trials, key=lambda t: t.index) if t.key not in stored]
         skipped = len(trials) - len(todo)
+        stale = _stale_count(con, todo)
+        if stale:
+            # said, not silent: a rerun that takes longer than the user expects has a reason
+            print(f"studies: {stale} trial(s) stored in {out / DB_NAME} with the same index "
+                  "and parameters were run by other code or on other inputs (the seed, the "
+                  "scene or a file it reads, a method's source, reglib / testbed / studies "
+                  "or a library's version changed since); they are run again",
+                  file=sys.stderr)
         executed = 0
         bar = _progress(len(trials), skipped, progress)
 
@@ -1211,13 +1233,60 @@ def run_trials(
     df = read_results(out, trials)
     df.attrs["executed"] = executed
     df.attrs["skipped"] = skipped
+    df.attrs["stale"] = stale
     return df
 
 
+#: the packages whose source a trial's result depends on (:func:`code_fingerprint`)
+CODE_PACKAGES = ("reglib", "testbed", "studies")
+#: the installed libraries whose versions do too (a numerical library upgraded changes
+#: results as an edit of ours does)
+CODE_LIBRARIES = ("numpy", "scipy", "numba", "trimesh", "embreex", "pybullet",
+                  "opencv-python-headless", "scikit-image")
+
+
+@functools.cache
+def code_fingerprint(packages: tuple[str, ...] = CODE_PACKAGES) -> str:
+    """:func:`fingerprint` of the code a trial runs: every ``*.py`` file of ``packages``
+    (by path relative to the package, and bytes) and the versions of
+    :data:`CODE_LIBRARIES`. Part of every study's and score's trial keys: results stored
+    by other code are run again, not taken from ``trials.sqlite`` (a review found a score
+    and a study reusing results after reglib was edited). Computed once per process."""
+    import importlib.metadata
+    import importlib.util
+
+    texts = []
+    files = []
+    for name in packages:
+        spec = importlib.util.find_spec(name)
+        if spec is None or not spec.submodule_search_locations:
+            texts.append(f"{name}: not found")
+            continue
+        root = Path(next(iter(spec.submodule_search_locations)))
+        for f in sorted(root.rglob("*.py")):
+            if "__pycache__" in f.parts:
+                continue
+            texts.append(f"{name}/{f.relative_to(root).as_posix()}")
+            files.append(f)
+    for lib in CODE_LIBRARIES:
+        try:
+            texts.append(f"{lib}=={importlib.metadata.version(lib)}")
+        except importlib.metadata.PackageNotFoundError:
+            texts.append(f"{lib}: not installed")
+    # the files by their bytes alone: where the checkout lies does not change a result
+    h = hashlib.sha256()
+    h.update(fingerprint(texts=texts).encode())
+    for f in files:
+        h.update(b"\0")
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
 def scene_fingerprint(scene) -> str:
-    """:func:`fingerprint` of a resolved scene (its every field, defaults included) and of
-    the files it names (a phantom mesh, a robot URDF): a study rerun into the same folder
-    after the scene file, or a file it reads, changed runs its trials again."""
+    """:func:`fingerprint` of a resolved scene (its every field, defaults included), of
+    the files it names (a phantom mesh, a robot URDF) and of the code that runs it
+    (:func:`code_fingerprint`): a study rerun into the same folder after the scene file, a
+    file it reads, or reglib / testbed / studies changed runs its trials again."""
     if scene is None or not hasattr(scene, "model_dump"):
         return ""
     from testbed.generate import scene_digest  # the digest a dataset records of its scene
@@ -1225,7 +1294,7 @@ def scene_fingerprint(scene) -> str:
     files = [p for p in (getattr(getattr(scene, "phantom", None), "mesh_path", None),
                          getattr(getattr(scene, "robot", None), "urdf", None))
              if p and p != "builtin"]
-    return fingerprint(texts=[scene_digest(scene)], files=files)
+    return fingerprint(texts=[scene_digest(scene), code_fingerprint()], files=files)
 
 
 def run_study_trials(ctx, trial_fn: Callable[[Trial], list[dict]],

@@ -27,11 +27,13 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import numpy as np
 import pandas as pd
 
-__all__ = ["DEFAULT_METHOD", "load_method", "score_case", "score_dataset"]
+__all__ = ["DEFAULT_METHOD", "CaseInputs", "case_inputs", "load_method", "score_case",
+           "score_dataset"]
 
 DEFAULT_METHOD = "reglib"
 
@@ -125,11 +127,27 @@ def _check_truth(truth, case_dir) -> None:
                              f"3 finite numbers (mm), got {pins[name]!r}")
 
 
-def score_case(case_dir, method: str = DEFAULT_METHOD) -> list[dict]:
-    """Rows of one case (see the module docstring)."""
-    import reglib
+class CaseInputs(NamedTuple):
+    """What ``testbed score`` gives a method for one case, and what it scores against."""
+
+    observation: Any     #: testbed.dataset.Observation: what the method may see
+    truth: Any           #: testbed.dataset.Truth: what it is scored against
+    scene: Any           #: testbed.scene.Scene: the case's resolved scene (truth)
+    start: Any           #: reglib.geometry.RigidTransform: the start ct2robot, mm
+    options: Any         #: reglib.EstimateOptions: reglib's options for the scene
+
+
+def case_inputs(case_dir) -> CaseInputs:
+    """The inputs ``testbed score`` uses for the case in ``case_dir``: the loaded case, its
+    stored scene, the start pose drawn as ``testbed run`` draws it
+    (:func:`studies.scoring.run_start`) and ``reglib.estimate``'s options for the scene
+    (its ``[registration]`` section, and with a ``fixed_pin`` the located pin, as
+    ``testbed run`` gives it). ``reglib.estimate(c.observation, c.start,
+    options=c.options)`` is the default method's score of the case, to the last bit when
+    :func:`studies.numerics.apply` ran before numpy was imported (the ``testbed`` command
+    does). ValueError naming the case when its truth or meta cannot be read."""
     from studies.end_to_end import estimate_options, with_fixed_pin
-    from studies.scoring import pin_errors, run_start
+    from studies.scoring import run_start
     from testbed.dataset import load
 
     obs, truth = load(case_dir)
@@ -144,14 +162,22 @@ def score_case(case_dir, method: str = DEFAULT_METHOD) -> list[dict]:
         raise ValueError(f"{case_dir}/case.json: meta lacks the case's scene or seed ({exc}); "
                          "was it written by testbed generate?") from None
     start = run_start(truth, scene, case_ss)
+    options = estimate_options(scene)
+    if scene.registration.fixed_pin:   # the located pin, as testbed run gives it
+        options = with_fixed_pin(options, truth.points["pins_ct"], scene.registration.fixed_pin)
+    return CaseInputs(obs, truth, scene, start, options)
+
+
+def score_case(case_dir, method: str = DEFAULT_METHOD) -> list[dict]:
+    """Rows of one case (see the module docstring)."""
+    import reglib
+    from studies.scoring import pin_errors
+
+    obs, truth, _, start, options = case_inputs(case_dir)
     fn = load_method(method)
     rows = []
     t0 = time.perf_counter()
     if fn is None:
-        options = estimate_options(scene)
-        if scene.registration.fixed_pin:   # the located pin, as testbed run gives it
-            options = with_fixed_pin(options, truth.points["pins_ct"],
-                                     scene.registration.fixed_pin)
         est = reglib.estimate(obs, start, options=options)
         pose = est.ct2robot
         rows += [{"metric": "accepted", "value": float(est.accepted), "unit": ""},
@@ -236,7 +262,7 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
         markdown_table,
         report_scene_warnings,
     )
-    from studies.runner import fingerprint, make_trials, run_trials
+    from studies.runner import code_fingerprint, fingerprint, make_trials, run_trials
     from testbed.dataset import list_cases
 
     dataset = Path(dataset)
@@ -262,9 +288,14 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
         source = None
     # ...each trial by its own case's record: a case added to the dataset, or one written
     # again, is scored alone (one fingerprint of every case.json scored them all again)
+    # ...and the code that runs and scores it: reglib (the default method, or one a user's
+    # method calls), testbed (the loader), studies (the scoring); "reglib" has no source
+    # file of its own, and an edited reglib was scored from the database (a review)
     method_files = [source] if source else []
-    trials = [dataclasses.replace(t, fingerprint=fingerprint(files=[c / "case.json",
-                                                                     *method_files]))
+    code = code_fingerprint()
+    trials = [dataclasses.replace(t, fingerprint=fingerprint(texts=[code],
+                                                             files=[c / "case.json",
+                                                                    *method_files]))
               for t, c in zip(make_trials(str(dataset.resolve()), 0, params), cases,
                               strict=True)]
     from testbed.dataset import load
@@ -302,14 +333,15 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
         # method reads (an estimates file, a helper module, a model's weights) is not, and a
         # review's estimates file changed under it was scored from the database silently
         reuse_note = (f"{reused} of {len(cases)} case(s) taken from {out / 'trials.sqlite'}, "
-                      "scored before with the same case files and method source; what the "
-                      "method reads elsewhere is not compared: delete that file to score them "
-                      "again")
+                      "scored before with the same case files, method source and reglib / "
+                      "testbed / studies code; what the method reads elsewhere is not "
+                      "compared: delete that file to score them again")
         print(f"testbed score: {reuse_note}", file=sys.stderr)
     # the seed the cases were drawn from, as they record it (dataset.json's, edited, was
     # shown in its place, a review); dataset.json's when the case does not say
     try:
-        seed = int(truth0.meta["dataset_seed"])
+        seed = int(truth0.meta.get("truth", {}).get("dataset_seed",
+                                                    truth0.meta.get("dataset_seed")))
     except (KeyError, TypeError, ValueError):
         try:
             seed = int(json.loads((dataset / "dataset.json").read_text()).get("seed", 0))

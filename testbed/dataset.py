@@ -72,8 +72,10 @@ SUPPORTED_VERSIONS = (2,)
 #: case.json says (fnmatch patterns): such a case calling one an observation is refused
 TRUTH_ENTRIES = ("arrays/xray_float_*", "arrays/sweep_truth_*", "arrays/rays_*",
                  "transforms/*", "meshes/*", "points/*")
-#: keys of meta that only the truth may see (the resolved scene, seeds)
-TRUTH_META_KEYS = ("truth",)
+#: keys of meta that only the truth may see: ``truth`` (the resolved scene, seeds) and,
+#: at the top level where generator versions before 6 wrote them, the case's index and the
+#: dataset's seed (with which a method simulated the case again)
+TRUTH_META_KEYS = ("truth", "case_index", "dataset_seed")
 INDEX_FILE = "dataset.json"
 GROUPS = ("volumes", "images", "arrays", "meshes", "transforms", "points")
 ROLES = ("observation", "truth")

@@ -35,9 +35,11 @@ _WRITING = re.compile(r"\.case_\d{4,}\.[A-Za-z0-9_]+")
 #: what the generator writes: 3 since 2026-11-26 (the truth's points/pins_robot_digitized),
 #: 4 since its seventh session (the scene file's path in the truth's meta only, the
 #: patient's placement drawn per case where the scene asks), 5 since its tenth (the CT in
-#: whole HU, stored as int16); a dataset resumed by another version is refused, so its
-#: cases are never mixed
-GENERATOR_VERSION = 5
+#: whole HU, stored as int16), 6 since its twenty-third (the case's index and the
+#: dataset's seed in the truth's meta only: with them a method simulated the case again and
+#: scored 0 mm); a dataset resumed by another version is refused, so its cases are never
+#: mixed
+GENERATOR_VERSION = 6
 
 #: entry name pattern -> (role, description); ``{view}`` is a view's name, ``{region}`` a CT
 #: region's (``proximal``, ``distal``).
@@ -285,7 +287,10 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
         if on_case is not None:
             on_case(i, sim)
         case, truth = case_entries(sim)
-        case["meta"].update(case_index=i, dataset_seed=int(seed), timings_s=sim.timings)
+        case["meta"].update(timings_s=sim.timings)
+        # the seed that makes the case again is truth, as the case's own seed is (in the
+        # observation's meta a method simulated the case from them and scored 0 mm, a review)
+        case["meta"]["truth"].update(case_index=i, dataset_seed=int(seed))
         # the scene file holds the patient's placement, i.e. the true ct2robot: truth only
         # (it was in the observation's meta: a method that parsed it scored 0 mm)
         case["meta"]["truth"]["scene_path"] = str(scene_path)

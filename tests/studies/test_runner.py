@@ -957,6 +957,50 @@ def test_a_study_interrupted_before_its_report_keeps_its_folder(tmp_path):
         check_out_folder(legacy, "surfaces", study="surfaces of /s.toml, seed 2")
 
 
+def test_a_report_cut_short_does_not_block_the_resume_its_database_names(tmp_path):
+    """A review: report.md cut short (a full disk) blocked the resume although
+    trials.sqlite names the study, with the advice to give another folder, which loses the
+    stored trials. The database's owner decides; a folder of no study's is still refused."""
+    from studies.common import check_out_folder
+
+    trials = make_trials("points-lines", 4, _params(2))
+    out = tmp_path / "s"
+    run_trials(toy_trial, trials, out_dir=out, progress=False, study="fig9 of /s.toml, seed 1")
+    for text in ("", "# Stu", "\x00\x00garbage"):
+        (out / "report.md").write_text(text)
+        check_out_folder(out, "fig9", study="fig9 of /s.toml, seed 1")
+        with pytest.raises(ValueError, match="holds the trials of 'fig9 of /s.toml, seed 1'"):
+            check_out_folder(out, "fig9", study="fig9 of /s.toml, seed 2")
+    # no database: the cut report is no study's, refused as before
+    (tmp_path / "r").mkdir()
+    (tmp_path / "r" / "report.md").write_text("# Stu")
+    with pytest.raises(ValueError, match="holds a report.md that no study wrote"):
+        check_out_folder(tmp_path / "r", "fig9")
+
+
+def test_a_study_is_refused_inside_a_dataset(tmp_path):
+    """A review: ``testbed study --out`` inside a dataset folder wrote its results among the
+    cases (``testbed score`` refused it). A file of that name that is not ours does not
+    count."""
+    from studies.common import check_out_folder
+
+    ds = tmp_path / "ds"
+    (ds / "case_0000").mkdir(parents=True)
+    (ds / "dataset.json").write_text(json.dumps({"generator": "testbed generate",
+                                                 "cases": ["case_0000"]}))
+    (ds / "case_0000" / "case.json").write_text(json.dumps({"format": "xray-reg-testbed-case"}))
+    for out in (ds, ds / "study", ds / "case_0000", ds / "case_0000" / "s"):
+        with pytest.raises(ValueError, match=f"--out {out}: inside the dataset of "):
+            check_out_folder(out, "fig9")
+    assert not (ds / "study").exists()
+    check_out_folder(tmp_path / "beside", "fig9")
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "dataset.json").write_text(json.dumps({"name": "my own data"}))
+    (mine / "case.json").write_text("not json")
+    check_out_folder(mine / "s", "fig9")
+
+
 def test_an_output_the_study_cannot_replace_is_refused_before_the_work(tmp_path, monkeypatch):
     """A folder named results.csv, or a figure that cannot be written, failed only after the
     whole study had run, with exit 1 and a bare OS message (a review)."""
@@ -1011,3 +1055,59 @@ def test_result_in_slices_returns_the_result_and_times_out_as_result_does(monkey
         assert due <= time.monotonic() - t0 < due + 1.0
         assert deadlines.timed_out(trial).error.startswith(
             "TimedOut: the trial still ran" if started else "TimedOut: no worker had started")
+
+
+def test_code_fingerprint_follows_the_package_source_not_its_place(tmp_path, monkeypatch):
+    """A study or score rerun after reglib was edited runs its trials again: the code
+    fingerprint follows each ``*.py`` file's bytes, a new file, and not the checkout's
+    folder."""
+    import shutil
+    import sys
+
+    from studies.runner import code_fingerprint
+
+    pkg = tmp_path / "a" / "fpkg"
+    (pkg / "sub").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("X = 1\n")
+    (pkg / "sub" / "m.py").write_text("Y = 2\n")
+    monkeypatch.syspath_prepend(str(tmp_path / "a"))
+
+    def fp():
+        code_fingerprint.cache_clear()
+        sys.modules.pop("fpkg", None)
+        return code_fingerprint(("fpkg",))
+
+    first = fp()
+    assert fp() == first
+    (pkg / "sub" / "m.py").write_text("Y = 3\n")
+    edited = fp()
+    assert edited != first
+    (pkg / "sub" / "n.py").write_text("")
+    assert fp() != edited
+    (pkg / "sub" / "n.py").unlink()
+    assert fp() == edited
+    # the same files elsewhere: the same fingerprint
+    shutil.copytree(pkg, tmp_path / "b" / "fpkg")
+    monkeypatch.syspath_prepend(str(tmp_path / "b"))
+    assert fp() == edited
+    # a package that cannot be found is counted by its name, not an error
+    code_fingerprint.cache_clear()
+    assert code_fingerprint(("no_such_package_xyz",)) != edited
+    code_fingerprint.cache_clear()
+
+
+def test_a_trial_stored_by_other_code_is_run_again_and_said(tmp_path, capsys):
+    from studies.runner import make_trials, run_trials
+
+    trials = make_trials("points-lines", 3, _params(2), fingerprint="code-1")
+    run_trials(toy_trial, trials, out_dir=tmp_path, progress=False)
+    capsys.readouterr()
+    again = make_trials("points-lines", 3, _params(2), fingerprint="code-2")
+    df = run_trials(toy_trial, again, out_dir=tmp_path, progress=False)
+    err = capsys.readouterr().err
+    assert "2 trial(s) stored in" in err and "run again" in err
+    assert df.attrs["stale"] == 2 and df.attrs["executed"] == 2
+    # the same code again: nothing stale, nothing run
+    df = run_trials(toy_trial, again, out_dir=tmp_path, progress=False)
+    assert df.attrs["stale"] == 0 and df.attrs["executed"] == 0
+    assert "run again" not in capsys.readouterr().err

@@ -2,6 +2,7 @@
 
 import json
 import re
+import shutil
 import time
 
 import numpy as np
@@ -60,7 +61,21 @@ def test_generated_case_round_trips_exactly_and_splits_truth(tmp_path):
     tmeta = truth.meta["truth"]
     assert tmeta["scene"] == case["meta"]["truth"]["scene"]
     assert tmeta["seed"] == {"entropy": 3, "spawn_key": [0]}
-    assert truth.meta["case_index"] == 0 and truth.meta["dataset_seed"] == 3
+    assert tmeta["case_index"] == 0 and tmeta["dataset_seed"] == 3
+    # the index and the dataset's seed make the case again: truth only, in either layout
+    # (a method given them simulated the case and scored 0 mm, a review); a case written
+    # by generator version 5 held them at the top of meta: the loader keeps them from it
+    for key in ("case_index", "dataset_seed", "seed"):
+        assert key not in obs.meta
+    raw = json.loads((dirs[0] / "case.json").read_text())
+    assert "dataset_seed" not in raw["meta"] and "case_index" not in raw["meta"]
+    raw["meta"].update(case_index=0, dataset_seed=3)
+    old = tmp_path / "old_layout"
+    shutil.copytree(dirs[0], old)
+    (old / "case.json").write_text(json.dumps(raw))
+    obs_old, truth_old = load(old)
+    assert "dataset_seed" not in obs_old.meta and "case_index" not in obs_old.meta
+    assert truth_old.meta["dataset_seed"] == 3
     assert tmeta["scene"]["phantom"]["shape_seed"] != scene.phantom.shape_seed
     assert obs.meta["views"] == ["distal_ap"]
     # the scene file (the patient's placement: the true ct2robot) is named to the truth only
@@ -172,7 +187,7 @@ def test_generated_case_round_trips_exactly_and_splits_truth(tmp_path):
 def _with_file_name(case_dir, tmp_path):
     """A copy of the case whose case.json lists a file outside the case folder."""
     import json
-    import shutil
+
 
     copy = tmp_path / "escape" / case_dir.name
     shutil.copytree(case_dir, copy)
@@ -285,7 +300,7 @@ def test_case_streams_never_spawn_from_the_case_seed():
 
 
 @pytest.mark.slow
-def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path, capsys):
+def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path, capsys, monkeypatch):
     """The same scene and seed: a generated case, loaded from disk and given to
     reglib.estimate, scores exactly as ``testbed run`` does in memory."""
     import reglib
@@ -343,6 +358,27 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path, capsys):
     df = pd.read_csv(tmp_path / "s" / "results.csv")
     got = df[df.metric == "pin_error"].set_index("pin")["value"].to_dict()
     assert got == pytest.approx(from_disk, abs=1e-12)
+    # the snippets of the README and docs/dataset-format.md give testbed score's figures
+    # (a review: without the scene's options they ran another method)
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+
+    def snippet(doc, marker):
+        blocks = re.findall(r"```python\n(.*?)```", (root / doc).read_text(), re.S)
+        (code,) = [b for b in blocks if marker in b]
+        return code
+
+    env = {}
+    exec(snippet("README.md", "case_inputs(").replace('"data/case_0000"', repr(str(case_dir))),
+         env)
+    assert np.array_equal(env["est"].ct2robot.as_matrix(), est.ct2robot.as_matrix())
+    capsys.readouterr()
+    exec(snippet("docs/dataset-format.md", "case_inputs(").replace(
+        'DIR = "data"', f"DIR = {str(tmp_path / 'ds')!r}"), {})
+    shown = capsys.readouterr().out.split()
+    assert shown[0] == case_dir.name
+    assert float(shown[1]) == pytest.approx(np.mean(list(from_disk.values())), abs=1e-9)
     # the report says what the method's verdict made of it (README: "reported too")
     assert (f"The method's verdict accepted {int(result['accepted'])} of 1"
             in (tmp_path / "s" / "report.md").read_text())
@@ -450,7 +486,7 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path, capsys):
 
     # a broken first case costs only itself: the second is scored and the report written
     import hashlib
-    import shutil
+
 
     ds2 = tmp_path / "ds2"
     shutil.copytree(tmp_path / "ds", ds2)
@@ -498,6 +534,27 @@ def test_dataset_case_scores_as_testbed_run_and_any_method(tmp_path, capsys):
     assert sorted(after.index) == [0, 1, 2]
     assert after.loc[1, "finished_at"] == before.loc[1, "finished_at"]
     assert after.loc[1, "key"] == before.loc[1, "key"]
+    # reglib / testbed / studies edited (the default method has no source file of its own):
+    # every case scored again, and said why (a review's edited reglib was scored from the
+    # database with "the same ... method source")
+    import studies.runner
+
+    real = studies.runner.code_fingerprint()
+    monkeypatch.setattr(studies.runner, "code_fingerprint", lambda: real + "-edited")
+    capsys.readouterr()
+    score_dataset(ds2, tmp_path / "s6", progress=False)
+    err = capsys.readouterr().err
+    assert "3 trial(s) stored in" in err and "run by other code" in err, err
+    assert "taken from" not in err
+    edited = read_trials(tmp_path / "s6")
+    edited = edited[~edited.key.isin(after.key)].set_index("trial")
+    assert sorted(edited.index) == [0, 1, 2]
+    # and a study's trials too: the scene's fingerprint holds the code's
+    from studies.runner import scene_fingerprint
+
+    edited_scene = scene_fingerprint(scene)
+    monkeypatch.undo()
+    assert scene_fingerprint(scene) != edited_scene
 
     # the only case renamed: the refusal names the cases the index lists and the folder lacks
     ds3 = tmp_path / "ds3"
