@@ -402,6 +402,16 @@ class RigidTransform:
         )
 
 
+def _significant_past(value: float, limit: float) -> str:
+    """``value`` with the significant digits that tell it from ``limit`` (2 significant ones, more
+    where those would print the limit: 0.0010005 against 0.001 read as "0.001")."""
+    for digits in range(2, 10):
+        text = f"{value:.{digits}g}"
+        if float(text) != limit or value == limit:
+            return text
+    return repr(value)
+
+
 #: largest |R^T R - I| of a (4, 4) pose read from outside that is taken as a rounded
 #: rotation and made orthonormal (the nearest rotation; 1e-3 is 0.06 deg or a scale of
 #: 1.0005); beyond it the matrix is refused
@@ -442,7 +452,8 @@ def as_rigid_transform(value, name: str = "initial") -> RigidTransform:
     if (not np.allclose(m[3], [0, 0, 0, 1]) or off > ROUNDED_ROTATION_TOL
             or np.linalg.det(R) < 0):
         raise ValueError(f"{name}: the (4, 4) matrix is not a rigid transform (its 3x3 part "
-                         f"must be a rotation: |R^T R - I| = {off:.2g}, at most "
+                         f"must be a rotation: |R^T R - I| = "
+                         f"{_significant_past(off, ROUNDED_ROTATION_TOL)}, at most "
                          f"{ROUNDED_ROTATION_TOL:g}, det {np.linalg.det(R):.4g}; its last row "
                          "[0, 0, 0, 1])")
     if off > 1e-9:   # a matrix printed or stored rounded (4 decimals: 1e-5-1e-4): the

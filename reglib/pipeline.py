@@ -476,6 +476,15 @@ def _xray_frame(images: Mapping, view: str) -> np.ndarray:
                          f"shape {a.shape}")
     if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
         raise ValueError(f"observation: {name}: the frame holds NaN or inf")
+    # grey levels of another scale than the video's: a caller's conversion, which left the
+    # view out as if the clinic had lost it (a review: "no pixel above the dark level")
+    if a.dtype.kind == "b":
+        raise ValueError(f"observation: {name}: a bool frame (a mask?); expected the "
+                         "video's grey levels (0-255, as its sweep's frames)")
+    if a.dtype.kind == "f" and a.size and 0.0 < float(a.max()) <= 1.0:
+        raise ValueError(f"observation: {name}: its values lie within [0, 1] (largest "
+                         f"{float(a.max()):.3g}): expected the video's grey levels (0-255, "
+                         "as its sweep's frames); scale it by 255")
     return a
 
 
@@ -590,9 +599,12 @@ def _sweep_geometry(sweep) -> str:
     n = vt[2]
     gap = float((far.mean(axis=0) - near.mean(axis=0)) @ n)
     if abs(gap) < MIN_PLANE_GAP_MM:
+        spread = float(sv[0] / np.sqrt(len(near)))
+        units = (f"; the beads spread over only {spread:.2g} mm: are beads_reported in metres?"
+                  if spread < 1.0 else "")
         return (f"view {sweep.view}: the near and far planes lie {abs(gap):.1f} mm apart (need "
                 f"at least {MIN_PLANE_GAP_MM:g} mm): a path through both has no sound "
-                "direction")
+                f"direction{units}")
     if len(val):
         v = float((val.mean(axis=0) - near.mean(axis=0)) @ n)
         off = min(abs(v), abs(v - gap))

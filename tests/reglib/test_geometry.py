@@ -179,3 +179,18 @@ def test_robust_scale_is_the_mad_over_its_normal_factor_and_nan_for_nothing():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert np.isnan(robust_scale([]))
+
+
+def test_a_rotation_just_past_its_rounding_limit_does_not_read_as_the_limit():
+    """h75: a start scaled by 1.0005 was refused with "|R^T R - I| = 0.001, at most
+    0.001"; the figure now shows the digits that set it past the limit."""
+    from reglib.geometry import ROUNDED_ROTATION_TOL, as_rigid_transform
+
+    m = np.eye(4)
+    m[:3, :3] *= 1.0005
+    with pytest.raises(ValueError, match=r"\|R\^T R - I\| = 0\.001000\d*, at most 0\.001,"):
+        as_rigid_transform(m, "initial")
+    m[:3, :3] = np.eye(3) * 1.1
+    with pytest.raises(ValueError, match=r"\|R\^T R - I\| = 0\.21, at most 0\.001,"):
+        as_rigid_transform(m, "initial")
+    assert ROUNDED_ROTATION_TOL == 1e-3

@@ -49,6 +49,13 @@ def test_sweep_planes_that_cannot_calibrate_or_validate_are_named_failures():
     cal = calibrate_view("v", frames, _sweep_arrays(830.0, 835.0, 890.0))
     assert not cal.ok and "the near and far planes lie 5.0 mm apart (need at least 20" in \
         cal.message
+    assert "metres" not in cal.message
+    # the robot's report in metres (h75): the message says what it looks like
+    metres = _sweep_arrays(830.0, 950.0, 890.0)
+    metres["beads_reported"] = metres["beads_reported"] / 1000.0
+    cal = calibrate_view("v", frames, metres)
+    assert not cal.ok and "planes lie 0.1 mm apart" in cal.message
+    assert "are beads_reported in metres?" in cal.message
     cal = calibrate_view("v", frames, _sweep_arrays(830.0, 950.0, 831.0))
     assert not cal.ok and "the validation row lies 1.0 mm from a calibration plane" in \
         cal.message
@@ -509,9 +516,16 @@ def test_a_malformed_xray_frame_is_refused_naming_the_entry():
     for bad, match in ((np.zeros((48, 64, 3), np.uint8), r"expected one \(H, W\) grey-level "
                         r"frame, got shape \(48, 64, 3\)"),
                        (nan, "holds NaN or inf"), (np.zeros((48, 64), complex), "complex"),
-                       ("frame", "images/xray_a")):
+                       ("frame", "images/xray_a"),
+                       # another scale than the video's (h75: left the view out as lost)
+                       (np.ones((48, 64), bool), "a bool frame"),
+                       (np.full((48, 64), 0.7), r"its values lie within \[0, 1\] \(largest "
+                                                r"0.7\).*scale it by 255")):
         with pytest.raises(ValueError, match=match):
             _xray_frame({"xray_a": bad}, "a")
+    # grey levels as floats, or a black (lost) frame of floats, pass as they are
+    for fine in (np.full((48, 64), 180.0), np.zeros((48, 64)), np.full((48, 64), 900, np.uint16)):
+        assert _xray_frame({"xray_a": fine}, "a") is not None
     with pytest.raises(ValueError, match="missing entry images/xray_b"):
         _xray_frame({"xray_a": good}, "b")
 
