@@ -815,8 +815,12 @@ def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
                              "(-1000 HU)")
     s2c = np.asarray(slice2ct, dtype=np.float64)
     if s2c.shape != (vol.shape[2], 4, 4):
+        order = (f"; the volume's first axis has {vol.shape[0]}, as many as the matrices: is "
+                 "it stored (slice, row, col)? The volume is (col, row, slice): "
+                 "np.transpose(volume, (2, 1, 0))"
+                 if s2c.ndim == 3 and s2c.shape[0] == vol.shape[0] != vol.shape[2] else "")
         raise ValueError(f"slice2ct: expected ({vol.shape[2]}, 4, 4) matrices (one per slice of "
-                         f"the CT volume), got shape {s2c.shape}")
+                         f"the CT volume), got shape {s2c.shape}{order}")
     if not np.all(np.isfinite(s2c)):
         raise ValueError("slice2ct: holds NaN or infinite entries")
     bad = np.flatnonzero(np.abs(s2c[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1) > 1e-9)

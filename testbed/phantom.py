@@ -516,6 +516,12 @@ def _check_closed(mesh: trimesh.Trimesh, what: str) -> None:
         raise ValueError(
             f"{what} is not a closed manifold solid (watertight={mesh.is_watertight}, "
             f"winding consistent={mesh.is_winding_consistent}, volume={mesh.is_volume})"
+            + ("; its faces' winding disagrees: trimesh.repair.fix_winding(mesh) and "
+               "fix_normals(mesh) mend that, if it is otherwise closed"
+               if mesh.is_watertight and not mesh.is_winding_consistent
+               else "; its edges are not each shared by two faces: close its holes "
+               "(trimesh.repair.fill_holes, or a mesh editor)" if not mesh.is_watertight
+               else "")
         )
 
 

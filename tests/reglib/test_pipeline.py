@@ -78,6 +78,13 @@ def test_sweep_planes_that_cannot_calibrate_or_validate_are_named_failures():
         calibrate_view("v", frames[0], good)
 
 
+def _raises(fn) -> str:
+    """The message of the ValueError ``fn()`` raises."""
+    with pytest.raises(ValueError) as info:
+        fn()
+    return str(info.value)
+
+
 def test_initial_must_be_rigid():
     obs = {"meta": {"views": ["v"]}, "images": {}, "arrays": {}, "volumes": {}}
     for bad in (2 * np.eye(4), np.diag([1.0, 1.0, -1.0, 1.0]), np.full((4, 4), np.nan),
@@ -172,6 +179,13 @@ def test_ct_surface_input_is_checked_and_a_failed_region_is_a_surface_error():
         ct_surfaces(vol, np.full((4, 4, 4), np.nan), {"distal": good})
     with pytest.raises(ValueError, match=r"slice2ct: expected \(4, 4, 4\) matrices"):
         ct_surfaces(vol, s2c[:2], {"distal": good})
+    # a volume stored (slice, row, col) (h75): the message says so
+    stacked = np.zeros((4, 20, 30), dtype=vol.dtype)
+    with pytest.raises(ValueError, match=r"expected \(30, 4, 4\) matrices .*first axis has 4, "
+                                         r"as many as the matrices: is it stored \(slice, row, "
+                                         r"col\)\?"):
+        ct_surfaces(stacked, s2c, {"distal": good})
+    assert "slice, row, col" not in _raises(lambda: ct_surfaces(vol, s2c[:2], {"distal": good}))
     projective = s2c.copy()
     projective[2, 3, 2] = 5.0
     with pytest.raises(ValueError, match=r"slice2ct: the matrices of slices \[2\] are not "

@@ -187,6 +187,15 @@ def test_user_mesh(tmp_path, monkeypatch):
         make_phantom(PhantomSpec(mesh_path=str(bad), mesh_pins_mm=pins))
     with pytest.raises(ValueError, match="no such file"):
         make_phantom(PhantomSpec(mesh_path=str(tmp_path / "missing.ply"), mesh_pins_mm=pins))
+    # faces of reversed winding (h75: the flags alone, no way to mend it said)
+    flipped = good.copy()
+    faces = flipped.faces.copy()
+    faces[:10] = faces[:10, ::-1]
+    flipped = trimesh.Trimesh(flipped.vertices, faces, process=False)
+    flipped.export(tmp_path / "flipped.ply")
+    with pytest.raises(ValueError, match=r"winding consistent=False.*winding disagrees: "
+                                         r"trimesh.repair.fix_winding\(mesh\)"):
+        make_phantom(PhantomSpec(mesh_path=str(tmp_path / "flipped.ply"), mesh_pins_mm=pins))
     # a mesh finer than any CT resolves is refused before any work (3.67 million triangles
     # hung a run): the limit lowered to below this mesh's count
     import testbed.phantom as P
