@@ -525,16 +525,24 @@ def _view_names(observation) -> list[str]:
     if twice:   # the same frames and sweep would count twice in the registration
         raise ValueError(f"observation: meta['views'] lists {', '.join(map(repr, twice))} "
                          "more than once; each view must be listed once")
-    regions = meta.get("view_regions")
-    if regions is not None:   # optional; the verdict reads it (lone_region)
-        if isinstance(regions, np.ndarray):
-            regions = regions.tolist()
-        if not isinstance(regions, list | tuple) or len(regions) != len(names):
-            raise ValueError(f"observation: meta['view_regions'] must give one CT region per "
-                             f"view of meta['views'] ({len(names)}: {', '.join(names)}), got "
-                             f"{regions!r:.80}; a view taken out of meta['views'] must be taken "
-                             "out of it too")
+    _view_regions(meta, names)    # optional, but never out of step with the views
     return names
+
+
+def _view_regions(meta: Mapping, names: list[str]) -> list[str] | None:
+    """``meta["view_regions"]`` as one CT region name per view of ``names`` (the views of
+    ``meta["views"]``), None when absent; a ValueError when it does not follow them."""
+    regions = meta.get("view_regions")
+    if regions is None:
+        return None
+    if isinstance(regions, np.ndarray):
+        regions = regions.tolist()
+    if not isinstance(regions, list | tuple) or len(regions) != len(names):
+        raise ValueError(f"observation: meta['view_regions'] must give one CT region per "
+                         f"view of meta['views'] ({len(names)}: {', '.join(names)}), got "
+                         f"{regions!r:.80}; a view taken out of meta['views'] must be taken "
+                         "out of it too")
+    return [str(r) for r in regions]
 
 
 # --------------------------------------------------------------------------- stages
@@ -1486,22 +1494,16 @@ def lone_region(observation, stages) -> str:
     located) is no objection; without ``view_regions`` there is none to make."""
     if not stages.failed:
         return ""
-    try:
-        meta = _part(observation, "meta")
+    try:   # as prepare read them (stages given with another observation: no objection)
+        names = _view_names(observation)
+        regions = _view_regions(_part(observation, "meta"), names)
     except ValueError:
         return ""
-    regions = meta.get("view_regions")
-    names = meta.get("views")
-    if isinstance(regions, np.ndarray):
-        regions = regions.tolist()
-    if isinstance(names, np.ndarray):
-        names = names.tolist()
-    if (not isinstance(regions, list | tuple) or not isinstance(names, list | tuple)
-            or len(regions) != len(names)):
+    if regions is None:
         return ""
     used = {str(v.name) for v in stages.views}
-    for region in sorted({str(r) for r in regions}):
-        given = [str(n) for n, r in zip(names, regions, strict=True) if str(r) == region]
+    for region in sorted(set(regions)):
+        given = [n for n, r in zip(names, regions, strict=True) if r == region]
         left = [n for n in given if n in used]
         if len(given) >= 2 and len(left) == 1:
             out = [n for n in given if n not in used]

@@ -513,16 +513,18 @@ def _tissue_scales(spec: PhantomSpec, d: _Dims) -> tuple[float, float]:
 
 def _check_closed(mesh: trimesh.Trimesh, what: str) -> None:
     if not (mesh.is_watertight and mesh.is_winding_consistent and mesh.is_volume):
+        if not mesh.is_watertight:
+            mend = ("; its edges are not each shared by two faces: close its holes "
+                    "(trimesh.repair.fill_holes, or a mesh editor)")
+        elif not mesh.is_winding_consistent:
+            mend = ("; its faces' winding disagrees: trimesh.repair.fix_winding(mesh) and "
+                    "fix_normals(mesh) mend that, if it is otherwise closed")
+        else:
+            mend = ""
         raise ValueError(
             f"{what} is not a closed manifold solid (watertight={mesh.is_watertight}, "
             f"winding consistent={mesh.is_winding_consistent}, volume={mesh.is_volume})"
-            + ("; its faces' winding disagrees: trimesh.repair.fix_winding(mesh) and "
-               "fix_normals(mesh) mend that, if it is otherwise closed"
-               if mesh.is_watertight and not mesh.is_winding_consistent
-               else "; its edges are not each shared by two faces: close its holes "
-               "(trimesh.repair.fill_holes, or a mesh editor)" if not mesh.is_watertight
-               else "")
-        )
+            f"{mend}")
 
 
 #: a user mesh whose surface moves by less than this (mm RMS) under some turn of 30-330 deg
