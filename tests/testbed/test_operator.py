@@ -295,3 +295,33 @@ def test_proximal_clicks_keep_the_longest_run_in_mm_not_in_slices():
     got = ct_clicks(vol, z, {"proximal": np.arange(n)}, pixel_mm=1.0, spec=spec,
                     rng=np.random.default_rng(0))["proximal"]
     assert got.slices.tolist() == list(range(8))
+
+
+def test_proximal_clicks_leave_out_the_head_above_its_separation_even_when_longer():
+    """A valgus, long-necked femur (a held-out capture-range case): the greater trochanter
+    shows beside the neck on two 6 mm slices, and the run above them (neck and head, 54 mm)
+    is longer than the shaft's below (48 mm). The user outlines the shaft and trochanters
+    and leaves out the head: the run below, not the longer one."""
+    n, shape = 21, (80, 120)
+    z = np.arange(n, dtype=float) * 6.0
+    vol = np.full((n, *shape), 30.0)
+    for k in range(11):
+        vol[k][_disk(shape, (50, 40), 14)] = 1200.0      # shaft and trochanters, 0-60 mm
+    for k in (9, 10):
+        vol[k][_disk(shape, (50, 40), 14)] = 30.0
+        vol[k][_disk(shape, (45, 40), 10)] = 1200.0      # the neck's base
+        vol[k][_disk(shape, (75, 40), 7)] = 1200.0       # the greater trochanter's tip
+    for k in range(11, n):
+        vol[k][_disk(shape, (40 - (k - 11), 40), 12)] = 1200.0   # neck and head, 66-120 mm
+    spec = OperatorSpec(ct_click_noise_px=0.0)
+    got = ct_clicks(vol, z, {"proximal": np.arange(n)}, pixel_mm=1.0, spec=spec,
+                    rng=np.random.default_rng(0))["proximal"]
+    assert got.slices.tolist() == list(range(9))
+    # the same slices without the separation are one run, the head included, as a user
+    # outlines a femur whose head never shows apart from the neck
+    for k in (9, 10):
+        vol[k][:] = 30.0
+        vol[k][_disk(shape, (50, 40), 14)] = 1200.0
+    got = ct_clicks(vol, z, {"proximal": np.arange(n)}, pixel_mm=1.0, spec=spec,
+                    rng=np.random.default_rng(0))["proximal"]
+    assert got.slices.tolist() == list(range(n))
