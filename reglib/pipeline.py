@@ -7,7 +7,10 @@
    row (distances of the robot-reported bead positions to the X-ray paths of their images).
    A view whose calibration cannot be made, or whose validation distance exceeds
    ``EstimateOptions.max_validation_mm``, is a failed view (named, with the reason), never a
-   silently wrong calibration;
+   silently wrong calibration; so is a view whose bone outline's X-ray paths miss its
+   calibrated source (:func:`path_miss`, ``EstimateOptions.max_path_miss_mm``: the spline
+   extrapolated where the sweep's beads did not reach), checked once its contours are
+   traced (step 3);
 2. :func:`ct_surfaces`: per CT region, snake contours from the operator's clicks, tiled and
    simplified into a surface;
 3. :func:`xray_contours`, per view: snake contours on the X-ray frame from the operator's
@@ -50,6 +53,7 @@ from reglib.geometry import (
     as_flags,
     as_rigid_transform,
     as_whole,
+    closest_point_to_lines,
     point_line_distances,
 )
 from reglib.surface import SURFACE_SIMPLIFY_TOL_MM
@@ -75,6 +79,21 @@ TPS_SMOOTHING = 0.01
 #: a calibration whose validation row lies farther than this from its X-ray paths fails
 #: (mm; the paper measured 0.1-0.4 mm on good calibrations)
 MAX_VALIDATION_MM = 1.0
+#: a view whose X-ray paths through the bone's outline pass farther than this (mm, median)
+#: from its calibrated source (:func:`supported_centre`) fails: every X-ray path leaves the
+#: one focal spot, and a calibration the sweep's beads support where the outline lies passes
+#: within about 1.5 mm of it (medians 0.6-1.4 mm over the 48 views of 12 clinic experiment2
+#: cases, 0.5-0.9 mm over experiment1's 12; 0.5-2.4 mm on held-out sweeps of 3 rows and
+#: pincushions of 4 times the clinic's, whose outlines were 0.3-0.6 mm off at the bone). A
+#: held-out review (2026-11-28, h76) found calibrations used where the sweep never reached,
+#: their validation row (near the field's centre) 0.2-0.5 mm: a femur 100 mm off the beam's
+#: axis (its outline wholly beyond the beads' reach) was accepted with mTRE 2.1 and 2.6 mm,
+#: the outline's paths 1.1-1.8 mm off at the bone and missing the source by a median 2.9-8.3
+#: mm; a strong S-distortion left an outline 4-11 mm off (90th percentile) beyond the beads
+#: (3.6-5.4 mm from the source); past 10 mm the registration's own check
+#: (reglib.register.CENTER_TOLERANCE_MM) had ended the whole estimate. The paths' error at
+#: the bone is about a third of their miss at the source (the planes lie beyond the bone).
+MAX_PATH_MISS_MM = 2.5
 #: fewer validation markers than this: the calibration cannot be checked and fails
 MIN_VALIDATION_MARKERS = 3
 #: a sweep whose near and far planes lie closer than this (mm, along their normal) fixes
@@ -195,6 +214,8 @@ class EstimateOptions:
 
     ``tps_smoothing``: thin-plate-spline smoothing (the paper's 0.01); ``max_validation_mm``
     and ``min_validation_markers``: when a view's calibration fails its validation;
+    ``max_path_miss_mm``: when a view fails because the X-ray paths of its bone outline miss
+    the calibrated source (median, mm; :func:`path_miss`, :data:`MAX_PATH_MISS_MM`);
     ``simplify_tol_mm`` and ``surface_quality``: CT surface simplification and tiling;
     ``registration``: keyword options of :func:`reglib.register.register` (``method``,
     ``residual``, ``tukey_a``, ``max_iterations``, ...); ``strategy``: ``"single"`` runs
@@ -230,6 +251,7 @@ class EstimateOptions:
 
     tps_smoothing: float = TPS_SMOOTHING
     max_validation_mm: float = MAX_VALIDATION_MM
+    max_path_miss_mm: float = MAX_PATH_MISS_MM
     min_validation_markers: int = MIN_VALIDATION_MARKERS
     simplify_tol_mm: float = SURFACE_SIMPLIFY_TOL_MM
     surface_quality: Literal["area", "compactness"] = "area"
@@ -258,8 +280,8 @@ class EstimateOptions:
             if not (is_real(v) and np.isfinite(v) and v >= 0):
                 raise ValueError(f"EstimateOptions.{name}: expected a finite number >= 0, "
                                  f"got {v!r}")
-        for name in ("max_validation_mm", "accept_max_median_mm", "accept_max_weak_motion_mm",
-                     "accept_max_alternative_mm"):
+        for name in ("max_validation_mm", "max_path_miss_mm", "accept_max_median_mm",
+                     "accept_max_weak_motion_mm", "accept_max_alternative_mm"):
             v = getattr(self, name)
             if not (is_real(v) and v > 0):
                 raise ValueError(f"EstimateOptions.{name}: expected a number > 0, got {v!r}")
@@ -388,6 +410,9 @@ class Stages:
     #: surfaces were made from the CT here (None: surfaces given); the verdict's
     #: weakest-motion limit shrinks beyond WEAK_MOTION_GAP_MM (:func:`weak_motion_limit`)
     slice_gap_mm: float | None = None
+    #: view -> median distance (mm) of its contour paths from its calibrated center of
+    #: perspective (:func:`path_miss`), for every view whose paths were made
+    path_miss_mm: dict = field(default_factory=dict)
 
     def topology(self, region):
         """The :class:`reglib.apparent.SurfaceTopology` of ``surfaces[region]``, made once
@@ -1144,7 +1169,7 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
         slice_gap_mm = max(gaps.values(), default=None)
     timings["surfaces"] = time.perf_counter() - t0
 
-    cals, conts, views, failed = {}, {}, [], {}
+    cals, conts, views, failed, miss = {}, {}, [], {}, {}
     for v in names:
         t0 = time.perf_counter()
         sweep = images.get(f"sweep_{v}")
@@ -1204,10 +1229,97 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
                          + (f" ({'; '.join(con.problems)[:300]})" if con.problems else ""))
             continue
         o, d = cal.calibration.paths(con.xy)
-        views.append(View(center=cal.calibration.center_of_perspective(), origins=o,
-                          directions=d, external=con.external, name=v))
+        centre = cal.calibration.center_of_perspective()
+        miss[v] = path_miss(supported_centre(cal.calibration), o, d)
+        if miss[v] > options.max_path_miss_mm:
+            failed[v] = _path_miss_message(cal.calibration, con.xy, miss[v],
+                                           options.max_path_miss_mm)
+            continue
+        try:
+            views.append(View(center=centre, origins=o, directions=d, external=con.external,
+                              name=v))
+        except ValueError as exc:   # the view's own checks: this view, not the estimate
+            failed[v] = f"calibration: {exc}"
     return Stages(cals, dict(surfaces), conts, views, failed, timings, notes=tuple(notes),
-                  slice_gap_mm=slice_gap_mm)
+                  slice_gap_mm=slice_gap_mm, path_miss_mm=miss)
+
+
+def _covered(calibration, xy_px) -> np.ndarray | None:
+    """(N,) bool: pixels ``xy_px`` inside the region both calibration planes' markers cover
+    (each plane's Delaunay triangulation of its markers' pixels), where neither plane's
+    spline extrapolates; None when the calibration has no such planes (e.g. a true
+    calibration given by a study)."""
+    from scipy.spatial import Delaunay, QhullError
+
+    xy = np.asarray(xy_px, dtype=np.float64).reshape(-1, 2)
+    inside = np.ones(len(xy), dtype=bool)
+    for plane in ("near", "far"):
+        centres = getattr(getattr(calibration, plane, None), "centres_px", None)
+        if centres is None:
+            return None
+        try:
+            inside &= Delaunay(np.asarray(centres, dtype=np.float64)).find_simplex(xy) >= 0
+        except (QhullError, ValueError):      # too few or collinear markers: none covered
+            inside[:] = False
+    return inside
+
+
+#: fewest markers inside both planes' cover that :func:`supported_centre` takes the source
+#: from
+MIN_SUPPORTED_MARKERS = 6
+
+
+def supported_centre(calibration) -> np.ndarray:
+    """The view's source (3,) robot mm as its calibration holds it: the point nearest in
+    least squares to the X-ray paths of the calibration markers (both planes') that lie where
+    both planes' markers cover the image, so that neither spline extrapolates
+    (:func:`_covered`). ``calibration.center_of_perspective()`` takes the near plane's every
+    marker, whose paths beyond the far plane's cover extrapolate: with a pincushion four
+    times the clinic's it was 32-66 mm from the source while the supported markers' paths
+    met 1.5-1.9 mm from it (a held-out review, 2026-11-28); it stands in when fewer than
+    :data:`MIN_SUPPORTED_MARKERS` markers are covered or the calibration has no planes."""
+    pts = [getattr(getattr(calibration, plane, None), "centres_px", None)
+           for plane in ("near", "far")]
+    if any(p is None for p in pts):
+        return calibration.center_of_perspective()
+    pts = np.vstack([np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in pts])
+    inside = _covered(calibration, pts)
+    if inside is None or np.count_nonzero(inside) < MIN_SUPPORTED_MARKERS:
+        return calibration.center_of_perspective()
+    o, d = calibration.paths(pts[inside])
+    return closest_point_to_lines(o, d)
+
+
+def path_miss(centre, origins, directions) -> float:
+    """Median distance (mm) of X-ray paths (``origins``, ``directions`` (N, 3), robot mm)
+    from ``centre`` (3,), the view's source as its calibration holds it
+    (:func:`supported_centre`); nan for no path. Every X-ray path leaves the focal spot:
+    where the calibration holds they pass within about a millimetre of it, where the spline
+    extrapolates beyond the sweep's beads (or the sweep disagrees with itself) they miss
+    it."""
+    o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    if len(o) == 0:
+        return float("nan")
+    c = np.broadcast_to(np.asarray(centre, dtype=np.float64), o.shape)
+    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    return float(np.median(point_line_distances(c, o, d)))
+
+
+def _path_miss_message(calibration, xy_px, miss_mm: float, limit_mm: float) -> str:
+    """A view failed on :func:`path_miss`: the figure, its limit, and what the sweep tells
+    of the cause (the share of the outline beyond the region both planes' markers cover)."""
+    inside = _covered(calibration, xy_px)
+    out = float(np.mean(~inside)) if inside is not None and len(inside) else 0.0
+    cause = (f"{out:.0%} of the outline lies where the calibration planes' markers do not "
+             "reach, so the spline extrapolates there: aim the view so that the anatomy lies "
+             "within the rod's sweep, or sweep the rod over it" if out >= 0.25 else
+             "the outline lies mostly where both planes have markers: the two planes' "
+             "calibrations disagree (distortion changing across the field or during the "
+             "sweep, or rod poses that disagree with the images)")
+    return (f"calibration: the X-ray paths of the bone's outline miss the calibrated source "
+            f"by a median {miss_mm:.1f} mm (at most {limit_mm:g} mm, EstimateOptions."
+            f"max_path_miss_mm; a calibration that holds there passes within about 1.5 mm); "
+            + cause)
 
 
 def _as_options(options) -> EstimateOptions:

@@ -433,6 +433,7 @@ def run_case(scene, *, seed: int, progress: bool = False):
                    "validation_max_mm": (float(np.max(case.stages.calibrations[v].validation_mm))
                                          if len(case.stages.calibrations[v].validation_mm)
                                          else None),
+                   "path_miss_mm": case.stages.path_miss_mm.get(v),
                    "failure": case.stages.failed.get(v, ""),
                    "sweep_time_s": meta["sweep_time_s"].get(v, 0.0),
                    "dose_mrem": meta["dose_mrem"].get(v, 0.0),
