@@ -43,7 +43,7 @@ from __future__ import annotations
 import time
 import weakref
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -1231,15 +1231,17 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
         o, d = cal.calibration.paths(con.xy)
         centre = cal.calibration.center_of_perspective()
         miss[v] = path_miss(supported_centre(cal.calibration), o, d)
-        if miss[v] > options.max_path_miss_mm:
-            failed[v] = _path_miss_message(cal.calibration, con.xy, miss[v],
-                                           options.max_path_miss_mm)
-            continue
-        try:
-            views.append(View(center=centre, origins=o, directions=d, external=con.external,
-                              name=v))
-        except ValueError as exc:   # the view's own checks: this view, not the estimate
-            failed[v] = f"calibration: {exc}"
+        why = (_path_miss_message(cal.calibration, con.xy, miss[v], options.max_path_miss_mm)
+               if miss[v] > options.max_path_miss_mm else "")
+        if not why:
+            try:
+                views.append(View(center=centre, origins=o, directions=d,
+                                  external=con.external, name=v))
+            except ValueError as exc:   # the view's own checks: this view, not the estimate
+                why = f"calibration: {exc}"
+        if why:     # the calibration is not to be used here: said so where it is kept too
+            failed[v] = why
+            cals[v] = replace(cal, ok=False, message=why)
     return Stages(cals, dict(surfaces), conts, views, failed, timings, notes=tuple(notes),
                   slice_gap_mm=slice_gap_mm, path_miss_mm=miss)
 

@@ -121,9 +121,12 @@ def format_result(result: dict) -> str:
     if str(result.get("workspace", "")).startswith("not checked"):
         lines.insert(0, "WARNING: the workspace was not checked ([workspace] check = false): "
                      "this acquisition may not be physically possible")
-    moving = [w for w in result.get("scene_warnings", ()) if w.startswith("[patient] motion")]
-    if moving:   # first, as the workspace's opt-out: it changes what the figures mean
-        lines.insert(0, f"WARNING: {moving[0]}")
+    # first, as the workspace's opt-out: what the verdict cannot see changes what the
+    # figures mean (a moving femur, a robot less accurate than the clinic's)
+    blind = [w for w in result.get("scene_warnings", ())
+             if w.startswith(("[patient] motion", "[robot] "))]
+    for w in reversed(blind):
+        lines.insert(0, f"WARNING: {w}")
     if result.get("kind") == "synthetic":
         lines.append("pose from points and lines, one instance (max landmark error):")
         for m, r in result["methods"].items():

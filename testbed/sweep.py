@@ -31,6 +31,18 @@ import numpy as np
 from reglib.geometry import RigidTransform
 from testbed.robot import Robot, RobotSpec, SweepSpec
 
+
+class WorkspaceError(ValueError):
+    """A scene whose acquisition is physically impossible; the message names the view, the
+    pose and the colliding pair (or the pose the robot cannot reach). Raised by
+    :func:`testbed.workspace.require_feasible` before any simulation, and by
+    :func:`run_sweep` for a pose out of the robot's reach when the check was skipped."""
+
+
+#: the sweep poses' planes by their number (``SweepPose.plane``): -1 is the frame without
+#: the rod
+PLANE_NAMES = {-1: "reference frame", 0: "near plane", 1: "far plane", 2: "validation row"}
+
 __all__ = ["SweepPose", "Sweep", "plan_sweep", "run_sweep", "PLANE_CODES"]
 
 PLANE_CODES = {"reference": -1, "near": 0, "far": 1, "validation": 2}
@@ -147,6 +159,18 @@ def plan_sweep(carm, spec: RobotSpec) -> list[SweepPose]:
     rho = carm.point_rho(centre - span / 2 * d + s[:, None] * d)
     inside = int(np.count_nonzero(rho <= VALIDATION_FIELD_SHARE))
     if inside < MIN_VALIDATION_BEADS:
+        on_axis = src + sw.validation_fraction * carm.sid_mm * axis
+        rho0 = carm.point_rho(on_axis - span / 2 * d + s[:, None] * d)
+        inside0 = int(np.count_nonzero(rho0 <= VALIDATION_FIELD_SHARE))
+        if inside0 < MIN_VALIDATION_BEADS:
+            # no offset can help: the rod's beads are too far apart for the field (a review
+            # blamed the default offset of a rod of 432 mm)
+            raise ValueError(
+                f"robot.rod.bead_spacings_mm: the rod's {len(s)} beads span {span:.0f} mm, and "
+                f"only {inside0} of them fall within {VALIDATION_FIELD_SHARE:g} of the field's "
+                f"radius even on the beam's axis at the validation row (the field there is "
+                f"{2 * radius:.0f} mm across; need {MIN_VALIDATION_BEADS}): space the beads "
+                "more closely")
         raise ValueError(
             f"robot.sweep.validation_offset_mm = {sw.validation_offset_mm:g}: only {inside} of "
             f"the validation row's {len(s)} beads fall within the field of view (need "
@@ -198,8 +222,16 @@ def run_sweep(robot: Robot, carm, fluoro, *, bodies=(), rng=None, noise: bool | 
         try:
             joints[i] = robot.place_rod(pose.point_robot, pose.direction_robot)
         except ValueError as exc:
-            raise ValueError(f"view {carm.name!r}: sweep pose {i} (plane {pose.plane}, row "
-                             f"{pose.row}): {exc}") from None
+            # (a review: "plane -1, row -1" for the reference frame, and no scene file named,
+            # with [workspace] check = false, which skips the check that names it first)
+            where = PLANE_NAMES.get(pose.plane, f"plane {pose.plane}")
+            if pose.plane >= 0 and pose.row >= 0:
+                where += f", row {pose.row}"
+            raise WorkspaceError(
+                f"view {carm.name!r}: sweep pose {i} ({where}): {exc}; the robot cannot hold "
+                "the rod there: move the view (views[].isocenter_mm, orbital_deg, angular_deg) "
+                "within the robot's reach, or change [robot] (base, links, joint limits) or "
+                "the rod's planes ([robot.sweep])") from None
         if pose.plane >= 0:
             rep[i] = robot.bead_positions()
             tru[i] = robot.bead_positions(true=True)

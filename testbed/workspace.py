@@ -22,6 +22,7 @@ from pydantic import Field
 
 from reglib.geometry import RigidTransform
 from testbed.spec import Spec
+from testbed.sweep import WorkspaceError
 
 __all__ = ["Contact", "PoseCheck", "WorkspaceReport", "Workspace", "WorkspaceError",
            "WorkspaceSpec", "check_scene_workspace", "check_sweep", "require_feasible"]
@@ -276,11 +277,6 @@ class WorkspaceSpec(Spec):
     margin_mm: Annotated[float, Field(ge=0, le=100)] = 0.0
 
 
-class WorkspaceError(ValueError):
-    """A scene whose acquisition is physically impossible; the message names the view, the
-    pose and the colliding pair."""
-
-
 def check_scene_workspace(scene, world) -> list[WorkspaceReport]:
     """Check every view of ``scene`` and every pose of its calibration sweep.
 
@@ -387,6 +383,10 @@ def require_feasible(scene, world) -> list[WorkspaceReport]:
     reports = check_scene_workspace(scene, world)
     for r in reports:
         if not r.ok:
+            # opting out helps a scene that knowingly collides, never a pose the robot
+            # cannot reach: the sweep then fails all the same (a review)
+            first = next((p for p in r.poses if p.unreachable or p.contacts), None)
+            out_of_reach = not r.carm_contacts and first is not None and bool(first.unreachable)
             raise WorkspaceError(_first_problem(scene, r, None) + "; " + _remedy(r)
-                                 + ", or set [workspace] check = false")
+                                 + ("" if out_of_reach else ", or set [workspace] check = false"))
     return reports

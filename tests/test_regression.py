@@ -290,8 +290,11 @@ def test_a_view_whose_paths_miss_its_source_is_left_out_and_named(case):
         assert [w.name for w in st.views] == ([other] if left_out else [v, other]), shift
         if left_out:
             assert re.search(why, st.failed[v]), st.failed[v]
+            # the calibration kept in the stages says so too (the run's JSON had shown
+            # calibration_ok true beside the failure)
+            assert not st.calibrations[v].ok and st.calibrations[v].message == st.failed[v]
         else:
-            assert v not in st.failed
+            assert v not in st.failed and st.calibrations[v].ok
 
 
 def test_registration_pin_errors_with_true_inputs(case4):

@@ -8,6 +8,7 @@ from reglib.markers import Markers, SweepData, find_markers
 from testbed.fluoroscope import FluoroscopeSpec, ViewSpec, make_carm
 from testbed.robot import Robot, RobotSpec, SweepSpec
 from testbed.sweep import plan_sweep, run_sweep
+from testbed.workspace import WorkspaceError
 
 VIEW = ViewSpec(name="ap", isocenter_mm=(800.0, 0.0, 200.0))
 
@@ -53,6 +54,15 @@ def test_a_validation_row_mostly_outside_the_field_is_refused_naming_the_offset(
     with pytest.raises(ValueError, match=r"robot.sweep.validation_offset_mm = 95: only \d of "
                                          r"the validation row's 8 beads fall within the field"):
         plan_sweep(carm, _spec(validation_offset_mm=95.0))
+    # a rod too long for the field: no offset helps, and the rod's spacings are named (a
+    # review: 432 mm between its end beads, and the default offset of 5 mm was blamed)
+    from testbed.robot import RodSpec
+
+    long_rod = RobotSpec(rod=RodSpec(bead_spacings_mm=(42.0, 81.0, 48.0, 36.0, 90.0, 63.0, 72.0)),
+                         sweep=SweepSpec(rows_per_plane=4, coverage=0.75)).without_errors()
+    with pytest.raises(ValueError, match=r"^robot.rod.bead_spacings_mm: the rod's 8 beads span "
+                                         r"432 mm, and only [0-3] of them .* on the beam's axis"):
+        plan_sweep(carm, long_rod)
 
 
 @pytest.mark.slow
@@ -211,8 +221,11 @@ def test_an_unreachable_sweep_names_the_view_and_pose():
     far = ViewSpec(name="far-away", isocenter_mm=(3000.0, 0.0, 200.0))
     carm = make_carm(fl, far)
     with Robot(_spec(), rng=0) as robot:
-        with pytest.raises(ValueError, match=r"view 'far-away': sweep pose 0 .*unreachable"):
+        with pytest.raises(WorkspaceError, match=r"view 'far-away': sweep pose 0 "
+                                                 r"\(reference frame\): .*unreachable.*the "
+                                                 r"robot cannot hold the rod there") as err:
             run_sweep(robot, carm, fl, rng=0)
+    assert "-1" not in str(err.value).split(":")[1]      # no raw plane code
 
 
 # --------------------------------------------------------------------------- workspace

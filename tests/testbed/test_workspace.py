@@ -33,10 +33,25 @@ def test_a_view_turned_into_the_robot_is_refused_naming_view_pose_and_pair():
     assert "\n" not in msg
     assert "view proximal_oblique" in msg and "sweep pose" in msg
     assert "collides with carm_" in msg and "robot_" in msg
+    assert msg.endswith("or set [workspace] check = false")
     # opting out skips the check
     d = scene.model_dump(mode="json")
     d["workspace"]["check"] = False
     assert require_feasible(parse_scene(d), world) == []
+
+
+def test_a_pose_out_of_the_robots_reach_is_not_offered_the_opt_out():
+    """A review (h77): link 1 of 1e6 mm put every sweep pose out of reach; the message
+    offered "set [workspace] check = false", which cannot help (the sweep then fails on the
+    same pose)."""
+    d = load_scene(find_scene("experiment2")).model_dump(mode="json")
+    d["robot"]["link1_mm"] = 1e6
+    scene, world = case_world(parse_scene(d, source="far.toml"), 0)
+    with pytest.raises(WorkspaceError) as err:
+        require_feasible(scene, world)
+    msg = str(err.value)
+    assert "unreachable" in msg and "within the robot's reach" in msg
+    assert "check = false" not in msg
 
 
 def test_a_12_inch_intensifier_is_refused_with_advice_that_works():
