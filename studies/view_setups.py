@@ -129,7 +129,10 @@ def summary(wide: pd.DataFrame) -> pd.DataFrame:
     out = []
     for name, d in wide.groupby("setup", sort=False):
         c = confusion(d)
-        out.append({"set-up": name, "views": int(d["views"].iloc[0]), "cases": len(d),
+        # views used, over the cases: fewer where a view was left out (a review: the first
+        # case's count was printed for all, "all | 4" with distal_ap lost in one case)
+        lo, hi = int(d["views"].min()), int(d["views"].max())
+        out.append({"set-up": name, "views": lo if lo == hi else f"{lo}-{hi}", "cases": len(d),
                     "accepted": int((d["accepted"] > 0.5).sum()),
                     "mTRE median (mm)": d["mtre"].median(), "mTRE max (mm)": d["mtre"].max(),
                     **({"worst pin max (mm)": d["max_pin"].max()} if "max_pin" in d else {}),

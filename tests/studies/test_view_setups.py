@@ -74,3 +74,15 @@ def test_the_closing_line_names_false_accepts():
     assert "price of never accepting" in closing_line({"false accepts": 0})
     line = closing_line({"false accepts": 2})
     assert line.startswith("**2 false accept(s)**") and "price" not in line
+
+
+def test_a_set_up_whose_cases_used_different_view_counts_shows_the_range():
+    """A review (h78): a view lost in one case (its calibration refused) was hidden behind
+    the first case's count ("all | 4" where one case registered 3 views)."""
+    from studies.view_setups import summary
+
+    wide = pd.DataFrame({"setup": ["all"] * 3 + ["one"] * 2, "views": [4, 3, 4, 2, 2],
+                         "accepted": [1, 0, 1, 0, 0], "mtre": [0.5, 1.0, 0.6, 3.0, 2.5],
+                         "weak_motion_mm": [3.0, 5.0, 3.1, 9.0, 8.0]})
+    s = summary(wide).set_index("set-up")
+    assert s.loc["all", "views"] == "3-4" and s.loc["one", "views"] == 2
