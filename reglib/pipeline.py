@@ -718,19 +718,12 @@ def _validation_cause(markers, xy_px, dist_mm, limit_mm: float, problems) -> str
     changing during the sweep) disagrees with them. A review saw every such failure blamed
     on the rows lacking beads, which clinic sweeps always have (10-16 rows) whatever the
     cause."""
-    from scipy.spatial import Delaunay, QhullError
 
     from reglib.calibration import summarise_problems
     from reglib.markers import FAR, NEAR
 
     bad = np.asarray(xy_px, dtype=np.float64)[np.asarray(dist_mm) > limit_mm]
-    inside = np.ones(len(bad), dtype=bool)
-    for plane in (NEAR, FAR):
-        pts, _ = markers.select(plane)
-        try:
-            inside &= Delaunay(pts).find_simplex(bad) >= 0
-        except (QhullError, ValueError):  # too few or collinear markers: nothing covered
-            inside[:] = False
+    inside = _inside_every_hull([markers.select(plane)[0] for plane in (NEAR, FAR)], bad)
     lacking = [p for p in problems if "not found" in p]
     rows = (f"{len(lacking)} sweep row(s) lack beads (outside the field, hidden or too "
             f"faint): {summarise_problems(lacking, limit=2)}") if lacking else ""
@@ -1246,24 +1239,31 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
                   slice_gap_mm=slice_gap_mm, path_miss_mm=miss)
 
 
-def _covered(calibration, xy_px) -> np.ndarray | None:
-    """(N,) bool: pixels ``xy_px`` inside the region both calibration planes' markers cover
-    (each plane's Delaunay triangulation of its markers' pixels), where neither plane's
-    spline extrapolates; None when the calibration has no such planes (e.g. a true
-    calibration given by a study)."""
+def _inside_every_hull(point_sets, xy_px) -> np.ndarray:
+    """(N,) bool: pixels ``xy_px`` inside the Delaunay triangulation of every one of
+    ``point_sets`` (each (k, 2) px, e.g. one calibration plane's markers): where no plane's
+    spline extrapolates. Too few or collinear points cover nothing."""
     from scipy.spatial import Delaunay, QhullError
 
     xy = np.asarray(xy_px, dtype=np.float64).reshape(-1, 2)
     inside = np.ones(len(xy), dtype=bool)
-    for plane in ("near", "far"):
-        centres = getattr(getattr(calibration, plane, None), "centres_px", None)
-        if centres is None:
-            return None
+    for pts in point_sets:
         try:
-            inside &= Delaunay(np.asarray(centres, dtype=np.float64)).find_simplex(xy) >= 0
-        except (QhullError, ValueError):      # too few or collinear markers: none covered
+            inside &= Delaunay(np.asarray(pts, dtype=np.float64)).find_simplex(xy) >= 0
+        except (QhullError, ValueError):
             inside[:] = False
     return inside
+
+
+def _covered(calibration, xy_px) -> np.ndarray | None:
+    """(N,) bool: pixels ``xy_px`` inside the region both calibration planes' markers cover
+    (:func:`_inside_every_hull` of the planes' spline centres); None when the calibration
+    has no such planes (e.g. a true calibration given by a study)."""
+    centres = [getattr(getattr(calibration, plane, None), "centres_px", None)
+               for plane in ("near", "far")]
+    if any(c is None for c in centres):
+        return None
+    return _inside_every_hull(centres, xy_px)
 
 
 #: fewest markers inside both planes' cover that :func:`supported_centre` takes the source
@@ -1284,11 +1284,11 @@ def supported_centre(calibration) -> np.ndarray:
            for plane in ("near", "far")]
     if any(p is None for p in pts):
         return calibration.center_of_perspective()
-    pts = np.vstack([np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in pts])
-    inside = _covered(calibration, pts)
-    if inside is None or np.count_nonzero(inside) < MIN_SUPPORTED_MARKERS:
+    xy = np.vstack([np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in pts])
+    inside = _inside_every_hull(pts, xy)
+    if np.count_nonzero(inside) < MIN_SUPPORTED_MARKERS:
         return calibration.center_of_perspective()
-    o, d = calibration.paths(pts[inside])
+    o, d = calibration.paths(xy[inside])
     return closest_point_to_lines(o, d)
 
 
