@@ -188,6 +188,14 @@ def check_results(df: pd.DataFrame) -> None:
         raise ValueError(f"study results lack the columns {missing}")
 
 
+def cell_text(x) -> str:
+    """A results cell as text: a whole float as an integer (a case read back beside NaNs
+    is a float, and a report read "case 0.0"), an empty or NaN cell as ""."""
+    if isinstance(x, float):
+        return "" if np.isnan(x) else str(int(x)) if x.is_integer() else str(x)
+    return "" if x is None else str(x)
+
+
 def markdown_table(df: pd.DataFrame, floatfmt: str = ".3g") -> str:
     """A plain markdown table (no extra dependency)."""
     cols = [str(c) for c in df.columns]

@@ -25,7 +25,7 @@ from studies.scoring import PIN_NAMES, perturbed_start, pin_errors, run_start
 
 __all__ = ["ORACLES", "PAPER_METHOD", "PIN_NAMES", "Case", "case_rows", "estimate_options",
            "prepare_case", "register_case", "registration_rows", "run_case", "table2_starts",
-           "with_fixed_pin"]
+           "views_lost_markdown", "with_fixed_pin"]
 
 #: The paper's registration as it published it (Section IV; paper/NOTES.md s3), as options of
 #: :func:`register_case`: one loop with the point-to-path residual and the robust (Tukey)
@@ -610,7 +610,8 @@ def registration_rows(case: Case, starts: dict, *, oracle=(), fixed_pin=None,
             {**base, "metric": "start_mtre", "value": float(np.mean(list(start_errs.values()))),
              "unit": "mm"},
             {**base, "metric": "converged", "value": float(est.converged), "unit": ""},
-            {**base, "metric": "accepted", "value": float(est.accepted), "unit": ""},
+            {**base, "metric": "accepted", "value": float(est.accepted), "unit": "",
+             "reason": "" if est.accepted else str(est.message or "not accepted")},
             {**base, "metric": "iterations", "value": float(est.quality.get("iterations", 0)),
              "unit": ""},
             {**base, "metric": "weak_motion_mm",
@@ -624,8 +625,13 @@ def registration_rows(case: Case, starts: dict, *, oracle=(), fixed_pin=None,
 
 def case_rows(case: Case) -> list[dict]:
     """Long-format rows describing a case's estimated stages: per view the calibration's
-    ``validation_distance`` (mm; ``statistic`` max and mean), ``calibration_ok`` (0/1) and
-    ``contour_pixels``; the case's ``sim_time`` (s)."""
+    ``validation_distance`` (mm; ``statistic`` max and mean), ``calibration_ok`` (0/1),
+    ``view_used`` (0/1: the registration used the view; ``reason``: why not, the
+    estimate's words) and ``contour_pixels``; the case's ``sim_time`` (s).
+
+    ``view_used`` is apart from ``calibration_ok``: a view whose calibration passed can be
+    left out later (its frame disagrees with its sweep's, no bone contour was traced), and
+    the studies read such a view as passed (a held-out review)."""
     rows = []
     for v in case.view_names:
         cal = case.stages.calibrations[v]
@@ -635,8 +641,65 @@ def case_rows(case: Case) -> list[dict]:
             rows.append({"metric": "validation_distance", "value": float(val), "unit": "mm",
                          "view": v, "statistic": stat})
         rows.append({"metric": "calibration_ok", "value": float(cal.ok), "unit": "", "view": v})
+        why = str(case.stages.failed.get(v, ""))
+        rows.append({"metric": "view_used", "value": float(not why), "unit": "", "view": v,
+                     "reason": why})
         rows.append({"metric": "contour_pixels", "value": float(len(case.stages.contours[v].xy)),
                      "unit": "count", "view": v})
     rows.append({"metric": "sim_time", "value": float(case.timings.get("simulation", 0.0)),
                  "unit": "s"})
     return rows
+
+
+#: at most this many left-out views are listed with their reasons in a report, each reason
+#: cut at this many characters; a longer table of views keeps only those left out somewhere
+MAX_LOST_LISTED, MAX_REASON_CHARS, MAX_TABLE_ROWS = 12, 500, 8
+
+
+def views_lost_markdown(df, by=()) -> str:
+    """The report section on the views the registrations did not use, from the
+    ``view_used`` rows of :func:`case_rows`: per view (and per ``by`` column, e.g. the
+    error budget's configuration), in how many cases it was used, and each left-out view's
+    case and reason (the first :data:`MAX_LOST_LISTED`). Empty when there are no
+    ``view_used`` rows (results of before they were recorded).
+
+    A view left out changes every figure of its case: the studies printed "share passed"
+    from the calibration alone, and a view dropped later read as used (a held-out review)."""
+    from studies.common import cell_text, markdown_table
+
+    u = df[df.metric == "view_used"]
+    if u.empty:
+        return ""
+    by = [c for c in by if c in u]
+    case = "case" if "case" in u else "trial"
+    u = u.assign(reason=(u["reason"].fillna("").astype(str) if "reason" in u else ""),
+                 **{c: u[c].fillna("").astype(str) for c in by})
+    t = u.groupby([*by, "view"], sort=False).agg(
+        cases=(case, "nunique"), used=("value", lambda x: int((x > 0).sum()))).reset_index()
+    t["left out"] = t["cases"] - t["used"]
+    lost = u[u.value <= 0]
+    if lost.empty:
+        return (f"Every view was used in every case ({u[case].nunique()} case(s), "
+                f"{u.view.nunique()} view(s)).")
+    rest = ""
+    if len(t) > MAX_TABLE_ROWS:    # the error budget's 130 rows, most of them whole
+        full = t[t["left out"] == 0]
+        t = t[t["left out"] > 0]
+        rest = (f"\n\nThe other {len(full)} combinations of {', '.join(by)} and view were "
+                "used in every case." if by else
+                f"\n\nThe other {len(full)} views were used in every case.")
+    lines = []
+    for _, r in lost.head(MAX_LOST_LISTED).iterrows():
+        where = ", ".join(f"{c} {cell_text(r[c])}" for c in by if cell_text(r[c]))
+        why = " ".join(str(r["reason"]).split()) or "(no reason recorded)"
+        lines.append(f"- {r['view']}, case {cell_text(r[case])}"
+                     + (f" ({where})" if where else "")
+                     + f": {why[:MAX_REASON_CHARS]}"
+                     + ("..." if len(why) > MAX_REASON_CHARS else ""))
+    more = len(lost) - MAX_LOST_LISTED
+    if more > 0:
+        lines.append(f"- and {more} more (`results.csv`: metric `view_used`, column `reason`)")
+    return (f"**{len(lost)} view-case(s) were left out of the registration** (the method's "
+            "own reasons below): every figure of such a case is of the remaining views, and "
+            "a calibration that passed does not mean the view was used.\n\n"
+            + markdown_table(t) + rest + "\n\n" + "\n".join(lines))

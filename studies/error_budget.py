@@ -31,8 +31,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from studies.common import markdown_table
-from studies.end_to_end import case_rows, prepare_case, registration_rows, table2_starts
+from studies.common import cell_text, markdown_table
+from studies.end_to_end import (
+    case_rows,
+    prepare_case,
+    registration_rows,
+    table2_starts,
+    views_lost_markdown,
+)
 
 TITLE = "error budget: pin errors by error source (off / on alone) and by stage (truth in)"
 DEFAULT_SCENE = "experiment2"
@@ -366,7 +372,8 @@ def run(ctx) -> pd.DataFrame:
                        [{"source": s, "field": f, "clinic": json.dumps(v[0]),
                          "ideal": json.dumps(v[1])}
                         for s, fields in src.items() for f, v in fields.items()])))
-        t = source_table(pe)
+        changes = view_changes(df)
+        t = source_table(pe, changes)
         ctx.report("By source: mean pin error (mm), off and alone",
                    "`clinic`: every source at its clinic magnitude; `ideal`: every source at "
                    "its ideal magnitude. `off`: the clinic with this source at its ideal "
@@ -374,8 +381,9 @@ def run(ctx) -> pd.DataFrame:
                    "clinic magnitude. `removed` = clinic - off, `added` = alone - ideal. "
                    "Each source draws from a random stream of its own, so `off` and "
                    "`alone` differ from `clinic` and `ideal` by that source only."
-                   + _negative_note(t, len({p["case"] for p in params})) + "\n\n"
-                   + markdown_table(t, ".3f"))
+                   + _negative_note(t, len({p["case"] for p in params}))
+                   + _view_change_note(changes) + "\n\n"
+                   + markdown_table(t.fillna({"views": ""}) if "views" in t else t, ".3f"))
         _tornado(ctx, t)
         from studies.table2 import set_up_note
 
@@ -385,6 +393,9 @@ def run(ctx) -> pd.DataFrame:
         ctx.report("By source", no_budget_reason(ctx.scene, ctx.scene_path)
                    + ": only the stage budget is run.")
     ctx.report("By stage: pin errors (mm) with truth substituted", stage_markdown(pe))
+    lost = views_lost_markdown(df[df.metric != "failed"], by=("config", "source"))
+    if lost:
+        ctx.report("Views left out", lost)
     return df
 
 
@@ -449,9 +460,36 @@ def verdict_markdown(df: pd.DataFrame) -> str:
     return head + "\n\n" + markdown_table(t[t.accepted < t.registrations])
 
 
-def source_table(pe: pd.DataFrame) -> pd.DataFrame:
+def view_changes(df: pd.DataFrame) -> dict:
+    """(config, source) -> text naming the views whose use differs from the configuration
+    it is compared with (``off`` with ``clinic``, ``alone`` with ``ideal``) in the same case,
+    from the ``view_used`` rows: "-distal_ap (case 0)" lost there, "+..." used there only.
+
+    A view lost changes a case's pin errors by more than most sources do, and the budget
+    gave that change to the source (a held-out review: "scatter off" had distal_ap refused
+    and was reported as -0.61 mm)."""
+    u = df[df.metric == "view_used"]
+    if u.empty or "config" not in u:
+        return {}
+    case = "case" if "case" in u else "trial"
+    u = u.assign(source=u.source.fillna("").astype(str) if "source" in u else "")
+    used = {(r.config, r.source, r[case], r.view): r.value > 0 for _, r in u.iterrows()}
+    against = {"off": "clinic", "alone": "ideal"}
+    out: dict = {}
+    for (cfg, src, c, v), ok in sorted(used.items(), key=str):
+        ref = used.get((against.get(cfg), "", c, v))
+        if ref is None or ref == ok:
+            continue
+        out.setdefault((cfg, src), []).append(f"{'+' if ok else '-'}{v} (case {cell_text(c)})")
+    return {k: ", ".join(v) for k, v in out.items()}
+
+
+def source_table(pe: pd.DataFrame, changes: dict | None = None) -> pd.DataFrame:
     """Per source: the mean pin error off and alone, what switching it off removes and what
-    it adds alone (mm); from the ``pin_error`` rows without oracle."""
+    it adds alone (mm); from the ``pin_error`` rows without oracle. ``changes``
+    (:func:`view_changes`) adds a ``views`` column naming, per source, the views used
+    differently from the configuration compared with; its figures are then not the
+    source's alone."""
     pe = pe[pe.oracle == "none"]
     mean = pe.groupby(["config", "source"])["value"].mean()
     clinic = float(mean.get(("clinic", ""), np.nan))
@@ -462,6 +500,9 @@ def source_table(pe: pd.DataFrame) -> pd.DataFrame:
         alone = float(mean.get(("alone", s), np.nan))
         rows.append({"source": s, "off": off, "alone": alone, "removed": clinic - off,
                      "added": alone - ideal})
+        if changes:
+            rows[-1]["views"] = "; ".join(f"{cfg}: {changes[cfg, s]}" for cfg in ("off", "alone")
+                                          if (cfg, s) in changes)
     t = pd.DataFrame(rows)
     if len(t):
         t = t.sort_values("removed", ascending=False, key=lambda x: x.abs())
@@ -528,6 +569,19 @@ def _negative_note(t: pd.DataFrame, cases: int) -> str:
             f"needs more cases.")
 
 
+def _view_change_note(changes: dict) -> str:
+    """A sentence on the sources whose configurations used other views than the ones they
+    are compared with (:func:`view_changes`), if any."""
+    if not changes:
+        return ""
+    names = sorted({s for _, s in changes})
+    return (f" **{len(names)} source(s) changed which views were registered** ("
+            + ", ".join(names) + "; column `views`: `-view` left out in the configuration "
+            "and used in the one it is compared with, `+view` the reverse): their `removed` "
+            "or `added` holds the effect of that view's loss as well as the source's, and "
+            "is marked * in the chart; section 'Views left out' gives the reasons.")
+
+
 def _tornado(ctx, t: pd.DataFrame) -> None:
     import matplotlib
 
@@ -549,7 +603,8 @@ def _tornado(ctx, t: pd.DataFrame) -> None:
     ax.barh(y - h / 2, t["added"], height=h, color="tab:red",
             label="alone - ideal (added when on alone)")
     ax.axvline(0, color="k", lw=0.8)
-    ax.set_yticks(y, t["source"])
+    changed = t["views"].fillna("").astype(bool) if "views" in t else np.zeros(len(t), bool)
+    ax.set_yticks(y, [f"{n} *" if c else str(n) for n, c in zip(t["source"], changed)])
     ax.set_xlabel("mean pin error the source accounts for (mm; < 0: larger without it)")
     ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
@@ -557,5 +612,7 @@ def _tornado(ctx, t: pd.DataFrame) -> None:
                            "pin error, two ways: the clinic less the clinic with the source "
                            "off (blue), and the ideal profile with the source alone less "
                            "the ideal (red); a bar left of 0 means the mean pin error was "
-                           "larger without the source"), dpi=110)
+                           "larger without the source; a source marked * changed which "
+                           "views were registered, and its bars hold that view's effect "
+                           "too"), dpi=110)
     plt.close(fig)

@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from studies.common import markdown_table
-from studies.end_to_end import case_rows, prepare_case, registration_rows
+from studies.end_to_end import case_rows, prepare_case, registration_rows, views_lost_markdown
 from studies.scoring import case_reference, judge_seed, perturbed_start, pin_errors
 
 TITLE = "the paper's experiment 1: two views plus the proximal pin, 9 deg starts"
@@ -103,6 +103,9 @@ def run(ctx) -> pd.DataFrame:
                    + ", ".join(f"{v:.2f} mm at {k}" for k, v in at.items())
                    + f" from the truth, and the located {pin} pin keeps that error. The "
                    "errors against that reference:\n\n" + markdown_table(tab_ref, ".2f"))
+    lost = views_lost_markdown(ok)
+    if lost:
+        ctx.report("Views left out", lost)
     _figure(ctx, pe, w, pin)
     return df
 

@@ -297,6 +297,40 @@ def test_a_view_whose_paths_miss_its_source_is_left_out_and_named(case):
             assert v not in st.failed and st.calibrations[v].ok
 
 
+def test_a_view_left_out_after_its_calibration_passed_reads_as_not_used(case):
+    """A held-out review (2026-11-28): table2, experiment1 and error-budget recorded
+    ``calibration_ok`` alone, and a view left out after its calibration passed (here: no
+    bone contour traced on its frame) read as passed. ``view_used`` says it was not used,
+    with the method's reason, and the report section lists it."""
+    import dataclasses
+
+    import pandas as pd
+
+    from reglib.pipeline import prepare
+    from studies.end_to_end import case_rows, views_lost_markdown
+
+    v, other = list(case.sim.carms)
+    empty = dataclasses.replace(case.stages.contours[v], xy=np.zeros((0, 2)),
+                                external=np.zeros(0, bool))
+    st = prepare(case.sim.observation, options=case.options, surfaces=case.stages.surfaces,
+                 calibrations=case.stages.calibrations,
+                 contours={**case.stages.contours, v: empty})
+    lost = dataclasses.replace(case, stages=st)
+    rows = pd.DataFrame([{**r, "trial": 0, "case": 0} for r in case_rows(lost)])
+    flag = rows[rows.metric == "calibration_ok"].set_index("view").value
+    used = rows[rows.metric == "view_used"].set_index("view")
+    assert flag[v] == 1.0 and flag[other] == 1.0     # the calibration passed ...
+    assert used.value[v] == 0.0 and used.value[other] == 1.0      # ... the view not used
+    assert used.reason[v].startswith("no bone contour could be traced") and not \
+        used.reason[other]
+    text = views_lost_markdown(rows)
+    assert "**1 view-case(s) were left out" in text
+    assert f"- {v}, case 0: no bone contour could be traced" in text
+    # every view used: one line saying so
+    ok = pd.DataFrame([{**r, "trial": 0, "case": 0} for r in case_rows(case)])
+    assert views_lost_markdown(ok).startswith("Every view was used in every case (1 case(s)")
+
+
 def test_registration_pin_errors_with_true_inputs(case4):
     """The pose solver alone: with the true rays, surfaces and contours it finds the pose."""
     res = _register_all(case4, _starts(case4, 3.0), oracle=TRUE_INPUTS)

@@ -285,3 +285,43 @@ def test_the_report_names_the_sources_whose_removal_made_the_error_larger():
     assert "Switching off 1 source(s)" in note and "a (-0.120 mm)" in note
     assert "b (" not in note and "over 3 case(s)" in note
     assert _negative_note(t.assign(removed=[None, 0.12, 0.10]), 3) == ""
+
+
+def test_a_source_whose_configuration_lost_a_view_is_marked():
+    """A held-out review: on one scene "scatter off" had distal_ap refused, and the budget
+    reported its -0.61 mm as the source's. The views used differently from the
+    configuration compared with (off: clinic, alone: ideal; same case) are named, and the
+    report says the figure is not the source's alone."""
+    from studies.end_to_end import views_lost_markdown
+    from studies.error_budget import _view_change_note, view_changes
+
+    rows = []
+    for cfg, src, val, lost in (("clinic", "", 1.0, ()), ("ideal", "", 0.5, ("b",)),
+                                ("off", "s", 1.6, ("b",)), ("alone", "s", 0.7, ()),
+                                ("off", "t", 0.9, ()), ("alone", "t", 0.6, ("b",))):
+        for case in (0, 1):
+            rows.append({"config": cfg, "source": src, "oracle": "none", "value": val,
+                         "metric": "pin_error", "case": case, "trial": 0})
+            for view in ("a", "b"):
+                gone = view in lost and case == 1
+                rows.append({"config": cfg, "source": src, "metric": "view_used",
+                             "value": float(not gone), "view": view, "case": case,
+                             "trial": 0, "reason": "no bone contour" if gone else ""})
+    df = pd.DataFrame(rows)
+    changes = view_changes(df)
+    # s off lost b where the clinic used it; s alone used b where the ideal lost it; t
+    # alone lost b as the ideal did: no change
+    assert changes == {("off", "s"): "-b (case 1)", ("alone", "s"): "+b (case 1)"}
+    t = source_table(df[df.metric == "pin_error"], changes).set_index("source")
+    assert t.loc["s", "views"] == "off: -b (case 1); alone: +b (case 1)"
+    assert not t.loc["t", "views"]
+    assert t.loc["s", "removed"] == pytest.approx(-0.6)    # the figure stays as measured
+    note = _view_change_note(changes)
+    assert "**1 source(s) changed which views were registered** (s;" in note
+    assert _view_change_note({}) == ""
+    lost = views_lost_markdown(df, by=("config", "source"))
+    assert "**3 view-case(s) were left out" in lost
+    assert "- b, case 1 (config off, source s): no bone contour" in lost
+    # 12 pairs of configuration and view: the table keeps the 3 with a loss
+    assert lost.count("\n| ") == 1 + 3 and "The other 9 combinations of config, source and view" \
+        in lost

@@ -18,7 +18,10 @@ def test_targets_say_met_or_missed_and_what_is_missing():
     low = targets_markdown(_rows(1.0, 0.3))
     assert "**missed**: mean pin error 1.00 mm" in low
     assert "1.50 mm at the pins is missing" in low          # sqrt(1.8^2 - 1^2)
-    assert "met: calibration validation 0.30-0.30 mm" in low
+    assert "met: calibration validation 0.300-0.300 mm" in low
+    # 0.404 mm is outside 0.1-0.4 mm and printed so (it read "0.40", a review)
+    assert "**missed**: calibration validation 0.404-0.404 mm" in targets_markdown(
+        _rows(1.0, 0.404))
     ok = targets_markdown(_rows(2.8, 0.5))
     assert "met: mean pin error 2.80 mm" in ok and "is missing" not in ok
     assert "**missed**: calibration validation" in ok
@@ -34,7 +37,7 @@ def test_the_paper_method_rows_are_reported_apart_from_the_default():
     assert "the paper's registration method on the same cases and starts: mean pin error " \
            "2.50 mm, median 2.50 mm (" in text
     # the per-view reading of the validation target
-    assert "median over the cases of each view's largest distance is 0.30-0.30 mm, inside " \
+    assert "median over the cases of each view's largest distance is 0.300-0.300 mm, inside " \
            "the range for 1 of 1 views" in text
 
 
@@ -59,6 +62,12 @@ def test_the_targets_say_when_the_method_refused_registrations_they_include():
     assert text.startswith("- **note**: 2 of 3 registrations were refused by the method's own "
                            "verdict (1 did not converge)"), text
     assert "met: mean pin error 2.80 mm" in text
+    assert "`reason`" not in text       # no reasons recorded (results of before them)
+    why = verdict.assign(reason=["", "weakest motion 4.1 mm", "", "not converged", "", ""],
+                         case=0)
+    text = targets_markdown(pd.concat([rows, why], ignore_index=True))
+    assert "its verdict's `reason`; the first (case 0, start rot5_1): weakest motion 4.1 mm" \
+        in text
     every = verdict.assign(value=1.0)
     assert "**note**" not in targets_markdown(pd.concat([rows, every], ignore_index=True))
     # every pose refused (a review: 5 of 5, the mean "met"): the pins' targets are not judged,
@@ -67,7 +76,7 @@ def test_the_targets_say_when_the_method_refused_registrations_they_include():
     text = targets_markdown(pd.concat([rows, none], ignore_index=True))
     assert "**not judged** (every pose refused): mean pin error 2.80 mm" in text
     assert "met: mean pin error" not in text and "met: proximal" not in text
-    assert "met: calibration validation 0.30-0.30 mm" in text
+    assert "met: calibration validation 0.300-0.300 mm" in text
 
 
 def test_a_scene_other_than_the_papers_set_up_is_said_before_the_targets():
@@ -103,3 +112,26 @@ def test_the_pin_table_gives_quartiles_of_the_turned_starts_and_the_identity_apa
     line = next(t for t in md.splitlines() if t.startswith("| proximal"))
     cells = [c.strip() for c in line.strip("|").split("|")]
     assert cells[1] == "5.00" and cells[2] == "3.00-7.00" and "40.00" in cells[3:], cells
+
+
+def test_the_validation_table_gives_the_share_of_cases_whose_view_was_used():
+    """A view whose calibration passed and was then left out counts as passed, not as
+    used (a held-out review read it as passed); results without ``view_used`` rows (of
+    before they were recorded) keep the table as it was."""
+    from studies.table2 import validation_markdown
+
+    rows = []
+    for case, lost in ((0, False), (1, True)):
+        rows += [{"trial": case, "case": case, "metric": "validation_distance", "value": 0.3,
+                  "unit": "mm", "view": "v", "statistic": "max"},
+                 {"trial": case, "case": case, "metric": "calibration_ok", "value": 1.0,
+                  "unit": "", "view": "v"}]
+        rows.append({"trial": case, "case": case, "metric": "view_used", "value": float(not lost),
+                     "unit": "", "view": "v", "reason": "no bone contour" if lost else ""})
+    df = pd.DataFrame(rows)
+    text = validation_markdown(df)
+    head, row = [ln for ln in text.splitlines() if ln.startswith("|")][0::2][:2]
+    cells = dict(zip([c.strip() for c in head.split("|")], [c.strip() for c in row.split("|")]))
+    assert cells["share passed"] == "1.000" and cells["share used"] == "0.500"
+    old = validation_markdown(df[df.metric != "view_used"])
+    assert "share used" not in old and "share passed" in old
