@@ -1318,8 +1318,11 @@ def _path_miss_message(calibration, xy_px, miss_mm: float, limit_mm: float) -> s
              "the outline lies mostly where both planes have markers: the two planes' "
              "calibrations disagree (distortion changing across the field or during the "
              "sweep, or rod poses that disagree with the images)")
+    # as many digits as show the figure beyond its limit (2.52 read "2.5 mm (at most 2.5
+    # mm)", a review)
+    digits = next((k for k in (1, 2, 3) if round(miss_mm, k) > limit_mm), 3)
     return (f"calibration: the X-ray paths of the bone's outline miss the calibrated source "
-            f"by a median {miss_mm:.1f} mm (at most {limit_mm:g} mm, EstimateOptions."
+            f"by a median {miss_mm:.{digits}f} mm (at most {limit_mm:g} mm, EstimateOptions."
             f"max_path_miss_mm; a calibration that holds there passes within about 1.5 mm); "
             + cause)
 

@@ -809,3 +809,16 @@ def test_a_region_left_with_one_of_its_views_is_objected_to():
     with pytest.raises(ValueError, match=r"meta\['view_regions'\] must give one CT region per "
                                          r"view of meta\['views'\] \(3: "):
         estimate(bad, np.eye(4))
+
+
+def test_the_path_miss_message_shows_the_figure_beyond_its_limit(monkeypatch):
+    """2.52 mm against 2.5 read "a median 2.5 mm (at most 2.5 mm)" (a review): the figure
+    gets the digits that show it beyond the limit."""
+    import reglib.pipeline as pl
+
+    monkeypatch.setattr(pl, "_covered", lambda calibration, xy: None)
+    for miss, text in ((2.52, "a median 2.52 mm (at most 2.5 mm"),
+                       (2.5004, "a median 2.500 mm (at most 2.5 mm"),
+                       (3.44, "a median 3.4 mm (at most 2.5 mm"),
+                       (2.6, "a median 2.6 mm (at most 2.5 mm")):
+        assert text in pl._path_miss_message(None, np.zeros((3, 2)), miss, 2.5), miss
