@@ -172,14 +172,14 @@ def _registration_line(est) -> str:
 
 def _weak_limit_text(est, options) -> str:
     """The weakest-motion limit the verdict applied: the option's, or less on a CT contoured
-    on slices farther apart (reglib.pipeline.weak_motion_limit)."""
+    on slices farther apart or thicker (reglib.pipeline.weak_motion_limit, z_resolution)."""
     limit = est.quality.get("weak_motion_limit_mm", options.accept_max_weak_motion_mm)
     if limit < options.accept_max_weak_motion_mm:
-        from reglib.pipeline import WEAK_MOTION_GAP_MM
+        from reglib.pipeline import WEAK_MOTION_GAP_MM, z_resolution
 
         return (f"{limit:.1f} mm: {options.accept_max_weak_motion_mm:g} mm for CT slices "
-                f"contoured at most {WEAK_MOTION_GAP_MM:g} mm apart, these up to "
-                f"{est.stages.slice_gap_mm:.1f} mm")
+                f"contoured at most {WEAK_MOTION_GAP_MM:g} mm apart and thick, these up to "
+                f"{z_resolution(est.stages)[1]}")
     return f"{options.accept_max_weak_motion_mm:g} mm"
 
 

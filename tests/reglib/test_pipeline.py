@@ -268,7 +268,13 @@ def test_verdict_objections():
     assert verdict(True, {**good, "weak_motion_mm": 3.8}, "", opts, 2, slice_gap_mm=10.0) == []
     coarse = verdict(True, {**good, "weak_motion_mm": 3.9}, "", opts, 2, slice_gap_mm=10.0)
     assert "(limit 3.8 mm: 6 mm x (8/10.0)^2 for CT slices contoured up to 10.0 mm apart" \
-        in coarse[0] and coarse[0].endswith("or contour CT slices at most 8 mm apart")
+        in coarse[0] and coarse[0].endswith("or contour CT slices at most 8 mm apart and "
+                                            "thick")
+    # slices thicker than their gaps: the thickness read as the gap, and said (a review:
+    # the 1/6 mm schedule with 10 mm thick slices accepted a pin 3.1 mm off)
+    thick = verdict(True, {**good, "weak_motion_mm": 3.9}, "", opts, 2, slice_gap_mm=10.0,
+                    slice_gap_text="10.0 mm thick")
+    assert "for CT slices contoured up to 10.0 mm thick, whose surfaces err" in thick[0]
     assert verdict(True, {**good, "weak_motion_mm": float("nan")}, "", opts, 4) == []
     assert verdict(True, {**good, "weak_motion_mm": float("inf")}, "", opts, 4)
     # one view that does not fit while the whole median passes: refused, the view named
@@ -822,3 +828,30 @@ def test_the_path_miss_message_shows_the_figure_beyond_its_limit(monkeypatch):
                        (3.44, "a median 3.4 mm (at most 2.5 mm"),
                        (2.6, "a median 2.6 mm (at most 2.5 mm")):
         assert text in pl._path_miss_message(None, np.zeros((3, 2)), miss, 2.5), miss
+
+
+def test_the_z_resolution_is_the_larger_of_the_gaps_and_the_slices_thickness():
+    """A slice averages the bone over its thickness as a gap interpolates over its width:
+    the verdict reads the larger. The thickness comes from the observation's optional
+    ``ct_slices/thickness_mm`` over the contoured slices; a malformed one is named."""
+    from types import SimpleNamespace
+
+    from reglib.pipeline import _contoured_thickness, z_resolution
+
+    st = SimpleNamespace
+    assert z_resolution(st(slice_gap_mm=6.0, slice_thickness_mm=10.0)) == (10.0,
+                                                                          "10.0 mm thick")
+    assert z_resolution(st(slice_gap_mm=6.3, slice_thickness_mm=6.0)) == (6.3, "6.3 mm apart")
+    assert z_resolution(st(slice_gap_mm=6.3, slice_thickness_mm=None)) == (6.3, "6.3 mm apart")
+    assert z_resolution(st(slice_gap_mm=None, slice_thickness_mm=None)) == (None, "")
+    assert z_resolution(st()) == (None, "")                 # stages of before either
+    clicks = {"a": {"slices": np.array([0, 2])}, "b": {"slices": np.array([3])}}
+    t = np.array([1.0, 9.0, 2.0, 6.0, 12.0])
+    # slice 1 (9 mm) and 4 (12 mm) are not contoured
+    assert _contoured_thickness({"thickness_mm": t}, clicks, 5) == 6.0
+    assert _contoured_thickness({}, clicks, 5) is None
+    for bad, what in ((t[:4], r"got shape \(4,\)"), (np.r_[t[:4], 0.0], r"got values \[0.0\]"),
+                      (np.r_[t[:4], np.nan], "got values"), ("thick", "got shape")):
+        with pytest.raises(ValueError, match="arrays/ct_slices/thickness_mm: expected 5 "
+                           "positive slice thicknesses in mm .*" + what):
+            _contoured_thickness({"thickness_mm": bad}, clicks, 5)

@@ -137,3 +137,23 @@ def test_two_views_and_a_pin_on_a_coarse_ct_are_refused_and_were_wrong():
     assert "limit 3.8 mm: 6 mm x (8/10.0)^2 for CT slices contoured up to 10.0 mm" \
         in est.message
     assert max(res["pins"].values()) > 4.0     # the truth: it was wrong
+
+
+@pytest.mark.slow
+def test_slices_thicker_than_their_gaps_are_read_as_gaps_and_the_wrong_pose_refused():
+    """experiment2 with every slice 10 mm thick on its 1/6 mm schedule (a held-out review,
+    2026-11-28, h80): accepted at mTRE 2.25 mm with a pin 3.09 mm off, the gaps no wider
+    than 6 mm. The slices' thickness, which the observation gives, now counts as a gap."""
+    from reglib.pipeline import weak_motion_limit, z_resolution
+
+    d = load_scene(find_scene("experiment2")).model_dump(mode="json")
+    d["ct"].update(slice_thickness_mm=10.0)
+    scene = parse_scene(d)
+    res, case, _, est = run_case(scene, seed=scene.scene.seed)
+    assert est.stages.slice_gap_mm <= 6.0 + 1e-6
+    assert est.stages.slice_thickness_mm == pytest.approx(10.0)
+    assert z_resolution(est.stages) == (pytest.approx(10.0), "10.0 mm thick")
+    assert weak_motion_limit(case.options, 10.0) == pytest.approx(3.84)
+    assert not est.accepted
+    assert "for CT slices contoured up to 10.0 mm thick" in est.message
+    assert max(res["pins"].values()) > 2.0     # the truth: it was wrong

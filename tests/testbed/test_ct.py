@@ -110,6 +110,22 @@ def test_clinical_schedule(cylinders):
     np.testing.assert_allclose(np.std(patch), 20.0 * np.sqrt(6.0), rtol=0.15)
 
 
+def test_coarse_slices_beside_a_fine_window_keep_the_protocols_spacing(cylinders):
+    """A coarse slice within a fine step of a fine window went, leaving a gap wider than
+    the coarse spacing asked for: with 3 mm fine and 8 mm coarse slices, 9 mm here (10.6
+    mm on a femur, and good poses refused by the verdict's slice-gap rule, a review).
+    It stays when its removal would leave such a gap, and goes where it would not."""
+    spec = CTSpec(distal_range_mm=(6.0, 40.0), proximal_range_mm=(60.0, 94.0),
+                  fine_spacing_mm=3.0, fine_half_width_mm=5.0, coarse_spacing_mm=8.0)
+    z, regions = slice_schedule(cylinders, spec)
+    zd = z[regions["distal"]]
+    # the window about the pins (z 20, 22) is 15-27 mm; the coarse slice at 14 mm, 1 mm
+    # below it, stays (6 -> 15 mm would be 9 mm); 22 lies inside and goes
+    np.testing.assert_allclose(zd, [6.0, 14.0, 15.0, 18.0, 21.0, 24.0, 27.0, 30.0, 38.0])
+    for idx in regions.values():
+        assert np.diff(z[idx]).max() <= 8.0 + 1e-9
+
+
 def test_default_protocol_on_the_femur_has_two_regions_and_fine_slices_at_pins():
     ph = make_phantom(PhantomSpec(segments=32))
     ct = scan(ph, CTSpec(metal_streaks=True), rng=3)
