@@ -818,10 +818,9 @@ def _check_slice_geometry(s2c: np.ndarray, used, axes: np.ndarray) -> float:
     return 0.0
 
 
-def _contoured_thickness(ct_slices: Mapping, ct_clicks: Mapping, n_slices: int):
-    """The largest thickness (mm) of the slices the clicks contour, from the optional
-    ``ct_slices["thickness_mm"]`` (K,); None without it. ValueError naming the entry when it
-    is not K positive finite numbers."""
+def _slice_thicknesses(ct_slices: Mapping, n_slices: int) -> np.ndarray | None:
+    """The optional ``ct_slices["thickness_mm"]`` (K,) mm, checked; None without it.
+    ValueError naming the entry when it is not K positive finite numbers."""
     if "thickness_mm" not in ct_slices:
         return None
     raw = ct_slices["thickness_mm"]
@@ -838,14 +837,17 @@ def _contoured_thickness(ct_slices: Mapping, ct_clicks: Mapping, n_slices: int):
     if got:
         raise ValueError(f"arrays/ct_slices/thickness_mm: expected {n_slices} positive slice "
                          f"thicknesses in mm (one per slice of the CT volume), got {got}")
-    used = set()
-    for cc in ct_clicks.values():
-        try:
-            used |= {int(k) for k in np.asarray(cc["slices"]).ravel()}
-        except (KeyError, TypeError, ValueError):    # ct_surfaces has named a bad entry
-            continue
-    used = sorted(k for k in used if 0 <= k < n_slices)
-    return float(t[used].max()) if used else None
+    return t
+
+
+def _contoured_thickness(thickness_mm: np.ndarray | None, contoured: Mapping):
+    """The largest of ``thickness_mm`` (K,) over the slices a surface was contoured on
+    (``contoured``: region -> stored slice indices, as :func:`ct_surfaces` reports them);
+    None without thicknesses or contoured slices."""
+    used = [k for idx in contoured.values() for k in idx]
+    if thickness_mm is None or not used:
+        return None
+    return float(np.max(thickness_mm[used]))
 
 
 def z_resolution(stages) -> tuple[float | None, str]:
@@ -868,7 +870,7 @@ def z_resolution(stages) -> tuple[float | None, str]:
 
 def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
                 options: EstimateOptions | None = None, notes: list | None = None,
-                gaps: dict | None = None) -> dict:
+                gaps: dict | None = None, contoured: dict | None = None) -> dict:
     """Bone surfaces from the CT: snake contours from the operator's clicks, tiled.
 
     Parameters
@@ -881,7 +883,8 @@ def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
 
     Returns region -> ``(vertices (V, 3) ct mm, faces (F, 3) int)``. ``notes`` (a list):
     sentences on slices left out are appended; ``gaps`` (a dict): region -> the largest gap
-    (mm, along the stack) between its consecutive contoured slices.
+    (mm, along the stack) between its consecutive contoured slices; ``contoured`` (a dict):
+    region -> the indices of those slices, as stored.
     """
     from reglib.surface import surface_from_ct
 
@@ -930,6 +933,8 @@ def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
     out = {}
     for region in sorted(ct_clicks):
         xy, sl, co, slices = _region_clicks(region, ct_clicks[region], K)
+        if contoured is not None:
+            contoured[region] = [int(k) for k in slices]
         if top_down:
             sl, slices = K - 1 - sl, sorted(K - 1 - k for k in slices)
         gap = _check_slice_geometry(s2c, np.asarray(slices), axes)
@@ -1215,12 +1220,15 @@ def prepare(observation, *, options: EstimateOptions | None = None, calibrations
         clicks = {r: _entry(arrays, f"ct_clicks_{r}", "arrays", table=()) for r in regions}
         if not clicks:
             raise ValueError("observation: meta['regions'] lists no CT region to contour")
+        shape = np.shape(getattr(vol, "data", vol))     # ct_surfaces names a bad volume
+        thickness = _slice_thicknesses(slices, shape[2]) if len(shape) == 3 else None
         gaps: dict = {}
+        contoured: dict = {}
         surfaces = ct_surfaces(getattr(vol, "data", vol), np.asarray(slices["slice2ct"]),
-                               clicks, options=options, notes=notes, gaps=gaps)
+                               clicks, options=options, notes=notes, gaps=gaps,
+                               contoured=contoured)
         slice_gap_mm = max(gaps.values(), default=None)
-        slice_thickness_mm = _contoured_thickness(slices, clicks,
-                                                  np.shape(getattr(vol, "data", vol))[2])
+        slice_thickness_mm = _contoured_thickness(thickness, contoured)
     timings["surfaces"] = time.perf_counter() - t0
 
     cals, conts, views, failed, miss = {}, {}, [], {}, {}

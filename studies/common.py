@@ -196,6 +196,13 @@ def cell_text(x) -> str:
     return "" if x is None else str(x)
 
 
+def one_line(text, limit: int) -> str:
+    """``text`` on one line (its whitespace runs made single spaces), cut to ``limit``
+    characters with "..." after a cut: a verdict's or a view's reason in a report."""
+    flat = " ".join(str(text).split())
+    return flat[:limit] + ("..." if len(flat) > limit else "")
+
+
 def markdown_table(df: pd.DataFrame, floatfmt: str = ".3g") -> str:
     """A plain markdown table (no extra dependency)."""
     cols = [str(c) for c in df.columns]

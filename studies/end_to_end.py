@@ -665,7 +665,7 @@ def views_lost_markdown(df, by=()) -> str:
 
     A view left out changes every figure of its case: the studies printed "share passed"
     from the calibration alone, and a view dropped later read as used (a held-out review)."""
-    from studies.common import cell_text, markdown_table
+    from studies.common import cell_text, markdown_table, one_line
 
     u = df[df.metric == "view_used"]
     if u.empty:
@@ -691,11 +691,9 @@ def views_lost_markdown(df, by=()) -> str:
     lines = []
     for _, r in lost.head(MAX_LOST_LISTED).iterrows():
         where = ", ".join(f"{c} {cell_text(r[c])}" for c in by if cell_text(r[c]))
-        why = " ".join(str(r["reason"]).split()) or "(no reason recorded)"
+        why = one_line(r["reason"], MAX_REASON_CHARS) or "(no reason recorded)"
         lines.append(f"- {r['view']}, case {cell_text(r[case])}"
-                     + (f" ({where})" if where else "")
-                     + f": {why[:MAX_REASON_CHARS]}"
-                     + ("..." if len(why) > MAX_REASON_CHARS else ""))
+                     + (f" ({where})" if where else "") + f": {why}")
     more = len(lost) - MAX_LOST_LISTED
     if more > 0:
         lines.append(f"- and {more} more (`results.csv`: metric `view_used`, column `reason`)")

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from studies.common import cell_text, markdown_table
+from studies.common import cell_text, markdown_table, one_line
 from studies.end_to_end import (
     PAPER_METHOD,
     PAPER_TABLE2,
@@ -278,9 +278,7 @@ def _first_refusal(df: pd.DataFrame) -> str:
     r = acc.iloc[0]
     where = ", ".join(f"{k} {cell_text(r[k])}" for k in ("case", "start")
                       if k in r and cell_text(r[k]))
-    why = " ".join(str(r["reason"]).split())
-    return (f", and its verdict's `reason`; the first ({where}): "
-            f"{why[:300]}{'...' if len(why) > 300 else ''}")
+    return f", and its verdict's `reason`; the first ({where}): {one_line(r['reason'], 300)}"
 
 
 def targets_markdown(df: pd.DataFrame) -> str:

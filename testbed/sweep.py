@@ -156,12 +156,13 @@ def plan_sweep(carm, spec: RobotSpec) -> list[SweepPose]:
     # those within 0.9 of the field's radius at their depth (nearer the rim, the detector's
     # window is cut). A review's 90 mm offset left 2 of 8 in a 9-inch field, and the views
     # failed as "0 validation markers", naming no field
-    rho = carm.point_rho(centre - span / 2 * d + s[:, None] * d)
-    inside = int(np.count_nonzero(rho <= VALIDATION_FIELD_SHARE))
+    def beads_inside(row_centre) -> int:
+        rho = carm.point_rho(row_centre - span / 2 * d + s[:, None] * d)
+        return int(np.count_nonzero(rho <= VALIDATION_FIELD_SHARE))
+
+    inside = beads_inside(centre)
     if inside < MIN_VALIDATION_BEADS:
-        on_axis = src + sw.validation_fraction * carm.sid_mm * axis
-        rho0 = carm.point_rho(on_axis - span / 2 * d + s[:, None] * d)
-        inside0 = int(np.count_nonzero(rho0 <= VALIDATION_FIELD_SHARE))
+        inside0 = beads_inside(src + sw.validation_fraction * carm.sid_mm * axis)
         if inside0 < MIN_VALIDATION_BEADS:
             # no offset can help: the rod's beads are too far apart for the field (a review
             # blamed the default offset of a rod of 432 mm)

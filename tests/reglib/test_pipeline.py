@@ -836,7 +836,7 @@ def test_the_z_resolution_is_the_larger_of_the_gaps_and_the_slices_thickness():
     ``ct_slices/thickness_mm`` over the contoured slices; a malformed one is named."""
     from types import SimpleNamespace
 
-    from reglib.pipeline import _contoured_thickness, z_resolution
+    from reglib.pipeline import _contoured_thickness, _slice_thicknesses, z_resolution
 
     st = SimpleNamespace
     assert z_resolution(st(slice_gap_mm=6.0, slice_thickness_mm=10.0)) == (10.0,
@@ -845,13 +845,13 @@ def test_the_z_resolution_is_the_larger_of_the_gaps_and_the_slices_thickness():
     assert z_resolution(st(slice_gap_mm=6.3, slice_thickness_mm=None)) == (6.3, "6.3 mm apart")
     assert z_resolution(st(slice_gap_mm=None, slice_thickness_mm=None)) == (None, "")
     assert z_resolution(st()) == (None, "")                 # stages of before either
-    clicks = {"a": {"slices": np.array([0, 2])}, "b": {"slices": np.array([3])}}
+    contoured = {"a": [0, 2], "b": [3]}      # as ct_surfaces reports them
     t = np.array([1.0, 9.0, 2.0, 6.0, 12.0])
     # slice 1 (9 mm) and 4 (12 mm) are not contoured
-    assert _contoured_thickness({"thickness_mm": t}, clicks, 5) == 6.0
-    assert _contoured_thickness({}, clicks, 5) is None
+    assert _contoured_thickness(_slice_thicknesses({"thickness_mm": t}, 5), contoured) == 6.0
+    assert _contoured_thickness(_slice_thicknesses({}, 5), contoured) is None
     for bad, what in ((t[:4], r"got shape \(4,\)"), (np.r_[t[:4], 0.0], r"got values \[0.0\]"),
                       (np.r_[t[:4], np.nan], "got values"), ("thick", "got shape")):
         with pytest.raises(ValueError, match="arrays/ct_slices/thickness_mm: expected 5 "
                            "positive slice thicknesses in mm .*" + what):
-            _contoured_thickness({"thickness_mm": bad}, clicks, 5)
+            _slice_thicknesses({"thickness_mm": bad}, 5)
