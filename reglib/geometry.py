@@ -58,6 +58,13 @@ def _one_line(exc: Exception) -> str:
 MAX_COORDINATE_MM = 1e9
 
 
+def _holds_text(raw: np.ndarray) -> bool:
+    """Whether an array of strings, bytes or Python objects holds any text."""
+    if raw.dtype.kind in "US":
+        return True
+    return any(isinstance(v, str | bytes) for v in raw.ravel().tolist())
+
+
 def as_points(points, name: str = "points", *, min_count: int = 0) -> np.ndarray:
     """Return ``points`` as a C-contiguous float64 ``(N, 3)`` array, or raise ``ValueError``.
 
@@ -69,6 +76,11 @@ def as_points(points, name: str = "points", *, min_count: int = 0) -> np.ndarray
             raise ValueError(f"{name}: complex values; expected real coordinates")
         if raw.dtype.kind == "b":
             raise ValueError(f"{name}: booleans; expected real coordinates (mm)")
+        if raw.dtype.kind in "USO" and _holds_text(raw):
+            # numpy reads "800" as 800.0: a number written as text is a damaged file or a
+            # wrong column, not a coordinate (a review: a pin given as ["1", 2, 3] was scored)
+            raise ValueError(f"{name}: expected an (N, 3) array of numbers, got text "
+                             f"({raw.dtype}; numbers written as text are not read)")
         arr = np.asarray(raw, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         if str(exc).startswith(name):
@@ -449,13 +461,17 @@ def as_rigid_transform(value, name: str = "initial") -> RigidTransform:
         raise ValueError(f"{name}: the (4, 4) ct2robot matrix holds NaN or inf")
     R = m[:3, :3]
     off = float(np.abs(R.T @ R - np.eye(3)).max())
-    if (not np.allclose(m[3], [0, 0, 0, 1]) or off > ROUNDED_ROTATION_TOL
-            or np.linalg.det(R) < 0):
+    if not np.allclose(m[3], [0, 0, 0, 1]):
+        # its own message (a review: one message for three conditions printed the row it
+        # must have, not the row it had)
+        row = ", ".join(f"{v:.6g}" for v in m[3])
+        raise ValueError(f"{name}: the (4, 4) matrix is not a rigid transform: its last row "
+                         f"is [{row}], expected [0, 0, 0, 1]")
+    if off > ROUNDED_ROTATION_TOL or np.linalg.det(R) < 0:
         raise ValueError(f"{name}: the (4, 4) matrix is not a rigid transform (its 3x3 part "
                          f"must be a rotation: |R^T R - I| = "
                          f"{_significant_past(off, ROUNDED_ROTATION_TOL)}, at most "
-                         f"{ROUNDED_ROTATION_TOL:g}, det {np.linalg.det(R):.4g}; its last row "
-                         "[0, 0, 0, 1])")
+                         f"{ROUNDED_ROTATION_TOL:g}, det {np.linalg.det(R):.4g})")
     if off > 1e-9:   # a matrix printed or stored rounded (4 decimals: 1e-5-1e-4): the
         u, _, vt = np.linalg.svd(R)   # nearest rotation (a review fed back print(estimate))
         R = u @ vt

@@ -967,6 +967,13 @@ def find_markers(sweep: SweepData, *, polarity: str = "dark", min_matched: int =
         raise ValueError(f"view {sweep.view}: beads_reported holds infinite values (first at "
                          f"frame {f}, bead {b}); expected robot positions in mm, NaN where "
                          "the robot reported none")
+    nan = np.isnan(beads)
+    part = nan.any(axis=-1) & ~nan.all(axis=-1)
+    if part.any():   # a review's NaN in one coordinate was read as a reading not made
+        f, b = np.argwhere(part)[0]
+        raise ValueError(f"view {sweep.view}: beads_reported at frame {f}, bead {b} is "
+                         f"{beads[f, b].tolist()}: NaN in some coordinates only; NaN marks a "
+                         "reading the robot did not make, in all three coordinates")
     rows = {k: [] for k in ("frame", "plane", "bead", "xy", "robot")}
     problems: list[str] = []
     weak = []  # rows too short to identify on their own: (frame, name, blobs, message)

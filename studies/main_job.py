@@ -118,13 +118,10 @@ def _synthetic_job(scene, *, scene_path, seed, out, progress: bool = False) -> d
 def format_result(result: dict) -> str:
     """Human-readable summary of :func:`run_main_job`'s result."""
     lines = [f"scene {result['scene']} ({result.get('kind', '')}), seed {result.get('seed')}"]
-    if str(result.get("workspace", "")).startswith("not checked"):
-        lines.insert(0, "WARNING: the workspace was not checked ([workspace] check = false): "
-                     "this acquisition may not be physically possible")
-    # first, as the workspace's opt-out: what the verdict cannot see changes what the
-    # figures mean (a moving femur, a robot less accurate than the clinic's)
+    # first: the workspace's opt-out, and what the verdict cannot see, which changes what
+    # the figures mean (a moving femur, a robot less accurate than the clinic's)
     blind = [w for w in result.get("scene_warnings", ())
-             if w.startswith(("[patient] motion", "[robot] "))]
+             if w.startswith(("[workspace] ", "[patient] motion", "[robot] "))]
     for w in reversed(blind):
         lines.insert(0, f"WARNING: {w}")
     if result.get("kind") == "synthetic":

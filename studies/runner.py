@@ -332,15 +332,16 @@ REPORT_ERROR_CHARS = 300
 def report_line(error: str) -> str:
     """A trial's error as one line of a markdown report: its lines joined by " / ", at
     most :data:`REPORT_ERROR_CHARS` characters (the whole stays in the database), backticks
-    and ``<`` escaped. A review's method raised a message with a
-    markdown heading and an open code fence, which became a section of report.md and
-    swallowed the sections after it."""
+    and ``<`` escaped with a backslash. A review's method raised a message with a markdown
+    heading and an open code fence, which became a section of report.md and swallowed the
+    sections after it."""
     lines = [ln.strip() for ln in str(error).strip().splitlines() if ln.strip()] or [""]
     text = " / ".join(lines)    # a scene error's field is on its second line
     if len(text) > REPORT_ERROR_CHARS:
         text = text[:REPORT_ERROR_CHARS] + " ... (the whole message: read_failures or " \
             "trials.sqlite)"
-    return text.replace("`", "\\`").replace("<", "&lt;")
+    # backslash escapes (CommonMark): "&lt;U32" read as an HTML entity in the raw file
+    return text.replace("`", "\\`").replace("<", "\\<")
 
 
 def interrupt_of(exc: BaseException) -> KeyboardInterrupt | None:

@@ -14,8 +14,10 @@ method called, and its result scored at the pins. A method that raises, or retur
 that is not a finite rigid (4, 4) transform, gives a failed trial with the reason.
 
 Output as for the studies: ``OUT/results.csv`` (``trial, metric, value, unit`` + ``case``,
-``pin``: ``pin_error`` mm per pin, ``mtre`` mm, ``start_mtre`` mm, ``time`` s, and for
-reglib's method ``accepted`` and ``converged``) and ``OUT/report.md``.
+``pin``: ``pin_error`` mm per pin, ``mtre`` mm, ``start_mtre`` mm, ``time`` s (the
+method's wall time; a worker's first case includes its start-up), and for reglib's method
+``accepted`` (with the verdict's ``reason`` when refused), ``converged`` and per view
+``view_used`` (``view``, ``reason``: why the method left it out)) and ``OUT/report.md``.
 """
 
 from __future__ import annotations
@@ -180,8 +182,15 @@ def score_case(case_dir, method: str = DEFAULT_METHOD) -> list[dict]:
     if fn is None:
         est = reglib.estimate(obs, start, options=options)
         pose = est.ct2robot
-        rows += [{"metric": "accepted", "value": float(est.accepted), "unit": ""},
+        # the verdict's reason and the views left out, with the method's words (a held-out
+        # review: a case refused for its field-of-view mask read "accepted: no", no cause)
+        rows += [{"metric": "accepted", "value": float(est.accepted), "unit": "",
+                  "reason": "" if est.accepted else str(est.message or "not accepted")},
                  {"metric": "converged", "value": float(est.converged), "unit": ""}]
+        for v in est.stages.calibrations if est.stages is not None else ():
+            why = str(est.stages.failed.get(v, ""))
+            rows.append({"metric": "view_used", "value": float(not why), "unit": "",
+                         "view": v, "reason": why})
     else:
         pose = _as_pose(fn(obs, start.as_matrix()), method)
     dt = time.perf_counter() - t0
@@ -194,6 +203,52 @@ def score_case(case_dir, method: str = DEFAULT_METHOD) -> list[dict]:
               "unit": "mm"},
              {"metric": "time", "value": dt, "unit": "s"}]
     return rows
+
+
+#: at most this many refused cases are listed with their verdict's reason in the report
+MAX_REFUSALS_LISTED = 20
+
+
+def refusals_markdown(df: pd.DataFrame) -> str:
+    """The report's list of the cases whose verdict refused the pose, each with the
+    verdict's ``reason`` on one line (the first :data:`MAX_REFUSALS_LISTED`); "" when none
+    was refused or the method gives no verdict."""
+    from studies.common import one_line
+
+    acc = df[(df.metric == "accepted") & (df.value <= 0.5)] if "metric" in df else df[:0]
+    if acc.empty:
+        return ""
+    reasons = (acc["reason"].fillna("").astype(str) if "reason" in acc
+               else pd.Series("", index=acc.index))
+    lines = [f"- {r['case']}: {one_line(why, 400) or '(no reason recorded)'}"
+             for (_, r), why in zip(acc.head(MAX_REFUSALS_LISTED).iterrows(), reasons,
+                                    strict=False)]
+    more = len(acc) - MAX_REFUSALS_LISTED
+    if more > 0:
+        lines.append(f"- and {more} more (`results.csv`: metric `accepted`, column `reason`)")
+    return (f"The method's verdict refused {len(acc)} case(s); its reasons:\n\n"
+            + "\n".join(lines))
+
+
+def time_markdown(df: pd.DataFrame) -> str:
+    """The method's wall time per case (median, range), and the cases whose time is over
+    3 times the median: a worker's first case includes its one-time start-up (imports,
+    loading or compiling numba kernels: 155 s on a clone whose kernels were never compiled,
+    a held-out review read it as the method's time)."""
+    t = df[df.metric == "time"] if "metric" in df else df[:0]
+    if t.empty:
+        return ""
+    med = float(t["value"].median())
+    slow = t[t["value"] > 3 * med]
+    text = (f"The method's wall time per case (`time` in results.csv): median {med:.2f} s, "
+            f"{t['value'].min():.2f}-{t['value'].max():.2f} s over {len(t)} case(s).")
+    if not slow.empty:
+        text += (" Over 3 times the median: " + ", ".join(
+            f"{r['case']} {r['value']:.1f} s" for _, r in slow.head(10).iterrows())
+                 + ". A worker's first case includes its one-time start-up (imports, the "
+                 "numba kernels loaded or compiled), which its later cases do not pay: "
+                 "judge the method's speed by the median.")
+    return text
 
 
 def trial(tr) -> list[dict]:
@@ -262,6 +317,7 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
         markdown_table,
         report_scene_warnings,
     )
+    from studies.end_to_end import views_lost_markdown
     from studies.runner import code_fingerprint, fingerprint, make_trials, run_trials
     from testbed.dataset import list_cases
 
@@ -373,6 +429,15 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
                    + (f" {reuse_note[0].upper()}{reuse_note[1:]}." if reuse_note else "")
                    + "\n\n"
                    + markdown_table(t, ".3f") + "\n\n" + markdown_table(per_case, ".3f"))
+    timing = time_markdown(df)
+    if timing:
+        ctx.report("Time", timing)
+    refused = refusals_markdown(df)
+    if refused:
+        ctx.report("Refused cases", refused)
+    lost = views_lost_markdown(df)
+    if lost:
+        ctx.report("Views left out", lost)
     failures = df.attrs.get("failures", {})
     if failures:
         ctx.report("Failed cases", "\n".join(

@@ -643,7 +643,16 @@ def _read_entry(case_dir: Path, group: str, name: str, rec: dict, transforms: di
     if group == "transforms":
         if name not in transforms:
             raise ValueError(f"{case_dir / 'transforms.json'}: no transform {name!r}")
-        return RigidTransform.from_matrix(np.array(transforms[name], dtype=np.float64))
+        raw = transforms[name]
+        try:
+            m = np.asarray(raw)
+        except ValueError:          # ragged lists
+            m = None
+        if m is None or m.dtype.kind not in "iuf":
+            # numpy would read "800" as 800.0 (a review scored a damaged truth that way)
+            raise ValueError(f"{case_dir / 'transforms.json'}: transform {name!r}: expected a "
+                             f"4 x 4 array of numbers, got {str(raw)[:80]}")
+        return RigidTransform.from_matrix(m.astype(np.float64))
     if group == "points":
         if name not in points:
             raise ValueError(f"{case_dir / 'points.json'}: no points {name!r}")

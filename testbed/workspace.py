@@ -323,9 +323,14 @@ def _first_problem(scene, report: WorkspaceReport, poses) -> str:
 
 
 _PLANES = {-1: "reference", 0: "near", 1: "far", 2: "validation"}
-_VIEW = "move the view (views[].isocenter_mm, orbital_deg, angular_deg, c_side_deg)"
+# every field that moves the C-arm, and every field that moves or turns the rod's planes
+# (reviews: a view refused for its source_to_isocenter_mm was told to change the others;
+# the sweep's angles were not named)
+_VIEW = ("move the view (views[].isocenter_mm, orbital_deg, angular_deg, c_side_deg, "
+         "source_to_isocenter_mm)")
 _SWEEP = ("move the rod's planes ([robot.sweep] near_fraction, validation_fraction, "
-          "far_fraction: fractions of the source-intensifier distance)")
+          "far_fraction: fractions of the source-intensifier distance; or turn them: "
+          "rod_angle_deg, tilt_deg, validation_angle_deg)")
 
 
 def _remedy(report: WorkspaceReport) -> str:

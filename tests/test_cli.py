@@ -924,3 +924,41 @@ def test_a_surface_failure_names_every_operator_field_that_made_the_clicks():
     assert msg.startswith("operator: ")
     assert "ct_bone_threshold_hu = 150 HU" in msg and "ct_clicks = " in msg
     assert msg.endswith("two contours cannot be tiled")
+
+
+def test_score_report_gives_refusals_views_left_out_and_start_up_time():
+    """A held-out review: a case refused for its field-of-view mask read "accepted: no" with
+    no cause, and a worker's first case took 155 s (its kernels compiled) where the others
+    took 3.4 s, with nothing to say so. The score report lists each refusal's reason, the
+    views left out with theirs, and the cases slowed by start-up."""
+    import pandas as pd
+
+    from studies.end_to_end import views_lost_markdown
+    from studies.score import refusals_markdown, time_markdown
+
+    why = "view distal_ap: its field-of-view mask (arrays/xray_fov_distal_ap) is 240 x 640 px"
+    rows = []
+    for case, ok, t in (("case_0000", 0.0, 155.4), ("case_0001", 1.0, 3.4),
+                        ("case_0002", 1.0, 3.5)):
+        rows += [{"case": case, "metric": "accepted", "value": ok,
+                  "reason": "" if ok else "fewer than 4 views usable\n(3 of 4)"},
+                 {"case": case, "metric": "time", "value": t},
+                 {"case": case, "metric": "view_used", "value": ok, "view": "distal_ap",
+                  "reason": "" if ok else why}]
+    df = pd.DataFrame(rows)
+    refused = refusals_markdown(df)
+    assert "refused 1 case(s)" in refused
+    assert "- case_0000: fewer than 4 views usable (3 of 4)" in refused
+    assert "case_0001" not in refused
+    lost = views_lost_markdown(df)
+    assert "1 view-case(s) were left out" in lost and why in lost
+    timing = time_markdown(df)
+    assert "median 3.50 s, 3.40-155.40 s over 3 case(s)" in timing
+    assert "Over 3 times the median: case_0000 155.4 s" in timing
+    assert "start-up" in timing
+    # every case accepted and alike in time: no refusal section, no start-up sentence
+    calm = df[df.case != "case_0000"]
+    assert refusals_markdown(calm) == ""
+    assert "Over 3 times" not in time_markdown(calm)
+    # a method with no verdict (a user's): nothing to list
+    assert refusals_markdown(df[df.metric == "time"]) == ""

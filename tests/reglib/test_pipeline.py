@@ -716,6 +716,14 @@ def test_entries_a_user_gets_wrong_are_named_or_read_as_meant():
                                          r"\(first at frame 5, bead 2\)"):
         find_markers(SweepData("v", frames, arrays["plane"], beads,
                                arrays["bead_positions_mm"]))
+    # NaN in one coordinate: not a reading the robot did not make (a held-out review's was
+    # read as one)
+    beads = arrays["beads_reported"].copy()
+    beads[3, 1, 2] = np.nan
+    with pytest.raises(ValueError, match=r"view v: beads_reported at frame 3, bead 1 is "
+                                         r"\[.*nan\]: NaN in some coordinates only"):
+        find_markers(SweepData("v", frames, arrays["plane"], beads,
+                               arrays["bead_positions_mm"]))
     with pytest.raises(ValueError, match=r"surfaces\['distal'\]: expected .* got shape "
                                          r"\(3, 4\) and shape \(4, 3\)"):
         prepare(obs, surfaces={"distal": (tet[0].T, tet[1])})
@@ -790,9 +798,15 @@ def test_a_region_left_with_one_of_its_views_is_objected_to():
     names = ["proximal_ap", "proximal_oblique", "distal_ap", "distal_oblique"]
     regions = ["proximal", "proximal", "distal", "distal"]
 
-    def stages(used, failed):
-        return SimpleNamespace(views=[SimpleNamespace(name=n) for n in used],
-                               failed={n: "why" for n in failed})
+    # each view's beam: the proximal pair 30 deg apart, the distal pair 25 deg
+    beams = {n: [np.sin(np.radians(a)), 0.0, np.cos(np.radians(a))]
+             for n, a in zip(names, (0.0, 30.0, 0.0, -25.0), strict=True)}
+
+    def stages(used, failed, turn=None):
+        turn = turn or {}
+        return SimpleNamespace(views=[SimpleNamespace(name=n, directions=np.array(
+            [turn.get(n, beams.get(n, [0.0, 0.0, 1.0]))] * 3)) for n in used],
+            failed={n: "why" for n in failed})
 
     obs = {"meta": {"views": names, "view_regions": regions}}
     lost = stages(names[1:], names[:1])
@@ -809,6 +823,16 @@ def test_a_region_left_with_one_of_its_views_is_objected_to():
     three = {"meta": {"views": ["p", "d", "x"], "view_regions": ["proximal", "distal", "x"]}}
     assert lone_region(three, stages(["p", "d"], ["x"])) == ""
     assert lone_region({"meta": {"views": names}}, lost) == ""       # no view_regions
+    # a region's two views along nearly one beam (a held-out review: the proximal pair made
+    # parallel, accepted with the proximal pin 2.9-3.8 mm off): objected to below 10 deg
+    for deg, objected in ((0.0, True), (5.0, True), (9.9, True), (10.1, False)):
+        near = {"proximal_oblique": [np.sin(np.radians(deg)), 0.0, np.cos(np.radians(deg))]}
+        why = lone_region(obs, stages(names, [], near))
+        assert bool(why) == objected, (deg, why)
+        if objected:
+            assert why.startswith(WEAK_GEOMETRY)
+            assert (f"'proximal' is seen by 2 usable views (proximal_ap, proximal_oblique) "
+                    f"whose beams lie within {deg:.1f} deg of one another") in why
     # view_regions that do not follow views are refused naming both
     bad = {"meta": {"views": names[1:], "view_regions": regions, "regions": ["proximal"]},
            "images": {}, "arrays": {}, "volumes": {}}

@@ -214,6 +214,10 @@ def test_a_methods_result_that_is_no_rigid_pose_is_named():
                                 "matrix of numbers, got NoneType"),
                          ("pose", "returned: .* got str"), (m[:3], r"shape \(3, 4\)"),
                          (m * 2.0, "not a rigid transform"),
+                         # a rotation with a bad last row: that row named, not the rotation
+                         (np.vstack([m[:3], [0.1, 0.0, 0.0, 1.0]]),
+                          r"not a rigid transform: its last row is \[0\.1, 0, 0, 1\], "
+                          r"expected \[0, 0, 0, 1\]$"),
                          # a review: booleans and strings were cast and scored (853 mm off)
                          (np.eye(4, dtype=bool), "returned: .* got an array of bool"),
                          (m.astype(str), "returned: .* got an array of <U"),

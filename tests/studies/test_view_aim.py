@@ -149,3 +149,36 @@ def test_a_pin_no_ct_slice_shows_is_warned_of():
     near = {"p": np.array([0.0, 0.0, 378.0 + PIN_CT_MARGIN_MM])}
     assert pin_coverage_warnings(near, z) == []
     assert pin_coverage_warnings(pins, np.zeros(0)) == []
+
+
+def test_a_views_region_label_is_said_to_reach_the_verdict(tmp_path):
+    """A held-out review (h81): the warning for a distal view labelled 'proximal' said the
+    run does not use the label, but the observation's view_regions carry it to the verdict;
+    a view that gives no region is read as 'proximal', and the warning names it."""
+    from studies.end_to_end import _region_label_warnings
+    from testbed.scene import find_scene, load_scene
+
+    text = find_scene("experiment2").read_text()
+    assert text.count('region = "distal"') == 2
+    unlabelled = tmp_path / "no_region.toml"
+    unlabelled.write_text(text.replace('region = "distal"\n', "", 1))
+    (w,) = _region_label_warnings(load_scene(unlabelled))
+    assert w.startswith("views[2].region: view 'distal_ap' is labelled 'proximal'"), w
+    assert "the run passes the label to the method, whose verdict counts" in w
+    assert w.endswith("views[2] give(s) no region, read as 'proximal'")
+    # (a view labelled 'proximal' on purpose: tests/studies/test_capture_range.py)
+
+
+def test_an_unchecked_workspace_is_among_the_warnings_and_said_first():
+    """A held-out review (h81): with [workspace] check = false the JSON's warnings were
+    empty; the opt-out is a scene warning, and the text's first line."""
+    from studies.end_to_end import WORKSPACE_UNCHECKED
+    from studies.main_job import format_result
+
+    assert WORKSPACE_UNCHECKED.startswith("[workspace] check = false")
+    text = format_result({"scene": "s", "kind": "operating_room", "seed": 1,
+                          "scene_warnings": ["views[0]: other", WORKSPACE_UNCHECKED],
+                          "pins": {"proximal": 1.0}, "mtre_mm": 1.0, "converged": True,
+                          "accepted": True, "outputs": {}, "timings": {}})
+    assert text.splitlines()[0] == f"WARNING: {WORKSPACE_UNCHECKED}"
+    assert "WARNING: views[0]" not in text

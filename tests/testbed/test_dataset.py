@@ -339,7 +339,19 @@ def test_values_a_case_cannot_hold_are_refused_naming_the_file(tmp_path):
                                                           "ct2robot": m.tolist()}))
     with pytest.raises(ValueError, match=r"ct2robot.*last row is \[0, 0, 0, 1\]"):
         load(case_dir, verify=False)
+    # numbers written as text (a held-out review: they were read as numbers and scored)
+    m = np.array(transforms["ct2robot"]).tolist()
+    m[0][3] = "800"
+    (case_dir / "transforms.json").write_text(json.dumps({**transforms, "ct2robot": m}))
+    with pytest.raises(ValueError, match=r"transforms\.json: transform 'ct2robot': expected "
+                                         r"a 4 x 4 array of numbers"):
+        load(case_dir, verify=False)
     (case_dir / "transforms.json").write_text(json.dumps(transforms))
+    points["pins_ct"]["points"]["distal_1"] = ["1", 2.0, 3.0]
+    (case_dir / "points.json").write_text(json.dumps(points))
+    with pytest.raises(ValueError, match=r"points\.json: points 'pins_ct', 'distal_1': "
+                                         r"expected an \(N, 3\) array of numbers, got text"):
+        load(case_dir, verify=False)
     points["pins_ct"]["points"]["distal_1"] = [1e300, 0.0, 0.0]
     (case_dir / "points.json").write_text(json.dumps(points))
     with pytest.raises(ValueError, match=r"points\.json: points 'pins_ct', 'distal_1': "
