@@ -218,11 +218,9 @@ def refusals_markdown(df: pd.DataFrame) -> str:
     acc = df[(df.metric == "accepted") & (df.value <= 0.5)] if "metric" in df else df[:0]
     if acc.empty:
         return ""
-    reasons = (acc["reason"].fillna("").astype(str) if "reason" in acc
-               else pd.Series("", index=acc.index))
-    lines = [f"- {r['case']}: {one_line(why, 400) or '(no reason recorded)'}"
-             for (_, r), why in zip(acc.head(MAX_REFUSALS_LISTED).iterrows(), reasons,
-                                    strict=False)]
+    acc = acc.assign(reason=acc["reason"].fillna("").astype(str) if "reason" in acc else "")
+    lines = [f"- {r['case']}: {one_line(r['reason'], 400) or '(no reason recorded)'}"
+             for _, r in acc.head(MAX_REFUSALS_LISTED).iterrows()]
     more = len(acc) - MAX_REFUSALS_LISTED
     if more > 0:
         lines.append(f"- and {more} more (`results.csv`: metric `accepted`, column `reason`)")
