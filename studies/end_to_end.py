@@ -639,6 +639,14 @@ def registration_rows(case: Case, starts: dict, *, oracle=(), fixed_pin=None,
     return rows
 
 
+def view_used_row(stages, view: str) -> dict:
+    """The ``view_used`` row of ``view`` (1: the registration used it; ``reason``: why
+    not, the estimate's words from ``stages.failed``)."""
+    why = str(stages.failed.get(view, ""))
+    return {"metric": "view_used", "value": float(not why), "unit": "", "view": view,
+            "reason": why}
+
+
 def case_rows(case: Case) -> list[dict]:
     """Long-format rows describing a case's estimated stages: per view the calibration's
     ``validation_distance`` (mm; ``statistic`` max and mean), ``calibration_ok`` (0/1),
@@ -657,9 +665,7 @@ def case_rows(case: Case) -> list[dict]:
             rows.append({"metric": "validation_distance", "value": float(val), "unit": "mm",
                          "view": v, "statistic": stat})
         rows.append({"metric": "calibration_ok", "value": float(cal.ok), "unit": "", "view": v})
-        why = str(case.stages.failed.get(v, ""))
-        rows.append({"metric": "view_used", "value": float(not why), "unit": "", "view": v,
-                     "reason": why})
+        rows.append(view_used_row(case.stages, v))
         rows.append({"metric": "contour_pixels", "value": float(len(case.stages.contours[v].xy)),
                      "unit": "count", "view": v})
     rows.append({"metric": "sim_time", "value": float(case.timings.get("simulation", 0.0)),

@@ -173,6 +173,7 @@ def case_inputs(case_dir) -> CaseInputs:
 def score_case(case_dir, method: str = DEFAULT_METHOD) -> list[dict]:
     """Rows of one case (see the module docstring)."""
     import reglib
+    from studies.end_to_end import view_used_row
     from studies.scoring import pin_errors
 
     obs, truth, _, start, options = case_inputs(case_dir)
@@ -187,10 +188,8 @@ def score_case(case_dir, method: str = DEFAULT_METHOD) -> list[dict]:
         rows += [{"metric": "accepted", "value": float(est.accepted), "unit": "",
                   "reason": "" if est.accepted else str(est.message or "not accepted")},
                  {"metric": "converged", "value": float(est.converged), "unit": ""}]
-        for v in est.stages.calibrations if est.stages is not None else ():
-            why = str(est.stages.failed.get(v, ""))
-            rows.append({"metric": "view_used", "value": float(not why), "unit": "",
-                         "view": v, "reason": why})
+        rows += [view_used_row(est.stages, v)
+                 for v in (est.stages.calibrations if est.stages is not None else ())]
     else:
         pose = _as_pose(fn(obs, start.as_matrix()), method)
     dt = time.perf_counter() - t0
