@@ -119,9 +119,11 @@ def format_result(result: dict) -> str:
     """Human-readable summary of :func:`run_main_job`'s result."""
     lines = [f"scene {result['scene']} ({result.get('kind', '')}), seed {result.get('seed')}"]
     # first: the workspace's opt-out, and what the verdict cannot see, which changes what
-    # the figures mean (a moving femur, a robot less accurate than the clinic's)
+    # the figures mean (a moving femur, a robot less accurate than the clinic's, a
+    # distortion drifting after the sweep)
     blind = [w for w in result.get("scene_warnings", ())
-             if w.startswith(("[workspace] ", "[patient] motion", "[robot] "))]
+             if w.startswith(("[workspace] ", "[patient] motion", "[robot] ",
+                              "[fluoroscope] distortion_drift"))]
     for w in reversed(blind):
         lines.insert(0, f"WARNING: {w}")
     if result.get("kind") == "synthetic":

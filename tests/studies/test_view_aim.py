@@ -100,6 +100,43 @@ def test_a_moving_femur_is_announced_first():
     assert text.splitlines()[0] == f"WARNING: {w}"
 
 
+def _first_line_of_run_text(warning: str) -> str:
+    """The first line of ``testbed run``'s text for a result whose scene warnings are
+    another line and ``warning``."""
+    from studies.main_job import format_result
+
+    return format_result({"scene": "s", "kind": "operating_room", "seed": 1,
+                          "scene_warnings": ["other", warning], "pins": {"proximal": 1.0},
+                          "mtre_mm": 1.0, "converged": True, "accepted": True,
+                          "outputs": {}, "timings": {}}).splitlines()[0]
+
+
+def test_a_distortion_drift_beyond_the_clinics_is_warned_of():
+    """Held-out reviews: a distortion drift between the sweep and the shot of 3-10 times the
+    clinic default was accepted with pins 2-6.7 mm off, every verdict figure inside its
+    limit. Beyond twice the default, one warning naming the field and the factor; none for
+    the shipped profiles, none at twice, none when the distortion is off."""
+    from studies.end_to_end import drift_warnings
+    from testbed.scene import find_scene, load_scene
+
+    for name in ("experiment2", "experiment2-ideal", "experiment1"):
+        assert drift_warnings(load_scene(find_scene(name))) == [], name
+    scene = load_scene(find_scene("experiment2"))
+    for update, shown in (({"distortion_drift_mm": 1.0}, "distortion_drift_mm = 1 (5.0 "),
+                          ({"distortion_drift_mm": 0.4}, None),
+                          ({"distortion_drift_mm": 1.0, "distortion": False}, None)):
+        worse = scene.model_copy(update={
+            "fluoroscope": scene.fluoroscope.model_copy(update=update)})
+        got = drift_warnings(worse)
+        if shown is None:
+            assert got == [], update
+        else:
+            (w,) = got
+            assert w.startswith("[fluoroscope] ") and shown in w and "verdict cannot see" in w
+    # testbed run's text puts it first
+    assert _first_line_of_run_text(w) == f"WARNING: {w}"
+
+
 def test_a_robot_less_accurate_than_the_clinics_is_warned_of():
     """A held-out review (h77): kinematic offsets at 3-10 times the clinic default were
     accepted at mTRE 2-7 mm with every verdict figure inside its limit (the calibration is
@@ -122,13 +159,7 @@ def test_a_robot_less_accurate_than_the_clinics_is_warned_of():
             (w,) = got
             assert w.startswith("[robot] ") and shown in w and "verdict cannot see" in w
     # testbed run's text puts it first
-    from studies.main_job import format_result
-
-    text = format_result({"scene": "s", "kind": "operating_room", "seed": 1,
-                          "scene_warnings": ["other", w], "pins": {"proximal": 1.0},
-                          "mtre_mm": 1.0, "converged": True, "accepted": True,
-                          "outputs": {}, "timings": {}})
-    assert text.splitlines()[0] == f"WARNING: {w}"
+    assert _first_line_of_run_text(w) == f"WARNING: {w}"
 
 
 def test_a_pin_no_ct_slice_shows_is_warned_of():
