@@ -293,10 +293,14 @@ def pin_detail_warnings(pins_ct: dict, z_mm) -> list[str]:
     coarse = []
     for name, p in pins_ct.items():
         pz = float(np.asarray(p)[2])
-        below, above = z[z <= pz], z[z >= pz]
-        if not len(below) or not len(above):
+        lo, hi = z[z < pz], z[z > pz]
+        if np.any(z == pz):   # a slice through the pin: the wider gap beside it
+            gaps = ([pz - lo[-1]] if len(lo) else []) + ([hi[0] - pz] if len(hi) else [])
+        else:                 # the gap that spans the pin
+            gaps = [hi[0] - lo[-1]] if len(lo) and len(hi) else []
+        if not gaps:
             continue       # beyond the stack: pin_coverage_warnings says so if it matters
-        gap = float(above[0] - below[-1])
+        gap = float(max(gaps))
         if gap > PIN_SLICE_WARN_MM:
             coarse.append(f"{gap:.1f} mm across {name!r}")
     if not coarse:

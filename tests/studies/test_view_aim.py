@@ -183,6 +183,14 @@ def test_a_pin_between_distant_ct_slices_is_warned_of():
     assert pin_detail_warnings(pins, fine) == []
     assert pin_detail_warnings(pins, np.arange(0.0, 451.0, PIN_SLICE_WARN_MM)) == []
     assert pin_detail_warnings(pins, np.zeros(0)) == []
+    # a slice through the pin: the gaps beside it count
+    (w,) = pin_detail_warnings({"p": np.array([0.0, 0.0, 34.0])},
+                               np.r_[27.2, 34.0, np.arange(35.0, 60.0)])
+    assert "6.8 mm across 'p'" in w
+    assert pin_detail_warnings({"p": np.array([0.0, 0.0, 34.0])}, np.arange(30.0, 40.0)) == []
+    assert pin_detail_warnings({"p": np.array([0.0, 0.0, 34.0])}, np.array([34.0])) == []
+    (w,) = pin_detail_warnings({"p": np.array([0.0, 0.0, 34.0])}, np.array([34.0, 40.0]))
+    assert "6.0 mm across 'p'" in w
     # the shipped scenes are warned of nothing of the kind; a uniform 6.8 mm CT is
     for name in ("experiment2", "experiment1"):
         scene = load_scene(find_scene(name))
