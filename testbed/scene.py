@@ -404,8 +404,17 @@ def _validation_message(path: str, exc: ValidationError) -> str:
                 lines.append(f"  {path}: field '{_field_path(loc[:-1])}': expected "
                              f"{max(missing) + 1} values, got {min(missing)}")
             continue
-        lines.append(f"  {path}: field '{_field_path(err['loc'])}': {_describe(err)}")
+        field, text = _field_path(err["loc"]), _describe(err)
+        if not err.get("loc"):   # a check across the file's tables whose message names the
+            # field it is about first ("patient.position_mm = ..."): that field, not the top
+            named = _NAMED_FIELD.match(text)
+            field = named.group(1) if named else field
+        lines.append(f"  {path}: field '{field}': {text}")
     return "\n".join(lines)
+
+
+#: a message that opens with a field's dotted path and ``=``
+_NAMED_FIELD = re.compile(r"([a-z_]+(?:\[\d+\])?(?:\.[a-z_0-9]+(?:\[\d+\])?)+) = ")
 
 
 def _tuplify(obj):
