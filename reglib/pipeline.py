@@ -313,11 +313,11 @@ class EstimateOptions:
                              f"(0, 90], got {v!r}")
         # restarts come in rings of six turns (+-x, +-y, +-z), ring k turned k x restart_deg:
         # past 180 degrees they repeat, and a review's 10**6 restarts meant 40 hours
-        rings = -(-self.restarts // 6)
+        rings = -(-self.restarts // RING)
         if self.restarts > MAX_RESTARTS or rings * v > 180.0:
             raise ValueError(
                 f"EstimateOptions.restarts: {self.restarts} restarts turned by {v:g} deg "
-                f"reach {rings * v:g} deg (rings of 6, ring k turned by k x restart_deg); "
+                f"reach {rings * v:g} deg (rings of {RING}, ring k turned by k x restart_deg); "
                 f"at most {MAX_RESTARTS} restarts and 180 deg")
         if self.fixed_point_ct is not None:
             fp = np.asarray(self.fixed_point_ct)
@@ -1764,7 +1764,8 @@ def contour_share(views) -> tuple[float, int]:
 #: a pose with the distal pins 11.9 and 21.7 mm off (median 0.59 mm, weakest motion 5.5 mm,
 #: every figure inside its limit) from the first restart; the third of that ring (and the
 #: first of the next) ended 1.7 mm from the truth with a median of 0.37 mm.
-RING = 6
+_RING_AXES = np.vstack([np.eye(3), -np.eye(3)])
+RING = len(_RING_AXES)
 #: the most restarts :class:`EstimateOptions` allows (each takes about 0.15 s)
 MAX_RESTARTS = 60
 
@@ -1776,7 +1777,7 @@ def restart_poses(start: RigidTransform, pivot_robot, angle_deg: float, n: int) 
     pivot = np.asarray(pivot_robot, dtype=np.float64)
     ring = 1
     while len(out) < n:
-        for axis in np.vstack([np.eye(3), -np.eye(3)]):
+        for axis in _RING_AXES:
             rot = RigidTransform.from_rotvec(np.radians(ring * angle_deg) * axis)
             out.append(RigidTransform(rot.R, pivot - rot.R @ pivot) @ start)
             if len(out) == n:

@@ -293,14 +293,12 @@ def pin_detail_warnings(pins_ct: dict, z_mm) -> list[str]:
     coarse = []
     for name, p in pins_ct.items():
         pz = float(np.asarray(p)[2])
-        lo, hi = z[z < pz], z[z > pz]
-        if np.any(z == pz):   # a slice through the pin: the wider gap beside it
-            gaps = ([pz - lo[-1]] if len(lo) else []) + ([hi[0] - pz] if len(hi) else [])
-        else:                 # the gap that spans the pin
-            gaps = [hi[0] - lo[-1]] if len(lo) and len(hi) else []
-        if not gaps:
-            continue       # beyond the stack: pin_coverage_warnings says so if it matters
-        gap = float(max(gaps))
+        # the gaps between neighbouring slices that hold the pin (two, if a slice goes
+        # through it; none beyond the stack: pin_coverage_warnings says so if it matters)
+        spans = (z[:-1] <= pz) & (z[1:] >= pz)
+        if not spans.any():
+            continue
+        gap = float(np.diff(z)[spans].max())
         if gap > PIN_SLICE_WARN_MM:
             coarse.append(f"{gap:.1f} mm across {name!r}")
     if not coarse:
@@ -327,6 +325,19 @@ def motion_warnings(scene) -> list[str]:
             "were accepted 1-10 mm off at 0.5-3 mm / 0.1-1 deg per step (docs/verdict.md)"]
 
 
+def _beyond_clinic(spec, cls, names, factor: float) -> list[str]:
+    """``"name = value (N times the clinic's default)"`` for each field of ``names`` whose
+    value in ``spec`` exceeds ``factor`` times its default in the spec class ``cls`` (the
+    clinic profile's magnitude, docs/error-model.md)."""
+    parts = []
+    for name in names:
+        value, default = float(getattr(spec, name)), float(cls.model_fields[name].default)
+        if default > 0 and value > factor * default:
+            parts.append(f"{name} = {value:g} ({value / default:.1f} times the clinic's "
+                         f"{default:g})")
+    return parts
+
+
 #: a robot whose kinematic offsets exceed this many times the clinic default is warned of
 ROBOT_WARN_FACTOR = 2.0
 
@@ -345,12 +356,8 @@ def robot_warnings(scene) -> list[str]:
     robot = getattr(scene, "robot", None)
     if robot is None:
         return []
-    parts = []
-    for name in ("kinematic_offset_mm", "kinematic_offset_deg"):
-        value, default = float(getattr(robot, name)), float(RobotSpec.model_fields[name].default)
-        if default > 0 and value > ROBOT_WARN_FACTOR * default:
-            parts.append(f"{name} = {value:g} ({value / default:.1f} times the clinic's "
-                         f"{default:g})")
+    parts = _beyond_clinic(robot, RobotSpec, ("kinematic_offset_mm", "kinematic_offset_deg"),
+                           ROBOT_WARN_FACTOR)
     if not parts:
         return []
     return [f"[robot] {', '.join(parts)}: the calibration takes the robot's frame as the "
@@ -378,12 +385,10 @@ def drift_warnings(scene) -> list[str]:
     fl = getattr(scene, "fluoroscope", None)
     if fl is None or not fl.distortion:
         return []
-    value = float(fl.distortion_drift_mm)
-    default = float(FluoroscopeSpec.model_fields["distortion_drift_mm"].default)
-    if not (default > 0 and value > DRIFT_WARN_FACTOR * default):
+    parts = _beyond_clinic(fl, FluoroscopeSpec, ("distortion_drift_mm",), DRIFT_WARN_FACTOR)
+    if not parts:
         return []
-    return [f"[fluoroscope] distortion_drift_mm = {value:g} ({value / default:.1f} times the "
-            f"clinic's {default:g}): the distortion changes between the calibration sweep and "
+    return [f"[fluoroscope] {parts[0]}: the distortion changes between the calibration sweep and "
             "the shot, after the sweep's validation row was imaged; the pose absorbs it and "
             "the method's verdict cannot see it (held-out runs at 3-10 times were accepted "
             "with pins 2-6.7 mm off; docs/verdict.md)"]
