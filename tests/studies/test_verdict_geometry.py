@@ -16,23 +16,28 @@ from testbed.scene import find_scene, load_scene, parse_scene
 def test_one_view_per_end_of_the_femur_is_refused_and_was_wrong(pair):
     """Clinic experiment2 with one view per end of the femur: the registration fits the
     contours as well as with four views (median distance ~0.4-0.55 mm) but the bone can slide
-    along the beams; the verdict refuses it, and the truth confirms it was loose: 0.72 and
-    6.6 mm off, against 0.38 mm with the four views at this seed (since the CT operator's
-    per-slice streams of 2026-11-27; 0.80 and more than 2 mm against 0.30 after the CT
-    contour fixes of 2026-11-26; 1.3 mm against 0.52 before them; before one robot swept
-    every view, 3.7 and 4.3 mm; the second pair was accepted under a first limit of 8 mm, at
-    7.8). The first pair is right by chance at 0.7 mm: the weak-geometry rule refuses what
-    the views cannot vouch for, whatever the error happened to be."""
+    along the beams; the verdict refuses it, and the truth confirms it was loose. One draw
+    does not show it: at the scene's seed the first pair ended 0.72 mm off, then 0.58 mm
+    (2026-11-28, register's inner solve stopped after 5 iterations), against 0.38 mm with
+    the four views; right by chance, as the weak-geometry rule cannot know. So the truth is
+    read over three seeds (2026-11-28: the first pair 0.58 / 1.93 / 1.56 mm, the second
+    7.73 / 3.90 / 3.18 mm; the four views 0.38 / 0.46 / 0.39 mm; weakest motion 8.3-13.6
+    mm, every run refused). History at the scene's seed: 0.80 and more than 2 mm against
+    0.30 after the CT contour fixes of 2026-11-26; 1.3 mm against 0.52 before them; before
+    one robot swept every view, 3.7 and 4.3 mm; the second pair was accepted under a first
+    limit of 8 mm, at 7.8."""
     scene = load_scene(find_scene("experiment2"))
     two = scene.model_copy(update={"views": tuple(v for v in scene.views if v.name in pair)})
-    res, _, _, est = run_case(two, seed=scene.scene.seed)
-    # refused for the geometry whether the loop converged or not (the second pair, with the
-    # CT operator's per-slice streams, 2026-11-27: not converged after its 12 restarts, 6.6
-    # mm off); over seeds 1-3 too: weakest motion 7.8-9.1 mm, mTRE 1.6-1.9 mm and 3.2-4.4 mm
-    assert not est.accepted
-    assert "loosely determined" in est.message
-    assert est.quality["weak_motion_mm"] > MAX_WEAK_MOTION_MM
-    assert res["mtre_mm"] > 0.6                 # the truth: twice the four views' error
+    errors = []
+    for seed in (scene.scene.seed, 1, 2):
+        res, _, _, est = run_case(two, seed=seed)
+        # refused for the geometry whether the loop converged or not
+        assert not est.accepted, seed
+        assert "loosely determined" in est.message, seed
+        assert est.quality["weak_motion_mm"] > MAX_WEAK_MOTION_MM, seed
+        errors.append(res["mtre_mm"])
+    # the truth: the median error well above the four views' (0.38-0.46 mm at these seeds)
+    assert sorted(errors)[1] > 1.0, errors
 
 
 @pytest.mark.slow
