@@ -503,18 +503,14 @@ def _check_solver_options(method, opts):
                          "method, initial and fixed_point_ct arguments)")
 
 
-#: register's default inner iterations of the pose solve per loop iteration. The matches
-#: change at the next iteration, so solving them to 1e-10 is work thrown away: at 20 (the
-#: default until 2026-11-28) two thirds of the IRLS solves of a capture-range trial ran all
-#: 20 (the robust weights keep moving) and the solves were a quarter of a registration's
-#: time. At 5, on the capture-range bench case (oracle calibration, 20 starts 0.5-30 mm),
-#: an estimate took 35.5 ms instead of 46.0, robust 19.6 / 22.3, robust-line 38.1 / 51.5,
-#: ransac 62.3 / 75.1, the same starts accepted and every final mTRE within 1e-5 mm but
-#: linear's (a baseline that fails from every start either way); testbed run on
-#: experiment2, experiment2-ideal and experiment1 at six seeds each: the same verdicts,
-#: mTRE moved by at most 0.035 mm (experiment2 seed 4, a clinic loop's period-2 cycle ending
-#: on its other pose), 0.0007 mm at the pinned seed
-SOLVER_ITERATIONS = 5
+#: register's default inner iterations of the pose solve per loop iteration. Fewer would do
+#: less work thrown away (the matches change at the next iteration): at 5, a capture-range
+#: trial ran 14.7 -> 17.0 /min with the same results on the ideal profile, but on the clinic
+#: the loop's limit cycles, settled after 16-22 iterations at 20, no longer repeat exactly:
+#: table2's case 15 ran 50 iterations unconverged from 2 of its 11 starts (steps 0.46-0.54
+#: mm) and 12 restarts each, refused 1.0-1.4 mm off (2026-11-28). Only the coarse stage,
+#: which hands over at 0.5 mm steps, takes fewer (reglib.pipeline.COARSE_STAGE).
+SOLVER_ITERATIONS = 20
 
 #: the limit cycles' periods the robust solvers' loop recognises as settled
 CYCLE_PERIODS = (2, 3, 4, 5, 6, 7, 8)

@@ -18,11 +18,11 @@ def test_one_view_per_end_of_the_femur_is_refused_and_was_wrong(pair):
     contours as well as with four views (median distance ~0.4-0.55 mm) but the bone can slide
     along the beams; the verdict refuses it, and the truth confirms it was loose. One draw
     does not show it: at the scene's seed the first pair ended 0.72 mm off, then 0.58 mm
-    (2026-11-28, register's inner solve stopped after 5 iterations), against 0.38 mm with
-    the four views; right by chance, as the weak-geometry rule cannot know. So the truth is
-    read over three seeds (2026-11-28: the first pair 0.58 / 1.93 / 1.56 mm, the second
-    7.73 / 3.90 / 3.18 mm; the four views 0.38 / 0.46 / 0.39 mm; weakest motion 8.3-13.6
-    mm, every run refused). History at the scene's seed: 0.80 and more than 2 mm against
+    (2026-11-28, the coarse stage's pose solve stopped after 5 inner iterations), against
+    0.38 mm with the four views; right by chance, as the weak-geometry rule cannot know. So
+    the truth is read over three seeds (2026-11-28: the first pair 0.58 / 1.93 / 1.56 mm,
+    the second 7.74 / 3.88 / 3.18 mm; the four views 0.38 / 0.46 / 0.39 mm; weakest motion
+    8.3-13.8 mm, every run refused). History at the scene's seed: 0.80 and more than 2 mm against
     0.30 after the CT contour fixes of 2026-11-26; 1.3 mm against 0.52 before them; before
     one robot swept every view, 3.7 and 4.3 mm; the second pair was accepted under a first
     limit of 8 mm, at 7.8."""
