@@ -727,6 +727,23 @@ def _kept_radius(P, weights):
     return size if size > 0.0 else 1.0
 
 
+@njit(cache=True, inline="always")
+def _kept_centroid(P, weights):
+    """The ``weights``-weighted centroid of the points with ``weights > 0`` and the weights'
+    sum: ``((3,), float)``, the centroid zero when the sum is 0."""
+    ws = 0.0
+    m = np.zeros(3)
+    for i in range(P.shape[0]):
+        if weights[i] > 0.0:
+            ws += weights[i]
+            for j in range(3):
+                m[j] += weights[i] * P[i, j]
+    if ws > 0.0:
+        for j in range(3):
+            m[j] /= ws
+    return m, ws
+
+
 @njit(cache=True)
 def rank_gram(P, d, weights):
     """``J^T J`` (6, 6) of the rank test of :func:`reglib.pose._undetermined` over the pairs
@@ -736,17 +753,9 @@ def rank_gram(P, d, weights):
     centroid, 1 when 0) and a translation. ``reglib.pose._rank_gram`` is the reference,
     compared in tests."""
     n = P.shape[0]
-    ws = 0.0
-    m = np.zeros(3)
-    for i in range(n):
-        if weights[i] > 0.0:
-            ws += weights[i]
-            for j in range(3):
-                m[j] += weights[i] * P[i, j]
+    m, ws = _kept_centroid(P, weights)
     if ws == 0.0:
         return np.zeros((6, 6))
-    for j in range(3):
-        m[j] /= ws
     size = _kept_radius(P, weights)
     # the normal equations' rows are [2 n x (Q - m), n]: with Q = m + (P - m) / (2 size)
     # they are the rank test's [n x (P - m) / size, n]
@@ -756,3 +765,54 @@ def rank_gram(P, d, weights):
             Q[i, j] = m[j] + (P[i, j] - m[j]) / (2.0 * size)
     G, _ = _normal_equations(Q, perp_basis(d), np.zeros((2, n)), weights, m[0], m[1], m[2])
     return G
+
+
+@njit(cache=True)
+def max_pair_leverage(P, d, weights, gram):
+    """The largest leverage of one pair in the rank test of :func:`reglib.pose._undetermined`
+    (``single_pairs``): over the pairs with ``weights > 0``, the largest eigenvalue of each
+    pair's 2x2 block of ``J C^-1 J^T``, ``J`` the rank test's weighted Jacobian (the rows of
+    :func:`rank_gram`, unscaled) and ``C = gram`` its Gram matrix (:func:`rank_gram`'s).
+    Per pair without the (2K, 6) Jacobian the numpy reference builds
+    (``reglib.pose._max_pair_leverage``, compared in tests); 0 when no pair is kept."""
+    n = P.shape[0]
+    m, ws = _kept_centroid(P, weights)
+    if ws == 0.0:
+        return 0.0
+    size = _kept_radius(P, weights)
+    Ci = np.linalg.inv(gram)
+    Nb = perp_basis(d)
+    J = np.empty((2, 6))
+    G = np.empty((2, 6))
+    best = 0.0
+    for i in range(n):
+        if not weights[i] > 0.0:
+            continue
+        sw = np.sqrt(weights[i])
+        y0, y1, y2 = P[i, 0] - m[0], P[i, 1] - m[1], P[i, 2] - m[2]
+        for r in range(2):
+            n0, n1, n2 = Nb[r, i, 0], Nb[r, i, 1], Nb[r, i, 2]
+            J[r, 0] = (n1 * y2 - n2 * y1) / size * sw
+            J[r, 1] = (n2 * y0 - n0 * y2) / size * sw
+            J[r, 2] = (n0 * y1 - n1 * y0) / size * sw
+            J[r, 3] = n0 * sw
+            J[r, 4] = n1 * sw
+            J[r, 5] = n2 * sw
+        for r in range(2):
+            for a in range(6):
+                s = 0.0
+                for b in range(6):
+                    s += Ci[a, b] * J[r, b]
+                G[r, a] = s
+        b00 = b01 = b10 = b11 = 0.0
+        for a in range(6):
+            b00 += J[0, a] * G[0, a]
+            b01 += J[0, a] * G[1, a]
+            b10 += J[1, a] * G[0, a]
+            b11 += J[1, a] * G[1, a]
+        tr = b00 + b11
+        det = b00 * b11 - b01 * b10
+        lev = 0.5 * tr + np.sqrt(max(0.25 * tr * tr - det, 0.0))
+        if lev > best:
+            best = lev
+    return best

@@ -603,6 +603,44 @@ def test_compiled_rank_gram_equals_the_numpy_reference(seed):
                                   np.ones(20)) == ""
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_compiled_pair_leverage_equals_the_numpy_reference(seed):
+    """RANSAC's single-pair test compiled (reglib._pose_numba.max_pair_leverage) against the
+    numpy Jacobian's (pose._max_pair_leverage) on random points, lines and weights; and on
+    collinear inliers whose free rotation one stray pair fixes (leverage 1, the case the
+    test exists for), which both call degenerate and _undetermined refuses."""
+    from reglib import _pose_numba
+
+    rng = np.random.default_rng(seed)
+    for _ in range(5):
+        n = int(rng.integers(4, 300))
+        P = rng.normal(size=(n, 3)) * rng.uniform(1, 100) + rng.normal(size=3) * 500
+        d = rng.normal(size=(n, 3))
+        d[: n // 3, 0] += 5.0
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        w = rng.uniform(0, 1, n) * (rng.random(n) > 0.3)
+        w[:4] = 1.0
+        J, gram = pose_mod._rank_gram(P, d, w)
+        ref = pose_mod._max_pair_leverage(J, gram)
+        got = _pose_numba.max_pair_leverage(P, d, w, _pose_numba.rank_gram(P, d, w))
+        assert 0.0 < ref <= 1.0 + 1e-9
+        assert got == pytest.approx(ref, rel=1e-9, abs=1e-12)
+    # collinear points on lines of many directions, and one pair off their line
+    t = np.linspace(-50, 50, 30)
+    P = np.vstack([np.outer(t, [1.0, 0.3, 0.2]) + 200.0, [[260.0, 150.0, 120.0]]])
+    d = rng.normal(size=(31, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    w = np.ones(31)
+    J, gram = pose_mod._rank_gram(P, d, w)
+    ref = pose_mod._max_pair_leverage(J, gram)
+    got = _pose_numba.max_pair_leverage(P, d, w, _pose_numba.rank_gram(P, d, w))
+    assert ref > 1.0 - 1e-6 and got > 1.0 - 1e-6
+    assert "rests on a single pair" in pose_mod._undetermined(P, None, d, w, single_pairs=True)
+    assert pose_mod._undetermined(P[:30], None, d[:30], w[:30], single_pairs=True) != ""
+    free = rng.normal(size=(31, 3)) * 40.0
+    assert pose_mod._undetermined(free, None, d, w, single_pairs=True) == ""
+
+
 def test_three_inliers_of_more_pairs_never_make_a_converged_pose():
     """Three point-line pairs fit a pose exactly whatever it is: a robust solve that keeps
     only three of its pairs has nothing that confirms its pose (a held-out review found
