@@ -34,8 +34,10 @@ def _line_segment_distance(ox, oy, oz, dx, dy, dz, ax, ay, az, bx, by, bz):
 @njit(cache=True, inline="always")
 def _closest_row(ox, oy, oz, dx, dy, dz, starts, ends, block_a, block_b, block_eps,
                  block_seg0, contour_block0, sb_a, sb_b, sb_eps, contour_sb0, ratio, within,
-                 sphere_c, sphere_r, warm, dist_row, seg_row, near0):
+                 sphere_c, sphere_r, warm, dist_row, seg_row, near0, measured):
     """:func:`closest_segments` for one line, into ``dist_row`` and ``seg_row`` (C,).
+    Returns how many contours were measured (not skipped by their sphere), their indices in
+    increasing order in ``measured[:count]``: the others hold ``inf`` and -1.
 
     ``warm`` (C,): per contour a segment measured first (-1: none), e.g. the previous
     line's; its distance bounds the contour's blocks from the start. Ties go to the lowest
@@ -52,6 +54,7 @@ def _closest_row(ox, oy, oz, dx, dy, dz, starts, ends, block_a, block_b, block_e
     one is reached. A larger threshold than the line's own only measures more, so the
     result is the same."""
     nc = contour_block0.shape[0] - 1
+    count = 0
     nearest = np.inf
     if within >= 0.0 and near0 >= 0 and warm[near0] >= 0:
         w = warm[near0]
@@ -106,8 +109,11 @@ def _closest_row(ox, oy, oz, dx, dy, dz, starts, ends, block_a, block_b, block_e
                         best_j = j
         dist_row[c] = best
         seg_row[c] = best_j
+        measured[count] = c
+        count += 1
         if best < nearest:
             nearest = best
+    return count
 
 
 @njit(cache=True, inline="always")
@@ -164,12 +170,13 @@ def closest_segments(o, d, starts, ends, block_a, block_b, block_eps, block_seg0
     dist = np.full((n, nc), np.inf)
     seg = np.full((n, nc), -1, dtype=np.int64)
     warm = np.full(nc, -1, dtype=np.int64)
+    measured = np.empty(nc, dtype=np.int64)
     near = -1
     for i in range(n):
         _closest_row(o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2], starts, ends,
                      block_a, block_b, block_eps, block_seg0, contour_block0, sb_a, sb_b,
                      sb_eps, contour_sb0, ratio, within, sphere_c, sphere_r, warm, dist[i],
-                     seg[i], near if warm_start else -1)
+                     seg[i], near if warm_start else -1, measured)
         if warm_start:
             warm[:] = seg[i]
             near = _first_min(dist[i])
@@ -258,22 +265,38 @@ def match_lines(o, d, starts, ends, unit, seg_contour, offsets, closed, block_a,
     exd = np.empty(nc)
     pr = np.empty((nc, 3))
     qr = np.empty((nc, 3))
+    # the contours measured for this line and the last (the others' rows are inf / -1,
+    # and only the last line's measured contours hold a warm segment): the steps after
+    # Step A visit these alone, in increasing order (a line meets 1-2 of the 10-40
+    # contours; the loops over all of them were a third of the time)
+    measured = np.empty(nc, dtype=np.int64)
+    last = np.empty(nc, dtype=np.int64)
+    n_last = 0
     near = -1
     for i in range(n):
         ox, oy, oz = o[i, 0], o[i, 1], o[i, 2]
         dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
-        _closest_row(ox, oy, oz, dx, dy, dz, starts, ends, block_a, block_b, block_eps,
-                     block_seg0, contour_block0, sb_a, sb_b, sb_eps, contour_sb0, ratio,
-                     within, sphere_c, sphere_r, warm, dist_row, seg_row, near)
-        near = _first_min(dist_row)      # the next line's first guess of its nearest
+        count = _closest_row(ox, oy, oz, dx, dy, dz, starts, ends, block_a, block_b,
+                             block_eps, block_seg0, contour_block0, sb_a, sb_b, sb_eps,
+                             contour_sb0, ratio, within, sphere_c, sphere_r, warm, dist_row,
+                             seg_row, near, measured)
+        nearest = np.inf
+        near = -1                            # the next line's first guess of its nearest
+        for k in range(count):
+            c = measured[k]
+            if dist_row[c] < np.inf and (near < 0 or dist_row[c] < dist_row[near]):
+                near = c
+            nearest = min(nearest, dist_row[c])
         lim = np.inf
         if within >= 0.0:
-            nearest = np.inf
-            for c in range(nc):
-                nearest = min(nearest, dist_row[c])
             thr = max(within, nearest)
             lim = thr + 1e-7 * (1.0 + thr)
-        for c in range(nc):
+        for k in range(n_last):
+            warm[last[k]] = -1
+        chosen = -1                                  # the closest: first minimum
+        for k in range(count):
+            c = measured[k]
+            last[k] = c
             j = seg_row[c]
             warm[c] = j
             if j < 0 or dist_row[c] > lim:
@@ -283,13 +306,15 @@ def match_lines(o, d, starts, ends, unit, seg_contour, offsets, closed, block_a,
             exd[c], p0, p1, p2, q0, q1, q2 = _pair(ox, oy, oz, dx, dy, dz, starts, ends, j)
             pr[c, 0], pr[c, 1], pr[c, 2] = p0, p1, p2
             qr[c, 0], qr[c, 1], qr[c, 2] = q0, q1, q2
-        chosen = 0                                   # the closest: first minimum
-        for c in range(1, nc):
-            if exd[c] < exd[chosen]:
+            if chosen < 0 or exd[c] < exd[chosen]:
                 chosen = c
+        n_last = count
+        if chosen < 0:
+            chosen = 0                               # no contour: row 0, as every row inf
         if external[i]:
             far = -1
-            for c in range(nc):
+            for k in range(count):
+                c = measured[k]
                 g = seg_row[c]
                 if g < 0 or not exd[c] <= max_stab:
                     continue
@@ -303,7 +328,7 @@ def match_lines(o, d, starts, ends, unit, seg_contour, offsets, closed, block_a,
             if far >= 0:
                 chosen = far
         sel[i] = chosen
-        g = seg_row[chosen]
+        g = seg_row[chosen]           # -1 for a contour not measured or dropped
         if g >= 0:
             seg_out[i] = g
             p_out[i, 0], p_out[i, 1], p_out[i, 2] = pr[chosen, 0], pr[chosen, 1], pr[chosen, 2]
