@@ -28,9 +28,10 @@ done once per case:
 - every start is registered by each pose method of :data:`METHODS`.
 
 Size: by default 6 cases x 10 bins x 3 starts (180 starts for ``default``, 60 for each
-other method); it ran in 2 min 34 s on 2 workers of a 2-core Xeon while two other jobs
-shared the cores (2026-11-28; a case 8.3 s of simulation and 29 s of registrations), and
-in 5 min 18 s on a quiet machine while the baselines still took the estimate's restarts.
+other method); it ran in 20 s on 2 workers of a quiet 2-core Zen 5 EPYC (2026-11-28,
+later: a case 1.9 s of simulation and estimation and 3.1 s of registrations), in 2 min
+34 s on a 2-core Xeon while two other jobs shared the cores (the same day: a case 8.3 s
+and 29 s), and in 5 min 18 s while the baselines still took the estimate's restarts.
 ``--quick``: 2 cases, 3 bins of 10 mm, 1 start each (under a minute).
 
 Rows (long format, one start each, columns ``method``, ``bin``, ``start``): ``start_mtre``
