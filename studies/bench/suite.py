@@ -94,15 +94,15 @@ def _finite(x):
 
 def _row(key, value, reference, reference_is, note=""):
     unit, goal, op = GOALS[key]
-    if key == "ransac_ms" and reference is not None and np.isfinite(reference):
-        goal = RANSAC_FACTOR * reference
-    met = None
-    if value is not None and goal is not None and np.isfinite(value):
-        met = bool(value <= goal) if op == "<=" else bool(value >= goal)
     # a figure not measured (NaN: a quick run's skipped reference, PoseLib missing) is null:
     # NaN is not JSON (a review, h85)
-    return {"value": _finite(value), "unit": unit, "goal": goal,
-            "reference": _finite(reference),
+    value, reference = _finite(value), _finite(reference)
+    if key == "ransac_ms" and reference is not None:
+        goal = RANSAC_FACTOR * reference
+    met = None
+    if value is not None and goal is not None:
+        met = bool(value <= goal) if op == "<=" else bool(value >= goal)
+    return {"value": value, "unit": unit, "goal": goal, "reference": reference,
             "reference_is": reference_is, "met": met, "goal_op": op, "note": note}
 
 
