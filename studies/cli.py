@@ -414,8 +414,33 @@ def cmd_score(args) -> int:
     return status
 
 
+def _view_choice(text):
+    """``--view``: an index (an integer >= 0) or a view's name, resolved against the scene
+    by :func:`_view_index` (a held-out review: only an index was taken, where every other
+    command and message names the views)."""
+    text = str(text).strip()
+    if text.lstrip("+-").isdigit():
+        return _int_at_least(0, "--view")(text)
+    if not text:
+        raise argparse.ArgumentTypeError("expected a view name or index for --view, got ''")
+    return text
+
+
+def _view_index(scene, view) -> int:
+    """``--view``'s index in ``scene`` (a name looked up among ``views[].name``)."""
+    if isinstance(view, int):
+        return view
+    names = [v.name for v in scene.views]
+    if view not in names:
+        raise UsageError(f"--view {view!r}: the scene {scene.scene.name!r} has no view of that "
+                         f"name; its views: {', '.join(names) or 'none'} (or give an index, "
+                         "0-based)")
+    return names.index(view)
+
+
 def cmd_render(args) -> int:
     path, scene = _scene(args.scene)
+    args.view = _view_index(scene, args.view)
     out = _out_file(args.out, ".png")
     import cv2
 
@@ -596,8 +621,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("render", help="render one X-ray frame of a view to PNG")
     _scene_arguments(d, "scene file or name (default: experiment2)")
-    d.add_argument("--view", type=_int_at_least(0, "--view"), default=0,
-                   help="view index (0-based; default 0)")
+    d.add_argument("--view", type=_view_choice, default=0,
+                   help="the view: its name (views[].name) or its index (0-based; default 0)")
     d.add_argument("--out", required=True, type=_path, help="a .png file")
     d.add_argument("--seed", type=seed, default=None,
                    help="the case seed (default: the scene's); the world of testbed run "

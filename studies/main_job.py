@@ -120,10 +120,12 @@ def format_result(result: dict) -> str:
     lines = [f"scene {result['scene']} ({result.get('kind', '')}), seed {result.get('seed')}"]
     # first: the workspace's opt-out, and what the verdict cannot see, which changes what
     # the figures mean (a moving femur, a robot less accurate than the clinic's, a
-    # distortion drifting after the sweep)
+    # distortion drifting after the sweep, CT slices far apart across a pin or none near
+    # it: a held-out review found the slices' warning after "verdict: accepted")
     blind = [w for w in result.get("scene_warnings", ())
              if w.startswith(("[workspace] ", "[patient] motion", "[robot] ",
-                              "[fluoroscope] distortion_drift"))]
+                              "[fluoroscope] distortion_drift",
+                              "the CT's slices either side of a pin", "pin '"))]
     for w in reversed(blind):
         lines.insert(0, f"WARNING: {w}")
     if result.get("kind") == "synthetic":

@@ -74,6 +74,13 @@ def _one_error_line(err: str) -> str:
     # a user's own results.csv, no study's: score (the same check) replaced it (a review)
     (["study", "fig9", "--quick", "--out", "{tmp}/csv"], "holds a results.csv that no study"),
     (["render", "/no/such/dir/experiment2.toml", "--out", "{tmp}/r.png"], "no such scene"),
+    # --view takes a view's name too (a held-out review); an unknown one lists the names
+    (["render", "experiment2", "--view", "lateral", "--out", "{tmp}/r.png"],
+     "no view of that name; its views: proximal_ap, proximal_oblique, distal_ap"),
+    (["render", "experiment2", "--view", "-1", "--out", "{tmp}/r.png"],
+     "expected an integer >= 0 for --view"),
+    (["render", "experiment2", "--view", "4", "--out", "{tmp}/r.png"], "4 [[views]] (0 to 3)"),
+    (["run", "{tmp}/empty.toml"], "the scene file is empty"),
     (["run", "no-such-scene"], "no such scene"),
     # run, generate and render take --scene as the studies do (a user's first try)
     (["run", "--scene", "no-such-scene"], "no such scene"),
@@ -117,6 +124,7 @@ def test_bad_command_lines_exit_2_with_one_line(tmp_path, capsys, argv, expect):
         (tmp_path / folder / "report.md").write_text(text)
     (tmp_path / "csv").mkdir()
     (tmp_path / "csv" / "results.csv").write_text("my precious,results\n")
+    (tmp_path / "empty.toml").write_text("# nothing yet\n")
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
     code, _, err = _run(capsys, *argv)
     assert code == 2, err
@@ -962,3 +970,20 @@ def test_score_report_gives_refusals_views_left_out_and_start_up_time():
     assert "Over 3 times" not in time_markdown(calm)
     # a method with no verdict (a user's): nothing to list
     assert refusals_markdown(df[df.metric == "time"]) == ""
+
+
+def test_render_takes_a_view_by_name_or_index(tmp_path, capsys):
+    """`testbed render --view proximal_oblique` draws the frame of `--view 1` (a held-out
+    review: only the index was taken), pixel for pixel; the view is the one asked for (the
+    two proximal views' frames differ)."""
+    import cv2
+
+    frames = {}
+    for view in ("proximal_oblique", "1", "0"):
+        out = tmp_path / f"{view}.png"
+        code, _, err = _run(capsys, "render", "experiment2", "--view", view, "--out", str(out))
+        assert code == 0, err
+        frames[view] = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
+    assert frames["1"].shape == (480, 640)
+    assert np.array_equal(frames["proximal_oblique"], frames["1"])
+    assert np.mean(frames["0"] != frames["1"]) > 0.2
