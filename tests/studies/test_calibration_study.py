@@ -46,6 +46,11 @@ def test_calibration_study_writes_validation_distances_per_view(tmp_path):
     inside = "within" if 0.1 <= vmax <= 0.4 else "outside"
     assert (f"the largest over the 1 view(s) run is {vmax:.3f} mm: {inside} the paper's range"
             in report), report
+    # the table's distances to the micrometre (".3g" printed 1.0001 mm as "1", a review),
+    # and the validation's blind spot said beside it
+    true_max = df[(df.metric == "validation_distance_true")].value.max()
+    assert f"| {vmax:.3f} | " in report and f"| {true_max:.3f} | " in report, report
+    assert "the validation cannot see it" in report
 
 
 def test_the_sensitivity_table_is_one_views():

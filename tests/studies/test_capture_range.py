@@ -73,6 +73,25 @@ def test_the_capture_range_is_the_farthest_start_tried():
     assert capture_range(s, [0.0, 10.0, 20.0, 30.0]) == {"m": 0.0}
 
 
+def test_a_range_whose_every_bin_passed_is_reported_as_a_lower_bound():
+    """A review (h87): "default: 30.0 mm" read as a measured range where every bin up to
+    the farthest start tried had passed; such a range is "at least", a found one is not."""
+    import pandas as pd
+
+    from studies.capture_range import capture_range, range_lines
+
+    edges = [0.0, 10.0, 20.0, 30.0]
+    s = pd.DataFrame({"method": ["all"] * 3 + ["part"] * 3, "bin": [0, 1, 2] * 2,
+                      "success_rate": [1.0, 1.0, 1.0, 1.0, 1.0, 0.5],
+                      "start_mtre_max": [8.0, 17.5, 29.0, 8.0, 17.5, 29.0]})
+    lines = range_lines(s, edges, capture_range(s, edges))
+    assert lines == ["- all: **at least 29.0 mm** (every bin passed: the farthest start tried; "
+                     "the range may reach further)", "- part: **17.5 mm**"]
+    # a bin with no start of the method is no pass
+    short = s[~((s.method == "all") & (s.bin == 2))]
+    assert range_lines(short, edges, capture_range(short, edges))[0] == "- all: **17.5 mm**"
+
+
 def test_scenes_the_study_cannot_use_are_refused_before_any_trial(tmp_path, capsys):
     """A review: a mesh femur failed every trial ('no plausible femur in 50 draws'), a
     fixed pin was ignored (capture range 0 mm, no word), a view labelled with the other

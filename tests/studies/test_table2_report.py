@@ -22,6 +22,10 @@ def test_targets_say_met_or_missed_and_what_is_missing():
     # 0.404 mm is outside 0.1-0.4 mm and printed so (it read "0.40", a review)
     assert "**missed**: calibration validation 0.404-0.404 mm" in targets_markdown(
         _rows(1.0, 0.404))
+    # like with like (a review, h87): the gap to the paper's own mean, 2.77 mm over its
+    # readable rows, beside the gap to the target's lower bound
+    assert ("against the paper's own mean, 2.77 mm over its readable rows of Table II "
+            "(the identity start included, as here): 0.36 x it; an independent 2.59 mm") in low
     ok = targets_markdown(_rows(2.8, 0.5))
     assert "met: mean pin error 2.80 mm" in ok and "is missing" not in ok
     assert "**missed**: calibration validation" in ok
@@ -135,3 +139,20 @@ def test_the_validation_table_gives_the_share_of_cases_whose_view_was_used():
     assert cells["share passed"] == "1.000" and cells["share used"] == "0.500"
     old = validation_markdown(df[df.metric != "view_used"])
     assert "share used" not in old and "share passed" in old
+
+
+def test_the_report_says_what_the_cases_share():
+    """A review (h87): "20 case(s)" read as 20 patients; the shipped scene's cases are one
+    femur at one pose, each drawing its own errors; a scene drawing femurs and poses per
+    case is said to."""
+    from studies.table2 import cases_note
+    from testbed.scene import find_scene, load_scene
+
+    clinic = load_scene(find_scene("experiment2"))
+    note = cases_note(clinic)
+    assert "one femur at one pose under the same views" in note and "one specimen" in note
+    drawn = clinic.model_copy(update={
+        "phantom": clinic.phantom.model_copy(update={"shape_variation": 1.5}),
+        "patient": clinic.patient.model_copy(update={"position_sd_mm": (5.0, 0.0, 0.0)})})
+    note = cases_note(drawn)
+    assert "shape_variation = 1.5" in note and "placed per case" in note
