@@ -156,3 +156,21 @@ def test_the_report_says_what_the_cases_share():
         "patient": clinic.patient.model_copy(update={"position_sd_mm": (5.0, 0.0, 0.0)})})
     note = cases_note(drawn)
     assert "shape_variation = 1.5" in note and "placed per case" in note
+
+
+def test_the_pin_table_says_how_many_registrations_it_includes_ended_far_off():
+    """A review (h87): the paper's method's quartiles and whiskers hid 9 of 220
+    registrations ending 5-68 mm off; the table's line counts them."""
+    from studies.table2 import table2_markdown
+
+    rows = [{"metric": "pin_error", "pin": p, "start": s, "trial": 0, "value": v,
+             "statistic": ""}
+            for s, v in (("identity", 0.5), ("rot5_1", 0.6), ("rot7_1", 12.5))
+            for p in PIN_NAMES]
+    rows += [{"metric": m, "pin": "", "start": s, "trial": 0, "value": 1.0, "statistic": ""}
+             for s in ("identity", "rot5_1", "rot7_1") for m in ("converged", "accepted")]
+    text = table2_markdown(pd.DataFrame(rows))
+    assert ("1 of 3 ended more than 5 mm off at a pin (up to 12.5 mm)" in text), text
+    assert "reglib's verdict" in text
+    near = pd.DataFrame([r for r in rows if r["start"] != "rot7_1"])
+    assert "more than 5 mm off" not in table2_markdown(near)
