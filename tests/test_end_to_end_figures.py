@@ -22,9 +22,12 @@ from testbed.scene import find_scene, load_scene
 #: when the CT operator's clicks took a stream per slice (0.17743297781137793 and
 #: 0.3625819890505408 mm before); and on 2026-11-28 when the estimate's coarse stage took
 #: 5 inner iterations of its pose solve instead of 20 (reglib.pipeline.COARSE_STAGE;
-#: 0.24976294256396078 and 0.38217079219609945 mm before)
+#: 0.24976294256396078 and 0.38217079219609945 mm before); and on 2026-11-29 when the CT
+#: surfaces' simplification stopped measuring points the tiling left unused (experiment2's
+#: distal surface 12195 -> 3766 triangles; the ideal profile's has none and is unchanged;
+#: 0.38215709859776825 mm before)
 PINNED = {"experiment2-ideal": (0.24976284732175802, True),
-          "experiment2": (0.38215709859776825, True)}
+          "experiment2": (0.3832782431001747, True)}
 TOL_MM = 0.002
 
 
