@@ -360,7 +360,7 @@ def surface_from_contours(slices, *, quality: Quality = "area",
         raise ValueError(f"simplify must be 'contours' or 'quadric', got {simplify!r}")
     if not 0 < simplify_tol_mm <= 5.0:
         raise ValueError(f"simplify tolerance must be in [0, 5] mm, got {simplify_tol_mm}")
-    used = vertices[np.unique(faces)] if len(faces) else vertices
+    used = _used_points(vertices, faces)
     for frac in (1.0, 0.7, 0.5, 0.3):
         reduced = [[_decimate(c, frac * simplify_tol_mm) for c in s] for s in stack]
         try:
@@ -368,10 +368,8 @@ def surface_from_contours(slices, *, quality: Quality = "area",
         except ValueError:  # a reduced contour that no strip tiles: reduce it less
             continue
         # The tolerance is measured at the data: the contour points (the full surface's
-        # vertices) that its triangles use. Between slices both surfaces only interpolate
-        # the contours. (A point the tiling left unused is no part of the full surface
-        # either: experiment2's distal stack had 37, up to 1.93 mm off its triangles, and
-        # every fraction failed on them, so the surface was registered unsimplified.)
+        # vertices) that its triangles use (_used_points). Between slices both surfaces
+        # only interpolate the contours.
         h = float(surface_distances_fast(used, v, f, tol_mm=simplify_tol_mm).max())
         if h <= simplify_tol_mm:
             return Surface(v, f, dict(surf.info, simplify_tol_mm=simplify_tol_mm,
@@ -701,6 +699,15 @@ def _compact(vertices, faces):
     return vertices[used], remap[faces]
 
 
+def _used_points(vertices, faces):
+    """The vertices some face uses (all of them for no faces): the points a surface is made
+    of, at which a simplification's tolerance is checked. A point the tiling left unused is
+    no part of the surface: experiment2's distal stack had 37, up to 1.93 mm off its
+    triangles, every reduction failed on them, and the surface was registered unsimplified
+    (12195 triangles where the paper's had 3913)."""
+    return _compact(vertices, faces)[0] if len(faces) else vertices
+
+
 def simplify_surface(surface: Surface, tol_mm: float, *,
                      reductions=(0.85, 0.7, 0.55, 0.4, 0.25, 0.1)) -> Surface:
     """Simplify a surface so that it stays within ``tol_mm`` of the original (both ways).
@@ -719,11 +726,7 @@ def simplify_surface(surface: Surface, tol_mm: float, *,
     # (np.load(mmap_mode="r"), a cache's frozen arrays; a review): writable copies
     v0 = np.array(surface.vertices, dtype=np.float64, order="C")
     f0 = np.array(surface.faces, dtype=np.int64, order="C")
-    # the surface's own points: a vertex no triangle uses is no part of it (the tiling of
-    # experiment2's distal stack left 37 such, up to 1.93 mm off its triangles, and every
-    # reduction failed the check on them: the distal surface was registered unsimplified,
-    # 12195 triangles where the paper's had 3913)
-    used = v0[np.unique(f0)] if len(f0) else v0
+    used = _used_points(v0, f0)
     for r in sorted(reductions, reverse=True):
         v, f = fast_simplification.simplify(v0, f0.astype(np.int32), target_reduction=r,
                                             preserve_border=True)

@@ -210,7 +210,7 @@ def bench_frames(quick: bool) -> dict:
         f"at a new C-arm pose {extra:.0f} ms more (undistortion grid, field rays: once per "
         "pose)")}
     passes = 1 if quick else 3
-    setup, means, worst, n_frames = [], [], 0.0, 0
+    setup, frames = [], []      # frames: per pass, every frame's CPU seconds
     with Robot(scene.robot, rng=0) as robot:
         renderers = []
         for _, calib, bodies in views:
@@ -218,21 +218,16 @@ def bench_frames(quick: bool) -> dict:
             renderers.append((SweepRenderer(calib, fluoro, bodies), plan_sweep(calib, robot.spec)))
             setup.append(time.process_time() - t0)
         for k in range(passes + 1):          # pass 0 warms the compiled code
-            total, n = 0.0, 0
+            frames.append([])
             for sr, plan in renderers:
                 for pose in plan:
                     robot.place_rod(pose.point_robot, pose.direction_robot)
                     rod = robot.rod_bodies()
                     t0 = time.process_time()
                     sr.render(rod, rng=k)
-                    dt = time.process_time() - t0
-                    total, n = total + dt, n + 1
-                    if k:
-                        worst = max(worst, dt)
-            if k:
-                means.append(total / n)
-                n_frames = n
-    sweep_s = float(np.median(means))
+                    frames[-1].append(time.process_time() - t0)
+    timed = np.array(frames[1:])              # (passes, frames), the warm-up pass dropped
+    sweep_s, worst, n_frames = float(np.median(timed.mean(axis=1))), timed.max(), timed.shape[1]
     out["sweep_frame_ms"] = _row(
         "sweep_frame_ms", 1e3 * sweep_s, 1e3 * frame_s, "a patient frame (frame_ms)",
         f"testbed.fluoroscope.SweepRenderer: mean over the {n_frames} frames of "
