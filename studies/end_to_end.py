@@ -116,6 +116,7 @@ def _surface_failure(scene, exc) -> str:
     return (f"operator: the method cannot build the CT surfaces from the simulated operator's "
             f"clicks (operator.ct_clicks = {op.ct_clicks}, ct_click_noise_px = "
             f"{op.ct_click_noise_px:g} px, ct_reclick_every_mm = {op.ct_reclick_every_mm:g}, "
+            f"ct_reclick_off_px = {op.ct_reclick_off_px:g}, "
             f"ct_bone_threshold_hu = {op.ct_bone_threshold_hu:g} HU; "
             f"ct.pixel_mm = {ct.pixel_mm:g}, schedule {ct.schedule!r}): {exc}")
 

@@ -8,8 +8,10 @@ module is that user. It works from what the user sees:
   (``ct_bone_threshold_hu``), fills the marrow, keeps the outlines of the bone's cross-sections
   (one for the shaft and the proximal femur, two at the condyles) and places ``ct_clicks``
   points along each, evenly spaced with a random phase, each moved by a seeded Gaussian error
-  of ``ct_click_noise_px``. Clicks are placed again only when the number of cross-sections
-  changes or after ``ct_reclick_every_mm`` along the slices; the slices between reuse them.
+  of ``ct_click_noise_px``. Clicks are placed again when the number of cross-sections
+  changes, after ``ct_reclick_every_mm`` along the slices, or where a reused click lies
+  farther than ``ct_reclick_off_px`` from the slice's outlines (the user sees it off the
+  bone); the slices between reuse them.
   In the proximal region the operator stops where the femoral head separates from the neck
   (two cross-sections): the head is left out, as in the paper.
 - **X-ray**: the femur's outline as it shows in the frame, *only where it is visible*: parts
@@ -43,6 +45,7 @@ __all__ = [
     "CtClicks",
     "XrayClicks",
     "clicks_along",
+    "clicks_off_outline",
     "ct_clicks",
     "xray_clicks",
 ]
@@ -53,7 +56,10 @@ class OperatorSpec(Spec):
 
     ``ct_clicks``: clicks per cross-section on a CT slice; ``ct_click_noise_px``: standard
     deviation of each click's error (px, CT pixels); ``ct_reclick_every_mm``: the user clicks
-    again after this distance along the slices (0: on every slice);
+    again after this distance along the slices (0: on every slice); ``ct_reclick_off_px``:
+    and sooner, on the first slice where a reused click lies farther than this from every
+    outline of the slice's bone (px): the user sees the clicks off the bone (larger than
+    the image: never);
     ``ct_bone_threshold_hu``: what the user sees as bone on a slice (HU);
     ``ct_min_section_mm2``: smaller bright islands are ignored. ``ct_ignore_spurs_mm``: bright
     spurs narrower than this that join the bone (a metal streak through a pin crossing the
@@ -66,12 +72,14 @@ class OperatorSpec(Spec):
 
     Clinic defaults (``docs/error-model.md``, section 5): clicks 1.5 px (CT) and 2 px (X-ray)
     off the outline, CT clicks reused for 10 mm of slices (the paper reuses them from slice to
-    slice); the ideal profile clicks within 1 px on every slice.
+    slice) while they stay within 4.5 px (3 standard deviations of the click error) of the
+    outline; the ideal profile clicks within 1 px on every slice.
     """
 
     ct_clicks: Annotated[int, Field(ge=3, le=200)] = 10
     ct_click_noise_px: Annotated[float, Field(ge=0.0, le=50.0)] = 1.5
     ct_reclick_every_mm: NonNegative = 10.0
+    ct_reclick_off_px: Annotated[float, Field(gt=0.0, le=10_000.0)] = 4.5
     ct_bone_threshold_hu: Annotated[float, Field(ge=-500.0, le=3000.0)] = 400.0
     ct_min_section_mm2: Annotated[float, Field(gt=0.0, le=1000.0)] = 20.0
     ct_ignore_spurs_mm: Annotated[float, Field(ge=0.0, le=20.0)] = 3.0
@@ -274,6 +282,24 @@ def _too_few_sections(region: str, vol, slices, spec, n_bone: int) -> str:
             "scan the region with more slices ([ct] schedule and spacing, or slice_z_mm)")
 
 
+def clicks_off_outline(click_polygons, outlines) -> float:
+    """How far the clicks stray from the outlines (px): the largest distance of a click of
+    ``click_polygons`` (list of (n, 2) px) from its nearest point on any of ``outlines``
+    (list of closed (K, 2) px polygons). Clicks reused from an earlier slice sit this far
+    off the bone that the user sees on this one."""
+    p = np.vstack(click_polygons)
+    best = np.full(len(p), np.inf)
+    for poly in outlines:
+        a = np.asarray(poly, dtype=np.float64)
+        b = np.roll(a, -1, axis=0)
+        ab = b - a
+        t = np.einsum("psk,sk->ps", p[:, None] - a[None], ab) / np.maximum(
+            np.einsum("sk,sk->s", ab, ab), 1e-300)
+        q = a[None] + np.clip(t, 0.0, 1.0)[..., None] * ab[None]
+        best = np.minimum(best, np.linalg.norm(p[:, None] - q, axis=2).min(axis=1))
+    return float(best.max())
+
+
 #: the spawn-key element of the CT clicks' per-slice streams (apart from spawn()'s children)
 _CT_CLICK_KEY = 0xC7C1
 
@@ -314,10 +340,11 @@ def ct_clicks(volume_hu, slice_z_mm, region_slices: dict, *, pixel_mm: float,
                                                len(slices)))
         # a click lands on the slice's image: the error model's tail cannot leave it
         hi_xy = np.array([vol.shape[2] - 1, vol.shape[1] - 1], dtype=np.float64)
-        clicks, last_z, last_n = {}, -np.inf, -1
+        clicks, last_z, last_n, last_k = {}, -np.inf, -1, None
         for k in slices:
             sec = sections[k]
-            if len(sec) != last_n or z[k] - last_z >= spec.ct_reclick_every_mm:
+            if (len(sec) != last_n or z[k] - last_z >= spec.ct_reclick_every_mm
+                    or clicks_off_outline(clicks[last_k], sec) > spec.ct_reclick_off_px):
                 # each slice's clicks from a stream of its own (keyed by the slice): a CT
                 # that changes which slices are clicked (thickness, noise, streaks) leaves
                 # the others' clicks as they were (the error budget's pairs)
@@ -325,7 +352,7 @@ def ct_clicks(volume_hu, slice_z_mm, region_slices: dict, *, pixel_mm: float,
                 clicks[k] = [np.clip(clicks_along(p, spec.ct_clicks, spec.ct_click_noise_px,
                                                   k_rng, closed=True), 0.0, hi_xy)
                              for p in sec]
-                last_z, last_n = z[k], len(sec)
+                last_z, last_n, last_k = z[k], len(sec), k
         out[region] = CtClicks(region, np.asarray(slices, dtype=np.int64), clicks)
     return out
 

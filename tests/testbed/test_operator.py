@@ -9,6 +9,7 @@ from testbed.operator import (
     OperatorSpec,
     bone_sections,
     clicks_along,
+    clicks_off_outline,
     ct_clicks,
     visible_outline,
     xray_clicks,
@@ -152,6 +153,41 @@ def test_ct_clicks_are_placed_again_every_reclick_distance():
                         spec=spec, rng=np.random.default_rng(0))["distal"]
         assert sorted(got.clicks) == want, (every, sorted(got.clicks))
         assert list(got.slices) == list(range(10))
+
+
+def test_clicks_off_outline_is_the_farthest_clicks_distance_to_the_nearest_outline():
+    """Clicks on a circle of radius 10 px against circles of radius 10 + dr: the distance is
+    |dr| (up to the polygons' chords); of two outlines, each click's nearest counts."""
+    t = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+    circle = np.column_stack([np.cos(t), np.sin(t)])
+    clicks = [10.0 * circle[::40] + 50.0]
+    for dr in (0.0, 2.0, -3.0, 7.5):
+        got = clicks_off_outline(clicks, [(10.0 + dr) * circle + 50.0])
+        assert abs(got - abs(dr)) < 0.01, (dr, got)
+    far = (10.0 + 7.5) * circle + 50.0
+    assert abs(clicks_off_outline(clicks, [far, far + 100.0]) - 7.5) < 0.01
+    near = 10.5 * circle + 50.0
+    assert abs(clicks_off_outline(clicks, [far, near]) - 0.5) < 0.01
+
+
+def test_ct_clicks_are_placed_again_where_reused_ones_lie_off_the_bone():
+    """A section growing by 1 px of radius per slice, with clicks reused for 100 mm: the
+    user clicks again on the first slice where the reused clicks lie more than
+    ``ct_reclick_off_px`` inside its outline (every 5th slice at 4.5 px), never with a
+    tolerance larger than the image. Before, the clinic's operator reused a condyle's
+    clicks for 10 mm while its section grew from 80 to 800 mm2: the snake, started in the
+    marrow, outlined a sliver, and the distal surface lost the lateral condyle over 3 mm
+    in every case of experiment2 (seeds 1990-1999)."""
+    yy, xx = np.mgrid[0:80, 0:80]
+    vol = np.stack([np.where(np.hypot(xx - 40, yy - 40) < 10 + k, 1500.0, 0.0)
+                    for k in range(16)])
+    z = np.arange(16) * 1.0
+    for off, want in ((4.5, [0, 5, 10, 15]), (1000.0, [0])):
+        spec = OperatorSpec(ct_click_noise_px=0.0, ct_reclick_every_mm=100.0,
+                            ct_reclick_off_px=off)
+        got = ct_clicks(vol, z, {"distal": np.arange(16)}, pixel_mm=1.0, spec=spec,
+                        rng=np.random.default_rng(0))["distal"]
+        assert sorted(got.clicks) == want, (off, sorted(got.clicks))
 
 
 def test_a_slice_keeps_its_clicks_whichever_other_slices_are_clicked():
