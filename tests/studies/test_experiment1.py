@@ -70,3 +70,18 @@ def test_the_report_counts_starts_with_every_pin_within_2_mm(tmp_path):
         m = re.search(rf"{variant}: of (\d+) starts.*?(\d+) with every pin within 2 mm", text)
         assert m, text
         assert int(m.group(2)) == int((d.max(axis=1) < 2.0).sum())
+    # the section against the paper (a review, h87: none; the pin's reversal unsaid): its
+    # count of starts with the distal pins within 2 mm, and which variant did better
+    distal = pe.drop(columns="proximal")
+    wp = distal.xs("with proximal pin", level="variant").max(axis=1)
+    m = re.search(r"- (met|\*\*missed\*\*): with the proximal pin located, every other pin "
+                  r"within 2 mm of the truth from (\d+) of (\d+) starts, the largest "
+                  r"([\d.]+) mm", text)
+    assert m, text
+    assert int(m.group(2)) == int((wp <= 2.0).sum()) and int(m.group(3)) == len(wp)
+    assert (m.group(1) == "met") == bool((wp <= 2.0).all())
+    assert float(m.group(4)) == pytest.approx(wp.max(), abs=0.006)
+    med = distal.stack().groupby(level="variant").median()
+    helped = med["with proximal pin"] < med["views alone"]
+    assert ("- as the paper: the located pin lowers" in text) == helped
+    assert ("- **unlike the paper**: the located pin does not lower" in text) == (not helped)
