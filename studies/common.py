@@ -1,7 +1,8 @@
 """What every study shares: the context it runs in, and the files it leaves behind.
 
 ``results.csv`` is long format (``trial, metric, value, unit`` + parameter columns);
-``report.md`` starts with the provenance (study, scene file, seed, git commit, time) and the
+``report.md`` starts with the provenance (study, scene file, seed, git commit, time, the command
+that reproduces it and the numerical libraries' versions) and the
 resolved scene, then the sections the study added, then the figures.
 """
 
@@ -218,6 +219,34 @@ def markdown_table(df: pd.DataFrame, floatfmt: str = ".3g") -> str:
     return "\n".join(lines)
 
 
+def reproduce_command(ctx: StudyContext) -> str:
+    """The command that runs the study again to the same results (a review, h87: the reports
+    did not say how they were made). Workers and a Dask scheduler are left out: the trials'
+    seeds do not depend on them."""
+    import shlex
+
+    words = ["testbed", "study", ctx.name, "--scene", str(ctx.scene_path), "--seed",
+             str(ctx.seed)] + (["--quick"] if ctx.quick else []) + ["--out", "DIR"]
+    return shlex.join(words)
+
+
+def library_versions() -> str:
+    """Python's and the numerical libraries' versions (those whose upgrade changes a trial's
+    result: :data:`studies.runner.CODE_LIBRARIES`), as ``name version`` pairs."""
+    import importlib.metadata
+    import platform
+
+    from studies.runner import CODE_LIBRARIES
+
+    out = [f"python {platform.python_version()}"]
+    for lib in CODE_LIBRARIES:
+        try:
+            out.append(f"{lib} {importlib.metadata.version(lib)}")
+        except importlib.metadata.PackageNotFoundError:
+            out.append(f"{lib} (not installed)")
+    return ", ".join(out)
+
+
 def finish_study(ctx: StudyContext, df: pd.DataFrame) -> None:
     """Write ``results.csv`` and ``report.md`` for a finished study."""
     check_results(df)
@@ -236,6 +265,8 @@ def finish_study(ctx: StudyContext, df: pd.DataFrame) -> None:
         f"- written: {now}; quick: {ctx.quick}; workers: {ctx.workers}"
         + (f"; Dask scheduler: {ctx.scheduler}" if ctx.scheduler else ""),
         f"- rows in results.csv: {len(df)}",
+        f"- reproduce (at that commit, with these versions): `{reproduce_command(ctx)}`",
+        f"- versions: {library_versions()}",
         "",
     ]
     sections = list(ctx.sections)

@@ -48,6 +48,34 @@ def test_fig9_quick_results_in_long_format(tmp_path):
     pd.testing.assert_frame_equal(df, pd.read_csv(tmp_path / "results.csv"))
 
 
+def test_the_reports_reproduce_command_gives_the_same_results(tmp_path):
+    """report.md says how it was made (a review, h87: no command, no versions): its
+    reproduce line, run into another folder with another seed's default replaced, gives
+    the same results; the versions name the numerical libraries."""
+    import re
+    import shlex
+
+    first = tmp_path / "a"
+    assert main(["study", "fig9", "--quick", "--seed", "7", "--workers", "2", "--out",
+                 str(first)]) == 0
+    report = (first / "report.md").read_text()
+    m = re.search(r"- reproduce \(at that commit, with these versions\): `([^`]+)`", report)
+    assert m, report[:800]
+    words = shlex.split(m.group(1))
+    assert words[:3] == ["testbed", "study", "fig9"] and "--workers" not in words
+    again = tmp_path / "b"
+    words[words.index("DIR")] = str(again)
+    assert main(words[1:]) == 0
+    cols = ["trial", "metric", "method", "noise", "outliers"]
+    a, b = (pd.read_csv(d / "results.csv") for d in (first, again))
+    keep = ~a.metric.str.contains("time")
+    pd.testing.assert_frame_equal(a[keep].sort_values(cols).reset_index(drop=True),
+                                  b[~b.metric.str.contains("time")].sort_values(cols)
+                                  .reset_index(drop=True))
+    versions = re.search(r"- versions: (.+)", report).group(1)
+    assert versions.startswith("python 3.") and "numpy 2." in versions and "scipy" in versions
+
+
 def test_unknown_study_and_bad_scene(tmp_path, capsys):
     assert main(["study", "nope", "--out", str(tmp_path)]) == 2
     assert "unknown study" in capsys.readouterr().err
