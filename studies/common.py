@@ -219,6 +219,17 @@ def markdown_table(df: pd.DataFrame, floatfmt: str = ".3g") -> str:
     return "\n".join(lines)
 
 
+def plain_log_ticks(ax, axis: str = "y") -> None:
+    """A log axis labelled in plain numbers at 1, 2 and 5 per decade (matplotlib labels
+    the minor ticks as 4x10^0 where a decade is short: a review, h87)."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    a = ax.yaxis if axis == "y" else ax.xaxis
+    a.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
+    a.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    a.set_minor_formatter(NullFormatter())
+
+
 def reproduce_command(ctx: StudyContext) -> str:
     """The command that runs the study again to the same results (a review, h87: the reports
     did not say how they were made). Workers and a Dask scheduler are left out: the trials'

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from studies.common import cell_text, markdown_table, one_line
+from studies.common import cell_text, markdown_table, one_line, plain_log_ticks
 from studies.end_to_end import (
     PAPER_METHOD,
     PAPER_TABLE2,
@@ -165,6 +165,7 @@ def _figure(ctx, df: pd.DataFrame) -> None:
     ax.set_xticks(range(len(PIN_NAMES)), PIN_NAMES)
     ax.set_ylabel("error at the pin (mm)")
     ax.set_yscale("log")
+    plain_log_ticks(ax)
     ax.set_title("Pin errors from the 5 and 7 deg starts (boxes: quartiles, whiskers 5-95 %)",
                  fontsize=9)
     # beside the axes: inside, it covered the paper's markers (a review)
