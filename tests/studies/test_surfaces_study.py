@@ -104,3 +104,18 @@ def test_the_truths_side_sees_what_a_surface_leaves_out():
     assert whole.max() < 1e-6
     # no truth between the heights: nothing measured
     assert distances_from_truth(phantom, sphere.vertices, half, (30.0, 40.0)).size == 0
+
+
+def test_a_surface_far_off_the_bone_somewhere_is_said_beside_its_mean():
+    """A review (h87): a contour surface's 10.1 mm maximum went without a word while its
+    mean met the goal. The report's lines add a note past FAR_MM, none below it."""
+    from studies.surfaces import FAR_MM, _goal_lines
+
+    tab = pd.DataFrame({"surface": ["proximal", "distal", "distal"],
+                        "method": ["contours", "contours", "marching_cubes"],
+                        "mean": [0.12, 0.2, 0.1], "max": [FAR_MM + 6.0, FAR_MM - 1.0, 20.0],
+                        "truth's mean": [0.1, 0.2, 0.1]})
+    text = _goal_lines(tab)
+    assert text.count("met:") == 4 and "**missed**" not in text
+    notes = [ln for ln in text.splitlines() if ln.startswith("- **note**")]
+    assert len(notes) == 1 and f"proximal surface reaches {FAR_MM + 6.0:.1f} mm" in notes[0]
