@@ -325,3 +325,20 @@ def test_a_source_whose_configuration_lost_a_view_is_marked():
     # 12 pairs of configuration and view: the table keeps the 3 with a loss
     assert lost.count("\n| ") == 1 + 3 and "The other 9 combinations of config, source and view" \
         in lost
+
+
+def test_the_gap_says_when_it_rests_on_fewer_cases_than_the_study_and_sorts_by_added():
+    """A review (h87): `--quick`'s one case printed a source's factor without a caveat, and
+    the table was sorted by `removed`, which cancellations make negative over few cases,
+    while its text said to read `added` first."""
+    from studies.error_budget import CASES, gap_markdown
+
+    rows = []
+    for cfg, src, val in (("clinic", "", 1.0), ("ideal", "", 0.3), ("off", "a", 1.1),
+                          ("alone", "a", 0.5), ("off", "b", 0.8), ("alone", "b", 0.35)):
+        rows.append({"config": cfg, "source": src, "oracle": "none", "value": val})
+    t = source_table(pd.DataFrame(rows))
+    assert list(t.source[2:]) == ["a", "b"]          # a adds 0.2 mm, b 0.05 (removed: -0.1, 0.2)
+    assert gap_markdown(t, cases=1).startswith("**From 1 case(s)**")
+    assert "**From" not in gap_markdown(t, cases=CASES)
+    assert "**From" not in gap_markdown(t)
