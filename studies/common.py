@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from testbed.scene import find_scene, load_scene
+from testbed.scene import find_scene, load_scene, scenes_dir
 
 if TYPE_CHECKING:   # pandas only in annotations: testbed run does not pay its import
     import pandas as pd
@@ -225,7 +225,12 @@ def plain_log_ticks(ax, axis: str = "y") -> None:
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     a = ax.yaxis if axis == "y" else ax.xaxis
-    a.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
+    lo, hi = sorted(ax.get_ylim() if axis == "y" else ax.get_xlim())
+    decades = np.log10(hi / lo) if lo > 0 and hi > lo else 1.0
+    # 1, 2, 5 per decade over a few decades; 1 per decade beyond (a review, h90: over ten
+    # decades 1-2-5 drew no tick at all, over eight thirty labels)
+    subs = (1.0, 2.0, 5.0) if decades <= 4.5 else (1.0,)
+    a.set_major_locator(LogLocator(base=10.0, subs=subs, numticks=40))
     a.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
     a.set_minor_formatter(NullFormatter())
 
@@ -233,12 +238,29 @@ def plain_log_ticks(ax, axis: str = "y") -> None:
 def reproduce_command(ctx: StudyContext) -> str:
     """The command that runs the study again to the same results (a review, h87: the reports
     did not say how they were made). Workers and a Dask scheduler are left out: the trials'
-    seeds do not depend on them."""
+    seeds do not depend on them. A shipped scene by its name, so that a checkout of the
+    commit reads its own copy (a review, h90: the absolute path named another tree's file);
+    any other by its path, whose content the report's sha256 records."""
     import shlex
 
-    words = ["testbed", "study", ctx.name, "--scene", str(ctx.scene_path), "--seed",
-             str(ctx.seed)] + (["--quick"] if ctx.quick else []) + ["--out", "DIR"]
+    path = Path(ctx.scene_path)
+    try:
+        shipped = path.resolve().parent == scenes_dir().resolve()
+    except (OSError, RuntimeError, ValueError):
+        shipped = False
+    words = ["testbed", "study", ctx.name, "--scene", path.stem if shipped else str(path),
+             "--seed", str(ctx.seed)] + (["--quick"] if ctx.quick else []) + ["--out", "DIR"]
     return shlex.join(words)
+
+
+def file_sha256(path) -> str:
+    """The sha256 of a file's bytes (``unreadable`` when it cannot be read)."""
+    import hashlib
+
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    except OSError:
+        return "unreadable"
 
 
 def library_versions() -> str:
@@ -263,6 +285,7 @@ def finish_study(ctx: StudyContext, df: pd.DataFrame) -> None:
     check_results(df)
     df.to_csv(ctx.out / "results.csv", index=False)
     now = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+    commit = git_commit()
     resolved = json.dumps(ctx.scene.model_dump(mode="json"), indent=2)
     parts = [f"# Study `{ctx.name}`", ""]
     ws = getattr(ctx.scene, "workspace", None)
@@ -272,11 +295,14 @@ def finish_study(ctx: StudyContext, df: pd.DataFrame) -> None:
     parts += [
         f"- scene: `{ctx.scene_path}` ({ctx.scene.scene.name})",
         f"- seed: {ctx.seed}",
-        f"- git commit: `{git_commit()}`",
+        f"- git commit: `{commit}`",
         f"- written: {now}; quick: {ctx.quick}; workers: {ctx.workers}"
         + (f"; Dask scheduler: {ctx.scheduler}" if ctx.scheduler else ""),
         f"- rows in results.csv: {len(df)}",
-        f"- reproduce (at that commit, with these versions): `{reproduce_command(ctx)}`",
+        f"- scene file sha256: `{file_sha256(ctx.scene_path)}`",
+        f"- reproduce (at that commit, with these versions): `{reproduce_command(ctx)}`"
+        + (" (the tree had uncommitted changes: the command reproduces these results only "
+           "with them)" if commit.endswith("-dirty") else ""),
         f"- versions: {library_versions()}",
         "",
     ]

@@ -374,6 +374,9 @@ def run(ctx) -> pd.DataFrame:
                         for s, fields in src.items() for f, v in fields.items()])))
         changes = view_changes(df)
         t = source_table(pe, changes)
+        # the cases that registered, not the cases planned (a review, h90: a case that failed
+        # whole left the caveat for fewer cases silent)
+        n_cases = int(pe["case"].nunique()) if "case" in pe else len({p["case"] for p in params})
         ctx.report("By source: mean pin error (mm), off and alone",
                    "`clinic`: every source at its clinic magnitude; `ideal`: every source at "
                    "its ideal magnitude. `off`: the clinic with this source at its ideal "
@@ -382,14 +385,14 @@ def run(ctx) -> pd.DataFrame:
                    "sorted by `added`. "
                    "Each source draws from a random stream of its own, so `off` and "
                    "`alone` differ from `clinic` and `ideal` by that source only."
-                   + _negative_note(t, len({p["case"] for p in params}))
+                   + _negative_note(t, n_cases)
                    + _view_change_note(changes) + "\n\n"
                    + markdown_table(t.fillna({"views": ""}) if "views" in t else t, ".3f"))
         _tornado(ctx, t)
         from studies.table2 import set_up_note
 
         ctx.report("What would close the gap to the paper", set_up_note(ctx.scene)
-                   + gap_markdown(t, cases=len({p["case"] for p in params})))
+                   + gap_markdown(t, cases=n_cases))
     else:
         ctx.report("By source", no_budget_reason(ctx.scene, ctx.scene_path)
                    + ": only the stage budget is run.")

@@ -117,44 +117,63 @@ def paper_lines(pe: pd.DataFrame, vs_ref: pd.DataFrame, w: pd.DataFrame,
     none, and the simulation had reversed the paper's finding that the pin helps without a
     word): with the pin located, every other pin within 2 mm (met or missed, against the
     truth and against the pin-based reference, as the paper measured); the views alone
-    about 5 mm (a figure, not a bound: shown beside it); and whether the pin helped.
+    about 5 mm (a figure, not a bound: shown beside it); and whether the pin helped, with
+    how many of each were accepted (a review, h90: the views alone were all refused).
     ``pe``/``vs_ref``: the rows of ``pin_error`` / ``pin_error_vs_reference``; ``w`` per
-    variant and start its ``accepted``."""
+    variant, trial and start its ``accepted``. A located pin other than the proximal one is
+    not the paper's set-up: its lines say so and compare nothing with the paper."""
     with_pin = pinned_variant(pin)
+    key = ["trial", "start"]
     others = pe[pe.pin != pin]
-    lines = []
-    worst = others.groupby(["variant", "start"])["value"].max()
-    if with_pin in worst.index.get_level_values("variant"):
+    worst = others.groupby(["variant", *key])["value"].max()
+    accepted = w.set_index(["variant", *key])["accepted"] > 0.5
+    variants = set(worst.index.get_level_values("variant"))
+    paper = pin == "proximal"
+    lines = [] if paper else [
+        f"- not the paper's set-up: the paper located the proximal pin, this scene the {pin} "
+        "pin; the figures below are not compared with the paper's"]
+
+    def n_acc(variant, idx):
+        return int(accepted.reindex(pd.MultiIndex.from_tuples(
+            [(variant, *k) for k in idx], names=["variant", *key])).fillna(False).sum())
+
+    if with_pin in variants:
         wp = worst.xs(with_pin, level="variant")
         ok = int((wp <= PAPER_WITH_PIN_MM).sum())
         ref = vs_ref[(vs_ref.pin != pin) & (vs_ref.variant == with_pin)]
         ref_txt = ""
         if len(ref):
-            rw = ref.groupby("start")["value"].max()
+            rw = ref.groupby(key)["value"].max()
             ref_txt = (f"; against the pin-based reference, as the paper measured: "
                        f"{int((rw <= PAPER_WITH_PIN_MM).sum())} of {len(rw)}, the largest "
                        f"{rw.max():.2f} mm")
-        acc = w[(w.variant == with_pin)].set_index("start")["accepted"].reindex(wp.index)
+        word = ("met" if ok == len(wp) else "**missed**") if paper else "measured"
         lines.append(
-            f"- {'met' if ok == len(wp) else '**missed**'}: with the {pin} pin located, every "
-            f"other pin within {PAPER_WITH_PIN_MM:g} mm of the truth from {ok} of {len(wp)} "
-            f"starts, the largest {wp.max():.2f} mm ({int((acc > 0.5).sum())} of {len(wp)} "
-            f"accepted by the method's verdict){ref_txt} (the paper: the distal pins within "
-            f"{PAPER_WITH_PIN_MM:g} mm)")
+            f"- {word}: with the {pin} pin located, every other pin within "
+            f"{PAPER_WITH_PIN_MM:g} mm of the truth from {ok} of {len(wp)} starts, the largest "
+            f"{wp.max():.2f} mm ({n_acc(with_pin, wp.index)} of {len(wp)} accepted by the "
+            f"method's verdict){ref_txt}"
+            + (f" (the paper: the distal pins within {PAPER_WITH_PIN_MM:g} mm)" if paper else ""))
     med = others.groupby("variant")["value"].median()
-    if "views alone" in med.index:
+    if "views alone" in variants:
         va = worst.xs("views alone", level="variant")
-        n_acc = int((w[w.variant == "views alone"]["accepted"] > 0.5).sum())
         lines.append(f"- the views alone: the other pins' median error {med['views alone']:.2f} "
-                     f"mm, the largest {va.max():.2f} mm ({n_acc} of {len(va)} accepted) (the "
-                     f"paper: about {PAPER_VIEWS_ALONE_MM:g} mm; a figure, not a bound)")
-    if with_pin in med.index and "views alone" in med.index:
+                     f"mm, the largest {va.max():.2f} mm ({n_acc('views alone', va.index)} of "
+                     f"{len(va)} accepted)" + (f" (the paper: about {PAPER_VIEWS_ALONE_MM:g} "
+                                               "mm; a figure, not a bound)" if paper else ""))
+    if paper and with_pin in med.index and "views alone" in med.index:
         a, b = float(med[with_pin]), float(med["views alone"])
-        lines.append(
-            f"- {'as the paper' if a < b else '**unlike the paper**'}: the located pin "
-            f"{'lowers' if a < b else 'does not lower'} the other pins' median error ({a:.2f} "
-            f"mm with it, {b:.2f} mm without; the paper: within {PAPER_WITH_PIN_MM:g} mm "
-            f"against about {PAPER_VIEWS_ALONE_MM:g} mm)")
+        counts = (f"{n_acc(with_pin, worst.xs(with_pin, level='variant').index)} and "
+                  f"{n_acc('views alone', worst.xs('views alone', level='variant').index)} "
+                  "accepted; the medians include refused starts")
+        if not (np.isfinite(a) and np.isfinite(b)):
+            lines.append("- not comparable: a variant has no finite pin error")
+        else:
+            lines.append(
+                f"- {'as the paper' if a < b else '**unlike the paper**'}: the located pin "
+                f"{'lowers' if a < b else 'does not lower'} the other pins' median error "
+                f"({a:.2f} mm with it, {b:.2f} mm without; {counts}; the paper: within "
+                f"{PAPER_WITH_PIN_MM:g} mm against about {PAPER_VIEWS_ALONE_MM:g} mm)")
     n_cases = pe["trial"].nunique() if "trial" in pe else 1
     lines.append(f"\nThese are {n_cases} case(s), each one femur, one pose and one draw of "
                  "every error source, registered from several starts: the spread over the "

@@ -85,3 +85,36 @@ def test_the_report_counts_starts_with_every_pin_within_2_mm(tmp_path):
     helped = med["with proximal pin"] < med["views alone"]
     assert ("- as the paper: the located pin lowers" in text) == helped
     assert ("- **unlike the paper**: the located pin does not lower" in text) == (not helped)
+
+
+def test_the_lines_against_the_paper_take_several_cases_and_another_located_pin():
+    """A review (h90): with two cases the lines failed ("cannot reindex on an axis with
+    duplicate labels"), a NaN median read as "unlike the paper", and a scene locating
+    another pin was compared with the paper's proximal-pin set-up."""
+    import numpy as np
+    import pandas as pd
+
+    from studies.experiment1 import paper_lines
+
+    rows, acc = [], []
+    for trial in (0, 1):
+        for start in ("rot9_1", "rot9_2"):
+            for variant, err in (("with proximal pin", 1.0 + 1.5 * trial), ("views alone", 4.0)):
+                for pin in ("proximal", "distal_1", "distal_2"):
+                    rows.append({"trial": trial, "start": start, "variant": variant,
+                                 "pin": pin, "value": 0.5 if pin == "proximal" else err})
+                acc.append({"trial": trial, "start": start, "variant": variant,
+                            "accepted": float(variant != "views alone")})
+    pe, w = pd.DataFrame(rows), pd.DataFrame(acc)
+    text = "\n".join(paper_lines(pe, pe.iloc[:0], w))
+    assert "from 2 of 4 starts, the largest 2.50 mm (4 of 4 accepted" in text
+    assert "**missed**" in text and "(0 of 4 accepted)" in text
+    assert "- as the paper: the located pin lowers" in text and "These are 2 case(s)" in text
+    nan = pe.assign(value=np.where(pe.variant == "views alone", np.nan, pe.value))
+    assert "- not comparable" in "\n".join(paper_lines(nan, pe.iloc[:0], w))
+    other = pe.assign(pin=pe.pin.replace({"proximal": "distal_1", "distal_1": "proximal"}),
+                      variant=pe.variant.replace({"with proximal pin": "with distal_1 pin"}))
+    w2 = w.assign(variant=w.variant.replace({"with proximal pin": "with distal_1 pin"}))
+    text = "\n".join(paper_lines(other, pe.iloc[:0], w2, pin="distal_1"))
+    assert text.startswith("- not the paper's set-up") and "unlike the paper" not in text
+    assert "as the paper" not in text and "- measured: with the distal_1 pin located" in text

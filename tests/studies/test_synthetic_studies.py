@@ -74,6 +74,14 @@ def test_the_reports_reproduce_command_gives_the_same_results(tmp_path):
                                   .reset_index(drop=True))
     versions = re.search(r"- versions: (.+)", report).group(1)
     assert versions.startswith("python 3.") and "numpy 2." in versions and "scipy" in versions
+    # a shipped scene by its name (a checkout of the commit reads its own copy), its bytes'
+    # sha256 recorded (a review, h90)
+    assert words[words.index("--scene") + 1] == "points-lines"
+    import hashlib
+
+    from testbed.scene import find_scene
+    digest = hashlib.sha256(find_scene("points-lines").read_bytes()).hexdigest()
+    assert f"- scene file sha256: `{digest}`" in report
 
 
 def test_unknown_study_and_bad_scene(tmp_path, capsys):

@@ -1,6 +1,7 @@
 """The Table II report's targets: met or missed, and what is missing when missed."""
 
 import pandas as pd
+import pytest
 
 from studies.scoring import PIN_NAMES
 from studies.table2 import targets_markdown
@@ -174,3 +175,30 @@ def test_the_pin_table_says_how_many_registrations_it_includes_ended_far_off():
     assert "reglib's verdict" in text
     near = pd.DataFrame([r for r in rows if r["start"] != "rot7_1"])
     assert "more than 5 mm off" not in table2_markdown(near)
+
+
+@pytest.mark.parametrize("lo,hi,want", [(0.05, 50.0, ["0.05", "0.1", "0.2", "0.5", "1", "2",
+                                                      "5", "10", "20", "50"]),
+                                        (1e-6, 1e4, ["1e-06", "0.001", "1", "1000"])])
+def test_log_axes_are_labelled_in_plain_numbers_over_any_range(lo, hi, want):
+    """studies.common.plain_log_ticks: 1, 2 and 5 per decade over a few decades, as plain
+    numbers (the minor ticks had read 4x10^0, a review, h87); one per decade over many (a
+    review, h90: over ten decades 1-2-5 drew no tick at all)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from studies.common import plain_log_ticks
+
+    fig, ax = plt.subplots()
+    ax.plot([0, 1], [lo, hi])
+    ax.set_yscale("log")
+    ax.set_ylim(lo, hi)
+    plain_log_ticks(ax)
+    fig.canvas.draw()
+    got = [t.get_text() for t in ax.get_yticklabels()
+           if t.get_text() and lo * 0.999 <= t.get_position()[1] <= hi * 1.001]
+    plt.close(fig)
+    assert set(want) <= set(got) and len(got) <= 12, got
+    assert not any("times" in g or "^" in g for g in got)

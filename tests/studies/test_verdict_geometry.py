@@ -149,7 +149,7 @@ def test_two_views_and_a_pin_on_a_coarse_ct_are_refused_and_were_wrong():
 
 
 @pytest.mark.slow
-def test_slices_thicker_than_their_gaps_are_read_as_gaps_and_the_wrong_pose_refused():
+def test_slices_thicker_than_their_gaps_are_read_as_gaps_and_accepts_lie_within_the_stated_motion():
     """experiment2 with every slice 10 mm thick on its 1/6 mm schedule (a held-out review,
     2026-11-28, h80): accepted at mTRE 2.25 mm with a pin 3.09 mm off, the gaps no wider
     than 6 mm. The slices' thickness, which the observation gives, now counts as a gap: the

@@ -216,16 +216,19 @@ def test_slices_reusing_clicks_from_above_are_clicked_where_the_bone_moved_off_t
     """The dataset reuses the nearest clicked slice's clicks, which may lie above (a
     review, h88: slices seeded 12-18 px off by a re-click above them). A section of radius
     10 px that jumps to 20 px at slice 7: clicked going up at 0 and 7; slices 4 and 6 would
-    reuse slice 7's clicks 10 px off the bone, so they are clicked too, and then no slice
-    reuses clicks off its bone."""
+    reuse slice 7's clicks 10 px off the bone, so some are clicked too, until no slice
+    reuses clicks off its bone (the property; which slices, the order of the search)."""
     yy, xx = np.mgrid[0:80, 0:80]
     vol = np.stack([np.where(np.hypot(xx - 40, yy - 40) < (10 if k < 7 else 20), 1500.0, 0.0)
                     for k in range(10)])
     spec = OperatorSpec(ct_click_noise_px=0.0, ct_reclick_every_mm=100.0)
     got = ct_clicks(vol, np.arange(10) * 1.0, {"distal": np.arange(10)}, pixel_mm=1.0,
                     spec=spec, rng=np.random.default_rng(0))["distal"]
-    assert sorted(got.clicks) == [0, 4, 6, 7]
-    assert [reuse_source(got.clicks, k) for k in range(10)] == [0, 0, 0, 4, 4, 4, 6, 7, 7, 7]
+    assert {0, 6, 7} <= set(got.clicks) and len(got.clicks) <= 5
+    for k in set(range(10)) - set(got.clicks):
+        src = reuse_source(got.clicks, k)
+        radius = 10 if k < 7 else 20
+        assert (10 if src < 7 else 20) == radius, (k, src)     # no slice seeded off its bone
 
 
 def test_reuse_source_reads_the_clicks_as_the_dataset_format_says():
