@@ -266,18 +266,13 @@ def file_sha256(path) -> str:
 def library_versions() -> str:
     """Python's and the numerical libraries' versions (those whose upgrade changes a trial's
     result: :data:`studies.runner.CODE_LIBRARIES`), as ``name version`` pairs."""
-    import importlib.metadata
     import platform
 
-    from studies.runner import CODE_LIBRARIES
+    from studies.runner import installed_versions
 
-    out = [f"python {platform.python_version()}"]
-    for lib in CODE_LIBRARIES:
-        try:
-            out.append(f"{lib} {importlib.metadata.version(lib)}")
-        except importlib.metadata.PackageNotFoundError:
-            out.append(f"{lib} (not installed)")
-    return ", ".join(out)
+    return ", ".join([f"python {platform.python_version()}"]
+                     + [f"{lib} {v}" if v is not None else f"{lib} (not installed)"
+                        for lib, v in installed_versions().items()])
 
 
 def finish_study(ctx: StudyContext, df: pd.DataFrame) -> None:

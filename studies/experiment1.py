@@ -126,16 +126,14 @@ def paper_lines(pe: pd.DataFrame, vs_ref: pd.DataFrame, w: pd.DataFrame,
     key = ["trial", "start"]
     others = pe[pe.pin != pin]
     worst = others.groupby(["variant", *key])["value"].max()
-    accepted = w.set_index(["variant", *key])["accepted"] > 0.5
+    # per variant, how many of the starts with a pin error the verdict accepted
+    accepted = (w.set_index(["variant", *key])["accepted"] > 0.5).reindex(worst.index)
+    n_acc = accepted.fillna(False).astype(int).groupby(level="variant").sum()
     variants = set(worst.index.get_level_values("variant"))
     paper = pin == "proximal"
     lines = [] if paper else [
         f"- not the paper's set-up: the paper located the proximal pin, this scene the {pin} "
         "pin; the figures below are not compared with the paper's"]
-
-    def n_acc(variant, idx):
-        return int(accepted.reindex(pd.MultiIndex.from_tuples(
-            [(variant, *k) for k in idx], names=["variant", *key])).fillna(False).sum())
 
     if with_pin in variants:
         wp = worst.xs(with_pin, level="variant")
@@ -151,21 +149,20 @@ def paper_lines(pe: pd.DataFrame, vs_ref: pd.DataFrame, w: pd.DataFrame,
         lines.append(
             f"- {word}: with the {pin} pin located, every other pin within "
             f"{PAPER_WITH_PIN_MM:g} mm of the truth from {ok} of {len(wp)} starts, the largest "
-            f"{wp.max():.2f} mm ({n_acc(with_pin, wp.index)} of {len(wp)} accepted by the "
+            f"{wp.max():.2f} mm ({n_acc[with_pin]} of {len(wp)} accepted by the "
             f"method's verdict){ref_txt}"
             + (f" (the paper: the distal pins within {PAPER_WITH_PIN_MM:g} mm)" if paper else ""))
     med = others.groupby("variant")["value"].median()
     if "views alone" in variants:
         va = worst.xs("views alone", level="variant")
         lines.append(f"- the views alone: the other pins' median error {med['views alone']:.2f} "
-                     f"mm, the largest {va.max():.2f} mm ({n_acc('views alone', va.index)} of "
+                     f"mm, the largest {va.max():.2f} mm ({n_acc['views alone']} of "
                      f"{len(va)} accepted)" + (f" (the paper: about {PAPER_VIEWS_ALONE_MM:g} "
                                                "mm; a figure, not a bound)" if paper else ""))
     if paper and with_pin in med.index and "views alone" in med.index:
         a, b = float(med[with_pin]), float(med["views alone"])
-        counts = (f"{n_acc(with_pin, worst.xs(with_pin, level='variant').index)} and "
-                  f"{n_acc('views alone', worst.xs('views alone', level='variant').index)} "
-                  "accepted; the medians include refused starts")
+        counts = (f"{n_acc[with_pin]} and {n_acc['views alone']} accepted; the medians "
+                  "include refused starts")
         if not (np.isfinite(a) and np.isfinite(b)):
             lines.append("- not comparable: a variant has no finite pin error")
         else:

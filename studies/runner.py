@@ -1246,6 +1246,20 @@ CODE_LIBRARIES = ("numpy", "scipy", "numba", "trimesh", "embreex", "pybullet",
                   "opencv-python-headless", "scikit-image")
 
 
+def installed_versions(libraries=CODE_LIBRARIES) -> dict:
+    """Library -> its installed version (None: not installed), for ``libraries`` (pip
+    distribution names)."""
+    import importlib.metadata
+
+    out = {}
+    for lib in libraries:
+        try:
+            out[lib] = importlib.metadata.version(lib)
+        except importlib.metadata.PackageNotFoundError:
+            out[lib] = None
+    return out
+
+
 @functools.cache
 def code_fingerprint(packages: tuple[str, ...] = CODE_PACKAGES) -> str:
     """:func:`fingerprint` of the code a trial runs: every ``*.py`` file of ``packages``
@@ -1253,7 +1267,6 @@ def code_fingerprint(packages: tuple[str, ...] = CODE_PACKAGES) -> str:
     :data:`CODE_LIBRARIES`. Part of every study's and score's trial keys: results stored
     by other code are run again, not taken from ``trials.sqlite`` (a review found a score
     and a study reusing results after reglib was edited). Computed once per process."""
-    import importlib.metadata
     import importlib.util
 
     texts = []
@@ -1269,11 +1282,8 @@ def code_fingerprint(packages: tuple[str, ...] = CODE_PACKAGES) -> str:
                 continue
             texts.append(f"{name}/{f.relative_to(root).as_posix()}")
             files.append(f)
-    for lib in CODE_LIBRARIES:
-        try:
-            texts.append(f"{lib}=={importlib.metadata.version(lib)}")
-        except importlib.metadata.PackageNotFoundError:
-            texts.append(f"{lib}: not installed")
+    texts += [f"{lib}=={v}" if v is not None else f"{lib}: not installed"
+              for lib, v in installed_versions().items()]
     # the files by their bytes alone: where the checkout lies does not change a result
     h = hashlib.sha256()
     h.update(fingerprint(texts=texts).encode())

@@ -361,12 +361,16 @@ def _place_ct_clicks(sections: dict, z, spec: OperatorSpec, seq, hi_xy) -> dict:
         clicks[k] = [np.clip(clicks_along(p, spec.ct_clicks, spec.ct_click_noise_px, k_rng,
                                           closed=True), 0.0, hi_xy) for p in sections[k]]
 
+    judged: dict = {}   # (slice, its clicks' slice) -> drifted: a slice's clicks never change
+
     def drifted(k, j):
         # clicks for another count of sections are off too (the pass up clicks anew where
         # the count changes, so the reuse never meets one; were it to, the slice is clicked,
         # not exempt: a review, h90)
-        return (len(clicks[j]) != len(sections[k]) or clicks_off_outline(
-            clicks[j], sections[k], placed_on=sections[j]) > spec.ct_reclick_off_px)
+        if (k, j) not in judged:
+            judged[k, j] = (len(clicks[j]) != len(sections[k]) or clicks_off_outline(
+                clicks[j], sections[k], placed_on=sections[j]) > spec.ct_reclick_off_px)
+        return judged[k, j]
 
     last_z, last_k = -np.inf, None
     for k in slices:
@@ -374,6 +378,7 @@ def _place_ct_clicks(sections: dict, z, spec: OperatorSpec, seq, hi_xy) -> dict:
                 or drifted(k, last_k)):
             click(k)
             last_z, last_k = z[k], k
+    # after each click only the slices whose nearest clicked slice changed are judged anew
     while True:
         off = next((k for k in slices if k not in clicks
                     and drifted(k, reuse_source(clicks, k))), None)
