@@ -23,7 +23,7 @@ from __future__ import annotations
 import functools
 import warnings
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import ndimage
@@ -638,13 +638,18 @@ class SliceContours:
 
     ``contours_px``: tuple of (K, 2) arrays of (x, y) px in the slice image;
     ``contours_ct``: the same points as (K, 3) arrays in ct mm; ``z_mm`` the slice position
-    (mean z of its points in the ct frame).
+    (mean z of its points in the ct frame); ``reseeded``: the contours were drawn again from
+    a neighbour's because the clicked ones disagreed with both neighbours
+    (:func:`contours_from_ct`'s ``consistency_mm``); ``disagreement_mm``: how far the kept
+    contours stray from both neighbours' (:func:`slice_disagreement_mm`; NaN: not checked).
     """
 
     slice_index: int
     z_mm: float
     contours_px: tuple
     contours_ct: tuple
+    reseeded: bool = False
+    disagreement_mm: float = float("nan")
 
 
 def _slice_affine(slice2ct: np.ndarray, k: int) -> tuple[np.ndarray, float]:
@@ -806,6 +811,20 @@ def _pixel_mm(slice2ct: np.ndarray) -> float:
     return float(np.mean(np.linalg.norm(a[:, :3, :2], axis=1)))
 
 
+#: slices whose neighbours on both sides lie within this distance (mm) along the stack are
+#: checked against them by :func:`contours_from_ct` (the paper's finest spacing, 1 mm near
+#: the pins, and the 2 mm of the schedules around it; a bone section moves by a fraction of a
+#: millimetre between such slices except where the slice grazes a condyle's tip, whose
+#: contour count changes and is left alone)
+NEIGHBOUR_GAP_MM = 2.0
+#: a checked slice disagrees with its neighbours when a point of its contours lies farther
+#: than this (mm, in-plane) from the contours of both (measured on the clinic profile's
+#: `surfaces` cases, 2026-11-29: snakes that cut a lobe off the proximal section on slices
+#: crossed by a pin's streaks scored 3.75-8.2 mm; every other contour under the same
+#: conditions 3 mm or less)
+DISAGREEMENT_MM = 3.0
+
+
 def _click_source(keys: np.ndarray, clicks_xy: Mapping, k: int) -> int:
     """The clicked slice whose clicks seed slice ``k`` (``keys``: the clicked slices,
     sorted): the nearest (ties: the lower), but between two clicked slices whose contour
@@ -832,6 +851,8 @@ def contours_from_ct(
     slice2ct,
     slice_indices: Sequence[int],
     clicks_xy: Mapping[int, Sequence[np.ndarray]],
+    *,
+    consistency_mm: float | None = DISAGREEMENT_MM,
     **snake_options,
 ) -> list[SliceContours]:
     """Snake contours on a set of CT slices, clicks reused from slice to slice.
@@ -855,6 +876,12 @@ def contours_from_ct(
         see :func:`refine_subpixel`), ``scale`` and ``upsample`` to :func:`snake_scale` and
         :func:`snake_upsampling` of the slices' pixel size (the options' lengths in px are
         meant for pixels of :data:`REFERENCE_CT_PIXEL_MM`).
+    consistency_mm : a slice whose neighbours on both sides lie within
+        :data:`NEIGHBOUR_GAP_MM` and carry as many contours, and whose contours stray more
+        than this (mm) from both (:func:`slice_disagreement_mm`), is contoured again with
+        the snake seeded from a neighbour's contours; the new contours are kept if they agree
+        within it (``SliceContours.reseeded``). None: no check. The default,
+        :data:`DISAGREEMENT_MM`.
 
     Returns
     -------
@@ -898,4 +925,107 @@ def contours_from_ct(
             ct.append(_to_ct(aff, k, c))
         z = float(np.mean(np.concatenate([p[:, 2] for p in ct])))
         out.append(SliceContours(k, z, tuple(px), tuple(ct)))
+    if consistency_mm is not None:
+        out = _reseed_disagreeing(vol, aff, out, snake_options,
+                                  positive_number(consistency_mm, "consistency_mm"))
     return out
+
+
+
+def _in_plane_distances(points_xy: np.ndarray, polygons) -> np.ndarray:
+    """Each point's distance (same unit) to the nearest of the closed polygons ``polygons``
+    (list of (K, 2) arrays): ``(N,)``."""
+    best = np.full(len(points_xy), np.inf)
+    for poly in polygons:
+        a = np.asarray(poly, dtype=np.float64)[:, :2]
+        ab = np.roll(a, -1, axis=0) - a
+        w = points_xy[:, None, :] - a[None]
+        t = np.clip(np.einsum("nkj,kj->nk", w, ab) / np.maximum(
+            np.einsum("kj,kj->k", ab, ab), 1e-300), 0.0, 1.0)
+        d = w - t[..., None] * ab[None]
+        best = np.minimum(best, np.sqrt(np.einsum("nkj,nkj->nk", d, d).min(axis=1)))
+    return best
+
+
+def slice_disagreement_mm(contours_ct, below_ct, above_ct) -> float:
+    """How far (mm) a slice's contours stray from its two neighbours': the largest, over
+    the points of ``contours_ct`` (list of (K, 3) ct mm), of the in-plane distance to the
+    nearer of the contours of the slice below and of the slice above (each a list of (K, 3)
+    ct mm). A point near either neighbour agrees, so a section that grows or shrinks
+    steadily along the bone scores its one-slice change; a lobe the snake cut off (or a leak
+    out along a streak) scores the lobe's width."""
+    worst = 0.0
+    for c in contours_ct:
+        xy = np.asarray(c, dtype=np.float64)[:, :2]
+        d = np.minimum(_in_plane_distances(xy, below_ct), _in_plane_distances(xy, above_ct))
+        worst = max(worst, float(d.max()))
+    return worst
+
+
+def _ct_to_px(aff: np.ndarray, k: int, points_ct: np.ndarray) -> np.ndarray:
+    """Points (K, 3) ct mm projected along the slice normal onto slice ``k``: (K, 2) px."""
+    a, kk = _slice_affine(aff, k)
+    origin = a[:3, 3] + kk * a[:3, 2]
+    xy, *_ = np.linalg.lstsq(a[:3, :2], (np.asarray(points_ct)[:, :3] - origin).T, rcond=None)
+    return xy.T
+
+
+def _checked_neighbours(out: list[SliceContours]) -> list[tuple[int, int, int]]:
+    """(slice, below, above) positions in ``out`` of the slices to check: both neighbours
+    (by z) within :data:`NEIGHBOUR_GAP_MM`, and the same number of contours on all three."""
+    order = sorted(range(len(out)), key=lambda i: out[i].z_mm)
+    triples = []
+    for b, i, a in zip(order, order[1:], order[2:], strict=False):
+        if max(out[i].z_mm - out[b].z_mm, out[a].z_mm - out[i].z_mm) > NEIGHBOUR_GAP_MM + 1e-6:
+            continue
+        if len(out[b].contours_ct) == len(out[i].contours_ct) == len(out[a].contours_ct):
+            triples.append((i, b, a))
+    return triples
+
+
+def _reseed_disagreeing(vol, aff, out: list[SliceContours], snake_options: dict,
+                        limit_mm: float) -> list[SliceContours]:
+    """``out`` with the contours of each checked slice (:func:`_checked_neighbours`) that
+    disagree with their neighbours by more than ``limit_mm`` (:func:`slice_disagreement_mm`)
+    drawn again: the snake seeded from each neighbour's contours in turn (a neighbour that
+    disagrees itself is not used), the result kept if it agrees within ``limit_mm`` (the
+    better of the two). The slices are judged against the contours as first drawn. Where
+    the bone itself changes that fast, a snake seeded elsewhere finds the same edges and
+    the slice keeps its contours. Every checked slice's ``disagreement_mm`` is set (that
+    of the contours it keeps).
+
+    Why: on a slice crossed by a pin's streaks, the operator's fresh clicks can start the
+    snake where the streaks pull it across a lobe of the section (clinic profile, the
+    trochanter: contours up to 11.7 mm off the bone on a slice between two good ones)."""
+    triples = _checked_neighbours(out)
+    score = {i: slice_disagreement_mm(out[i].contours_ct, out[b].contours_ct,
+                                      out[a].contours_ct) for i, b, a in triples}
+    bad = {i for i, s in score.items() if s > limit_mm}
+    fixed = list(out)
+    for i, b, a in triples:
+        fixed[i] = replace(out[i], disagreement_mm=score[i])
+        if i not in bad:
+            continue
+        k = out[i].slice_index
+        best = None
+        for j in (b, a):
+            if j in bad:
+                continue
+            px = []
+            try:
+                for c in out[j].contours_ct:
+                    seeds = _ct_to_px(aff, k, c)
+                    h, w = vol.shape[1:]
+                    seeds = np.column_stack([np.clip(seeds[:, 0], -0.5, w - 0.5),
+                                             np.clip(seeds[:, 1], -0.5, h - 0.5)])
+                    px.append(untangle_contour(snake_contour(vol[k], seeds, **snake_options)))
+            except ValueError:
+                continue
+            ct = [_to_ct(aff, k, c) for c in px]
+            s = slice_disagreement_mm(ct, out[b].contours_ct, out[a].contours_ct)
+            if s <= limit_mm and (best is None or s < best[0]):
+                best = (s, px, ct)
+        if best is not None:
+            fixed[i] = replace(out[i], contours_px=tuple(best[1]), contours_ct=tuple(best[2]),
+                               reseeded=True, disagreement_mm=best[0])
+    return fixed

@@ -874,6 +874,32 @@ def z_resolution(stages) -> tuple[float | None, str]:
     return float(gap), f"{gap:.1f} mm apart"
 
 
+def _disagreement_notes(region: str, drawn) -> list[str]:
+    """Sentences on the CT slices of ``region`` whose contours strayed from both neighbours'
+    (:func:`reglib.contours.contours_from_ct`'s check): those drawn again from a
+    neighbour's, and those that still disagree (kept as the clicks gave them)."""
+    from reglib.contours import DISAGREEMENT_MM
+
+    def zs(cs):
+        return ", ".join(f"{c.z_mm:.1f}" for c in cs)
+
+    out = []
+    again = [c for c in drawn if c.reseeded]
+    still = [c for c in drawn if not c.reseeded and c.disagreement_mm > DISAGREEMENT_MM]
+    if again:
+        out.append(f"CT region {region!r}: the contours of {len(again)} slice(s) (z = "
+                   f"{zs(again)} mm) strayed more than {DISAGREEMENT_MM:g} mm from both "
+                   "neighbouring slices' and were drawn again from a neighbour's (a snake cut "
+                   "off or leaked along a streak? check the clicks there)")
+    if still:
+        worst = max(c.disagreement_mm for c in still)
+        out.append(f"CT region {region!r}: the contours of {len(still)} slice(s) (z = "
+                   f"{zs(still)} mm) stray up to {worst:.1f} mm from both neighbouring "
+                   "slices' and drawing them again did not agree better: the bone changes "
+                   "that fast there, or the contours are wrong (check the clicks there)")
+    return out
+
+
 def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
                 options: EstimateOptions | None = None, notes: list | None = None,
                 gaps: dict | None = None, contoured: dict | None = None) -> dict:
@@ -951,11 +977,13 @@ def ct_surfaces(volume, slice2ct, ct_clicks: Mapping[str, Mapping], *,
             m = sl == k
             clicks[int(k)] = [xy[m & (co == j)] for j in np.unique(co[m])]
         try:
-            surf, _ = surface_from_ct(vol_hu, s2c, slices, clicks,
-                                      quality=options.surface_quality,
-                                      simplify_tol_mm=options.simplify_tol_mm)
+            surf, drawn = surface_from_ct(vol_hu, s2c, slices, clicks,
+                                          quality=options.surface_quality,
+                                          simplify_tol_mm=options.simplify_tol_mm)
         except ValueError as exc:
             raise SurfaceError(f"CT region {region!r}: {exc}") from None
+        if notes is not None:
+            notes.extend(_disagreement_notes(region, drawn))
         gone = surf.info.get("left_out_z_mm", ())
         if gone and notes is not None:
             notes.append(f"CT region {region!r}: {len(gone)} slice(s) left out of its surface "

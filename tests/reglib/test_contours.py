@@ -463,3 +463,114 @@ def test_percentile_linear_equals_numpy(seed):
         ref = _percentile_linear(a, q, reference=True)
         assert got == ref or (np.isnan(got) and np.isnan(ref)), (shape, q, got, ref)
         assert np.array_equal(np.signbit(got), np.signbit(ref))
+
+
+def _two_lobes(shape=(96, 96), *, lobe=True):
+    """A CT slice (HU) of a section of two overlapping discs (px: radius 14 at (40, 48),
+    radius 10 at (62, 48)), as the trochanters make a lobe on the proximal femur; ``lobe``
+    False: the first disc alone."""
+    img = _ellipse_image(shape, 40.0, 48.0, 14.0, 14.0, 0.0)
+    if lobe:
+        img = np.maximum(img, _ellipse_image(shape, 62.0, 48.0, 10.0, 10.0, 0.0))
+    return img
+
+
+def _outline(img):
+    from skimage.measure import find_contours
+
+    return np.vstack(find_contours(img, 500.0))[:, ::-1]
+
+
+def _off_outline_px(xy, img):
+    """Each contour vertex's distance (px) from the section's outline (the 500 HU line)."""
+    return cKDTree(_outline(img)).query(xy)[0]
+
+
+def _missed_px(xy, img):
+    """The largest distance (px) of the section's outline from the contour's vertices
+    (spaced about 2 px): a lobe the contour cuts off is missed by its width."""
+    return cKDTree(xy).query(_outline(img))[0].max()
+
+
+def _stack_of(images, gap_mm=1.0):
+    s2c = np.tile(np.eye(4), (len(images), 1, 1))
+    s2c[:, 0, 0] = s2c[:, 1, 1] = 0.8
+    s2c[:, 2, 3] = gap_mm * np.arange(len(images))
+    return np.stack(images), s2c
+
+
+def test_a_slice_whose_clicks_cut_a_lobe_off_is_contoured_again_from_a_neighbour():
+    # Five 1 mm slices of the same two-lobed section; the clicks of slice 2 circle one lobe
+    # (fresh clicks that a streak pulled aside): its snake cuts the other lobe off, its
+    # points lie up to the lobe's width from both neighbours' contours, and the check draws
+    # it again from a neighbour's contour.
+    rng = np.random.default_rng(5)
+    img = _two_lobes()
+    vol, s2c = _stack_of([img + rng.normal(0, 20.0, img.shape) for _ in range(5)])
+    both = _ellipse_points(47.0, 48.0, 28.0, 17.0, 0.0, 12)
+    one = _ellipse_points(40.0, 48.0, 16.0, 16.0, 0.0, 10)
+    clicks = {0: [both], 1: [both], 2: [one], 3: [both], 4: [both]}
+    plain = contours_from_ct(vol, s2c, range(5), clicks, consistency_mm=None)
+    assert _missed_px(plain[2].contours_px[0], img) > 15.0    # the lobe cut off
+    out = contours_from_ct(vol, s2c, range(5), clicks)
+    assert [s.reseeded for s in out] == [False, False, True, False, False]
+    assert _off_outline_px(out[2].contours_px[0], img).max() < 1.5
+    assert _missed_px(out[2].contours_px[0], img) < 2.0
+    assert out[2].disagreement_mm < 1.0
+    # the ends have one neighbour and are not checked; the others agree within 3 mm
+    assert np.isnan(out[0].disagreement_mm) and np.isnan(out[4].disagreement_mm)
+    for k in (0, 1, 3, 4):
+        np.testing.assert_array_equal(out[k].contours_px[0], plain[k].contours_px[0])
+    from reglib.pipeline import _disagreement_notes
+
+    notes = _disagreement_notes("proximal", out)
+    assert len(notes) == 1 and "1 slice(s) (z = 2.0 mm)" in notes[0] \
+        and "drawn again" in notes[0]
+
+
+def test_a_slice_where_the_bone_changes_keeps_its_contours_and_is_reported():
+    # The middle slice really lacks the lobe: a snake seeded from a neighbour's two-lobed
+    # contour finds the one-lobed section again, so the slice keeps its contours, and its
+    # disagreement (the lobe's width, about 20 px = 16 mm less the first disc's reach) is
+    # reported. With 3 mm between the slices none is checked.
+    both = _ellipse_points(47.0, 48.0, 28.0, 17.0, 0.0, 12)
+    one = _ellipse_points(40.0, 48.0, 16.0, 16.0, 0.0, 10)
+    images = [_two_lobes(), _two_lobes(), _two_lobes(lobe=False), _two_lobes(), _two_lobes()]
+    clicks = {0: [both], 1: [both], 2: [one], 3: [both], 4: [both]}
+    vol, s2c = _stack_of(images)
+    plain = contours_from_ct(vol, s2c, range(5), clicks, consistency_mm=None)
+    out = contours_from_ct(vol, s2c, range(5), clicks)
+    assert not any(s.reseeded for s in out)
+    np.testing.assert_array_equal(out[2].contours_px[0], plain[2].contours_px[0])
+    assert _off_outline_px(out[2].contours_px[0], images[2]).max() < 1.5
+    assert 3.0 < out[2].disagreement_mm < 0.8 * 12.0
+    from reglib.pipeline import _disagreement_notes
+
+    notes = _disagreement_notes("distal", out)
+    assert len(notes) == 1 and "did not agree better" in notes[0] and "z = 2.0 mm" in notes[0]
+    coarse = contours_from_ct(*_stack_of(images, gap_mm=3.0), range(5), clicks)
+    assert all(np.isnan(s.disagreement_mm) and not s.reseeded for s in coarse)
+    with pytest.raises(ValueError, match="consistency_mm"):
+        contours_from_ct(vol, s2c, range(5), clicks, consistency_mm=-1.0)
+
+
+def test_slice_disagreement_is_the_largest_distance_to_the_nearer_neighbour():
+    # circles of radius 10, 12 and 15 mm: the middle one is 2 mm from the nearer (below);
+    # against a brute-force distance to densely sampled neighbour circles
+    from reglib.contours import slice_disagreement_mm
+
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        r0, r1, r2 = np.sort(rng.uniform(5.0, 20.0, 3))
+        c = rng.uniform(-5, 5, 2)
+
+        def circle(r, n, z, c=c):
+            t = np.linspace(0, 2 * np.pi, n, endpoint=False) + rng.uniform(0, 1)
+            return np.column_stack([c[0] + r * np.cos(t), c[1] + r * np.sin(t), np.full(n, z)])
+
+        mid, below, above = circle(r1, 50, 1.0), circle(r0, 400, 0.0), circle(r2, 400, 2.0)
+        d = slice_disagreement_mm([mid], [below], [above])
+        dense = np.vstack([circle(r0, 20000, 0.0), circle(r2, 20000, 2.0)])[:, :2]
+        brute = cKDTree(dense).query(mid[:, :2])[0].max()
+        assert d == pytest.approx(brute, abs=0.01)
+        assert d == pytest.approx(min(r1 - r0, r2 - r1), abs=0.01 * r2)
