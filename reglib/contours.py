@@ -983,49 +983,94 @@ def _checked_neighbours(out: list[SliceContours]) -> list[tuple[int, int, int]]:
     return triples
 
 
+#: the share of a slice's contour vertices allowed on weak edges when contours are compared
+#: by how well they sit on the image's edges (:func:`_edge_support`)
+EDGE_SUPPORT_QUANTILE = 0.1
+
+
+def _edge_support(gradient: np.ndarray, contours_px) -> float:
+    """How well contours sit on edges: the :data:`EDGE_SUPPORT_QUANTILE` quantile, over
+    their vertices, of the gradient norm ``gradient`` (H, W) sampled there (bilinear). A
+    contour that cuts across a bone's section or hangs in soft tissue has a run of vertices
+    where the gradient is weak."""
+    xy = np.vstack([np.asarray(c, dtype=np.float64) for c in contours_px])
+    g = ndimage.map_coordinates(gradient, [xy[:, 1], xy[:, 0]], order=1, mode="nearest")
+    return float(np.quantile(g, EDGE_SUPPORT_QUANTILE))
+
+
 def _reseed_disagreeing(vol, aff, out: list[SliceContours], snake_options: dict,
                         limit_mm: float) -> list[SliceContours]:
     """``out`` with the contours of each checked slice (:func:`_checked_neighbours`) that
     disagree with their neighbours by more than ``limit_mm`` (:func:`slice_disagreement_mm`)
-    drawn again: the snake seeded from each neighbour's contours in turn (a neighbour that
-    disagrees itself is not used), the result kept if it agrees within ``limit_mm`` (the
-    better of the two). The slices are judged against the contours as first drawn. Where
-    the bone itself changes that fast, a snake seeded elsewhere finds the same edges and
-    the slice keeps its contours. Every checked slice's ``disagreement_mm`` is set (that
-    of the contours it keeps).
+    drawn again, the worst first: the snake seeded from each neighbour's contours in turn
+    (only from a neighbour that is checked and agrees), the result kept if it agrees within
+    ``limit_mm`` and sits on the slice's edges no worse than the contours it replaces
+    (:func:`_edge_support`; the better of the two). After each slice drawn again its
+    neighbours are judged again, so that a good slice beside a bad one is not drawn from
+    the wrong neighbour; each slice is tried once. Where the bone itself changes that fast,
+    a snake seeded elsewhere finds the same edges, or leaves some off them, and the slice
+    keeps its contours. A slice drawn again gets its own contours back if they agree with
+    its neighbours' as they end. Every checked slice's ``disagreement_mm`` is set (that of
+    the contours it keeps, against its neighbours' as they end).
 
     Why: on a slice crossed by a pin's streaks, the operator's fresh clicks can start the
     snake where the streaks pull it across a lobe of the section (clinic profile, the
     trochanter: contours up to 11.7 mm off the bone on a slice between two good ones)."""
-    triples = _checked_neighbours(out)
-    score = {i: slice_disagreement_mm(out[i].contours_ct, out[b].contours_ct,
-                                      out[a].contours_ct) for i, b, a in triples}
-    bad = {i for i, s in score.items() if s > limit_mm}
-    fixed = list(out)
-    for i, b, a in triples:
-        fixed[i] = replace(out[i], disagreement_mm=score[i])
-        if i not in bad:
-            continue
-        k = out[i].slice_index
+    near = {i: (b, a) for i, b, a in _checked_neighbours(out)}
+    cur = list(out)
+
+    def judge(i):
+        b, a = near[i]
+        return slice_disagreement_mm(cur[i].contours_ct, cur[b].contours_ct, cur[a].contours_ct)
+
+    score = {i: judge(i) for i in near}
+    tried = set()
+    h, w = vol.shape[1:]
+    sigma = float(snake_options.get("fine_sigma_px", 1.0)) * max(
+        float(snake_options.get("scale", 1.0)), 1.0)
+    while True:
+        todo = [i for i in near if i not in tried and score[i] > limit_mm]
+        if not todo:
+            break
+        i = max(todo, key=lambda j: score[j])
+        tried.add(i)
+        b, a = near[i]
+        k = cur[i].slice_index
+        grad = ndimage.gaussian_gradient_magnitude(np.asarray(vol[k], np.float64), sigma)
+        support = _edge_support(grad, cur[i].contours_px)
         best = None
         for j in (b, a):
-            if j in bad:
+            if not score.get(j, np.inf) <= limit_mm:   # seeds from a slice that agrees
                 continue
             px = []
             try:
-                for c in out[j].contours_ct:
+                for c in cur[j].contours_ct:
                     seeds = _ct_to_px(aff, k, c)
-                    h, w = vol.shape[1:]
                     seeds = np.column_stack([np.clip(seeds[:, 0], -0.5, w - 0.5),
                                              np.clip(seeds[:, 1], -0.5, h - 0.5)])
                     px.append(untangle_contour(snake_contour(vol[k], seeds, **snake_options)))
             except ValueError:
                 continue
             ct = [_to_ct(aff, k, c) for c in px]
-            s = slice_disagreement_mm(ct, out[b].contours_ct, out[a].contours_ct)
-            if s <= limit_mm and (best is None or s < best[0]):
+            s = slice_disagreement_mm(ct, cur[b].contours_ct, cur[a].contours_ct)
+            if s <= limit_mm and _edge_support(grad, px) >= support \
+                    and (best is None or s < best[0]):
                 best = (s, px, ct)
-        if best is not None:
-            fixed[i] = replace(out[i], contours_px=tuple(best[1]), contours_ct=tuple(best[2]),
-                               reseeded=True, disagreement_mm=best[0])
-    return fixed
+        if best is None:
+            continue
+        cur[i] = replace(cur[i], contours_px=tuple(best[1]), contours_ct=tuple(best[2]),
+                         reseeded=True)
+        for j in (i, b, a):
+            if j in near:
+                score[j] = judge(j)
+    # a slice drawn again before its bad neighbour was: its own contours, if they agree
+    # with the neighbours as they end (at a lobe's onset, between a slice without the lobe
+    # and a bad one that had cut it off, the snake seeded from below cut it off too)
+    for i in near:
+        if cur[i].reseeded:
+            b, a = near[i]
+            if slice_disagreement_mm(out[i].contours_ct, cur[b].contours_ct,
+                                     cur[a].contours_ct) <= limit_mm:
+                cur[i] = out[i]
+    return [replace(c, disagreement_mm=judge(i)) if i in near else c
+            for i, c in enumerate(cur)]
