@@ -814,8 +814,9 @@ def _pixel_mm(slice2ct: np.ndarray) -> float:
 #: slices whose neighbours on both sides lie within this distance (mm) along the stack are
 #: checked against them by :func:`contours_from_ct` (the paper's finest spacing, 1 mm near
 #: the pins, and the 2 mm of the schedules around it; a bone section moves by a fraction of a
-#: millimetre between such slices except where the slice grazes a condyle's tip, whose
-#: contour count changes and is left alone)
+#: millimetre between such slices except where the slice grazes a condyle's tip or a lobe
+#: begins: where the contour count changes there the slice is left alone; where it does not,
+#: the check can flag a good slice, and draw it again without the lobe's first part)
 NEIGHBOUR_GAP_MM = 2.0
 #: a checked slice disagrees with its neighbours when a point of its contours lies farther
 #: than this (mm, in-plane) from the contours of both (measured on the clinic profile's
@@ -947,17 +948,34 @@ def _in_plane_distances(points_xy: np.ndarray, polygons) -> np.ndarray:
     return best
 
 
-def slice_disagreement_mm(contours_ct, below_ct, above_ct) -> float:
+def _plane_axes(normal) -> np.ndarray:
+    """(3, 2): two orthonormal axes across ``normal`` (3,); for the ct z axis, x and y."""
+    n = np.asarray(normal, dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    if abs(n[2]) >= 1.0 - 1e-12:
+        return np.eye(3)[:, :2]
+    u = np.cross([0.0, 0.0, 1.0], n)
+    u /= np.linalg.norm(u)
+    return np.column_stack([u, np.cross(n, u)])
+
+
+def slice_disagreement_mm(contours_ct, below_ct, above_ct, *, normal=(0.0, 0.0, 1.0)) -> float:
     """How far (mm) a slice's contours stray from its two neighbours': the largest, over
     the points of ``contours_ct`` (list of (K, 3) ct mm), of the in-plane distance to the
     nearer of the contours of the slice below and of the slice above (each a list of (K, 3)
-    ct mm). A point near either neighbour agrees, so a section that grows or shrinks
-    steadily along the bone scores its one-slice change; a lobe the snake cut off (or a leak
-    out along a streak) scores the lobe's width."""
+    ct mm), all seen along the slices' ``normal`` (the ct z axis for axial slices; a tilted
+    gantry's slices tilt it). A point near either neighbour agrees, so a section that grows
+    or shrinks steadily along the bone scores its one-slice change; a lobe the snake cut off
+    (or a leak out along a streak) scores the lobe's width."""
+    axes = _plane_axes(normal)
+
+    def seen(cs):
+        return [np.asarray(c, dtype=np.float64)[:, :3] @ axes for c in cs]
+
+    below, above = seen(below_ct), seen(above_ct)
     worst = 0.0
-    for c in contours_ct:
-        xy = np.asarray(c, dtype=np.float64)[:, :2]
-        d = np.minimum(_in_plane_distances(xy, below_ct), _in_plane_distances(xy, above_ct))
+    for xy in seen(contours_ct):
+        d = np.minimum(_in_plane_distances(xy, below), _in_plane_distances(xy, above))
         worst = max(worst, float(d.max()))
     return worst
 
@@ -1019,9 +1037,14 @@ def _reseed_disagreeing(vol, aff, out: list[SliceContours], snake_options: dict,
     near = {i: (b, a) for i, b, a in _checked_neighbours(out)}
     cur = list(out)
 
+    def normal(i):
+        m, _ = _slice_affine(aff, cur[i].slice_index)
+        return np.cross(m[:3, 0], m[:3, 1])
+
     def judge(i):
         b, a = near[i]
-        return slice_disagreement_mm(cur[i].contours_ct, cur[b].contours_ct, cur[a].contours_ct)
+        return slice_disagreement_mm(cur[i].contours_ct, cur[b].contours_ct,
+                                     cur[a].contours_ct, normal=normal(i))
 
     score = {i: judge(i) for i in near}
     tried = set()
@@ -1052,7 +1075,8 @@ def _reseed_disagreeing(vol, aff, out: list[SliceContours], snake_options: dict,
             except ValueError:
                 continue
             ct = [_to_ct(aff, k, c) for c in px]
-            s = slice_disagreement_mm(ct, cur[b].contours_ct, cur[a].contours_ct)
+            s = slice_disagreement_mm(ct, cur[b].contours_ct, cur[a].contours_ct,
+                                      normal=normal(i))
             if s <= limit_mm and _edge_support(grad, px) >= support \
                     and (best is None or s < best[0]):
                 best = (s, px, ct)
@@ -1070,7 +1094,7 @@ def _reseed_disagreeing(vol, aff, out: list[SliceContours], snake_options: dict,
         if cur[i].reseeded:
             b, a = near[i]
             if slice_disagreement_mm(out[i].contours_ct, cur[b].contours_ct,
-                                     cur[a].contours_ct) <= limit_mm:
+                                     cur[a].contours_ct, normal=normal(i)) <= limit_mm:
                 cur[i] = out[i]
     return [replace(c, disagreement_mm=judge(i)) if i in near else c
             for i, c in enumerate(cur)]

@@ -32,7 +32,8 @@ from testbed.scene import find_scene, load_scene
 #: version of the rule, which judged the plain distance and the reuse going up alone); and
 #: on 2026-11-29 (later) when reglib drew again a CT slice's contours that strayed more than
 #: 3 mm from both neighbours' (reglib.contours.DISAGREEMENT_MM: experiment2's proximal slice
-#: at z = 407.4 mm had its trochanter lobe cut off; the ideal profile's contours all agree;
+#: at z = 407.4 mm had its trochanter lobe cut off; the ideal profile's contours at its seed
+#: all agree;
 #: 0.5165422348059007 mm before)
 PINNED = {"experiment2-ideal": (0.24976284732175802, True),
           "experiment2": (0.460944190159504, True)}

@@ -526,6 +526,11 @@ def test_a_slice_whose_clicks_cut_a_lobe_off_is_contoured_again_from_a_neighbour
     notes = _disagreement_notes("proximal", out)
     assert len(notes) == 1 and "1 slice(s) (z = 2.0 mm)" in notes[0] \
         and "drawn again" in notes[0]
+    # the same with one (4, 4) voxel affine of (col, row, slice) for the stack
+    voxel = np.diag([0.8, 0.8, 1.0, 1.0])
+    same = contours_from_ct(vol, voxel, range(5), clicks)
+    assert [s.reseeded for s in same] == [False, False, True, False, False]
+    np.testing.assert_allclose(same[2].contours_px[0], out[2].contours_px[0], atol=1e-9)
 
 
 def test_a_slice_where_the_bone_changes_keeps_its_contours_and_is_reported():
@@ -574,6 +579,18 @@ def test_slice_disagreement_is_the_largest_distance_to_the_nearer_neighbour():
         brute = cKDTree(dense).query(mid[:, :2])[0].max()
         assert d == pytest.approx(brute, abs=0.01)
         assert d == pytest.approx(min(r1 - r0, r2 - r1), abs=0.01 * r2)
+        # the same slices tilted (a gantry tilt) and moved: seen along their normal, the same
+        from scipy.spatial.transform import Rotation
+
+        R = Rotation.random(random_state=rng).as_matrix()
+        t = rng.uniform(-50, 50, 3)
+
+        def moved(c, R=R, t=t):
+            return c @ R.T + t
+
+        tilted = slice_disagreement_mm([moved(mid)], [moved(below)], [moved(above)],
+                                       normal=R[:, 2])
+        assert tilted == pytest.approx(d, abs=1e-9)
 
 
 def test_a_good_slice_beside_a_bad_one_keeps_its_own_contours():
