@@ -881,8 +881,9 @@ def contours_from_ct(
         :data:`NEIGHBOUR_GAP_MM` and carry as many contours, and whose contours stray more
         than this (mm) from both (:func:`slice_disagreement_mm`), is contoured again with
         the snake seeded from a neighbour's contours; the new contours are kept if they agree
-        within it (``SliceContours.reseeded``). None: no check. The default,
-        :data:`DISAGREEMENT_MM`.
+        within it and sit on the slice's edges no worse (``SliceContours.reseeded``; the
+        rules, and what the check does not catch, in :func:`_reseed_disagreeing`). None: no
+        check. The default, :data:`DISAGREEMENT_MM`.
 
     Returns
     -------
@@ -967,10 +968,18 @@ def slice_disagreement_mm(contours_ct, below_ct, above_ct, *, normal=(0.0, 0.0, 
     gantry's slices tilt it). A point near either neighbour agrees, so a section that grows
     or shrinks steadily along the bone scores its one-slice change; a lobe the snake cut off
     (or a leak out along a streak) scores the lobe's width."""
-    axes = _plane_axes(normal)
+    n = np.asarray(normal, dtype=np.float64)
+    if n.shape != (3,) or not np.all(np.isfinite(n)) or not np.linalg.norm(n) > 0:
+        raise ValueError(f"slice_disagreement_mm: normal must be a finite, non-zero (3,) "
+                         f"vector, got {normal!r}")
+    axes = _plane_axes(n)
 
     def seen(cs):
-        return [np.asarray(c, dtype=np.float64)[:, :3] @ axes for c in cs]
+        out = [np.asarray(c, dtype=np.float64)[:, :3] @ axes for c in cs]
+        if not out or any(len(c) == 0 or not np.all(np.isfinite(c)) for c in out):
+            raise ValueError("slice_disagreement_mm: every slice needs at least one contour "
+                             "of finite points")
+        return out
 
     below, above = seen(below_ct), seen(above_ct)
     worst = 0.0
@@ -988,13 +997,30 @@ def _ct_to_px(aff: np.ndarray, k: int, points_ct: np.ndarray) -> np.ndarray:
     return xy.T
 
 
-def _checked_neighbours(out: list[SliceContours]) -> list[tuple[int, int, int]]:
+def _plane_positions(aff: np.ndarray, out: list[SliceContours]) -> np.ndarray:
+    """Each slice's plane position (mm) along the stack's normal (that of its first slice):
+    where the slice lies, whatever its contours hold (their mean z moves with what they
+    outline on a tilted stack)."""
+    m0, _ = _slice_affine(aff, out[0].slice_index) if out else (np.eye(4), 0.0)
+    n = np.cross(m0[:3, 0], m0[:3, 1])
+    n = n / np.linalg.norm(n)
+    pos = []
+    for c in out:
+        m, kk = _slice_affine(aff, c.slice_index)
+        pos.append(float((m[:3, 3] + kk * m[:3, 2]) @ n))
+    return np.asarray(pos)
+
+
+def _checked_neighbours(out: list[SliceContours], aff: np.ndarray
+                        ) -> list[tuple[int, int, int]]:
     """(slice, below, above) positions in ``out`` of the slices to check: both neighbours
-    (by z) within :data:`NEIGHBOUR_GAP_MM`, and the same number of contours on all three."""
-    order = sorted(range(len(out)), key=lambda i: out[i].z_mm)
+    (by the slice planes' positions along the stack, :func:`_plane_positions`) within
+    :data:`NEIGHBOUR_GAP_MM`, and the same number of contours on all three."""
+    pos = _plane_positions(aff, out)
+    order = sorted(range(len(out)), key=lambda i: pos[i])
     triples = []
     for b, i, a in zip(order, order[1:], order[2:], strict=False):
-        if max(out[i].z_mm - out[b].z_mm, out[a].z_mm - out[i].z_mm) > NEIGHBOUR_GAP_MM + 1e-6:
+        if max(pos[i] - pos[b], pos[a] - pos[i]) > NEIGHBOUR_GAP_MM + 1e-6:
             continue
         if len(out[b].contours_ct) == len(out[i].contours_ct) == len(out[a].contours_ct):
             triples.append((i, b, a))
@@ -1031,10 +1057,14 @@ def _reseed_disagreeing(vol, aff, out: list[SliceContours], snake_options: dict,
     its neighbours' as they end. Every checked slice's ``disagreement_mm`` is set (that of
     the contours it keeps, against its neighbours' as they end).
 
+    Not caught: two neighbouring slices with the same wrong contours agree with each
+    other; the slices at either end of a run of checked ones are never checked, nor used
+    as seeds (a run of three cannot have its middle drawn again).
+
     Why: on a slice crossed by a pin's streaks, the operator's fresh clicks can start the
     snake where the streaks pull it across a lobe of the section (clinic profile, the
     trochanter: contours up to 11.7 mm off the bone on a slice between two good ones)."""
-    near = {i: (b, a) for i, b, a in _checked_neighbours(out)}
+    near = {i: (b, a) for i, b, a in _checked_neighbours(out, aff)}
     cur = list(out)
 
     def normal(i):
