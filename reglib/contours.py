@@ -28,7 +28,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import ndimage
 
-from reglib.geometry import arc_length
+from reglib.geometry import arc_length, polygon_distances
 
 __all__ = [
     "SliceContours",
@@ -934,21 +934,6 @@ def contours_from_ct(
 
 
 
-def _in_plane_distances(points_xy: np.ndarray, polygons) -> np.ndarray:
-    """Each point's distance (same unit) to the nearest of the closed polygons ``polygons``
-    (list of (K, 2) arrays): ``(N,)``."""
-    best = np.full(len(points_xy), np.inf)
-    for poly in polygons:
-        a = np.asarray(poly, dtype=np.float64)[:, :2]
-        ab = np.roll(a, -1, axis=0) - a
-        w = points_xy[:, None, :] - a[None]
-        t = np.clip(np.einsum("nkj,kj->nk", w, ab) / np.maximum(
-            np.einsum("kj,kj->k", ab, ab), 1e-300), 0.0, 1.0)
-        d = w - t[..., None] * ab[None]
-        best = np.minimum(best, np.sqrt(np.einsum("nkj,nkj->nk", d, d).min(axis=1)))
-    return best
-
-
 def _plane_axes(normal) -> np.ndarray:
     """(3, 2): two orthonormal axes across ``normal`` (3,); for the ct z axis, x and y."""
     n = np.asarray(normal, dtype=np.float64)
@@ -984,16 +969,22 @@ def slice_disagreement_mm(contours_ct, below_ct, above_ct, *, normal=(0.0, 0.0, 
     below, above = seen(below_ct), seen(above_ct)
     worst = 0.0
     for xy in seen(contours_ct):
-        d = np.minimum(_in_plane_distances(xy, below), _in_plane_distances(xy, above))
+        d = np.minimum(polygon_distances(xy, below), polygon_distances(xy, above))
         worst = max(worst, float(d.max()))
     return worst
 
 
+def _slice_frame(aff: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Slice ``k``'s plane: its in-plane axes (3, 2) mm per px, its origin (3,) ct mm (pixel
+    (0, 0)) and its normal (3,) (the axes' cross product, not normalised)."""
+    a, kk = _slice_affine(aff, k)
+    return a[:3, :2], a[:3, 3] + kk * a[:3, 2], np.cross(a[:3, 0], a[:3, 1])
+
+
 def _ct_to_px(aff: np.ndarray, k: int, points_ct: np.ndarray) -> np.ndarray:
     """Points (K, 3) ct mm projected along the slice normal onto slice ``k``: (K, 2) px."""
-    a, kk = _slice_affine(aff, k)
-    origin = a[:3, 3] + kk * a[:3, 2]
-    xy, *_ = np.linalg.lstsq(a[:3, :2], (np.asarray(points_ct)[:, :3] - origin).T, rcond=None)
+    axes, origin, _ = _slice_frame(aff, k)
+    xy, *_ = np.linalg.lstsq(axes, (np.asarray(points_ct)[:, :3] - origin).T, rcond=None)
     return xy.T
 
 
@@ -1001,14 +992,11 @@ def _plane_positions(aff: np.ndarray, out: list[SliceContours]) -> np.ndarray:
     """Each slice's plane position (mm) along the stack's normal (that of its first slice):
     where the slice lies, whatever its contours hold (their mean z moves with what they
     outline on a tilted stack)."""
-    m0, _ = _slice_affine(aff, out[0].slice_index) if out else (np.eye(4), 0.0)
-    n = np.cross(m0[:3, 0], m0[:3, 1])
+    if not out:
+        return np.zeros(0)
+    n = _slice_frame(aff, out[0].slice_index)[2]
     n = n / np.linalg.norm(n)
-    pos = []
-    for c in out:
-        m, kk = _slice_affine(aff, c.slice_index)
-        pos.append(float((m[:3, 3] + kk * m[:3, 2]) @ n))
-    return np.asarray(pos)
+    return np.array([float(_slice_frame(aff, c.slice_index)[1] @ n) for c in out])
 
 
 def _checked_neighbours(out: list[SliceContours], aff: np.ndarray
@@ -1068,8 +1056,7 @@ def _reseed_disagreeing(vol, aff, out: list[SliceContours], snake_options: dict,
     cur = list(out)
 
     def normal(i):
-        m, _ = _slice_affine(aff, cur[i].slice_index)
-        return np.cross(m[:3, 0], m[:3, 1])
+        return _slice_frame(aff, cur[i].slice_index)[2]
 
     def judge(i):
         b, a = near[i]
@@ -1120,11 +1107,17 @@ def _reseed_disagreeing(vol, aff, out: list[SliceContours], snake_options: dict,
     # a slice drawn again before its bad neighbour was: its own contours, if they agree
     # with the neighbours as they end (at a lobe's onset, between a slice without the lobe
     # and a bad one that had cut it off, the snake seeded from below cut it off too)
+    restored = set()
     for i in near:
         if cur[i].reseeded:
             b, a = near[i]
             if slice_disagreement_mm(out[i].contours_ct, cur[b].contours_ct,
                                      cur[a].contours_ct, normal=normal(i)) <= limit_mm:
                 cur[i] = out[i]
-    return [replace(c, disagreement_mm=judge(i)) if i in near else c
+                restored.update((i, b, a))
+    # the scores are those of the contours kept: judged again only where a restore moved
+    # a slice or a neighbour (the loop kept every other score current)
+    for j in restored & near.keys():
+        score[j] = judge(j)
+    return [replace(c, disagreement_mm=score[i]) if i in near else c
             for i, c in enumerate(cur)]

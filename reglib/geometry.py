@@ -43,6 +43,7 @@ __all__ = [
     "lines_through",
     "point_line_distances",
     "point_line_residuals",
+    "polygon_distances",
     "skew",
     "transform_difference",
 ]
@@ -581,6 +582,22 @@ def robust_scale(residuals) -> float:
     if r.size == 0:
         return float("nan")
     return float(np.median(r)) / MAD_TO_SIGMA
+
+
+def polygon_distances(points_xy, polygons) -> np.ndarray:
+    """Each of ``points_xy`` (N, 2)'s distance (same unit) to the nearest point on any of the
+    closed polygons ``polygons`` (a list of (K, 2) arrays; edges from each vertex to the
+    next and from the last to the first): ``(N,)``, inf with no polygon."""
+    p = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+    best = np.full(len(p), np.inf)
+    for poly in polygons:
+        a = np.asarray(poly, dtype=np.float64)[:, :2]
+        ab = np.roll(a, -1, axis=0) - a
+        t = np.einsum("psk,sk->ps", p[:, None] - a[None], ab) / np.maximum(
+            np.einsum("sk,sk->s", ab, ab), 1e-300)
+        q = a[None] + np.clip(t, 0.0, 1.0)[..., None] * ab[None]
+        best = np.minimum(best, np.linalg.norm(p[:, None] - q, axis=2).min(axis=1))
+    return best
 
 
 def arc_length(points, *, closed: bool = False) -> tuple[np.ndarray, np.ndarray]:

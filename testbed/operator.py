@@ -36,7 +36,7 @@ from typing import Annotated
 import numpy as np
 from pydantic import Field, field_validator
 
-from reglib.geometry import arc_length
+from reglib.geometry import arc_length, polygon_distances
 from testbed.seeds import keyed_seed, seed_sequence_of
 from testbed.spec import NonNegative, Spec
 
@@ -290,17 +290,7 @@ def click_distances(click_polygons, outlines) -> np.ndarray:
     """Each click's distance (px) to its nearest point on any of ``outlines`` (list of
     closed (K, 2) px polygons): ``(n,)`` for the clicks of ``click_polygons`` (list of
     (n_i, 2) px) in order."""
-    p = np.vstack(click_polygons)
-    best = np.full(len(p), np.inf)
-    for poly in outlines:
-        a = np.asarray(poly, dtype=np.float64)
-        b = np.roll(a, -1, axis=0)
-        ab = b - a
-        t = np.einsum("psk,sk->ps", p[:, None] - a[None], ab) / np.maximum(
-            np.einsum("sk,sk->s", ab, ab), 1e-300)
-        q = a[None] + np.clip(t, 0.0, 1.0)[..., None] * ab[None]
-        best = np.minimum(best, np.linalg.norm(p[:, None] - q, axis=2).min(axis=1))
-    return best
+    return polygon_distances(np.vstack(click_polygons), outlines)
 
 
 def clicks_off_outline(click_polygons, outlines, placed_on=None) -> float:
