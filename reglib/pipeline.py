@@ -202,6 +202,20 @@ MIRROR_FIT_RATIO = 0.8
 #: 1.10); a mirror that does not fit runs all 50 otherwise (0.48 s, five times a whole
 #: registration), 2 take 15-25 ms
 MIRROR_ITERATIONS = 2
+#: the verdict's test of a least-squares pose (registration method "linear" or "lm": every
+#: match counts, outliers too): a pose is refused when the robust (Tukey) solve of the same
+#: residual, run from it for ROBUST_CHECK_ITERATIONS iterations, moves the CT surfaces'
+#: vertices by more than ``accept_max_robust_shift_mm`` (RMS; default AMBIGUOUS_POSE_MM, the
+#: error of a successful registration: two poses farther apart cannot both be one). The
+#: capture-range study (2026-11-29, seed 1996) accepted "linear" poses 1.9-2.3 mm off on the
+#: ideal profile and 3.2 mm off (4 of 4 accepted, none right) on the clinic, their medians
+#: 0.70-0.82 mm, every figure inside its limit: outlier matches had pulled them. From each,
+#: the robust solve moved the vertices by 2.5-3.9 mm (RMS) to a pose 0.18-0.19 mm off, the
+#: same after 3 iterations as after 50; from the refused "linear" poses of 6 + 6 cases,
+#: 5.4-33 mm.
+ROBUST_CHECK_ITERATIONS = 5
+#: registration methods of reglib.register that weigh every match alike (least squares)
+LEAST_SQUARES_METHODS = ("linear", "lm")
 #: the coarse stage of the "coarse-fine" strategy: keyword options of register over the
 #: estimate's registration options. It hands over once an update moves the surfaces by less
 #: than 0.5 mm (``tol_step_mm``): its job is to bring a far start into the fine stage's
@@ -258,7 +272,10 @@ class EstimateOptions:
     surfaces) another try that fits about as well may end from the pose
     (:func:`alternative_pose`; inf: not checked); ``accept_max_mirror_ratio``: an accepted
     pose is refused when the surfaces mirrored across the views' beam fit with a median
-    below this times its own (:func:`mirror_fit`, :data:`MIRROR_FIT_RATIO`; 0: not checked).
+    below this times its own (:func:`mirror_fit`, :data:`MIRROR_FIT_RATIO`; 0: not checked);
+    ``accept_max_robust_shift_mm``: a pose registered by least squares (method "linear" or
+    "lm") is refused when the robust solve from it moves the CT surfaces farther (mm, RMS;
+    :func:`robust_shift`; inf: not checked).
     """
 
     tps_smoothing: float = TPS_SMOOTHING
@@ -282,6 +299,7 @@ class EstimateOptions:
     accept_min_contour_share: float = MIN_CONTOUR_SHARE
     accept_max_alternative_mm: float = AMBIGUOUS_POSE_MM
     accept_max_mirror_ratio: float = MIRROR_FIT_RATIO
+    accept_max_robust_shift_mm: float = AMBIGUOUS_POSE_MM
     min_sweep_agreement: float = MIN_SWEEP_AGREEMENT
 
     def __post_init__(self):
@@ -293,7 +311,8 @@ class EstimateOptions:
                 raise ValueError(f"EstimateOptions.{name}: expected a finite number >= 0, "
                                  f"got {v!r}")
         for name in ("max_validation_mm", "max_path_miss_mm", "accept_max_median_mm",
-                     "accept_max_weak_motion_mm", "accept_max_alternative_mm"):
+                     "accept_max_weak_motion_mm", "accept_max_alternative_mm",
+                     "accept_max_robust_shift_mm"):
             v = getattr(self, name)
             if not (is_real(v) and v > 0):
                 raise ValueError(f"EstimateOptions.{name}: expected a number > 0, got {v!r}")
@@ -1633,6 +1652,8 @@ def weak_motion_limit(options: EstimateOptions, slice_gap_mm: float | None) -> f
 
 #: how the verdict's handedness objection begins (:func:`mirror_fit`)
 MIRRORED = "the CT surfaces look mirrored"
+#: ...and its objection to a least-squares pose the robust solve moves (:func:`robust_shift`)
+PULLED = "outlier matches pulled the least-squares pose"
 
 
 #: SurfaceTopology -> the same surface mirrored across its frame's x = 0 plane (made once:
@@ -1682,6 +1703,28 @@ def mirror_fit(surfaces, views, ct2robot: RigidTransform, options: Mapping) -> f
     q = match_quality(res)
     m = q.get("median_residual_mm", np.inf)
     return float(m) if np.isfinite(m) else float("inf")
+
+
+def robust_shift(surfaces, views, ct2robot: RigidTransform, options: Mapping) -> float:
+    """How far (mm, RMS over the surfaces' vertices) the robust (Tukey) registration of the
+    same residual moves the pose ``ct2robot`` in :data:`ROBUST_CHECK_ITERATIONS` iterations
+    (``options``: the keywords of :func:`reglib.register.register` that gave the pose; their
+    method is replaced by "robust"). A least-squares pose pulled by outlier matches moves by
+    the pull; an unbiased one by the noise. NaN when that registration cannot run or
+    diverges (no figure, no objection)."""
+    from reglib.register import DIVERGED, _as_topologies, register
+
+    tops = _as_topologies(surfaces)
+    try:
+        res = register(tops, views, ct2robot, **{**options, "method": "robust",
+                                                 "max_iterations": ROBUST_CHECK_ITERATIONS})
+    except ValueError:
+        return float("nan")
+    if str(res.reason).startswith(DIVERGED):
+        return float("nan")
+    v = np.vstack([t.vertices for t in tops])
+    d = res.ct2robot.apply(v) - ct2robot.apply(v)
+    return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
 
 
 def alternative_pose(tries, chosen, vertices_ct) -> tuple[float, float]:
@@ -2006,11 +2049,21 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
             f"against its {quality['median_residual_mm']:.2f} mm (limit "
             f"{options.accept_max_alternative_mm:g} mm); the CT surfaces or the X-ray "
             "contours may be too coarse or too noisy to decide"]
+    final_opts = fine if options.strategy == "coarse-fine" else reg_opts
+    if not reasons and final_opts.get("method", "robust") in LEAST_SQUARES_METHODS \
+            and np.isfinite(options.accept_max_robust_shift_mm):
+        # accepted so far, by least squares: would the robust solve stay?
+        shift = quality["robust_shift_mm"] = robust_shift(surfaces, stages.views,
+                                                          res.ct2robot, final_opts)
+        if shift > options.accept_max_robust_shift_mm:
+            reasons = [
+                f"{PULLED}: the robust (Tukey) solve from it moved the CT surfaces "
+                f"{shift:.1f} mm (RMS; limit {options.accept_max_robust_shift_mm:g} mm) in "
+                f"{ROBUST_CHECK_ITERATIONS} iterations; register with method 'robust'"]
     if not reasons and options.accept_max_mirror_ratio > 0:
         # accepted so far: would the surfaces mirrored fit clearly better?
-        quality["mirror_median_mm"] = mirror_fit(
-            surfaces, stages.views, res.ct2robot,
-            fine if options.strategy == "coarse-fine" else reg_opts)
+        quality["mirror_median_mm"] = mirror_fit(surfaces, stages.views, res.ct2robot,
+                                                 final_opts)
         ratio = quality["mirror_median_mm"] / quality["median_residual_mm"]
         if ratio < options.accept_max_mirror_ratio:
             reasons = [

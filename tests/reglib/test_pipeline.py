@@ -507,6 +507,10 @@ def test_a_rival_pose_that_fits_about_as_well_is_found():
     EstimateOptions(accept_max_alternative_mm=float("inf"))
     with pytest.raises(ValueError, match="accept_max_alternative_mm"):
         EstimateOptions(accept_max_alternative_mm=0.0)
+    EstimateOptions(accept_max_robust_shift_mm=float("inf"))
+    for bad in (0.0, -1.0, float("nan"), "2"):
+        with pytest.raises(ValueError, match="accept_max_robust_shift_mm"):
+            EstimateOptions(accept_max_robust_shift_mm=bad)
 
 
 def test_the_video_pixel_in_meta_is_checked():

@@ -176,3 +176,40 @@ def test_slices_thicker_than_their_gaps_are_read_as_gaps_and_accepts_lie_within_
             assert "for CT slices contoured up to 10.0 mm thick" in est.message, seed
         if seed == 3:
             assert not est.accepted and worst > 2.0      # the truth: it was wrong
+
+
+@pytest.mark.slow
+def test_a_least_squares_pose_pulled_by_outliers_is_refused_and_was_wrong():
+    """The capture-range study (2026-11-29, clinic profile, seed 1996) accepted the "linear"
+    baseline (plain least squares over the matches) 3.2 mm off on its first random case,
+    every verdict figure inside its limit. The robust solve from that pose moves the bone
+    by about 4 mm to the truth: refused, and the truth agrees. From the robust pose the
+    same solve does not move: accepted, with no such test (the method is robust)."""
+    import numpy as np
+
+    import studies.capture_range as cr
+    from reglib.pipeline import PULLED, EstimateOptions, robust_shift
+    from studies.end_to_end import prepare_case, register_case
+    from studies.runner import make_trials
+    from studies.scoring import PIN_NAMES, mtre
+
+    tr = make_trials(str(find_scene("experiment2")), 1996,
+                     cr.trial_params(cases=1, starts_per_bin=1))[0]
+    scene_rng, sim_ss, _, _ = tr.rng().spawn(4)
+    case = prepare_case(cr.case_scene(load_scene(tr.scene), scene_rng),
+                        int(sim_ss.integers(0, 2**63 - 1)), sweeps=False)
+    pins = np.array([case.pins_ct[k] for k in PIN_NAMES])
+    lin, _ = register_case(case, case.ct2robot, **cr.METHODS["linear"])
+    rob, _ = register_case(case, case.ct2robot, **cr.METHODS["robust"])
+    assert lin.converged and not lin.accepted and lin.message.startswith(PULLED)
+    limit = EstimateOptions().accept_max_robust_shift_mm
+    assert lin.quality["robust_shift_mm"] > limit and mtre(lin.ct2robot, case.ct2robot,
+                                                           pins) > 2.0
+    assert rob.accepted and "robust_shift_mm" not in rob.quality
+    assert mtre(rob.ct2robot, case.ct2robot, pins) < 1.0
+    st = rob.stages
+    tops = [st.topology(r) for r in sorted(st.surfaces)]
+    opts = {**case.options.registration, "residual": "normal", "method": "linear"}
+    assert robust_shift(tops, st.views, rob.ct2robot, opts) < 0.1
+    assert robust_shift(tops, st.views, lin.ct2robot, opts) == pytest.approx(
+        lin.quality["robust_shift_mm"])
