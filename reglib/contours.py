@@ -1030,14 +1030,72 @@ def _edge_support(gradient: np.ndarray, contours_px) -> float:
     return float(np.quantile(g, EDGE_SUPPORT_QUANTILE))
 
 
+#: a contour drawn again may leave out at most this area (mm^2) of the region its slice's
+#: contours held when that part is as bright as bone (:func:`_left_out_bone_mm2`). Measured
+#: on the clinic profile (experiment2 seeds 2 and 4, 3 cases each, 18 slices drawn again,
+#: 2026-11-29): at the greater trochanter's onset the clicked contour holds a bony island
+#: (the true section's own, about 10 mm wide) and the snake seeded from the slice below
+#: left 89-95 mm^2 of it out, mean 896-940 HU against 592-605 HU inside the new contour (the
+#: true section then up to 10 mm from it, 3.5-3.8 mm before); the 15 real fixes left out
+#: 0-3.2 mm^2 and took in 9-242 mm^2
+MAX_LEFT_OUT_BONE_MM2 = 20.0
+#: the ring (px) outside a contour whose intensities stand for what surrounds the bone
+_RING_PX = 3
+#: bone-bright parts narrower than this (mm) do not count as bone left out: the bright
+#: band of a metal streak along which a snake had leaked, and which the redraw leaves out
+#: (a harder scene's 1000 HU streaks, 2026-11-29: redraws from 15-56 mm off the bone to
+#: 0.2-1.1 mm left out such parts, 2.3-4.8 mm wide, as bright as the bone's inside; the
+#: islands left out were 8-12.5 mm wide, the largest disc inside them)
+MIN_BONE_WIDTH_MM = 6.0
+
+
+def _fill(shape, contours_px) -> np.ndarray:
+    """(H, W) bool: the pixels inside any of ``contours_px`` ((K, 2) x, y px each)."""
+    from skimage.draw import polygon
+
+    m = np.zeros(shape, dtype=bool)
+    for c in contours_px:
+        c = np.asarray(c, dtype=np.float64)
+        rr, cc = polygon(c[:, 1], c[:, 0], shape)
+        m[rr, cc] = True
+    return m
+
+
+def _left_out_bone_mm2(image, old_px, new_px, px_area_mm2: float) -> float:
+    """The area (mm^2) of the pixels inside the contours ``old_px`` and outside ``new_px``
+    (slice ``image``, px) whose intensity is nearer the mean inside ``new_px`` than the mean
+    of a ring of :data:`_RING_PX` around them (what surrounds the bone), in parts at least
+    :data:`MIN_BONE_WIDTH_MM` wide (a morphological opening): the part of the bone the new
+    contours leave out. A leak into soft tissue taken back counts nothing, nor the soft
+    tissue a contour bridged to reach an island, nor a streak's narrow bright band; the
+    island does."""
+    img = np.asarray(image, dtype=np.float64)
+    old, new = _fill(img.shape, old_px), _fill(img.shape, new_px)
+    out = old & ~new
+    if not out.any() or not new.any():
+        return 0.0
+    ring = ndimage.binary_dilation(new, iterations=_RING_PX) & ~new & ~old
+    if not ring.any():
+        return 0.0
+    inside, around = img[new].mean(), img[ring].mean()
+    bone = out & (np.abs(img - inside) < np.abs(img - around))
+    r = max(1, int(round(0.5 * MIN_BONE_WIDTH_MM / np.sqrt(px_area_mm2))))
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    bone = ndimage.binary_opening(bone, structure=xx ** 2 + yy ** 2 <= r * r)
+    return float(np.count_nonzero(bone) * px_area_mm2)
+
+
 def _reseed_disagreeing(vol, aff, out: list[SliceContours], snake_options: dict,
                         limit_mm: float) -> list[SliceContours]:
     """``out`` with the contours of each checked slice (:func:`_checked_neighbours`) that
     disagree with their neighbours by more than ``limit_mm`` (:func:`slice_disagreement_mm`)
     drawn again, the worst first: the snake seeded from each neighbour's contours in turn
     (only from a neighbour that is checked and agrees), the result kept if it agrees within
-    ``limit_mm`` and sits on the slice's edges no worse than the contours it replaces
-    (:func:`_edge_support`; the better of the two). After each slice drawn again its
+    ``limit_mm``, sits on the slice's edges no worse than the contours it replaces
+    (:func:`_edge_support`; the better of the two) and leaves out no more than
+    :data:`MAX_LEFT_OUT_BONE_MM2` of them that looks like bone (:func:`_left_out_bone_mm2`:
+    where a lobe or an island begins, the slice below has none and a snake seeded from it
+    leaves it out). After each slice drawn again its
     neighbours are judged again, so that a good slice beside a bad one is not drawn from
     the wrong neighbour; each slice is tried once. Where the bone itself changes that fast,
     a snake seeded elsewhere finds the same edges, or leaves some off them, and the slice
@@ -1078,6 +1136,8 @@ def _reseed_disagreeing(vol, aff, out: list[SliceContours], snake_options: dict,
         k = cur[i].slice_index
         grad = ndimage.gaussian_gradient_magnitude(np.asarray(vol[k], np.float64), sigma)
         support = _edge_support(grad, cur[i].contours_px)
+        axes = _slice_frame(aff, k)[0]
+        px_mm2 = float(np.linalg.norm(np.cross(axes[:, 0], axes[:, 1])))
         best = None
         for j in (b, a):
             if not score.get(j, np.inf) <= limit_mm:   # seeds from a slice that agrees
@@ -1095,7 +1155,8 @@ def _reseed_disagreeing(vol, aff, out: list[SliceContours], snake_options: dict,
             s = slice_disagreement_mm(ct, cur[b].contours_ct, cur[a].contours_ct,
                                       normal=normal(i))
             if s <= limit_mm and _edge_support(grad, px) >= support \
-                    and (best is None or s < best[0]):
+                    and (best is None or s < best[0]) and _left_out_bone_mm2(
+                        vol[k], cur[i].contours_px, px, px_mm2) <= MAX_LEFT_OUT_BONE_MM2:
                 best = (s, px, ct)
         if best is None:
             continue

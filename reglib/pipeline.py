@@ -915,8 +915,9 @@ def _disagreement_notes(region: str, drawn) -> list[str]:
         out.append(f"CT region {region!r}: the contours of {len(still)} slice(s) (z = "
                    f"{zs(still)} mm) stray up to {worst:.1f} mm from both neighbouring "
                    "slices' and were kept (no contour drawn again from a neighbour that "
-                   "agrees did better): the bone changes that fast there, or the contours "
-                   "are wrong (check the clicks there)")
+                   "agrees did better, or one left out a part as bright as the bone): the "
+                   "bone changes that fast there, or the contours are wrong (check the "
+                   "clicks there)")
     return out
 
 

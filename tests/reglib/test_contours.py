@@ -632,3 +632,73 @@ def test_a_good_slice_beside_a_bad_one_keeps_its_own_contours():
     for k in range(6):
         assert _missed_px(out[k].contours_px[0], images[k]) < 3.0   # the lobes' waist
     assert all(s.disagreement_mm <= 3.0 for s in out[1:5])
+
+
+def _disc_and_island(island=True):
+    """A CT slice (HU) of a disc (radius 14 px at (40, 48)) and, apart from it, a bony
+    island (radius 6 px at (66, 48)), as a slice at the greater trochanter's onset shows."""
+    img = _ellipse_image((96, 96), 40.0, 48.0, 14.0, 14.0, 0.0)
+    if island:
+        img = np.maximum(img, _ellipse_image((96, 96), 66.0, 48.0, 6.0, 6.0, 0.0))
+    return img
+
+
+def test_a_redraw_that_would_leave_an_island_out_is_refused():
+    # Slices 0-1 hold the disc alone, slice 2 the disc and an island, slices 3-4 the disc
+    # and a lobe. Slice 2's contour, around both, strays from both neighbours; the snake
+    # seeded from slice 1's contour agrees with it but leaves the island out (the clinic
+    # profile's trochanter onset: 89-95 mm^2 left out, the true section then 10 mm from the
+    # contour). The redraw is refused; the slice keeps its contour and is reported.
+    import reglib.contours as rc
+
+    rng = np.random.default_rng(5)
+    images = [_disc_and_island(False)] * 2 + [_disc_and_island()] + [_two_lobes()] * 2
+    vol, s2c = _stack_of([im + rng.normal(0, 20.0, im.shape) for im in images])
+    one = _ellipse_points(40.0, 48.0, 16.0, 16.0, 0.0, 10)
+    both = _ellipse_points(50.0, 48.0, 28.0, 17.0, 0.0, 12)
+    clicks = {0: [one], 1: [one], 2: [both], 3: [both], 4: [both]}
+    out = contours_from_ct(vol, s2c, range(5), clicks)
+    assert not any(s.reseeded for s in out)
+    assert _missed_px(out[2].contours_px[0], images[2]) < 4.0
+    assert out[2].disagreement_mm > 3.0
+    from reglib.pipeline import _disagreement_notes
+
+    notes = _disagreement_notes("proximal", out)
+    assert len(notes) == 1 and "were kept" in notes[0] and "z = 2.0 mm" in notes[0]
+    # without the rule the island is drawn out
+    old = rc.MAX_LEFT_OUT_BONE_MM2
+    try:
+        rc.MAX_LEFT_OUT_BONE_MM2 = np.inf
+        loose = contours_from_ct(vol, s2c, range(5), clicks)
+    finally:
+        rc.MAX_LEFT_OUT_BONE_MM2 = old
+    assert loose[2].reseeded and _missed_px(loose[2].contours_px[0], images[2]) > 15.0
+
+
+def test_the_bone_a_contour_leaves_out_is_counted_by_pixel():
+    # The disc's outline against an outline around disc and island: the island's pixels
+    # count (pi 6^2 px, 0.64 mm^2 each), the soft tissue bridged to reach it does not; a
+    # contour leaking into soft tissue, or along a streak, taken back, leaves out no bone;
+    # nor does a contour that leaves out nothing.
+    from reglib.contours import _left_out_bone_mm2
+
+    rng = np.random.default_rng(2)
+    img = _disc_and_island() + rng.normal(0, 20.0, (96, 96))
+    from scipy.spatial import ConvexHull
+
+    disc = _ellipse_points(40.0, 48.0, 14.0, 14.0, 0.0, 60)
+    both = np.vstack([disc, _ellipse_points(66.0, 48.0, 6.5, 6.5, 0.0, 30)])
+    hull = both[ConvexHull(both).vertices]
+    island_mm2 = np.pi * 6.0 ** 2 * 0.64
+    got = _left_out_bone_mm2(img, [hull], [disc], 0.64)
+    assert 0.6 * island_mm2 < got < 1.1 * island_mm2     # its noisy rim opened away
+    leak = _ellipse_points(30.0, 48.0, 24.0, 16.0, 0.0, 60)    # out to the left, no bone
+    assert _left_out_bone_mm2(img, [leak], [disc], 0.64) < 2.0
+    # a leak along a metal streak (a bright band 6 px = 4.8 mm wide, out to the left): the
+    # band is as bright as bone but narrower than MIN_BONE_WIDTH_MM, and does not count
+    streaked = img.copy()
+    streaked[45:51, 2:27] = 1500.0
+    assert _left_out_bone_mm2(streaked, [leak], [disc], 0.64) == 0.0
+    assert _left_out_bone_mm2(streaked, [hull], [disc], 0.64) == pytest.approx(got, rel=0.1)
+    assert _left_out_bone_mm2(img, [disc], [disc], 0.64) == 0.0
+    assert _left_out_bone_mm2(img, [disc], [hull], 0.64) == 0.0
