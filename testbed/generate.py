@@ -220,10 +220,16 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
             raise ValueError(f"{index}: unreadable dataset index ({exc}); move the folder away "
                              "or choose another --out") from None
         _check_index(old, index)
+        if not old.get("case_json_sha256") and not any(
+                (d / CASE_FILE).is_file() for d in out.glob("case_*")):
+            # an index that a failed first case left (written before it): no case to keep
+            # or mix, and another scene or seed may take the folder (a review, h93: the
+            # retry with the scene corrected was refused as "another scene")
+            old = {}
         for key, what in (("scene_sha256", "scene"), ("seed", "seed"),
                           ("generator_version", "generator version"),
                           ("format_version", "format version")):
-            if old.get(key) != summary[key]:
+            if old and old.get(key) != summary[key]:
                 held = [f"{key} {old.get(key)!r}"] + [
                     f"{k} {old.get(f)!r}" for k, f in (("scene", "scene_name"), ("seed", "seed"))
                     if f != key]

@@ -575,7 +575,7 @@ def test_generate_refuses_to_mix_datasets_and_wrong_scenes(tmp_path, monkeypatch
     out = tmp_path / "ds"
     out.mkdir()
     index = {"generator_version": GENERATOR_VERSION, "scene_sha256": scene_digest(scene),
-             "seed": 3, "cases": []}
+             "seed": 3, "cases": ["case_0000"], "case_json_sha256": {"case_0000": "ab" * 32}}
     from testbed.dataset import FORMAT_VERSION
 
     index["format_version"] = FORMAT_VERSION
@@ -632,6 +632,41 @@ def test_generate_refuses_to_mix_datasets_and_wrong_scenes(tmp_path, monkeypatch
     f.write_text("x")
     with pytest.raises(ValueError, match="not a folder"):
         generate_command(scene, scene_path="x", cases=1, out=f, seed=3, progress=False)
+
+
+def test_an_index_that_a_failed_first_case_left_does_not_bind_the_folder(tmp_path,
+                                                                         monkeypatch):
+    """A held-out review (h93): ``generate`` of a scene whose first case failed left the
+    folder with only its ``dataset.json`` (no case written), and the retry with the scene
+    corrected was refused as "a dataset of another scene". With no case written there is
+    nothing to mix: the retry takes the folder; once a case is recorded, it is refused."""
+    from testbed.dataset import FORMAT_VERSION
+    from testbed.generate import GENERATOR_VERSION, generate_command, scene_digest
+
+    scene = parse_scene(SMALL)
+    other = parse_scene({**SMALL, "phantom": {"shape_variation": 0.5, "segments": 32}})
+    out = tmp_path / "ds"
+    out.mkdir()
+    left = {"generator_version": GENERATOR_VERSION, "format_version": FORMAT_VERSION,
+            "scene_sha256": scene_digest(other), "seed": 9, "cases": ["case_0000"],
+            "case_json_sha256": {}}
+    (out / "dataset.json").write_text(json.dumps(left))
+
+    class Reached(Exception):
+        pass
+
+    def reached(*args, **kwargs):
+        raise Reached
+
+    import testbed.simulate
+
+    monkeypatch.setattr(testbed.simulate, "checked_world", reached)
+    with pytest.raises(Reached):      # past the index: the retry is simulated
+        generate_command(scene, scene_path="x", cases=1, out=out, seed=3, progress=False)
+    recorded = {**left, "case_json_sha256": {"case_0000": "ab" * 32}}
+    (out / "dataset.json").write_text(json.dumps(recorded))
+    with pytest.raises(ValueError, match="another scene"):
+        generate_command(scene, scene_path="x", cases=1, out=out, seed=9, progress=False)
 
 
 def test_entry_roles_agree_with_the_loaders_truth_names():
