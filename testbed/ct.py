@@ -44,6 +44,9 @@ Spacing = Annotated[float, Field(ge=0.1, le=20.0)]
 
 #: the fields each slice schedule reads, each read by one schedule only (any other CT field
 #: applies to every schedule)
+#: the least extent (mm) of a scanned range (``distal_range_mm`` ...): less is no region
+#: of bone, and a range in metres where millimetres are read
+MIN_RANGE_MM = 5.0
 SCHEDULE_FIELDS = {
     "clinical": ("fine_spacing_mm", "fine_half_width_mm", "coarse_spacing_mm",
                  "distal_height_mm", "proximal_depth_mm", "distal_range_mm",
@@ -134,6 +137,12 @@ class CTSpec(Spec):
             r = getattr(self, name)
             if r is not None and not r[0] < r[1]:
                 raise ValueError(f"{name} must be (low, high) with low < high, got {r}")
+            if r is not None and r[1] - r[0] < MIN_RANGE_MM:
+                # a range in metres where millimetres are read scanned one slice or none,
+                # and the run blamed the bone threshold (a review, h93)
+                raise ValueError(f"{name} = {list(r)} spans {r[1] - r[0]:g} mm, less than "
+                                 f"{MIN_RANGE_MM:g} mm of bone; given in metres? the scene's "
+                                 "lengths are millimetres")
         return self
 
 

@@ -273,6 +273,12 @@ class SweepSpec(Spec):
 MAX_SLIDE_MM = 5000.0
 
 
+#: the range of a surgical arm's link lengths (mm) that ``[robot]`` accepts: the builtin
+#: arm's are 60-550 mm; below 10 mm a length was given in metres (a review)
+MIN_LINK_MM = 10.0
+MAX_LINK_MM = 3000.0
+
+
 class RobotSpec(Spec):
     """``[robot]``: the robot, its rod, its sweeps and its imperfections.
 
@@ -317,9 +323,26 @@ class RobotSpec(Spec):
 
     @model_validator(mode="after")
     def _check(self):
+        # lengths in metres where millimetres are read: the robot shrinks to a few mm and
+        # the first sweep pose was "unreachable ... move the view" (a review, h93)
+        for name in ("link1_mm", "link2_mm", "quill_mm", "pitch_drop_mm"):
+            v = getattr(self, name)
+            if not MIN_LINK_MM <= v <= MAX_LINK_MM:
+                raise ValueError(
+                    f"{name}: expected a surgical arm's length, {MIN_LINK_MM:g}-{MAX_LINK_MM:g} "
+                    f"mm, got {v:g}" + ("; given in metres? the scene's lengths are "
+                                        "millimetres" if v < MIN_LINK_MM else ""))
+        if not abs(self.base_height_mm) <= MAX_LINK_MM:
+            raise ValueError(f"base_height_mm: expected at most {MAX_LINK_MM:g} mm either way "
+                             f"(the links' height above the robot frame), got "
+                             f"{self.base_height_mm:g}")
         lo, hi = self.slide_range_mm
         if not lo < hi:
             raise ValueError("slide_range_mm: expected (low, high) with low < high")
+        if hi - lo < MIN_LINK_MM:
+            raise ValueError(f"slide_range_mm: ({lo:g}, {hi:g}) spans {hi - lo:g} mm, less than "
+                             f"{MIN_LINK_MM:g} mm; given in metres? the scene's lengths are "
+                             "millimetres")
         if max(abs(lo), abs(hi)) > MAX_SLIDE_MM:   # (+-1e9 mm was taken, a review)
             raise ValueError(f"slide_range_mm: expected ends within +-{MAX_SLIDE_MM:g} mm of "
                              f"the robot's base (a slide beside an OR table), got ({lo:g}, "

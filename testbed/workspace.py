@@ -333,6 +333,19 @@ _SWEEP = ("move the rod's planes ([robot.sweep] near_fraction, validation_fracti
           "rod_angle_deg, tilt_deg, validation_angle_deg)")
 
 
+def _units_hint(scene, report: WorkspaceReport) -> str:
+    """For an unreachable pose of a robot whose base height is a few millimetres: that it
+    may be given in metres (a review, h93: ``base_height_mm = 0.85`` was read as 0.85 mm
+    and the message named only the view)."""
+    from testbed.robot import MIN_LINK_MM
+
+    h = float(scene.robot.base_height_mm)
+    if 0.0 < abs(h) < MIN_LINK_MM and any(p.unreachable for p in report.poses):
+        return (f" (robot.base_height_mm = {h:g}: given in metres? the scene's lengths are "
+                "millimetres)")
+    return ""
+
+
 def _remedy(report: WorkspaceReport) -> str:
     """What to change for the first problem of ``report``, by the bodies involved."""
     if report.carm_contacts:
@@ -393,5 +406,6 @@ def require_feasible(scene, world) -> list[WorkspaceReport]:
             first = next((p for p in r.poses if p.unreachable or p.contacts), None)
             out_of_reach = not r.carm_contacts and first is not None and bool(first.unreachable)
             raise WorkspaceError(_first_problem(scene, r, None) + "; " + _remedy(r)
+                                 + _units_hint(scene, r)
                                  + ("" if out_of_reach else ", or set [workspace] check = false"))
     return reports

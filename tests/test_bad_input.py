@@ -156,7 +156,7 @@ def test_a_missing_scene_path_is_an_error_not_the_named_scene(tmp_path, capsys):
 @pytest.mark.parametrize("command", ["run", "generate", "study"])
 def test_a_scene_the_robot_cannot_reach_fails_before_the_work(tmp_path, capsys, command):
     f = tmp_path / "unreachable.toml"
-    f.write_text(_with(_with(EXP2, "robot", "link1_mm = 1.0"), "robot", "link2_mm = 1.0"))
+    f.write_text(_with(_with(EXP2, "robot", "link1_mm = 20.0"), "robot", "link2_mm = 20.0"))
     out = tmp_path / "out"
     argv = [command, str(f), "--out", str(out)]
     if command == "generate":

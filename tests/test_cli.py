@@ -987,3 +987,16 @@ def test_render_takes_a_view_by_name_or_index(tmp_path, capsys):
     assert frames["1"].shape == (480, 640)
     assert np.array_equal(frames["proximal_oblique"], frames["1"])
     assert np.mean(frames["0"] != frames["1"]) > 0.2
+
+
+def test_a_robot_base_height_in_metres_is_named_with_the_unreachable_pose(tmp_path, capsys):
+    """A held-out review (h93): ``[robot] base_height_mm = 0.85`` (metres) was refused as
+    an unreachable sweep pose naming only the view. The base height may be small, so it is
+    not refused at load; the unreachable pose's message names it and the unit."""
+    text = find_scene("experiment2").read_text()
+    assert "[robot]" not in text          # the builtin robot: a [robot] section is added
+    (tmp_path / "s.toml").write_text(text + "\n[robot]\nbase_height_mm = 0.85\n")
+    code, _, err = _run(capsys, "run", tmp_path / "s.toml", "--json")
+    line = _one_error_line(err)
+    assert code == 2 and "unreachable" in line
+    assert "robot.base_height_mm = 0.85: given in metres?" in line

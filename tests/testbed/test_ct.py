@@ -382,3 +382,14 @@ def test_streaks_equal_the_reference(seed):
         got = _streaks(shape, origin, px, centres, amp, np.random.default_rng(s), fades)
         ref = _streaks_reference(shape, origin, px, centres, amp, np.random.default_rng(s))
         np.testing.assert_array_equal(got, ref)
+
+
+def test_ct_ranges_in_metres_are_told_their_units():
+    """A held-out review (h93) gave the scanned ranges in metres: one slice or none was
+    scanned, and the run blamed the operator's bone threshold."""
+    for field, extra in (("distal_range_mm", {}), ("proximal_range_mm", {}),
+                         ("uniform_range_mm", {"schedule": "uniform"})):
+        with pytest.raises(ValueError, match=f"{field} = \\[0.33, 0.45\\] spans 0.12 mm.*"
+                                             "metres"):
+            CTSpec(**{field: (0.33, 0.45)}, **extra)
+    CTSpec(distal_range_mm=(0.0, 5.0))     # 5 mm of bone is a range

@@ -369,3 +369,19 @@ def test_a_slide_beyond_an_operating_room_is_refused():
     with pytest.raises(ValueError, match=r"slide_range_mm: expected ends within \+-5000 mm"):
         RobotSpec(slide_range_mm=(-1e9, 1e9))
     assert RobotSpec(slide_range_mm=(-5000.0, 5000.0)).slide_range_mm == (-5000.0, 5000.0)
+
+
+def test_robot_lengths_in_metres_are_told_their_units():
+    """A held-out review (h93) gave [robot] lengths in metres: the run said the first sweep
+    pose was unreachable and to move the view. The links and the slide are refused naming
+    the field and the unit; lengths far too long too; the base height, which may be small,
+    is named in the unreachable pose's message (tests/test_cli.py)."""
+    for field, value, match in (("link1_mm", 0.55, "link1_mm: .* got 0.55; given in metres"),
+                                ("link2_mm", 0.45, "link2_mm: .*given in metres"),
+                                ("quill_mm", 0.25, "quill_mm: .*given in metres"),
+                                ("link1_mm", 5.5e5, "link1_mm: expected a surgical arm's"),
+                                ("base_height_mm", 1e8, "base_height_mm: expected at most"),
+                                ("slide_range_mm", (-0.9, 0.3), "spans 1.2 mm.*metres")):
+        with pytest.raises(ValueError, match=match):
+            RobotSpec(**{field: value})
+    RobotSpec(base_height_mm=0.0, link1_mm=10.0, slide_range_mm=(-5.0, 5.0))   # still taken

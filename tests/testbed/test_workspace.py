@@ -41,11 +41,11 @@ def test_a_view_turned_into_the_robot_is_refused_naming_view_pose_and_pair():
 
 
 def test_a_pose_out_of_the_robots_reach_is_not_offered_the_opt_out():
-    """A review (h77): link 1 of 1e6 mm put every sweep pose out of reach; the message
-    offered "set [workspace] check = false", which cannot help (the sweep then fails on the
-    same pose)."""
+    """A review (h77): link 1 of 1e6 mm (refused at load since h93; 2900 mm here) put every
+    sweep pose out of reach; the message offered "set [workspace] check = false", which
+    cannot help (the sweep then fails on the same pose)."""
     d = load_scene(find_scene("experiment2")).model_dump(mode="json")
-    d["robot"]["link1_mm"] = 1e6
+    d["robot"]["link1_mm"] = 2900.0     # every pose beyond its inner reach
     scene, world = case_world(parse_scene(d, source="far.toml"), 0)
     with pytest.raises(WorkspaceError) as err:
         require_feasible(scene, world)
@@ -73,7 +73,7 @@ def test_a_12_inch_intensifier_is_refused_with_advice_that_works():
 def test_an_unreachable_robot_is_refused_before_the_simulation(capsys):
 
     d = load_scene(find_scene("experiment2")).model_dump(mode="json")
-    d["robot"]["link1_mm"] = d["robot"]["link2_mm"] = 1.0
+    d["robot"]["link1_mm"] = d["robot"]["link2_mm"] = 20.0
     scene, world = case_world(parse_scene(d), 0)
     with pytest.raises(WorkspaceError, match="unreachable"):
         require_feasible(scene, world)
