@@ -405,13 +405,14 @@ class Distortion:
         return bound
 
     def undistort(self, xy_px, *, tol_px: float = 1e-10, max_iter: int = 50,
-                  reference: bool = False) -> np.ndarray:
+                  reference: bool = False, failed: str = "raise") -> np.ndarray:
         """Undistorted pixels ``(N, 2)`` of distorted pixels ``(N, 2)``: ``distort``'s inverse.
 
         Newton iterations with the analytic Jacobian; raises ``ValueError`` if they do not
-        converge to ``tol_px`` (the distortion must stay one-to-one there). Compiled per
-        point (:mod:`testbed._distortion_numba`); ``reference=True`` runs the same
-        iterations in numpy (compared in tests).
+        converge to ``tol_px`` (the distortion must stay one-to-one there), or with
+        ``failed="nan"`` gives those points NaN (pixels beyond the field, where the
+        polynomial may fold). Compiled per point (:mod:`testbed._distortion_numba`);
+        ``reference=True`` runs the same iterations in numpy (compared in tests).
         """
         d = np.asarray(xy_px, dtype=np.float64)
         shape = d.shape
@@ -434,6 +435,9 @@ class Distortion:
                               0.5 * self.curvature_bound(reach), reach)
             if ok.all():
                 return u.reshape(shape)
+            if failed == "nan":
+                u[~ok] = np.nan
+                return u.reshape(shape)
             raise ValueError(_not_invertible(tol_px, max_iter, d[~ok]))
         # start from the displacement evaluated at the distorted point (first order), and
         # iterate only the points not yet within tol_px (most converge in 2 steps)
@@ -450,6 +454,9 @@ class Distortion:
             du0 = (J[..., 1, 1] * r[..., 0] - J[..., 0, 1] * r[..., 1]) / det
             du1 = (-J[..., 1, 0] * r[..., 0] + J[..., 0, 0] * r[..., 1]) / det
             u[active] -= np.stack([du0, du1], -1)
+        if failed == "nan":
+            u[active] = np.nan
+            return u.reshape(shape)
         raise ValueError(_not_invertible(tol_px, max_iter, d[active]))
 
 
@@ -633,14 +640,22 @@ class CArm:
     def _undistorted_grid(self) -> np.ndarray:
         """Undistorted pixel ``(H, W, 2)`` of every pixel centre (computed once per C-arm;
         where :meth:`_field` has inverted a pixel already, its value is taken, so that the
-        truth and the rendered rays agree to the bit)."""
+        truth and the rendered rays agree to the bit). Pixels beyond the field's reach
+        (never imaged) where the distortion cannot be inverted are NaN: with 2 mm pixels the
+        frame reaches far past the intensifier, where its polynomial folds, and
+        ``testbed generate`` refused the scene blaming the distortion (a review, h93)."""
         if "undist" not in self._cache:
             g = self.pixel_grid()
+            if "candidates" not in self._cache and self.distortion is not None:
+                self._field()                   # inverts the pixels that can be in the field
             if "candidates" in self._cache:
                 cand, uv_c = self._cache["candidates"]
                 full = np.empty_like(g)
                 full[cand] = uv_c
-                full[~cand] = self.undistort_px(g[~cand])
+                if self.distortion is not None:
+                    full[~cand] = self.distortion.undistort(g[~cand], failed="nan")
+                else:
+                    full[~cand] = g[~cand]
             else:
                 full = self.undistort_px(g.reshape(-1, 2)).reshape(g.shape)
             self._cache["undist"] = full

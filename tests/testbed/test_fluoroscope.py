@@ -368,3 +368,25 @@ def test_field_candidates_without_the_grid_equal_the_reference(seed):
         assert not fov[~cand_r].any()
         np.testing.assert_array_equal(rho[cand_r], rho_c)
         np.testing.assert_array_equal(uv, uv_c[rho_c <= 1.0])
+
+
+def test_the_ray_map_of_a_frame_reaching_far_past_the_field_is_made():
+    """A held-out review (h93): with 2 mm pixels the 640 x 480 frame reaches 4 times past
+    the intensifier's field, where its distortion polynomial folds; ``testbed generate``
+    (which stores the ray map) refused the scene blaming the distortion, while ``run`` ran.
+    The field's rays are made as before; pixels beyond its reach that cannot be inverted
+    are NaN, and every pixel in the field has its ray."""
+    fluoro = FluoroscopeSpec(pixel_mm=2.0)
+    carm = make_carm(fluoro, VIEW)
+    with pytest.raises(ValueError, match="folds the image"):
+        carm.distortion.undistort(carm.pixel_grid().reshape(-1, 2))
+    _, d = carm.pixel_ray_map()
+    fov = carm.fov_mask()
+    assert fov.any() and np.all(np.isfinite(d[fov]))
+    assert np.isnan(d[~fov]).any()
+    ys, xs = np.nonzero(fov)
+    _, dd = carm.true_rays(np.column_stack([xs[::97], ys[::97]]).astype(float))
+    np.testing.assert_allclose(d[ys[::97], xs[::97]], dd, atol=1e-12)
+    # the default pixels: every pixel has its ray, as before
+    _, d0 = make_carm(FluoroscopeSpec(), VIEW).pixel_ray_map()
+    assert np.all(np.isfinite(d0))
