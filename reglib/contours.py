@@ -1031,21 +1031,22 @@ def _edge_support(gradient: np.ndarray, contours_px) -> float:
 
 
 #: a contour drawn again may leave out at most this area (mm^2) of the region its slice's
-#: contours held when that part is as bright as bone (:func:`_left_out_bone_mm2`). Measured
-#: on the clinic profile (experiment2 seeds 2 and 4, 3 cases each, 18 slices drawn again,
-#: 2026-11-29): at the greater trochanter's onset the clicked contour holds a bony island
-#: (the true section's own, about 10 mm wide) and the snake seeded from the slice below
-#: left 89-95 mm^2 of it out, mean 896-940 HU against 592-605 HU inside the new contour (the
-#: true section then up to 10 mm from it, 3.5-3.8 mm before); the 15 real fixes left out
-#: 0-3.2 mm^2 and took in 9-242 mm^2
+#: contours held when that part looks like bone (:func:`_left_out_bone_mm2`). Measured on
+#: the clinic profile (experiment2 seeds 2, 4 and 5, 3 cases each, 2026-11-29): at the
+#: greater trochanter's onset the clicked contour holds a bony island (the true section's
+#: own, about 10 mm wide) and the snake seeded from the slice below left 80-95 mm^2 of it
+#: out, mean 896-990 HU against 589-605 HU inside the new contour (the true section then up
+#: to 10 mm from it, 3.4-3.8 mm before); the 24 real fixes left out 0-3.2 mm^2
 MAX_LEFT_OUT_BONE_MM2 = 20.0
-#: the ring (px) outside a contour whose intensities stand for what surrounds the bone
+#: the ring (px) around the old and new contours whose intensities stand for what
+#: surrounds the bone
 _RING_PX = 3
 #: bone-bright parts narrower than this (mm) do not count as bone left out: the bright
 #: band of a metal streak along which a snake had leaked, and which the redraw leaves out
 #: (a harder scene's 1000 HU streaks, 2026-11-29: redraws from 15-56 mm off the bone to
 #: 0.2-1.1 mm left out such parts, 2.3-4.8 mm wide, as bright as the bone's inside; the
-#: islands left out were 8-12.5 mm wide, the largest disc inside them)
+#: islands left out were 8-12.5 mm wide, the largest disc inside them). The opening's
+#: element is an ellipse this wide across, in whole pixels per axis (7 px at 0.8 mm)
 MIN_BONE_WIDTH_MM = 6.0
 
 
@@ -1061,28 +1062,37 @@ def _fill(shape, contours_px) -> np.ndarray:
     return m
 
 
-def _left_out_bone_mm2(image, old_px, new_px, px_area_mm2: float) -> float:
+def _left_out_bone_mm2(image, old_px, new_px, axes_mm) -> float:
     """The area (mm^2) of the pixels inside the contours ``old_px`` and outside ``new_px``
     (slice ``image``, px) whose intensity is nearer the mean inside ``new_px`` than the mean
-    of a ring of :data:`_RING_PX` around them (what surrounds the bone), in parts at least
+    of a ring of :data:`_RING_PX` around both (what surrounds the bone), in parts at least
     :data:`MIN_BONE_WIDTH_MM` wide (a morphological opening): the part of the bone the new
-    contours leave out. A leak into soft tissue taken back counts nothing, nor the soft
-    tissue a contour bridged to reach an island, nor a streak's narrow bright band; the
-    island does."""
+    contours leave out. ``axes_mm`` (3, 2): the slice's column and row steps (mm per px),
+    for the pixels' area and the opening's element. A leak into soft tissue taken back
+    counts nothing, nor the soft tissue a contour bridged to reach an island, nor a streak's
+    narrow bright band; the island does. New contours holding nothing leave all the old
+    inside out."""
     img = np.asarray(image, dtype=np.float64)
+    axes = np.asarray(axes_mm, dtype=np.float64)
+    px_area = float(np.linalg.norm(np.cross(axes[:, 0], axes[:, 1])))
     old, new = _fill(img.shape, old_px), _fill(img.shape, new_px)
     out = old & ~new
-    if not out.any() or not new.any():
+    if not out.any():
         return 0.0
-    ring = ndimage.binary_dilation(new, iterations=_RING_PX) & ~new & ~old
-    if not ring.any():
-        return 0.0
+    if not new.any():
+        return float(np.count_nonzero(out) * px_area)
+    both = old | new
+    ring = ndimage.binary_dilation(both, iterations=_RING_PX) & ~both
+    if not ring.any():                       # the contours fill the image: no surroundings
+        return float(np.count_nonzero(out) * px_area)
     inside, around = img[new].mean(), img[ring].mean()
     bone = out & (np.abs(img - inside) < np.abs(img - around))
-    r = max(1, int(round(0.5 * MIN_BONE_WIDTH_MM / np.sqrt(px_area_mm2))))
-    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
-    bone = ndimage.binary_opening(bone, structure=xx ** 2 + yy ** 2 <= r * r)
-    return float(np.count_nonzero(bone) * px_area_mm2)
+    # the element's half-widths (px) per axis: a width of MIN_BONE_WIDTH_MM in whole pixels
+    rx, ry = (max(1, int(round(0.5 * (MIN_BONE_WIDTH_MM / float(np.linalg.norm(axes[:, j]))
+                                      - 1.0)))) for j in (0, 1))
+    yy, xx = np.mgrid[-ry:ry + 1, -rx:rx + 1]
+    bone = ndimage.binary_opening(bone, structure=(xx / rx) ** 2 + (yy / ry) ** 2 <= 1.0)
+    return float(np.count_nonzero(bone) * px_area)
 
 
 def _reseed_disagreeing(vol, aff, out: list[SliceContours], snake_options: dict,
@@ -1137,7 +1147,6 @@ def _reseed_disagreeing(vol, aff, out: list[SliceContours], snake_options: dict,
         grad = ndimage.gaussian_gradient_magnitude(np.asarray(vol[k], np.float64), sigma)
         support = _edge_support(grad, cur[i].contours_px)
         axes = _slice_frame(aff, k)[0]
-        px_mm2 = float(np.linalg.norm(np.cross(axes[:, 0], axes[:, 1])))
         best = None
         for j in (b, a):
             if not score.get(j, np.inf) <= limit_mm:   # seeds from a slice that agrees
@@ -1156,7 +1165,7 @@ def _reseed_disagreeing(vol, aff, out: list[SliceContours], snake_options: dict,
                                       normal=normal(i))
             if s <= limit_mm and _edge_support(grad, px) >= support \
                     and (best is None or s < best[0]) and _left_out_bone_mm2(
-                        vol[k], cur[i].contours_px, px, px_mm2) <= MAX_LEFT_OUT_BONE_MM2:
+                        vol[k], cur[i].contours_px, px, axes) <= MAX_LEFT_OUT_BONE_MM2:
                 best = (s, px, ct)
         if best is None:
             continue

@@ -42,11 +42,12 @@ __all__ = ["CTScan", "CTSpec", "sample_hu_reference", "scan", "slice_schedule"]
 Spacing = Annotated[float, Field(ge=0.1, le=20.0)]
 
 
-#: the fields each slice schedule reads, each read by one schedule only (any other CT field
-#: applies to every schedule)
 #: the least extent (mm) of a scanned range (``distal_range_mm`` ...): less is no region
 #: of bone, and a range in metres where millimetres are read
 MIN_RANGE_MM = 5.0
+
+#: the fields each slice schedule reads, each read by one schedule only (any other CT field
+#: applies to every schedule)
 SCHEDULE_FIELDS = {
     "clinical": ("fine_spacing_mm", "fine_half_width_mm", "coarse_spacing_mm",
                  "distal_height_mm", "proximal_depth_mm", "distal_range_mm",

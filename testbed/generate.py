@@ -220,16 +220,10 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
             raise ValueError(f"{index}: unreadable dataset index ({exc}); move the folder away "
                              "or choose another --out") from None
         _check_index(old, index)
-        if not old.get("case_json_sha256") and not any(
-                (d / CASE_FILE).is_file() for d in out.glob("case_*")):
-            # an index that a failed first case left (written before it): no case to keep
-            # or mix, and another scene or seed may take the folder (a review, h93: the
-            # retry with the scene corrected was refused as "another scene")
-            old = {}
         for key, what in (("scene_sha256", "scene"), ("seed", "seed"),
                           ("generator_version", "generator version"),
                           ("format_version", "format version")):
-            if old and old.get(key) != summary[key]:
+            if old.get(key) != summary[key]:
                 held = [f"{key} {old.get(key)!r}"] + [
                     f"{k} {old.get(f)!r}" for k, f in (("scene", "scene_name"), ("seed", "seed"))
                     if f != key]
@@ -269,6 +263,7 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
                                    "case_json_sha256": hashes}, indent=2))
         tmp.replace(index)
 
+    fresh = not index.is_file()   # this run's own index: taken back if its first case fails
     write_index()
     for i in tqdm(range(cases), desc="cases", disable=not progress, unit="case"):
         case_dir = dirs[i]
@@ -285,6 +280,12 @@ def generate_command(scene, *, scene_path, cases: int, out, seed: int | None = N
             sim = simulate(scene, case_seed(int(seed), i), truth_rays=True, progress=progress,
                            prepared=first if i == 0 else None)
         except ValueError as exc:   # a case of its own femur or placement: say which (a review)
+            if not hashes and fresh:
+                # no case written and the index this run's own: taken back, so that the
+                # retry with the scene corrected is not "a dataset of another scene" (a
+                # review, h93); while a run is in its first case its index stays, and a
+                # second run of another scene or seed is refused (h94)
+                index.unlink(missing_ok=True)
             if type(exc).__name__ not in ("ValueError", "SceneError", "WorkspaceError"):
                 raise
             done = f"; the {i} before it are written" if i else ""

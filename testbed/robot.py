@@ -325,7 +325,8 @@ class RobotSpec(Spec):
     def _check(self):
         # lengths in metres where millimetres are read: the robot shrinks to a few mm and
         # the first sweep pose was "unreachable ... move the view" (a review, h93)
-        for name in ("link1_mm", "link2_mm", "quill_mm", "pitch_drop_mm"):
+        for name in ("link1_mm", "link2_mm", "quill_mm"):   # (a wrist's pitch_drop_mm may
+            # be a few mm: a compact wrist, h94)
             v = getattr(self, name)
             if not MIN_LINK_MM <= v <= MAX_LINK_MM:
                 raise ValueError(

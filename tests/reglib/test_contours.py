@@ -677,28 +677,49 @@ def test_a_redraw_that_would_leave_an_island_out_is_refused():
 
 def test_the_bone_a_contour_leaves_out_is_counted_by_pixel():
     # The disc's outline against an outline around disc and island: the island's pixels
-    # count (pi 6^2 px, 0.64 mm^2 each), the soft tissue bridged to reach it does not; a
+    # count (pi 6^2 px of 0.64 mm^2), the soft tissue bridged to reach it does not; a
     # contour leaking into soft tissue, or along a streak, taken back, leaves out no bone;
     # nor does a contour that leaves out nothing.
+    from scipy.spatial import ConvexHull
+
     from reglib.contours import _left_out_bone_mm2
+
+    def axes(sx, sy):      # the slice's column and row steps, mm per px
+        return np.array([[sx, 0.0], [0.0, sy], [0.0, 0.0]])
 
     rng = np.random.default_rng(2)
     img = _disc_and_island() + rng.normal(0, 20.0, (96, 96))
-    from scipy.spatial import ConvexHull
-
     disc = _ellipse_points(40.0, 48.0, 14.0, 14.0, 0.0, 60)
     both = np.vstack([disc, _ellipse_points(66.0, 48.0, 6.5, 6.5, 0.0, 30)])
     hull = both[ConvexHull(both).vertices]
     island_mm2 = np.pi * 6.0 ** 2 * 0.64
-    got = _left_out_bone_mm2(img, [hull], [disc], 0.64)
-    assert 0.6 * island_mm2 < got < 1.1 * island_mm2     # its noisy rim opened away
+    got = _left_out_bone_mm2(img, [hull], [disc], axes(0.8, 0.8))
+    assert 0.75 * island_mm2 < got < 1.1 * island_mm2     # its noisy rim opened away
+    # in mm^2: the same pixels at 0.4 mm count a quarter (and the element, 15 px across,
+    # is wider than the island's 12 px: nothing)
+    assert _left_out_bone_mm2(img, [hull], [disc], axes(1.0, 1.0)) == pytest.approx(
+        got / 0.64, rel=0.15)
+    assert _left_out_bone_mm2(img, [hull], [disc], axes(0.4, 0.4)) == 0.0
     leak = _ellipse_points(30.0, 48.0, 24.0, 16.0, 0.0, 60)    # out to the left, no bone
-    assert _left_out_bone_mm2(img, [leak], [disc], 0.64) < 2.0
+    assert _left_out_bone_mm2(img, [leak], [disc], axes(0.8, 0.8)) < 2.0
     # a leak along a metal streak (a bright band 6 px = 4.8 mm wide, out to the left): the
     # band is as bright as bone but narrower than MIN_BONE_WIDTH_MM, and does not count
     streaked = img.copy()
     streaked[45:51, 2:27] = 1500.0
-    assert _left_out_bone_mm2(streaked, [leak], [disc], 0.64) == 0.0
-    assert _left_out_bone_mm2(streaked, [hull], [disc], 0.64) == pytest.approx(got, rel=0.1)
-    assert _left_out_bone_mm2(img, [disc], [disc], 0.64) == 0.0
-    assert _left_out_bone_mm2(img, [disc], [hull], 0.64) == 0.0
+    assert _left_out_bone_mm2(streaked, [leak], [disc], axes(0.8, 0.8)) == 0.0
+    assert _left_out_bone_mm2(streaked, [hull], [disc], axes(0.8, 0.8)) == pytest.approx(
+        got, rel=0.1)
+    # rows 0.5 mm apart (columns 1 mm): a band 10 rows = 5 mm wide is no bone either (a
+    # round element of the pixels' mean size, 9 px across, kept it: a review)
+    tall = img.copy()
+    tall[43:53, 2:27] = 1500.0
+    assert _left_out_bone_mm2(tall, [leak], [disc], axes(1.0, 0.5)) == 0.0
+    assert _left_out_bone_mm2(tall, [leak], [disc], axes(1.0, 1.0)) > 100.0   # 10 mm wide
+    assert _left_out_bone_mm2(img, [disc], [disc], axes(0.8, 0.8)) == 0.0
+    assert _left_out_bone_mm2(img, [disc], [hull], axes(0.8, 0.8)) == 0.0
+    # an old outline well outside both disc and island (no ring between them to stand for
+    # the surroundings, a review): the island still counts; new contours holding nothing
+    # leave all of the old out
+    wide = _ellipse_points(52.0, 48.0, 30.0, 24.0, 0.0, 80)
+    assert _left_out_bone_mm2(img, [wide], [disc], axes(0.8, 0.8)) > 0.75 * island_mm2
+    assert _left_out_bone_mm2(img, [disc], [], axes(0.8, 0.8)) > 0.9 * np.pi * 14 ** 2 * 0.64

@@ -213,3 +213,11 @@ def test_a_least_squares_pose_pulled_by_outliers_is_refused_and_was_wrong():
     assert robust_shift(tops, st.views, rob.ct2robot, opts) < 0.1
     assert robust_shift(tops, st.views, lin.ct2robot, opts) == pytest.approx(
         lin.quality["robust_shift_mm"])
+    # the caller's own divergence limits below the pull do not hide it (h94: with
+    # max_motion_mm = 3 the robust solve "diverged", the figure was NaN and the pose 3.2 mm
+    # off was accepted)
+    for tight in ({"max_motion_mm": 2.0}, {"max_rotation_deg": 0.5}):
+        assert robust_shift(tops, st.views, lin.ct2robot, {**opts, **tight}) == pytest.approx(
+            lin.quality["robust_shift_mm"])
+    again, _ = register_case(case, lin.ct2robot, **cr.METHODS["linear"], max_motion_mm=3.0)
+    assert not again.accepted and again.message.startswith(PULLED)

@@ -634,39 +634,49 @@ def test_generate_refuses_to_mix_datasets_and_wrong_scenes(tmp_path, monkeypatch
         generate_command(scene, scene_path="x", cases=1, out=f, seed=3, progress=False)
 
 
-def test_an_index_that_a_failed_first_case_left_does_not_bind_the_folder(tmp_path,
-                                                                         monkeypatch):
+def test_a_first_case_that_fails_takes_its_index_back(tmp_path, monkeypatch):
     """A held-out review (h93): ``generate`` of a scene whose first case failed left the
-    folder with only its ``dataset.json`` (no case written), and the retry with the scene
-    corrected was refused as "a dataset of another scene". With no case written there is
-    nothing to mix: the retry takes the folder; once a case is recorded, it is refused."""
-    from testbed.dataset import FORMAT_VERSION
-    from testbed.generate import GENERATOR_VERSION, generate_command, scene_digest
+    folder with only its ``dataset.json``, and the retry with the scene corrected was
+    refused as "a dataset of another scene". The run that wrote the index takes it back
+    when its first case fails; while that case is simulated the index stays, so a second
+    run of another seed is refused then (h94: a first fix that let an index without cases
+    give way mixed two concurrent runs)."""
+    from testbed.generate import generate_command
 
     scene = parse_scene(SMALL)
     other = parse_scene({**SMALL, "phantom": {"shape_variation": 0.5, "segments": 32}})
     out = tmp_path / "ds"
-    out.mkdir()
-    left = {"generator_version": GENERATOR_VERSION, "format_version": FORMAT_VERSION,
-            "scene_sha256": scene_digest(other), "seed": 9, "cases": ["case_0000"],
-            "case_json_sha256": {}}
-    (out / "dataset.json").write_text(json.dumps(left))
+    seen = {}
 
     class Reached(Exception):
         pass
 
-    def reached(*args, **kwargs):
-        raise Reached
+    def failing(*args, **kwargs):
+        seen["index"] = json.loads((out / "dataset.json").read_text())
+        with pytest.raises(ValueError, match="another seed"):   # a second run meanwhile
+            generate_command(scene, scene_path="x", cases=1, out=out, seed=4, progress=False)
+        raise ValueError("this case cannot be made")
 
     import testbed.simulate
 
-    monkeypatch.setattr(testbed.simulate, "checked_world", reached)
-    with pytest.raises(Reached):      # past the index: the retry is simulated
+    monkeypatch.setattr(testbed.simulate, "checked_world", lambda *a, **k: None)
+    monkeypatch.setattr(testbed.simulate, "simulate", failing)
+    with pytest.raises(ValueError, match="this case cannot be made; in case_0000"):
         generate_command(scene, scene_path="x", cases=1, out=out, seed=3, progress=False)
-    recorded = {**left, "case_json_sha256": {"case_0000": "ab" * 32}}
-    (out / "dataset.json").write_text(json.dumps(recorded))
-    with pytest.raises(ValueError, match="another scene"):
-        generate_command(scene, scene_path="x", cases=1, out=out, seed=9, progress=False)
+    assert seen["index"]["seed"] == 3 and not (out / "dataset.json").exists()
+
+    def reached(*args, **kwargs):
+        raise Reached
+
+    monkeypatch.setattr(testbed.simulate, "simulate", reached)
+    with pytest.raises(Reached):    # the retry, another scene, is simulated
+        generate_command(other, scene_path="x", cases=1, out=out, seed=3, progress=False)
+    # an index this run did not write stays
+    (out / "dataset.json").write_text(json.dumps({**seen["index"], "seed": 3}))
+    monkeypatch.setattr(testbed.simulate, "simulate", failing)
+    with pytest.raises(ValueError, match="this case cannot be made"):
+        generate_command(scene, scene_path="x", cases=1, out=out, seed=3, progress=False)
+    assert (out / "dataset.json").exists()
 
 
 def test_entry_roles_agree_with_the_loaders_truth_names():

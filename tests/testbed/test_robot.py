@@ -384,4 +384,5 @@ def test_robot_lengths_in_metres_are_told_their_units():
                                 ("slide_range_mm", (-0.9, 0.3), "spans 1.2 mm.*metres")):
         with pytest.raises(ValueError, match=match):
             RobotSpec(**{field: value})
-    RobotSpec(base_height_mm=0.0, link1_mm=10.0, slide_range_mm=(-5.0, 5.0))   # still taken
+    RobotSpec(base_height_mm=0.0, link1_mm=10.0, slide_range_mm=(-5.0, 5.0),
+              pitch_drop_mm=2.0)       # still taken (a compact wrist's pitch axis: h94)
