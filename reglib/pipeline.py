@@ -42,7 +42,6 @@ starts of one case, or with some inputs replaced (the judge's oracles).
 
 from __future__ import annotations
 
-import inspect
 import time
 import weakref
 from collections.abc import Mapping
@@ -1717,11 +1716,11 @@ def robust_shift(surfaces, views, ct2robot: RigidTransform, options: Mapping) ->
     strongest pull: a review, h94, saw a pose 3.2 mm off accepted when the caller's own
     limit of 3 mm turned it into "no figure"); NaN when that registration cannot run (no
     figure, no objection)."""
-    from reglib.register import DIVERGED, _as_topologies, register
+    from reglib.register import DIVERGED, MAX_MOTION_MM, MAX_ROTATION_DEG, _as_topologies, register
 
-    defaults = inspect.signature(register).parameters
-    limits = {k: max(float(options.get(k, defaults[k].default)), float(defaults[k].default))
-              for k in ("max_motion_mm", "max_rotation_deg")}
+    limits = {k: max(float(options.get(k, least)), least)
+              for k, least in (("max_motion_mm", MAX_MOTION_MM),
+                               ("max_rotation_deg", MAX_ROTATION_DEG))}
     tops = _as_topologies(surfaces)
     try:
         res = register(tops, views, ct2robot, **{**options, **limits, "method": "robust",
@@ -1731,7 +1730,13 @@ def robust_shift(surfaces, views, ct2robot: RigidTransform, options: Mapping) ->
     if str(res.reason).startswith(DIVERGED):
         return float("inf")
     v = np.vstack([t.vertices for t in tops])
-    d = res.ct2robot.apply(v) - ct2robot.apply(v)
+    return _rms_apart(res.ct2robot.apply(v), ct2robot.apply(v))
+
+
+def _rms_apart(a, b) -> float:
+    """The RMS distance (mm) between matching points ``a`` and ``b`` (N, 3): how far apart
+    two poses put the same CT vertices."""
+    d = np.asarray(a) - np.asarray(b)
     return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
 
 
@@ -1752,7 +1757,7 @@ def alternative_pose(tries, chosen, vertices_ct) -> tuple[float, float]:
         m = qq.get("median_residual_mm", np.nan)
         if r is res or not m <= AMBIGUOUS_FIT * med:
             continue
-        d = float(np.sqrt(np.mean(np.sum((r.ct2robot.apply(v) - here) ** 2, axis=1))))
+        d = _rms_apart(r.ct2robot.apply(v), here)
         if d > far:
             far, far_med = d, float(m)
     return far, far_med

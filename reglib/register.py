@@ -511,6 +511,10 @@ def _check_solver_options(method, opts):
 #: mm) and 12 restarts each, refused 1.0-1.4 mm off (2026-11-28). Only the coarse stage,
 #: which hands over at 0.5 mm steps, takes fewer (reglib.pipeline.COARSE_STAGE).
 SOLVER_ITERATIONS = 20
+#: register's default divergence limits: the pose may move this far from its start
+#: (bounding-box corner displacement, mm; rotation, deg) before the loop is stopped
+MAX_MOTION_MM = 150.0
+MAX_ROTATION_DEG = 45.0
 
 #: the limit cycles' periods the robust solvers' loop recognises as settled
 CYCLE_PERIODS = (2, 3, 4, 5, 6, 7, 8)
@@ -676,8 +680,9 @@ def register(surfaces, views, initial: RigidTransform, *,
              residual: Literal["line", "normal"] = "normal",
              fixed_point_ct=None, tukey_a: float = 4.685, max_iterations: int = 50,
              tol_step_mm: float = 1e-4, tol_residual_mm: float = 0.0,
-             stall_window: int = 5, tol_stall_mm: float = 0.1, max_motion_mm: float = 150.0,
-             max_rotation_deg: float = 45.0, min_inlier_fraction: float = 0.2,
+             stall_window: int = 5, tol_stall_mm: float = 0.1,
+             max_motion_mm: float = MAX_MOTION_MM, max_rotation_deg: float = MAX_ROTATION_DEG,
+             min_inlier_fraction: float = 0.2,
              stale_window: int = 10,
              solver_iterations: int = SOLVER_ITERATIONS, solver_options: dict | None = None
              ) -> RegistrationResult:
