@@ -934,3 +934,36 @@ def test_an_accepted_restart_ends_the_search_only_with_its_ring(monkeypatch):
     est = estimate(None, start, stages=stages, options=opts18)
     assert est.accepted and len(starts) == 1 + 2 * RING
     assert est.ct2robot is starts[RING + 2]
+
+
+@pytest.mark.parametrize("method", ["lm", "linear"])
+def test_a_least_squares_pose_pulled_on_noise_free_views_is_refused(method):
+    """The least-squares check (:func:`reglib.pipeline.robust_shift`) runs after "lm" as
+    after "linear" (a mutation review, h94: "lm" dropped from LEAST_SQUARES_METHODS passed
+    every test), and never after the robust method. On the noise-free synthetic scene (the
+    truth fits at a median of 5e-14 mm) the line residual's least-squares pose ends with
+    pins 0.7-2.3 mm off, pulled by the matches to the wrong contours; the Tukey solve from
+    it moves the CT surfaces about 1.5 mm to the truth. Under the former 2 mm limit it was
+    accepted; the default limit (1 mm) refuses it, and the robust method is accepted at
+    the truth."""
+    from reglib.pipeline import PULLED, ROBUST_SHIFT_MM, EstimateOptions, Stages, estimate
+    from studies.bench.registration import make_scene, perturbed, pin_errors
+
+    s = make_scene()
+    stages = Stages({}, {f"r{i}": (t.vertices, t.faces) for i, t in enumerate(s.surfaces)},
+                    {}, list(s.views.values()), {}, {})
+    start = perturbed(s.true, 3.0, 2.0, np.random.default_rng(4))
+
+    def run(m, **kw):
+        opts = EstimateOptions(strategy="single", restarts=0, accept_max_mirror_ratio=0.0,
+                               registration={"method": m, "residual": "line"}, **kw)
+        return estimate(None, start, stages=stages, options=opts)
+
+    est = run(method)
+    assert est.converged and not est.accepted and est.message.startswith(PULLED)
+    assert ROBUST_SHIFT_MM < est.quality["robust_shift_mm"] < 2.0
+    assert pin_errors(est.ct2robot, s.true).max() > 2.0         # the truth: it was pulled
+    assert run(method, accept_max_robust_shift_mm=2.0).accepted  # the former limit
+    robust = run("robust")
+    assert robust.accepted and "robust_shift_mm" not in robust.quality
+    assert pin_errors(robust.ct2robot, s.true).max() < 0.05
