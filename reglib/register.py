@@ -511,6 +511,9 @@ def _check_solver_options(method, opts):
 #: mm) and 12 restarts each, refused 1.0-1.4 mm off (2026-11-28). Only the coarse stage,
 #: which hands over at 0.5 mm steps, takes fewer (reglib.pipeline.COARSE_STAGE).
 SOLVER_ITERATIONS = 20
+#: register's default Tukey constant (units of the robust scale ``median / 0.6745``): the
+#: usual 95 %-efficiency value (see register's ``tukey_a``)
+TUKEY_A = 4.685
 #: register's default divergence limits: the pose may move this far from its start
 #: (bounding-box corner displacement, mm; rotation, deg) before the loop is stopped
 MAX_MOTION_MM = 150.0
@@ -678,7 +681,7 @@ def register(surfaces, views, initial: RigidTransform, *,
              selection: Literal["paper", "closest"] = "paper",
              max_stab_distance_mm: float = 10.0,
              residual: Literal["line", "normal"] = "normal",
-             fixed_point_ct=None, tukey_a: float = 4.685, max_iterations: int = 50,
+             fixed_point_ct=None, tukey_a: float = TUKEY_A, max_iterations: int = 50,
              tol_step_mm: float = 1e-4, tol_residual_mm: float = 0.0,
              stall_window: int = 5, tol_stall_mm: float = 0.1,
              max_motion_mm: float = MAX_MOTION_MM, max_rotation_deg: float = MAX_ROTATION_DEG,

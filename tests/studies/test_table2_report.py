@@ -202,3 +202,18 @@ def test_log_axes_are_labelled_in_plain_numbers_over_any_range(lo, hi, want):
     plt.close(fig)
     assert set(want) <= set(got) and len(got) <= 12, got
     assert not any("times" in g or "^" in g for g in got)
+
+
+def test_the_pin_table_counts_what_converged_and_was_accepted():
+    """219 of 220 registrations converged read "100% converged" (a held-out review, h95):
+    the table says counts."""
+    from studies.table2 import table2_markdown
+
+    rows = _rows(1.0, 0.3)
+    n = len(rows[rows.metric == "pin_error"]) // len(PIN_NAMES)
+    flags = [{"metric": m, "pin": "", "start": "", "statistic": "", "value": float(k > 0)}
+             for m in ("converged", "accepted") for k in range(n)]
+    text = table2_markdown(pd.concat([rows, pd.DataFrame(flags)], ignore_index=True)
+                           .assign(trial=0))
+    assert f"{n - 1} of {n} converged, {n - 1} of {n} accepted" in text
+    assert "100%" not in text

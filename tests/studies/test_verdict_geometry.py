@@ -231,3 +231,21 @@ def test_a_least_squares_pose_pulled_by_outliers_is_refused_and_was_wrong():
             lin.quality["robust_shift_mm"])
     again, _ = register_case(case, lin.ct2robot, **cr.METHODS["linear"], max_motion_mm=3.0)
     assert not again.accepted and again.message.startswith(PULLED)
+
+
+@pytest.mark.slow
+def test_a_robust_solve_with_a_huge_tukey_constant_is_checked_as_least_squares():
+    """experiment2 with ``[registration] tukey_a = 50`` (a held-out review, h95): every match
+    kept, as by least squares; the pose was accepted with the proximal pin 3.5 mm off, the
+    check of poses registered otherwise than by the default solve skipped (a robust
+    contour-normal solve), and its own solve, run with the caller's constant, moved the
+    pose 0.13 mm. The check's solve keeps register's constant: it moves the pose 2.4 mm,
+    and the estimate is refused."""
+    from reglib.pipeline import PULLED, ROBUST_SHIFT_MM
+
+    d = load_scene(find_scene("experiment2")).model_dump(mode="json")
+    d["registration"]["tukey_a"] = 50.0
+    res, case, _, est = run_case(parse_scene(d), seed=1996)
+    assert not est.accepted and est.message.startswith(PULLED), est.message
+    assert est.quality["robust_shift_mm"] > 2.0 * ROBUST_SHIFT_MM
+    assert max(res["pins"].values()) > 3.0                   # the truth: it was wrong
