@@ -32,6 +32,7 @@ streams however often and in whatever order the stages ask for them.
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 
@@ -303,6 +304,56 @@ def simulate_ct(scene, seed=0, *, index: int = 0, world=None) -> CtCase:
     return CtCase(scene, world, ct, clicks, xray_op_rng)
 
 
+#: the memory a case's simulation holds at its peak (bytes): a base, and per view so much per
+#: pixel and per ray (pixels x oversample^2). Measured (2026-11-29): experiment2 0.73 GB at
+#: 640 x 480, 1.17 GB with oversample 2, 1.90 GB at 1024 x 1024, 6.25 GB at 2048 x 2048 (a
+#: held-out review, h95: 4096 x 4096 grew past the machine's 23 GB and would have been
+#: killed without a word); these figures lie 15-35 % above each
+MEMORY_BASE_BYTES = 0.5e9
+MEMORY_PER_PIXEL_BYTES = 300.0
+MEMORY_PER_RAY_BYTES = 100.0
+
+
+def memory_needed_bytes(scene) -> float:
+    """About the most memory (bytes) simulating one case of ``scene`` holds at once (see
+    :data:`MEMORY_BASE_BYTES`)."""
+    f = scene.fluoroscope
+    pixels = float(f.width_px) * float(f.height_px)
+    rays = pixels * float(f.oversample) ** 2
+    return MEMORY_BASE_BYTES + len(scene.views) * (MEMORY_PER_PIXEL_BYTES * pixels
+                                                   + MEMORY_PER_RAY_BYTES * rays)
+
+
+def available_memory_bytes() -> float:
+    """The memory (bytes) this machine can give a new process: ``MemAvailable`` of
+    ``/proc/meminfo``, else the free physical pages; inf when neither can be read."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return float(line.split()[1]) * 1024.0
+    except OSError:
+        pass
+    try:
+        return float(os.sysconf("SC_AVPHYS_PAGES")) * float(os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return float("inf")
+
+
+def check_memory(scene) -> None:
+    """ValueError naming ``[fluoroscope]``'s image size when simulating a case of ``scene``
+    would need more memory (:func:`memory_needed_bytes`) than the machine has available."""
+    need, have = memory_needed_bytes(scene), available_memory_bytes()
+    if need > have:
+        f = scene.fluoroscope
+        raise ValueError(
+            f"fluoroscope.width_px x height_px = {f.width_px} x {f.height_px} (oversample "
+            f"{f.oversample}) over {len(scene.views)} views needs about {need / 1e9:.1f} GB "
+            f"of memory to simulate a case, and this machine has {have / 1e9:.1f} GB "
+            "available: give fewer pixels (pixel_mm larger for the same field; a "
+            "fluoroscope's video is 640 x 480 to 1024 x 1024) or a lower oversample")
+
+
 def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: bool = False,
              progress: bool = False, prepared=None) -> Simulation:
     """Simulate one case of an operating-room scene.
@@ -344,6 +395,7 @@ def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: 
     names = [v.name for v in scene.views]
     if len(set(names)) != len(names):
         raise ValueError(f"scene {scene.scene.name!r}: view names must be unique, got {names}")
+    check_memory(scene)
     css = case_seed(seed, index)
     streams = case_streams(css)
     robot_ss, xray_ss = streams["robot"], streams["xray"]

@@ -1000,3 +1000,31 @@ def test_a_robot_base_height_in_metres_is_named_with_the_unreachable_pose(tmp_pa
     line = _one_error_line(err)
     assert code == 2 and "unreachable" in line
     assert "robot.base_height_mm = 0.85: given in metres?" in line
+
+
+def test_a_scene_too_large_for_the_memory_is_refused_before_any_simulation(tmp_path, capsys,
+                                                                          monkeypatch):
+    """A held-out review (h95): 4096 x 4096 pixels passed the scene's checks and the run grew
+    past the machine's 23 GB (2048 x 2048 took 6.25 GB). A case whose estimated peak exceeds
+    the memory available is refused first, in one line naming the image size."""
+    import testbed.simulate as S
+    from studies.cli import main
+    from testbed.scene import find_scene, load_scene
+
+    scene = load_scene(find_scene("experiment2"))
+    need = S.memory_needed_bytes(scene)
+    assert 0.73e9 < need < 1.2e9              # the measured peak, 0.73 GB, with margin
+    text = find_scene("experiment2").read_text()
+    for old, new in (("width_px = 640", "width_px = 1280"), ("height_px = 480", "height_px = 960"),
+                     ("pixel_mm = 0.5", "pixel_mm = 0.25")):
+        assert text.count(old) == 1, old
+        text = text.replace(old, new)
+    (tmp_path / "big.toml").write_text(text)
+    big = load_scene(tmp_path / "big.toml")
+    assert S.memory_needed_bytes(big) == pytest.approx(4 * need - 3 * S.MEMORY_BASE_BYTES)
+    monkeypatch.setattr(S, "available_memory_bytes", lambda: 2.0e9)
+    monkeypatch.setattr(S, "checked_world", lambda *a, **k: pytest.fail("simulated"))
+    assert main(["run", str(tmp_path / "big.toml")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "fluoroscope.width_px x height_px = 1280 x 960" in err, err
+    assert "needs about 2.5 GB" in err and "2.0 GB available" in err, err
