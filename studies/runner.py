@@ -1338,6 +1338,14 @@ def run_context_trials(ctx, trial_fn: Callable[[Trial], list[dict]], trials: lis
     keywords go to :func:`run_trials`)."""
     if scheduler is None:
         scheduler = getattr(ctx, "scheduler", None)
+    scene = getattr(ctx, "scene", None)
+    if scheduler is None and getattr(getattr(scene, "scene", None), "kind", "") \
+            == "operating_room" and getattr(scene, "views", None):
+        # the workers' cases at once must fit before the first starts (a trial refused
+        # inside a worker for what the others hold would depend on the machine's load)
+        from testbed.simulate import check_memory
+
+        check_memory(scene, workers=int(ctx.workers))
     kwargs.setdefault("retries", getattr(ctx, "retries", 2))
     if progress is None:  # the study's choice (testbed study: only on a terminal)
         progress = bool(getattr(ctx, "progress", True))

@@ -311,16 +311,20 @@ class Scene(Spec):
         # all of them in metres (a held-out review, h95: the views then lie about the femur
         # as in millimetres, all within a metre of the robot base, and the robot's reach
         # was named): every placement given within METRES_HINT_MM of the base
+        missing = [f"views[{i}]" for i, v in enumerate(self.views)
+                   if "isocenter_mm" not in v.model_fields_set]
         given = [np.asarray(self.patient.position_mm, dtype=float)] + [
             np.asarray(v.isocenter_mm, dtype=float) for v in self.views
             if "isocenter_mm" in v.model_fields_set]
         far_mm = max(float(np.linalg.norm(p)) for p in given)
         if len(given) > 1 and 0.0 < far_mm <= METRES_HINT_MM:
             raise ValueError(
-                f"patient.position_mm = {list(self.patient.position_mm)} and every view's "
-                f"isocenter_mm lie within {far_mm:.2f} mm of the robot base, all under the "
-                "robot's tool: are they in metres? the scene's lengths are millimetres (the "
-                "shipped scenes place them 838-864 mm from the base)")
+                f"patient.position_mm = {list(self.patient.position_mm)} and every "
+                f"isocenter_mm given lie within {far_mm:.2f} mm of the robot base, all under "
+                "the robot's tool: are they in metres? the scene's lengths are millimetres "
+                "(the shipped scenes place them 838-864 mm from the base)"
+                + (f"; {', '.join(missing)} give no isocenter_mm (the default [0, 0, 0] is the "
+                   "robot base)" if missing else ""))
         reach = 0.5 * self.phantom.length_mm + VIEW_REACH_MM
         m = self.patient.ct2robot().apply(np.array([0.0, 0.0, 0.5 * self.phantom.length_mm]))
         far = [i for i, v in enumerate(self.views)

@@ -32,7 +32,6 @@ streams however often and in whatever order the stages ask for them.
 
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import dataclass, field
 
@@ -308,7 +307,7 @@ def simulate_ct(scene, seed=0, *, index: int = 0, world=None) -> CtCase:
 #: pixel and per ray (pixels x oversample^2). Measured (2026-11-29): experiment2 0.73 GB at
 #: 640 x 480, 1.17 GB with oversample 2, 1.90 GB at 1024 x 1024, 6.25 GB at 2048 x 2048 (a
 #: held-out review, h95: 4096 x 4096 grew past the machine's 23 GB and would have been
-#: killed without a word); these figures lie 15-35 % above each
+#: killed without a word); these figures lie 15-36 % above each
 MEMORY_BASE_BYTES = 0.5e9
 MEMORY_PER_PIXEL_BYTES = 300.0
 MEMORY_PER_RAY_BYTES = 100.0
@@ -324,34 +323,65 @@ def memory_needed_bytes(scene) -> float:
                                                    + MEMORY_PER_RAY_BYTES * rays)
 
 
-def available_memory_bytes() -> float:
-    """The memory (bytes) this machine can give a new process: ``MemAvailable`` of
-    ``/proc/meminfo``, else the free physical pages; inf when neither can be read."""
+def _meminfo_bytes(key: str) -> float:
+    """``key`` of ``/proc/meminfo`` (bytes; inf when it cannot be read)."""
     try:
         with open("/proc/meminfo") as fh:
             for line in fh:
-                if line.startswith("MemAvailable:"):
+                if line.startswith(key + ":"):
                     return float(line.split()[1]) * 1024.0
-    except OSError:
+    except (OSError, ValueError, IndexError):
         pass
+    return float("inf")
+
+
+def _cgroup_bytes(name: str) -> float:
+    """``/sys/fs/cgroup/{name}`` (cgroup v2; bytes; inf for "max" or when absent)."""
     try:
-        return float(os.sysconf("SC_AVPHYS_PAGES")) * float(os.sysconf("SC_PAGE_SIZE"))
-    except (ValueError, OSError, AttributeError):
+        with open(f"/sys/fs/cgroup/{name}") as fh:
+            text = fh.read().strip()
+        return float("inf") if text == "max" else float(text)
+    except (OSError, ValueError):
         return float("inf")
 
 
-def check_memory(scene) -> None:
+def total_memory_bytes() -> float:
+    """This machine's memory (bytes): ``MemTotal``, or the container's limit when lower."""
+    return min(_meminfo_bytes("MemTotal"), _cgroup_bytes("memory.max"))
+
+
+def available_memory_bytes() -> float:
+    """The memory (bytes) new work can take now: ``MemAvailable``, or what the container's
+    limit leaves when less."""
+    return min(_meminfo_bytes("MemAvailable"),
+               _cgroup_bytes("memory.max") - _cgroup_bytes("memory.current")
+               if np.isfinite(_cgroup_bytes("memory.max")) else float("inf"))
+
+
+def check_memory(scene, *, workers: int | None = None) -> None:
     """ValueError naming ``[fluoroscope]``'s image size when simulating a case of ``scene``
-    would need more memory (:func:`memory_needed_bytes`) than the machine has available."""
-    need, have = memory_needed_bytes(scene), available_memory_bytes()
-    if need > have:
-        f = scene.fluoroscope
-        raise ValueError(
-            f"fluoroscope.width_px x height_px = {f.width_px} x {f.height_px} (oversample "
-            f"{f.oversample}) over {len(scene.views)} views needs about {need / 1e9:.1f} GB "
-            f"of memory to simulate a case, and this machine has {have / 1e9:.1f} GB "
-            "available: give fewer pixels (pixel_mm larger for the same field; a "
-            "fluoroscope's video is 640 x 480 to 1024 x 1024) or a lower oversample")
+    needs more memory (:func:`memory_needed_bytes`) than the machine has
+    (:func:`total_memory_bytes`); with ``workers``, when that many cases simulated at once
+    need more than is available now (:func:`available_memory_bytes`; a study checks this
+    before its first trial: a trial refused for what other workers held would depend on the
+    machine's load)."""
+    f = scene.fluoroscope
+    size = (f"fluoroscope.width_px x height_px = {f.width_px} x {f.height_px} (oversample "
+            f"{f.oversample}) over {len(scene.views)} views")
+    fix = ("give fewer pixels (pixel_mm larger for the same field; a fluoroscope's video is "
+           "640 x 480 to 1024 x 1024) or a lower oversample")
+    need = memory_needed_bytes(scene)
+    if workers is None:
+        have = total_memory_bytes()
+        if need > have:
+            raise ValueError(f"{size} needs about {need / 1e9:.1f} GB of memory to simulate a "
+                             f"case, more than this machine's {have / 1e9:.1f} GB: {fix}")
+        return
+    have = available_memory_bytes()
+    if workers * need > have:
+        raise ValueError(f"--workers {workers}: {size} need about {workers * need / 1e9:.1f} "
+                         f"GB of memory for {workers} cases at once, and this machine has "
+                         f"{have / 1e9:.1f} GB available: fewer workers, or {fix}")
 
 
 def simulate(scene, seed=0, *, index: int = 0, sweeps: bool = True, truth_rays: bool = False,

@@ -1006,7 +1006,9 @@ def test_a_scene_too_large_for_the_memory_is_refused_before_any_simulation(tmp_p
                                                                           monkeypatch):
     """A held-out review (h95): 4096 x 4096 pixels passed the scene's checks and the run grew
     past the machine's 23 GB (2048 x 2048 took 6.25 GB). A case whose estimated peak exceeds
-    the memory available is refused first, in one line naming the image size."""
+    the machine's memory is refused first, in one line naming the image size; a study, when
+    its workers' cases at once exceed the memory available, before its first trial (h96:
+    refused inside a worker, a trial would have failed by the machine's load)."""
     import testbed.simulate as S
     from studies.cli import main
     from testbed.scene import find_scene, load_scene
@@ -1022,9 +1024,41 @@ def test_a_scene_too_large_for_the_memory_is_refused_before_any_simulation(tmp_p
     (tmp_path / "big.toml").write_text(text)
     big = load_scene(tmp_path / "big.toml")
     assert S.memory_needed_bytes(big) == pytest.approx(4 * need - 3 * S.MEMORY_BASE_BYTES)
-    monkeypatch.setattr(S, "available_memory_bytes", lambda: 2.0e9)
+    # oversample 2: four rays a pixel, each 100 B a view
+    (tmp_path / "os2.toml").write_text(find_scene("experiment2").read_text().replace(
+        "oversample = 1", "oversample = 2", 1))
+    assert S.memory_needed_bytes(load_scene(tmp_path / "os2.toml")) == pytest.approx(
+        need + 4 * 3 * 100.0 * 640 * 480)
+    monkeypatch.setattr(S, "total_memory_bytes", lambda: 2.0e9)
     monkeypatch.setattr(S, "checked_world", lambda *a, **k: pytest.fail("simulated"))
     assert main(["run", str(tmp_path / "big.toml")]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "fluoroscope.width_px x height_px = 1280 x 960" in err, err
-    assert "needs about 2.5 GB" in err and "2.0 GB available" in err, err
+    assert "needs about 2.5 GB" in err and "this machine's 2.0 GB" in err, err
+    # a study: 2 workers of experiment2's cases need about 2 GB at once
+    monkeypatch.setattr(S, "available_memory_bytes", lambda: 1.5e9)
+    assert main(["study", "table2", "--quick", "--workers", "2", "--out",
+                 str(tmp_path / "t2")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and err.count("--workers 2") == 1 and "1.5 GB available" in err, err
+
+
+def test_the_memory_figures_are_read_in_bytes(tmp_path, monkeypatch):
+    """/proc/meminfo gives kB (1024 bytes); a cgroup's memory.max bytes, or "max"."""
+    import builtins
+
+    import testbed.simulate as S
+
+    (tmp_path / "meminfo").write_text("MemTotal:       1000 kB\nMemAvailable:    500 kB\n")
+    (tmp_path / "memory.max").write_text("max\n")
+    (tmp_path / "memory.current").write_text("100\n")
+    real_open = builtins.open
+    where = {"/proc/meminfo": tmp_path / "meminfo",
+             "/sys/fs/cgroup/memory.max": tmp_path / "memory.max",
+             "/sys/fs/cgroup/memory.current": tmp_path / "memory.current"}
+    monkeypatch.setattr(builtins, "open", lambda f, *a, **k: real_open(where.get(f, f), *a, **k))
+    assert S.total_memory_bytes() == 1000 * 1024.0
+    assert S.available_memory_bytes() == 500 * 1024.0
+    (tmp_path / "memory.max").write_text("300000\n")
+    assert S.total_memory_bytes() == 300000.0
+    assert S.available_memory_bytes() == 300000.0 - 100.0

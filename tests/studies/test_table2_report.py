@@ -211,9 +211,9 @@ def test_the_pin_table_counts_what_converged_and_was_accepted():
 
     rows = _rows(1.0, 0.3)
     n = len(rows[rows.metric == "pin_error"]) // len(PIN_NAMES)
-    flags = [{"metric": m, "pin": "", "start": "", "statistic": "", "value": float(k > 0)}
-             for m in ("converged", "accepted") for k in range(n)]
+    flags = [{"metric": m, "pin": "", "start": "", "statistic": "", "value": float(k > low)}
+             for m, low in (("converged", 0), ("accepted", 1)) for k in range(n)]
     text = table2_markdown(pd.concat([rows, pd.DataFrame(flags)], ignore_index=True)
                            .assign(trial=0))
-    assert f"{n - 1} of {n} converged, {n - 1} of {n} accepted" in text
+    assert f"{n - 1} of {n} converged, {n - 2} of {n} accepted" in text
     assert "100%" not in text
