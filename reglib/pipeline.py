@@ -203,10 +203,11 @@ MIRROR_FIT_RATIO = 0.8
 #: registration), 2 take 15-25 ms
 MIRROR_ITERATIONS = 2
 #: the verdict's test of a pose registered otherwise than by register's defaults (least
-#: squares, "linear" or "lm": every match counts, outliers too; or the line residual): a pose
-#: is refused when the robust (Tukey) solve of the contour-normal residual (CHECK_SOLVE), run
-#: from it for ROBUST_CHECK_ITERATIONS iterations, moves the CT surfaces' vertices by more
-#: than ``accept_max_robust_shift_mm`` (RMS; default ROBUST_SHIFT_MM). The
+#: squares, "linear" or "lm": every match counts, outliers too; the line residual; another
+#: Tukey constant): a pose is refused when the robust (Tukey) solve of the contour-normal
+#: residual (CHECK_SOLVE), run from it for ROBUST_CHECK_ITERATIONS iterations, moves the CT
+#: surfaces' vertices by more than ``accept_max_robust_shift_mm`` (RMS; default
+#: ROBUST_SHIFT_MM). The
 #: capture-range study (2026-11-29, seed 1996) accepted "linear" poses 1.9-2.3 mm off on the
 #: ideal profile and 3.2 mm off (4 of 4 accepted, none right) on the clinic, their medians
 #: 0.70-0.82 mm, every figure inside its limit: outlier matches had pulled them. From each,
@@ -262,24 +263,27 @@ def _check_solve(registration: Mapping) -> dict:
     return {**CHECK_SOLVE, "tukey_a": a}
 
 
-def _check_advice(registration: Mapping) -> str:
-    """The options of ``registration`` that differ from the test's solve, as the values that
-    solve takes (e.g. "method 'robust' (not 'linear')"), for the objection's advice."""
+def _unlike_check_solve(registration: Mapping) -> dict:
+    """The options in which register with these keyword options solves otherwise than the
+    test (:func:`_check_solve`): name -> (the test's value, the registration's)."""
     from reglib.register import TUKEY_A
 
     given = {"tukey_a": TUKEY_A, **CHECK_SOLVE, **registration}
-    out = [f"{k} {v!r} (not {given[k]!r})" for k, v in _check_solve(registration).items()
-           if given[k] != v]
-    return ", ".join(out) + ", register's defaults"
+    return {k: (v, given[k]) for k, v in _check_solve(registration).items() if given[k] != v}
+
+
+def _check_advice(registration: Mapping) -> str:
+    """The options of ``registration`` that differ from the test's solve, as the values that
+    solve takes (e.g. "method 'robust' (not 'linear')"), for the objection's advice."""
+    return ", ".join(f"{k} {want!r} (not {got!r})"
+                     for k, (want, got) in _unlike_check_solve(registration).items()
+                     ) + ", register's defaults"
 
 
 def _is_check_solve(registration: Mapping) -> bool:
     """Whether register with these keyword options solves as the test would
     (:func:`_check_solve`), which the test would only repeat."""
-    from reglib.register import TUKEY_A
-
-    given = {"tukey_a": TUKEY_A, **CHECK_SOLVE, **registration}
-    return all(given[k] == v for k, v in _check_solve(registration).items())
+    return not _unlike_check_solve(registration)
 #: the coarse stage of the "coarse-fine" strategy: keyword options of register over the
 #: estimate's registration options. It hands over once an update moves the surfaces by less
 #: than 0.5 mm (``tol_step_mm``): its job is to bring a far start into the fine stage's
@@ -338,9 +342,9 @@ class EstimateOptions:
     pose is refused when the surfaces mirrored across the views' beam fit with a median
     below this times its own (:func:`mirror_fit`, :data:`MIRROR_FIT_RATIO`; 0: not checked);
     ``accept_max_robust_shift_mm``: a pose registered otherwise than by register's defaults
-    (by least squares, method "linear" or "lm", or nearly, a Tukey constant above
-    register's; or with the line residual) is refused when
-    the robust contour-normal solve from it moves the CT surfaces farther (mm, RMS;
+    (by least squares, method "linear" or "lm"; with the line residual; with another Tukey
+    constant, but for a smaller one about a fixed point) is refused when the robust
+    contour-normal solve from it moves the CT surfaces farther (mm, RMS;
     :func:`robust_shift`; inf: not checked).
     """
 
@@ -1777,8 +1781,9 @@ def robust_shift(surfaces, views, ct2robot: RigidTransform, options: Mapping) ->
     contour-normal residual (register's defaults) moves the pose ``ct2robot`` in
     :data:`ROBUST_CHECK_ITERATIONS` iterations (``options``: the keywords of
     :func:`reglib.register.register` that gave the pose; their method is replaced by
-    "robust" and their residual by "normal", their Tukey constant and divergence limits are
-    at most and at least register's defaults). A least-squares pose pulled by outlier
+    "robust", their residual by "normal" and their Tukey constant by register's (with a
+    fixed point, by the smaller: :func:`_check_solve`), and their divergence limits are at
+    least register's defaults). A least-squares pose pulled by outlier
     matches moves by the pull, a point-to-path (line residual) pose settled in a wrong basin
     by its distance from the nearer right one; an unbiased one by the noise. inf when the
     robust solve runs beyond the divergence limits (the strongest pull: a review, h94, saw a
@@ -2133,7 +2138,7 @@ def estimate(observation, initial, *, options: EstimateOptions | None = None,
     final_opts = fine if options.strategy == "coarse-fine" else reg_opts
     if not reasons and not _is_check_solve(final_opts) \
             and np.isfinite(options.accept_max_robust_shift_mm):
-        # accepted so far, by least squares or the line residual: would the default stay?
+        # accepted so far, by another solve than the default: would the default stay?
         shift = quality["robust_shift_mm"] = robust_shift(surfaces, stages.views,
                                                           res.ct2robot, final_opts)
         if shift > options.accept_max_robust_shift_mm:

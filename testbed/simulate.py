@@ -353,9 +353,9 @@ def total_memory_bytes() -> float:
 def available_memory_bytes() -> float:
     """The memory (bytes) new work can take now: ``MemAvailable``, or what the container's
     limit leaves when less."""
-    return min(_meminfo_bytes("MemAvailable"),
-               _cgroup_bytes("memory.max") - _cgroup_bytes("memory.current")
-               if np.isfinite(_cgroup_bytes("memory.max")) else float("inf"))
+    limit = _cgroup_bytes("memory.max")
+    left = limit - _cgroup_bytes("memory.current") if np.isfinite(limit) else limit
+    return min(_meminfo_bytes("MemAvailable"), left)
 
 
 def check_memory(scene, *, workers: int | None = None) -> None:
