@@ -567,7 +567,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--json", action="store_true", help="print one JSON object")
     r.add_argument("--seed", type=seed, default=None, help="override the scene's seed")
     r.add_argument("--out", type=_path, default=None,
-                   help="folder for the overlay figures (none without it)")
+                   help="folder for the overlay figures (none without it); a synthetic "
+                   "scene's run writes its two studies there (default runs/<scene name>)")
     r.set_defaults(func=cmd_run)
 
     s = sub.add_parser("study", help="run a study and write results.csv, report.md, figures")

@@ -244,6 +244,11 @@ def reproduce_command(ctx: StudyContext) -> str:
     import shlex
 
     path = Path(ctx.scene_path)
+    if ctx.name.startswith("score "):      # testbed score's report (a review, h97: it named
+        method = ctx.name.removeprefix("score ")   # a study "score reglib", which exits 2)
+        return shlex.join(["testbed", "score", str(path)]
+                          + ([] if method == "reglib" else ["--method", method])
+                          + ["--out", "DIR"])
     try:
         shipped = path.resolve().parent == scenes_dir().resolve()
     except (OSError, RuntimeError, ValueError):
@@ -287,14 +292,17 @@ def finish_study(ctx: StudyContext, df: pd.DataFrame) -> None:
     if ws is not None and not ws.check and ctx.scene.scene.kind == "operating_room":
         parts += ["**The workspace was not checked** (`[workspace] check = false`): the "
                   "views and sweeps of this scene may not be physically possible.", ""]
+    dataset = Path(ctx.scene_path).is_dir()      # testbed score: a dataset's folder
     parts += [
-        f"- scene: `{ctx.scene_path}` ({ctx.scene.scene.name})",
+        f"- {'dataset' if dataset else 'scene'}: `{ctx.scene_path}` ({ctx.scene.scene.name})",
         f"- seed: {ctx.seed}",
         f"- git commit: `{commit}`",
         f"- written: {now}; quick: {ctx.quick}; workers: {ctx.workers}"
         + (f"; Dask scheduler: {ctx.scheduler}" if ctx.scheduler else ""),
         f"- rows in results.csv: {len(df)}",
-        f"- scene file sha256: `{file_sha256(ctx.scene_path)}`",
+        (f"- dataset index (dataset.json) sha256: "
+         f"`{file_sha256(Path(ctx.scene_path) / 'dataset.json')}`" if dataset else
+         f"- scene file sha256: `{file_sha256(ctx.scene_path)}`"),
         f"- reproduce (at that commit, with these versions): `{reproduce_command(ctx)}`"
         + (" (the tree had uncommitted changes: the command reproduces these results only "
            "with them)" if commit.endswith("-dirty") else ""),

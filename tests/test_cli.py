@@ -747,6 +747,22 @@ def test_generate_and_score_carry_the_scene_warnings(tmp_path, capsys):
     assert "## Warnings about the scene" in report
     assert report.index("## Warnings about the scene") < report.index("## Pin errors")
     assert report.count("the CT has no slices at its anatomy") == 2
+    # the header names the dataset and its index, and the line that scores it again (a
+    # review, h97: "testbed study 'score reglib'", which exits 2, and the folder's sha256
+    # "unreadable")
+    import hashlib
+    import re
+    import shlex
+
+    index = hashlib.sha256((tmp_path / "ds" / "dataset.json").read_bytes()).hexdigest()
+    assert f"- dataset: `{tmp_path / 'ds'}`" in report
+    assert f"- dataset index (dataset.json) sha256: `{index}`" in report
+    line = re.search(r"- reproduce \(at that commit, with these versions\): `([^`]+)`", report)
+    words = shlex.split(line.group(1))
+    assert words == ["testbed", "score", str(tmp_path / "ds"), "--out", "DIR"], words
+    assert main(words[1:-1] + [str(tmp_path / "again")]) == 0
+    assert (tmp_path / "again" / "results.csv").read_text().count("\n") == (
+        tmp_path / "sc" / "results.csv").read_text().count("\n")
 
 
 def test_capture_range_reports_the_cts_reach_but_not_the_aim_of_views_it_reaims(
