@@ -46,6 +46,15 @@ SERIAL_STUDIES = {"table1": "it times pose solves, and parallel workers would sh
                             "it measures"}
 
 
+def check_serial(name: str, workers: int = 1, scheduler=None) -> None:
+    """ValueError when a study of :data:`SERIAL_STUDIES` is given workers or a scheduler
+    (``testbed study`` asks before it connects to the scheduler: a review, h97, saw the
+    connection fail first)."""
+    if name in SERIAL_STUDIES and (workers != 1 or scheduler is not None):
+        raise ValueError(f"testbed study {name}: --workers and --scheduler are refused: "
+                         f"{SERIAL_STUDIES[name]}")
+
+
 def study_owner(name: str, scene, seed, quick: bool) -> str:
     """Who a study folder's trials belong to: the study, its scene file (the absolute path,
     however it was typed), its seed and ``--quick``. Another scene or seed in the same
@@ -95,9 +104,7 @@ def run_study(name: str, out: Path, *, scene=None, seed=None, quick=False, worke
     if name not in known:
         raise ValueError(f"testbed study: unknown study {name!r}; known: {', '.join(known)}")
     mod = importlib.import_module(_module_name(name))
-    if name in SERIAL_STUDIES and (workers != 1 or scheduler is not None):
-        raise ValueError(f"testbed study {name}: --workers and --scheduler are refused: "
-                         f"{SERIAL_STUDIES[name]}")
+    check_serial(name, workers, scheduler)
     if scene is not None:
         want = load_scene(find_scene(mod.DEFAULT_SCENE)).scene.kind
         path = find_scene(scene)

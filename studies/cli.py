@@ -295,6 +295,9 @@ def cmd_study(args) -> int:
     made = not Path(args.out).exists()
     out = _out_folder(args.out)
     try:
+        from studies import check_serial
+
+        check_serial(args.name, args.workers, args.scheduler)
         _check_scheduler(args, "study")
         run_study(args.name, out, scene=args.scene, seed=args.seed, quick=args.quick,
                   workers=args.workers, scheduler=args.scheduler, retries=args.retries,

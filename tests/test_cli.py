@@ -106,6 +106,10 @@ def _one_error_line(err: str) -> str:
     (["run", "experiment2", "--json", "--out", ""], "expected a path, got an empty string"),
     (["study", "fig9", "--workers", "2", "--scheduler", "tcp://127.0.0.1:1", "--out", "{tmp}/s"],
      "not both"),
+    # a serial study is refused a scheduler before the connection is tried (a review, h97:
+    # an unreachable scheduler's error came first)
+    (["study", "table1", "--scheduler", "tcp://127.0.0.1:1", "--out", "{tmp}/s"],
+     "testbed study table1: --workers and --scheduler are refused: it times pose solves"),
     (["frobnicate"], "invalid choice"),
     ([], "a command is needed"),
     # /proc: os.access says writable to root, but nothing can be made there; refused before
