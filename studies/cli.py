@@ -498,6 +498,12 @@ def cmd_bench(args) -> int:
 def cmd_scenes(args) -> int:
     import tomllib
 
+    if getattr(args, "show", None) is not None:
+        # what a scene file leaves out is the defaults': the scene as the simulator reads it
+        # (a review, h97: no command showed it)
+        _, scene = _scene(args.show)
+        print(json.dumps(_finite_or_null(scene.model_dump(mode="json")), indent=2))
+        return 0
     _quiet_pybullet()
     from testbed.scene import named_scene_files, scenes_dir, scenes_dir_problem
 
@@ -641,6 +647,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.set_defaults(func=cmd_bench)
 
     n = sub.add_parser("scenes", help="list the named scenes")
+    n.add_argument("--show", metavar="SCENE", default=None,
+                   help="print SCENE (a named scene or a file) resolved, every default filled "
+                   "in, as JSON (the resolved scene the reports and case.json record)")
     n.set_defaults(func=cmd_scenes)
     return p
 
@@ -748,6 +757,11 @@ def main(argv=None) -> int:
         return 2
     except KeyboardInterrupt as exc:
         return _interrupted(exc)
+    except BrokenPipeError:
+        # the reader of the output went away (``testbed scenes | head``): no error of ours;
+        # stdout pointed at nothing so that the exit's flush does not fail again
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except OSError as exc:  # the disk or the file system, during the work
         stop = _interrupt_of(exc)
         if stop is not None:

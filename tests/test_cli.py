@@ -1082,3 +1082,31 @@ def test_the_memory_figures_are_read_in_bytes(tmp_path, monkeypatch):
     (tmp_path / "memory.max").write_text("300000\n")
     assert S.total_memory_bytes() == 300000.0
     assert S.available_memory_bytes() == 300000.0 - 100.0
+
+
+def test_scenes_show_prints_the_resolved_scene(tmp_path, capsys):
+    """``testbed scenes --show`` prints a scene with every default filled in, as JSON that
+    reads back as the same scene (a review, h97: no command showed the resolved scene); a
+    bad one exits 2 in one line."""
+    from studies.cli import main
+    from testbed.scene import find_scene, load_scene, parse_scene
+
+    assert main(["scenes", "--show", "experiment2"]) == 0
+    shown = json.loads(capsys.readouterr().out)
+    scene = load_scene(find_scene("experiment2"))
+    assert shown == scene.model_dump(mode="json")
+    assert shown["fluoroscope"]["width_px"] == 640           # a default the file leaves out
+    assert "width_px" not in find_scene("experiment2").read_text().split("[fluoroscope]")[0]
+    assert parse_scene(shown).model_dump(mode="json") == shown
+    (tmp_path / "bad.toml").write_text("[scene]\nname = 3\n")
+    assert main(["scenes", "--show", str(tmp_path / "bad.toml")]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+
+
+def test_output_to_a_closed_pipe_ends_quietly():
+    """``testbed scenes | head -1`` printed "testbed: [Errno 32] Broken pipe"."""
+    proc = subprocess.Popen([sys.executable, "-m", "studies.cli", "scenes"], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc.stdout.close()              # the reader gone before anything is written
+    err = proc.stderr.read()
+    assert proc.wait(timeout=60) == 0 and err.strip() == "", err
