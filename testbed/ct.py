@@ -32,7 +32,7 @@ from pydantic import Field, model_validator
 
 from testbed.bodies import Body
 from testbed.materials import material
-from testbed.spec import Spec, Vec2
+from testbed.spec import MILLIMETRES, Spec, Vec2
 
 __all__ = ["CTScan", "CTSpec", "sample_hu_reference", "scan", "slice_schedule"]
 
@@ -142,8 +142,8 @@ class CTSpec(Spec):
                 # a range in metres where millimetres are read scanned one slice or none,
                 # and the run blamed the bone threshold (a review, h93)
                 raise ValueError(f"{name} = {list(r)} spans {r[1] - r[0]:g} mm, less than "
-                                 f"{MIN_RANGE_MM:g} mm of bone; given in metres? the scene's "
-                                 "lengths are millimetres")
+                                 f"{MIN_RANGE_MM:g} mm of bone; given in metres? "
+                                 + MILLIMETRES)
         return self
 
 

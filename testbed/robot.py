@@ -43,7 +43,7 @@ from scipy.spatial.transform import Rotation
 
 from reglib.geometry import RigidTransform
 from testbed.bodies import Body
-from testbed.spec import Positive, Spec, TurnDeg
+from testbed.spec import MILLIMETRES, Positive, Spec, TurnDeg
 
 __all__ = [
     "JOINT_NAMES",
@@ -331,8 +331,8 @@ class RobotSpec(Spec):
             if not MIN_LINK_MM <= v <= MAX_LINK_MM:
                 raise ValueError(
                     f"{name}: expected a surgical arm's length, {MIN_LINK_MM:g}-{MAX_LINK_MM:g} "
-                    f"mm, got {v:g}" + ("; given in metres? the scene's lengths are "
-                                        "millimetres" if v < MIN_LINK_MM else ""))
+                    f"mm, got {v:g}" + (f"; given in metres? {MILLIMETRES}"
+                                        if v < MIN_LINK_MM else ""))
         if not abs(self.base_height_mm) <= MAX_LINK_MM:
             raise ValueError(f"base_height_mm: expected at most {MAX_LINK_MM:g} mm either way "
                              f"(the links' height above the robot frame), got "
@@ -342,8 +342,7 @@ class RobotSpec(Spec):
             raise ValueError("slide_range_mm: expected (low, high) with low < high")
         if hi - lo < MIN_LINK_MM:
             raise ValueError(f"slide_range_mm: ({lo:g}, {hi:g}) spans {hi - lo:g} mm, less than "
-                             f"{MIN_LINK_MM:g} mm; given in metres? the scene's lengths are "
-                             "millimetres")
+                             f"{MIN_LINK_MM:g} mm; given in metres? {MILLIMETRES}")
         if max(abs(lo), abs(hi)) > MAX_SLIDE_MM:   # (+-1e9 mm was taken, a review)
             raise ValueError(f"slide_range_mm: expected ends within +-{MAX_SLIDE_MM:g} mm of "
                              f"the robot's base (a slide beside an OR table), got ({lo:g}, "

@@ -41,7 +41,7 @@ from testbed.instruments import RESERVED_NAMES, InstrumentSpec, file_key
 from testbed.operator import OperatorSpec
 from testbed.phantom import PhantomSpec
 from testbed.robot import RobotSpec
-from testbed.spec import NAME_MAX, Angles3, SceneError, Spec, Vec3
+from testbed.spec import MILLIMETRES, NAME_MAX, Angles3, SceneError, Spec, Vec3
 from testbed.spec import Positive as Pos
 from testbed.workspace import WorkspaceSpec
 
@@ -321,7 +321,7 @@ class Scene(Spec):
             raise ValueError(
                 f"patient.position_mm = {list(self.patient.position_mm)} and every "
                 f"isocenter_mm given lie within {far_mm:.2f} mm of the robot base, all under "
-                "the robot's tool: are they in metres? the scene's lengths are millimetres "
+                f"the robot's tool: are they in metres? {MILLIMETRES} "
                 "(the shipped scenes place them 838-864 mm from the base)"
                 + (f"; {', '.join(missing)} give no isocenter_mm (the default [0, 0, 0] is the "
                    "robot base)" if missing else ""))
@@ -338,7 +338,7 @@ class Scene(Spec):
                 f"patient.position_mm = {list(self.patient.position_mm)} puts the femur's "
                 f"middle {np.linalg.norm(m):.0f} mm from the robot base and out of every "
                 "view's reach; read as metres it would lie among the views' isocentres: "
-                "the scene's lengths are millimetres")
+                + MILLIMETRES)
         for i in far:
             iso = np.asarray(self.views[i].isocenter_mm)
             if np.linalg.norm(1000.0 * iso - m) <= reach:
@@ -346,8 +346,7 @@ class Scene(Spec):
                     f"views[{i}].isocenter_mm = {list(self.views[i].isocenter_mm)} lies "
                     f"{np.linalg.norm(iso - m):.0f} mm from the femur's middle (the view "
                     f"reaches {reach:.0f} mm); read as metres it would lie "
-                    f"{np.linalg.norm(1000.0 * iso - m):.0f} mm from it: the scene's lengths "
-                    "are millimetres")
+                    f"{np.linalg.norm(1000.0 * iso - m):.0f} mm from it: {MILLIMETRES}")
             if "isocenter_mm" not in self.views[i].model_fields_set:
                 raise ValueError(
                     f"views[{i}] ({self.views[i].name!r}) gives no isocenter_mm: its default "

@@ -33,6 +33,11 @@ def _check_magnitudes(value) -> None:
             _check_magnitudes(v)
 
 
+#: the end of every message that suspects a length given in metres (the scene's lengths
+#: are read as millimetres): ``f"...; given in metres? {MILLIMETRES}"``
+MILLIMETRES = "the scene's lengths are millimetres"
+
+
 class SceneError(ValueError):
     """A scene file could not be read or is invalid; the message names file and field."""
 

@@ -21,7 +21,7 @@ import pybullet
 from pydantic import Field
 
 from reglib.geometry import RigidTransform
-from testbed.spec import Spec
+from testbed.spec import MILLIMETRES, Spec
 from testbed.sweep import WorkspaceError
 
 __all__ = ["Contact", "PoseCheck", "WorkspaceReport", "Workspace", "WorkspaceError",
@@ -341,8 +341,7 @@ def _units_hint(scene, report: WorkspaceReport) -> str:
 
     h = float(scene.robot.base_height_mm)
     if 0.0 < abs(h) < MIN_LINK_MM and any(p.unreachable for p in report.poses):
-        return (f" (robot.base_height_mm = {h:g}: given in metres? the scene's lengths are "
-                "millimetres)")
+        return f" (robot.base_height_mm = {h:g}: given in metres? {MILLIMETRES})"
     return ""
 
 

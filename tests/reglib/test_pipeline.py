@@ -895,12 +895,10 @@ def test_an_accepted_restart_ends_the_search_only_with_its_ring(monkeypatch):
 
     import reglib.pipeline as P
     import reglib.register as rr
-    from reglib.pipeline import RING, EstimateOptions, Stages, estimate
-    from studies.bench.registration import make_scene, perturbed
+    from reglib.pipeline import RING, EstimateOptions, estimate
+    from studies.bench.registration import perturbed
 
-    s = make_scene()
-    stages = Stages({}, {f"r{i}": (t.vertices, t.faces) for i, t in enumerate(s.surfaces)},
-                    {}, list(s.views.values()), {}, {})
+    s, stages = _synthetic_stages()
     start = perturbed(s.true, 5.0, 0.0, np.random.default_rng(1))
     starts = []
     # start 0 refused; restart 1 passes at 0.6 mm, restart 3 at 0.37 mm, restart 8 (next
