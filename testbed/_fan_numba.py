@@ -135,24 +135,29 @@ def _edge(i, j, sig, vx, vy):
 
 
 @njit(cache=True)
-def fan_chords(vx, vy, vz, faces, xs, ys, t_scale, t_max, start, x0, y0, hx, hy, nx, ny,
-               chord, balance):
+def fan_chords(vx, vy, vz, faces, rays, start, x0, y0, hx, hy, nx, ny, acc):
     """Accumulate one closed mesh's chords for the binned rays.
 
     ``vx, vy, vz`` (V,): the vertices' image coordinates and depths (all ``vz > 0``);
-    ``faces`` (F, 3) int, outward-oriented; ``xs, ys`` (N,): the rays' image points in bin
-    order (``start``, from :func:`bin_points` with ``x0, y0, hx, hy, nx, ny``); ``t_scale`` (N,)
-    ``= 1 / (d . a)`` and ``t_max`` (N,) mm, also in bin order. Adds to ``chord`` (N,) mm
-    and ``balance`` (N,), also in bin order (:func:`finish` puts them in the rays' own
-    order; in bin order consecutive rays of a cell are consecutive in memory, where in the
-    rays' order each addition was a scattered read-modify-write: the nine meshes of a
-    patient frame took 36 ms that way, 23 ms this way): +1 per exit, -1 per entry, so 0
-    for every ray when the mesh's covering is consistent. Returns the range
+    ``faces`` (F, 3) int, outward-oriented; ``rays`` (N, 4): per ray in bin order (``start``,
+    from :func:`bin_points` with ``x0, y0, hx, hy, nx, ny``) its image point ``x, y``,
+    ``t_scale = 1 / (d . a)`` and ``t_max`` mm (:func:`binned_fan`). Adds to ``acc`` (N, 2),
+    also in bin order, the chord (mm, column 0) and the balance (column 1: +1 per exit, -1
+    per entry, so 0 for every ray when the mesh's covering is consistent); :func:`finish`
+    puts them in the rays' own order. In bin order consecutive rays of a cell are
+    consecutive in memory (in the rays' order each addition was a scattered
+    read-modify-write: the nine meshes of a patient frame took 36 ms that way, 23 ms this
+    way). Each ray of a face's row span is tested without a branch (its three edge values
+    and depth computed whatever the outcome, the sums added where it is inside, zero
+    elsewhere) and the ray's four numbers and two sums lie side by side: the nine meshes of
+    experiment2's `proximal_oblique` frame (1.2 million tests, 0.6 million inside) took
+    19.6 ms with a test per branch and four arrays of rays and two of sums, 13.7 ms so (the
+    same sums, bit for bit: an addition of 0.0 leaves a sum as it was). Returns the range
     ``[lo, hi)`` of bin-order rays that may have been touched (what :func:`finish` reads).
     """
     x_end = x0 + nx * hx
     y_end = y0 + ny * hy
-    lo = xs.shape[0]
+    lo = rays.shape[0]
     hi = 0
     for f in range(faces.shape[0]):
         ia, ib, ic = faces[f, 0], faces[f, 1], faces[f, 2]
@@ -208,50 +213,46 @@ def fan_chords(vx, vy, vz, faces, xs, ys, t_scale, t_max, start, x0, y0, hx, hy,
             lo = min(lo, start[cy * nx + rx0])
             hi = max(hi, start[cy * nx + rx1 + 1])
             for r in range(start[cy * nx + rx0], start[cy * nx + rx1 + 1]):
-                x = xs[r]
-                y = ys[r]
-                if y < loy or y > hiy:     # (x is within the row's span)
-                    continue
+                x = rays[r, 0]
+                y = rays[r, 1]
+                # (x is within the row's span; y within the face's box, and each edge value
+                # positive or zero with its tie-break sign: inside)
                 v0 = g0 * (d0x * (y - p0y) - d0y * (x - p0x))
-                if v0 < 0.0 or (v0 == 0.0 and t0 < 0.0):
-                    continue
                 v1 = g1 * (d1x * (y - p1y) - d1y * (x - p1x))
-                if v1 < 0.0 or (v1 == 0.0 and t1 < 0.0):
-                    continue
                 v2 = g2 * (d2x * (y - p2y) - d2y * (x - p2x))
-                if v2 < 0.0 or (v2 == 0.0 and t2 < 0.0):
-                    continue
+                inside = ((y >= loy) & (y <= hiy)
+                          & ((v0 > 0.0) | ((v0 == 0.0) & (t0 >= 0.0)))
+                          & ((v1 > 0.0) | ((v1 == 0.0) & (t1 >= 0.0)))
+                          & ((v2 > 0.0) | ((v2 == 0.0) & (t2 >= 0.0))))
                 # barycentrics (the directed edge functions over the signed area) over the
                 # depths: the inverse depth of the hit, interpolated
-                t = t_scale[r] / (v0 * wa + v1 * wb + v2 * wc)
-                if t > t_max[r]:
-                    t = t_max[r]
-                chord[r] += sig * t
-                balance[r] += sig
+                t = min(rays[r, 2] / (v0 * wa + v1 * wb + v2 * wc), rays[r, 3])
+                acc[r, 0] += sig * t if inside else 0.0
+                acc[r, 1] += sig if inside else 0.0
     return lo, hi
 
 
 @njit(cache=True)
-def finish(chord, balance, order, out, lo, hi):
-    """After every triangle of a mesh: ``out[order[r]] = chord[r]`` clamped at 0 (rounding
-    can leave -1e-13 on a ray that only grazes the mesh) for the rays ``lo <= r < hi`` that
-    :func:`fan_chords` may have touched (``out`` holds zeros elsewhere); returns the rays
-    (their own indices, ascending) whose crossings did not balance, and zeroes ``chord``
-    and ``balance`` (bin order) for the next mesh."""
+def finish(acc, order, out, lo, hi):
+    """After every triangle of a mesh: ``out[order[r]] = acc[r, 0]`` (the chord) clamped at 0
+    (rounding can leave -1e-13 on a ray that only grazes the mesh) for the rays ``lo <= r <
+    hi`` that :func:`fan_chords` may have touched (``out`` holds zeros elsewhere); returns
+    the rays (their own indices, ascending) whose crossings did not balance (``acc[r, 1]``),
+    and zeroes ``acc`` (bin order) for the next mesh."""
     n_bad = 0
     for r in range(lo, hi):
-        v = chord[r]
+        v = acc[r, 0]
         out[order[r]] = v if v > 0.0 else 0.0
-        chord[r] = 0.0
-        if balance[r] != 0.0:
+        acc[r, 0] = 0.0
+        if acc[r, 1] != 0.0:
             n_bad += 1
     bad = np.empty(n_bad, dtype=np.int64)
     k = 0
     for r in range(lo, hi):
-        if balance[r] != 0.0:
+        if acc[r, 1] != 0.0:
             bad[k] = order[r]
             k += 1
-            balance[r] = 0.0
+            acc[r, 1] = 0.0
     return np.sort(bad)
 
 
@@ -546,21 +547,18 @@ def plane_coords(da, de1, de2):
 @njit(cache=True)
 def binned_fan(x, y, da, t_max, x0, y0, hx, hy, nx, ny):
     """:func:`bin_points` of the rays' image points and their coordinates, ``1 / da`` and
-    ``t_max`` in the bins' order: ``(start, order, xs, ys, t_scale, t_max_sorted)`` (as
-    ``FanRays``' numpy gathers, the same numbers)."""
+    ``t_max`` in the bins' order, packed: ``(start, order, rays (N, 4))``, the columns of
+    ``rays`` ``x, y, 1 / da, t_max`` (as ``FanRays``' numpy gathers, the same numbers)."""
     start, order = bin_points(x, y, x0, y0, hx, hy, nx, ny)
     n = order.shape[0]
-    xs = np.empty(n)
-    ys = np.empty(n)
-    ts = np.empty(n)
-    tms = np.empty(n)
+    rays = np.empty((n, 4))
     for i in range(n):
         j = order[i]
-        xs[i] = x[j]
-        ys[i] = y[j]
-        ts[i] = 1.0 / da[j]
-        tms[i] = t_max[j]
-    return start, order, xs, ys, ts, tms
+        rays[i, 0] = x[j]
+        rays[i, 1] = y[j]
+        rays[i, 2] = 1.0 / da[j]
+        rays[i, 3] = t_max[j]
+    return start, order, rays
 
 
 @njit(cache=True)

@@ -414,17 +414,20 @@ class FanRays:
         hy = max(h * math.sqrt(elongation), 1e-12, wy / 4096)
         self.grid = (x0, y0, hx, hy, int(wx / hx) + 1, int(wy / hy) + 1)
         if compiled:
-            (self.start, self.order, self.xs, self.ys, self.t_scale,
-             self.t_max_sorted) = binned_fan(x, y, da, t_max, *self.grid)
+            self.start, self.order, self.rays = binned_fan(x, y, da, t_max, *self.grid)
         else:
             start, order = bin_points(x, y, *self.grid)
             self.start, self.order = start, order
-            self.xs = np.ascontiguousarray(x[order])
-            self.ys = np.ascontiguousarray(y[order])
-            self.t_scale = np.ascontiguousarray(1.0 / da[order])
-            self.t_max_sorted = np.ascontiguousarray(t_max[order])
-        self._balance = None
+            self.rays = np.ascontiguousarray(np.column_stack(
+                [x[order], y[order], 1.0 / da[order], t_max[order]]))
+        self._acc = None
         self._columns = None
+
+    # the columns of ``rays`` (bin order): the image point, 1 / (d . a) and t_max (mm)
+    xs = property(lambda self: self.rays[:, 0])
+    ys = property(lambda self: self.rays[:, 1])
+    t_scale = property(lambda self: self.rays[:, 2])
+    t_max_sorted = property(lambda self: self.rays[:, 3])
 
     @property
     def direction_columns(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -486,7 +489,7 @@ class FanRays:
             px, py = (p @ self.e1) / zs, (p @ self.e2) / zs
             lo = np.stack([px.min(axis=1), py.min(axis=1)], 1)
             hi = np.stack([px.max(axis=1), py.max(axis=1)], 1)
-        out = np.zeros(len(self.xs))
+        out = np.zeros(len(self.rays))
         fan_sphere_chords(c, np.ascontiguousarray(r), lo, hi, ok, self.directions,
                           self.t_max, self.order, self.start, *self.grid, self.source, out)
         return out
@@ -502,15 +505,12 @@ class FanRays:
         vx = (p @ self.e1) / z
         vy = (p @ self.e2) / z
         faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
-        n = len(self.xs)
+        n = len(self.rays)
         out = np.zeros(n) if out is None else out
-        if self._balance is None:            # bin order; zeroed again by finish() after
-            self._balance = np.zeros(n)      # every mesh
-            self._chord = np.zeros(n)
-        lo, hi = fan_chords(vx, vy, z, faces, self.xs, self.ys, self.t_scale,
-                            self.t_max_sorted, self.start, *self.grid, self._chord,
-                            self._balance)
-        bad = finish(self._chord, self._balance, self.order, out, lo, hi)
+        if self._acc is None:                # bin order: chord, balance; zeroed again by
+            self._acc = np.zeros((n, 2))     # finish() after every mesh
+        lo, hi = fan_chords(vx, vy, z, faces, self.rays, self.start, *self.grid, self._acc)
+        bad = finish(self._acc, self.order, out, lo, hi)
         if bad.size:
             o = np.broadcast_to(self.source, (bad.size, 3))
             out[bad] = mesh_chords(mesh, o, self.directions[bad], self.t_max[bad],
