@@ -297,6 +297,35 @@ def test_a_view_whose_paths_miss_its_source_is_left_out_and_named(case):
             assert v not in st.failed and st.calibrations[v].ok
 
 
+def test_a_view_whose_validation_fails_is_left_out_and_named(case):
+    """A validation bead the robot reports 3 mm across the beam from where it was: the
+    view's calibration fails its validation, and prepare() leaves the view out, names it
+    and keeps the failed calibration as not ok, while the other view is used (a mutation
+    audit, h99: with the failed calibration used all the same, every test passed; the
+    calibration itself is attached, so only the flag keeps it out of the registration)."""
+    import dataclasses
+
+    from reglib.pipeline import prepare
+
+    obs = case.sim.observation
+    v, other = list(case.sim.carms)
+    sweep = dict(obs.arrays[f"sweep_{v}"])
+    reported = np.array(sweep["beads_reported"], dtype=np.float64, copy=True)
+    f = int(np.flatnonzero(np.asarray(sweep["plane"]) == 2)[0])     # the validation row
+    across = np.cross(case.sim.carms[v].axis_robot, [1.0, 0.0, 0.0])
+    reported[f, 3] += 3.0 * across / np.linalg.norm(across)
+    o = dataclasses.replace(obs, arrays={**obs.arrays,
+                                         f"sweep_{v}": {**sweep, "beads_reported": reported}})
+    st = prepare(o, options=case.options, surfaces=case.stages.surfaces,
+                 contours=case.stages.contours)
+    assert [w.name for w in st.views] == [other]
+    assert "largest distance" in st.failed[v], st.failed[v]
+    cal = st.calibrations[v]
+    assert not cal.ok and cal.message == st.failed[v] and cal.calibration is not None
+    assert 2.0 < np.max(cal.validation_mm) < 4.0, cal.validation_mm
+    assert other not in st.failed and st.calibrations[other].ok
+
+
 def test_a_view_left_out_after_its_calibration_passed_reads_as_not_used(case):
     """A held-out review (2026-11-28): table2, experiment1 and error-budget recorded
     ``calibration_ok`` alone, and a view left out after its calibration passed (here: no

@@ -34,6 +34,22 @@ def test_rbf_interpolator_matches_the_paper_svd_solve(lam):
         assert np.allclose(tps(q), tps.reference(q), atol=1e-7 * 50)
 
 
+def test_tps_evaluates_a_whole_image_in_chunks_as_scipy_does():
+    """A whole image's pixels are evaluated in chunks of 32768 (bounded memory); every
+    chunk, not only the first, equals scipy's RBFInterpolator on the same spline (a
+    mutation audit, h99: the centring shift applied to the first chunk alone put the
+    paths of a 640 x 480 image 117 mm off past its first 32768 pixels, and no test
+    evaluated more than 3072 points)."""
+    rng = np.random.default_rng(23)
+    xy = rng.uniform(0, 640, (60, 2)) + [300.0, 200.0]     # centred away from the origin
+    tps = ThinPlateSpline.fit(xy, rng.normal(0, 50, (60, 3)), smoothing=0.01)
+    q = rng.uniform(250, 1000, (3 * 32768 + 17, 2))
+    got, ref = tps(q), tps.reference(q)
+    for k in range(4):
+        chunk = slice(k * 32768, (k + 1) * 32768)
+        assert np.abs(got[chunk] - ref[chunk]).max() < 1e-7 * 50, k
+
+
 @pytest.mark.parametrize("lam", [0.0, 0.01, 10.0])
 def test_tps_reproduces_an_affine_mapping_exactly(lam):
     rng = np.random.default_rng(2)
@@ -507,6 +523,36 @@ def test_calibrate_refuses_robot_positions_that_span_no_plane():
                    np.vstack([m.xy_px[near]] * 2), np.vstack([m.robot[near]] * 2))
     with pytest.raises(ValueError, match="the near and far planes' fits meet"):
         calibrate(same)
+    # ...or one row of the far plane a copy of the near plane's (the planes' fits meet at
+    # some markers' pixels alone: a mutation audit, h99, found a test of any pixel passing
+    # every test)
+    far = m.plane == 1
+    one = far & (m.frame == m.frame[far].min())
+    twin = (m.plane == 0) & (m.frame == m.frame[m.plane == 0].min())
+    robot = m.robot.copy()
+    xy = m.xy_px.copy()
+    robot[one], xy[one] = m.robot[twin], m.xy_px[twin]
+    with pytest.raises(ValueError, match=r"fits meet \(their points [\d.e+-]+ mm apart at "
+                                         r"a marker's pixel, need 1\)"):
+        calibrate(Markers("lateral", m.frame, m.plane, m.bead, xy, robot))
+    # a plane at the spread limit (5 mm across the rod): 2 mm is refused, 8 mm calibrates
+    # (h99: a limit of a quarter passed every test, which tried 0 mm)
+    for width, refused in ((2.0, True), (8.0, False)):
+        robot = m.robot.copy()
+        for p in (0, 1):
+            sel = m.plane == p
+            rows = np.unique(m.frame[sel])
+            row = np.searchsorted(rows, m.frame[sel]) / (len(rows) - 1)    # 0..1
+            robot[sel] = (np.outer(m.bead[sel], [10.0, 0.0, 0.0])
+                          + np.outer(row, [0.0, width, 0.0]) + [800.0, 0.0, 500.0 + 150 * p])
+        squeezed = Markers("lateral", m.frame, m.plane, m.bead, m.xy_px, robot)
+        if refused:
+            with pytest.raises(ValueError, match=r"near plane: the robot reported its markers "
+                                                 r"within 2 mm of one line \(need a plane at "
+                                                 r"least 5 mm wide"):
+                calibrate(squeezed)
+        else:
+            assert calibrate(squeezed).near.residuals().max() < 1.0
     with pytest.raises(ValueError, match=r"markers of view lateral: robot must be \(96, 3\)"):
         calibrate(Markers("lateral", m.frame, m.plane, m.bead, m.xy_px, m.robot[:, :2]))
     with pytest.raises(ValueError, match="markers of view lateral: robot holds NaN"):

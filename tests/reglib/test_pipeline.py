@@ -618,6 +618,16 @@ def test_a_validation_row_on_either_calibration_plane_is_refused():
     assert _sweep_geometry(_plane_sweep(0.0, 120.0, 60.0)) == ""
     for z in (1.0, 119.0):
         assert "validation row lies" in _sweep_geometry(_plane_sweep(0.0, 120.0, z)), z
+    # at the limits (a mutation audit, h99: halving MIN_VALIDATION_OFFSET or
+    # MIN_PLANE_GAP_MM passed every test, which tried rows 1 mm off and planes 5 mm apart):
+    # 0.15 of the gap from a plane is refused and 0.25 passes; planes 15 mm apart are
+    # refused and 25 mm apart pass
+    for z, refused in ((18.0, True), (102.0, True), (30.0, False), (90.0, False)):
+        why = _sweep_geometry(_plane_sweep(0.0, 120.0, z))
+        assert ("validation row lies" in why) == refused, (z, why)
+    assert "planes lie 15.0 mm apart (need at least 20 mm)" in _sweep_geometry(
+        _plane_sweep(0.0, 15.0, 7.5))
+    assert _sweep_geometry(_plane_sweep(0.0, 25.0, 12.5)) == ""
 
 
 def test_restarts_about_a_fixed_point_keep_it_where_the_start_put_it(monkeypatch):
