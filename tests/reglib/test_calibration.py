@@ -423,6 +423,46 @@ def test_identify_row_drops_a_blob_beside_the_row(seed):
     assert bead.tolist() == np.delete(np.arange(8), k).tolist() + [-1]
 
 
+def test_identify_row_refuses_a_row_that_two_labellings_fit():
+    """Four blobs at beads 1, 3, 5 and 6 of the rod: beads 1, 4, 6 and 7 fit them about as
+    well (RMS 0.41 px after their refit, against 0.00), and a wrong label moves a marker by
+    a whole bead gap, so the row is refused as ambiguous (a mutation audit, h99: with the
+    refusal off, every test passed)."""
+    t = 2.0 * BEADS[[1, 3, 5, 6]]
+    with pytest.raises(ValueError, match=r"identify_row: ambiguous \(two bead assignments "
+                                         r"fit 4 blobs about as well"):
+        identify_row(np.column_stack([100.0 + t, np.full(4, 50.0)]), BEADS)
+
+
+def test_a_blob_off_the_row_by_more_than_three_tolerances_is_no_bead():
+    """A row along x at 2 px/mm (the along-row tolerance 0.15 x 2 x 12 = 3.6 px), bead 3
+    hidden, and a blob at bead 3's place along the row: 2 tolerances across the row it is
+    bead 3 (the distortion bends rows by up to 2.9 px), 4.5 tolerances across it is a stray
+    and left unlabelled (a mutation audit, h99: twice ACROSS_ROW_TOLERANCES passed every
+    test, whose strays lay 40-140 px off)."""
+    tol_px = 0.15 * 2.0 * 12.0
+    t = 2.0 * BEADS
+    row = np.column_stack([100.0 + t, np.full(8, 50.0)])
+    seen = np.delete(np.arange(8), 3)
+    for k, labelled in ((2.0, True), (4.5, False)):
+        blob = row[3] + [0.0, k * tol_px]
+        bead, _ = identify_row(np.vstack([row[seen], blob]), BEADS)
+        assert bead.tolist() == seen.tolist() + [3 if labelled else -1], (k, bead)
+
+
+def test_two_blobs_predicted_onto_one_bead_take_neither():
+    """The plane's consensus relabelling matches blobs to predicted bead places: a blob
+    alone near its bead takes it; two blobs nearest the same bead leave it to neither (a
+    mutation audit, h99: without the uniqueness every test passed)."""
+    from reglib.markers import _match_predictions
+
+    pred = np.array([[0.0, 0.0], [20.0, 0.0], [40.0, 0.0]])
+    xy = np.array([[1.0, 0.5], [19.0, 0.0], [21.5, 0.5], [55.0, 0.0]])
+    bead, good = _match_predictions(xy, pred, 3.0)
+    assert bead.tolist()[:3] == [0, 1, 1]
+    assert good.tolist() == [True, False, False, False]
+
+
 # --------------------------------------------------------------------------- two planes
 def _pinhole(carm2robot, points_robot, sid=1000.0, pixel=0.5, c=(319.5, 239.5)):
     q = carm2robot.inverse().apply(points_robot)
