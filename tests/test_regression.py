@@ -297,6 +297,31 @@ def test_a_view_whose_paths_miss_its_source_is_left_out_and_named(case):
             assert v not in st.failed and st.calibrations[v].ok
 
 
+def test_a_strong_pincushion_puts_the_supported_centre_at_the_focal_spot():
+    """A pincushion 4 times the ideal profile's: the near plane's markers at the field's edge
+    bend its fitted paths, and the point nearest all of them (center_of_perspective) lies
+    14-16 mm from the focal spot; where the markers both planes cover meet
+    (supported_centre) lies within 1 mm of it, and the path check that leaves views out
+    measures the outline's paths from that point (a mutation audit, h99: measuring them
+    from center_of_perspective passed every test)."""
+    from reglib.pipeline import MAX_PATH_MISS_MM, path_miss, supported_centre
+    from studies.end_to_end import prepare_case
+
+    d = _scene().model_dump(mode="json")
+    d["fluoroscope"]["pincushion_k1"] *= 4.0
+    d["fluoroscope"]["pincushion_k2"] *= 4.0
+    strong = prepare_case(parse_scene(d), SEED)
+    st = strong.stages
+    assert [w.name for w in st.views] == list(strong.sim.carms) and not st.failed, st.failed
+    for v, carm in strong.sim.carms.items():
+        cal = st.calibrations[v].calibration
+        assert np.linalg.norm(supported_centre(cal) - carm.source_robot) < 1.0, v
+        assert np.linalg.norm(cal.center_of_perspective() - carm.source_robot) > 8.0, v
+        o, dirs = cal.paths(st.contours[v].xy)
+        assert st.path_miss_mm[v] == path_miss(supported_centre(cal), o, dirs), v
+        assert st.path_miss_mm[v] < MAX_PATH_MISS_MM
+
+
 def test_a_view_whose_validation_fails_is_left_out_and_named(case):
     """A validation bead the robot reports 3 mm across the beam from where it was: the
     view's calibration fails its validation, and prepare() leaves the view out, names it

@@ -511,6 +511,16 @@ def test_two_plane_paths_match_pinhole_rays():
     assert o_img.shape == (48, 64, 3) and np.allclose(np.linalg.norm(d_img, axis=2), 1.0)
 
 
+def test_calibrate_smooths_as_the_paper_by_default():
+    """A direct call of calibrate() smooths both planes' splines with the paper's 0.01, the
+    pipeline's TPS_SMOOTHING (a mutation audit, h99: a default twice that passed every test;
+    the pipeline passes its own value)."""
+    from reglib.pipeline import TPS_SMOOTHING
+
+    cal = calibrate(_grid_markers(RigidTransform.from_rotvec([0.2, 0.1, 0.0], [0.0, 0.0, 0.0])))
+    assert cal.near.smoothing == cal.far.smoothing == TPS_SMOOTHING == 0.01
+
+
 def test_calibrate_names_view_and_plane_when_too_few_markers():
     carm2robot = RigidTransform.from_rotvec([0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
     m = _grid_markers(carm2robot, rows=6)
