@@ -485,6 +485,35 @@ def test_one_validation_bead_reported_off_fails_the_view(clean_sweep):
         in bad.message and "the rod poses the robot reports" in bad.message, bad.message
 
 
+def test_a_validation_row_that_fits_two_labellings_is_identified_by_the_paths(clean_sweep):
+    """Beads 0, 2, 4 and 7 of the validation row hidden (the previous frame pasted over
+    them): the four left, beads 1, 3, 5 and 6, fit two labellings of the rod, so the row
+    cannot be identified alone; the calibration's X-ray paths identify them, and the view is
+    validated on those four beads with the distances the whole row gave them (a mutation
+    audit, h99: with the paths' identification never called, every test passed; the view
+    then fails as not validated)."""
+    from reglib.pipeline import calibrate_view
+
+    carm, sw = clean_sweep
+    arrays = {"plane": sw.plane, "beads_reported": sw.beads_reported,
+              "bead_positions_mm": sw.bead_positions_mm}
+    whole = calibrate_view("v", sw.frames, arrays)
+    f = int(np.flatnonzero(sw.plane == 2)[0])
+    frames = sw.frames.copy()
+    for b in (0, 2, 4, 7):
+        x, y = np.rint(carm.project(sw.beads_true[f, b][None])[0]).astype(int)
+        frames[f, y - 6:y + 7, x - 6:x + 7] = frames[f - 1, y - 6:y + 7, x - 6:x + 7]
+    cal = calibrate_view("v", frames, arrays)
+    assert whole.ok and len(whole.validation_mm) == 8
+    assert cal.ok, cal.message
+    assert np.allclose(np.sort(cal.validation_mm), np.sort(whole.validation_mm[[1, 3, 5, 6]]),
+                       atol=1e-6)
+    notes = [p for p in cal.problems if "validation plane" in p]
+    assert any("ambiguous" in p for p in notes), notes
+    assert any("4 of 4 blob(s) identify beads by the calibration's X-ray paths" in p
+               for p in notes), notes
+
+
 def test_a_validation_failure_beyond_the_calibrated_region_names_the_missing_beads():
     """The markers beyond the limit lie where one plane's markers do not reach: the spline
     extrapolates there, and the rows lacking beads are named as the cause."""
