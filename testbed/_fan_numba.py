@@ -150,7 +150,7 @@ def fan_chords(vx, vy, vz, faces, rays, start, x0, y0, hx, hy, nx, ny, acc):
     way). Each ray of a face's row span is tested without a branch (its three edge values
     and depth computed whatever the outcome, the sums added where it is inside, zero
     elsewhere) and the ray's four numbers and two sums lie side by side: the nine meshes of
-    experiment2's `proximal_oblique` frame (1.2 million tests, 0.6 million inside) took
+    experiment2's proximal_oblique frame (1.2 million tests, 0.6 million inside) took
     19.6 ms with a test per branch and four arrays of rays and two of sums, 13.7 ms so (the
     same sums, bit for bit: an addition of 0.0 leaves a sum as it was). Returns the range
     ``[lo, hi)`` of bin-order rays that may have been touched (what :func:`finish` reads).

@@ -413,6 +413,7 @@ class FanRays:
         hx = max(h / math.sqrt(elongation), 1e-12, wx / 4096)
         hy = max(h * math.sqrt(elongation), 1e-12, wy / 4096)
         self.grid = (x0, y0, hx, hy, int(wx / hx) + 1, int(wy / hy) + 1)
+        # rays (N, 4) in bin order: the image point x, y, 1 / (d . a) and t_max (mm)
         if compiled:
             self.start, self.order, self.rays = binned_fan(x, y, da, t_max, *self.grid)
         else:
@@ -422,12 +423,6 @@ class FanRays:
                 [x[order], y[order], 1.0 / da[order], t_max[order]]))
         self._acc = None
         self._columns = None
-
-    # the columns of ``rays`` (bin order): the image point, 1 / (d . a) and t_max (mm)
-    xs = property(lambda self: self.rays[:, 0])
-    ys = property(lambda self: self.rays[:, 1])
-    t_scale = property(lambda self: self.rays[:, 2])
-    t_max_sorted = property(lambda self: self.rays[:, 3])
 
     @property
     def direction_columns(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
