@@ -556,3 +556,25 @@ def test_compiled_column_means_equal_numpys(seed):
     for n in (1, 2, 7, int(rng.integers(10, 5000)), 200_000):
         d = rng.normal(0.0, 10.0 ** rng.uniform(-3, 3), (n, int(rng.integers(2, 5))))
         np.testing.assert_array_equal(column_means(d), d.mean(axis=0))
+
+
+def test_a_ray_outside_a_face_where_its_depth_is_infinite_adds_nothing():
+    """The rasteriser computes every tested ray's depth whether the ray is inside the face
+    or not; outside it the interpolated inverse depth can be exactly zero (the face's plane
+    seen edge-on from the ray). A review (h100) found 120 of 24,000 random rasterisations
+    (boxes and annuli seen along their axis) raising ZeroDivisionError there. The face
+    (0, 0), (1, 0), (0, 1) with depths 1, 2, 1 has the inverse depth 1 - x / 2 on the image
+    plane, zero on the line x = 2: a ray there adds nothing, a ray inside adds its depth."""
+    from testbed._fan_numba import bin_points, fan_chords
+
+    vx, vy, vz = np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0]), np.array([1.0, 2.0, 1.0])
+    faces = np.array([[0, 1, 2]])
+    x, y = np.array([0.2, 2.0, 2.0]), np.array([0.2, 0.5, -3.0])
+    grid = (-5.0, -5.0, 10.0, 10.0, 1, 1)            # one cell: every ray tested
+    start, order = bin_points(x, y, *grid)
+    rays = np.column_stack([x[order], y[order], np.full(3, 2.0), np.full(3, 100.0)])
+    acc = np.zeros((3, 2))
+    fan_chords(vx, vy, vz, faces, rays, start, *grid, acc)
+    got = acc[np.argsort(order)]
+    assert got[0, 0] == pytest.approx(2.0 / (1.0 - 0.2 / 2.0)) and got[0, 1] == 1.0
+    assert np.array_equal(got[1:], np.zeros((2, 2)))
