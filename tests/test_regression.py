@@ -300,7 +300,7 @@ def test_a_view_whose_paths_miss_its_source_is_left_out_and_named(case):
 def test_a_strong_pincushion_puts_the_supported_centre_at_the_focal_spot():
     """A pincushion 4 times the ideal profile's: the near plane's markers at the field's edge
     bend its fitted paths, and the point nearest all of them (center_of_perspective) lies
-    14-16 mm from the focal spot; where the markers both planes cover meet
+    13.8-15.6 mm from the focal spot; where the markers both planes cover meet
     (supported_centre) lies within 1 mm of it, and the path check that leaves views out
     measures the outline's paths from that point (a mutation audit, h99: measuring them
     from center_of_perspective passed every test)."""
