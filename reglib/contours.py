@@ -847,6 +847,15 @@ def _click_source(keys: np.ndarray, clicks_xy: Mapping, k: int) -> int:
     return above if above - k < k - below else below
 
 
+#: the CT snakes' edge options (:func:`snake_contour`; :func:`contours_from_ct` adds the
+#: scale and upsampling of the slices' pixels): bone brighter inside, the edge searched 5 px
+#: along the normals of the contour smoothed over one vertex, and each vertex's edge
+#: compared with its neighbours' (a tooth a vertex or two wide, 1-2.5 px inside the bone,
+#: is brought back to the edge)
+CT_SNAKE_OPTIONS = {"polarity": "bright_inside", "search_px": 5.0, "normal_sigma": 1.0,
+                    "neighbour_edges": True}
+
+
 def contours_from_ct(
     volume_hu,
     slice2ct,
@@ -899,8 +908,7 @@ def contours_from_ct(
         )
     if not clicks_xy:
         raise ValueError("clicks_xy is empty: give the clicks of at least one slice")
-    snake_options = {"polarity": "bright_inside", "search_px": 5.0, "normal_sigma": 1.0,
-                     "neighbour_edges": True, "scale": snake_scale(_pixel_mm(aff)),
+    snake_options = {**CT_SNAKE_OPTIONS, "scale": snake_scale(_pixel_mm(aff)),
                      "upsample": snake_upsampling(_pixel_mm(aff)), **snake_options}
     keys = np.array(sorted(int(k) for k in clicks_xy))
     outside = [int(k) for k in keys if not 0 <= k < vol.shape[0]]
