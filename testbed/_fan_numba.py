@@ -149,12 +149,12 @@ def fan_chords(vx, vy, vz, faces, rays, start, x0, y0, hx, hy, nx, ny, acc):
     read-modify-write: the nine meshes of a patient frame took 36 ms that way, 23 ms this
     way). Each ray of a face's row span is tested without a branch (its three edge values
     and depth computed whatever the outcome, the sums added where it is inside, zero
-    elsewhere) and the ray's four numbers and two sums lie side by side: the nine meshes of
-    experiment2's proximal_oblique frame (1.2 million tests, 0.6 million inside) took
-    19.6 ms with a test per branch and four arrays of rays and two of sums, 13.7 ms so (the
-    same sums, bit for bit: an addition of 0.0 leaves a sum as it was; numpy's error
-    model, as a ray outside the face may divide by an exact zero, which Python's would
-    raise for). Returns the range
+    elsewhere) and the ray's four numbers and two sums lie side by side: the meshes of the
+    four views' frames of experiment2 (1.0-1.2 million tests a frame, half of them inside)
+    took 64.8 ms with a test per branch and four arrays of rays and two of sums, 57.3 ms so
+    (timed alternately on an idle machine; 2-15 % a view), the same sums bit for bit (an
+    addition of 0.0 leaves a sum as it was; numpy's error model, as a ray outside the face
+    may divide by an exact zero, which Python's would raise for). Returns the range
     ``[lo, hi)`` of bin-order rays that may have been touched (what :func:`finish` reads).
     """
     x_end = x0 + nx * hx
