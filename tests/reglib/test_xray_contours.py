@@ -100,6 +100,11 @@ def test_field_of_view_and_bad_input(frames):
         xray_contour(clean.image_u8, [[2.0, 2.0], [50.0, 50.0], edge[1500]])
     with pytest.raises(ValueError, match="label"):
         xray_contour(clean.image_u8, edge[[1000, 1500, 2000]], label="outer")
+    # the label given is the label returned (a mutation audit, h101: with every contour
+    # labelled external, no test failed)
+    for label in ("internal", "external"):
+        c = xray_contour(clean.image_u8, edge[[900, 1300, 1700, 2100]], label=label)
+        assert c.label == label and len(c.points_xy) > 100
     with pytest.raises(ValueError, match=r"traces\[0\]: missing 'clicks_xy'"):
         xray_contours(clean.image_u8, [{"label": "internal"}])
     with pytest.raises(ValueError, match="2-D"):
