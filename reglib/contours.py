@@ -24,6 +24,7 @@ import functools
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
+from types import MappingProxyType
 
 import numpy as np
 from scipy import ndimage
@@ -852,8 +853,8 @@ def _click_source(keys: np.ndarray, clicks_xy: Mapping, k: int) -> int:
 #: along the normals of the contour smoothed over one vertex, and each vertex's edge
 #: compared with its neighbours' (a tooth a vertex or two wide, 1-2.5 px inside the bone,
 #: is brought back to the edge)
-CT_SNAKE_OPTIONS = {"polarity": "bright_inside", "search_px": 5.0, "normal_sigma": 1.0,
-                    "neighbour_edges": True}
+CT_SNAKE_OPTIONS = MappingProxyType({"polarity": "bright_inside", "search_px": 5.0,
+                                     "normal_sigma": 1.0, "neighbour_edges": True})
 
 
 def contours_from_ct(
