@@ -616,7 +616,8 @@ def test_a_good_slice_beside_a_bad_one_keeps_its_own_contours():
     # lobe, so its snake cuts the lobe off. Slice 2, with the lobe, then strays from both
     # neighbours (one has no lobe, the other lost it) and is judged first; the contour
     # drawn again from slice 1's, which has no lobe, cuts its lobe off and is refused here
-    # by the edge guard (it runs across the bone). Slice 3 is drawn again from slice 4's,
+    # (it runs across the bone; the guards overlap: with the edge guard alone removed the
+    # redraw is still refused, a mutation audit, h101). Slice 3 is drawn again from 4's,
     # and slice 2 keeps its own (the clinic profile's trochanter at z = 405.4 mm, seed 10,
     # under the first version: 0.2 -> 1.8 mm off the bone, its lobe missed by 13.8 mm).
     # The final restore step is not reached here.
