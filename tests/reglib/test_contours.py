@@ -68,13 +68,18 @@ def test_snake_clicks_outside_the_shape_converge_inwards():
 
 
 def test_subpixel_refinement_moves_to_the_edge():
+    """From outside or inside the edge, every vertex ends within 0.1 px of it (0.044-0.045
+    px measured). Without the parabola through the profile's peak the vertices stay on the
+    profile's samples, 0.15 px off from a start 0.6 px out (a mutation audit, h101: a
+    limit of 0.15 px from a start at 1.2 px did not see it)."""
     img = _ellipse_image((80, 80), 40.0, 40.0, 20.0, 20.0, 0.0)
     from scipy import ndimage
     g = ndimage.gaussian_gradient_magnitude(img, 1.0)
-    start = _ellipse_points(40.0, 40.0, 21.2, 21.2, 0.0, 60)
-    out = refine_subpixel(g, start)
-    r = np.linalg.norm(out - 40.0, axis=1)
-    assert np.abs(r - 20.0).max() < 0.15
+    for radius in (21.2, 20.6, 19.3):
+        start = _ellipse_points(40.0, 40.0, radius, radius, 0.0, 60)
+        out = refine_subpixel(g, start)
+        r = np.linalg.norm(out - 40.0, axis=1)
+        assert np.abs(r - 20.0).max() < 0.1, radius
 
 
 @pytest.mark.parametrize("polarity", [None, "bright_inside"])
