@@ -111,7 +111,8 @@ def check_out_folder(out, name: str, *, study: str | None = None) -> None:
         # the stored run's own flags (studies.study_owner ends in ", quick" for --quick);
         # a review was told to add --quick to resume a run made without it
         quick = " and --quick" if owner.endswith(", quick") else " (without --quick)"
-        again = ("the same testbed score of that dataset" if owner.startswith("score ")
+        scored = scored_method(owner) is not None
+        again = ("the same testbed score of that dataset" if scored
                  else f"testbed study {owner.split(' ', 1)[0]} with that scene, seed{quick}")
         raise ValueError(f"--out {out}: holds the trials of {owner!r} ({DB_NAME}), not of "
                          f"{want!r}; give another folder (or run {again} with this --out to "
@@ -235,6 +236,16 @@ def plain_log_ticks(ax, axis: str = "y") -> None:
     a.set_minor_formatter(NullFormatter())
 
 
+#: the name of a ``testbed score`` run: ``score METHOD`` (its report, reproduce line and
+#: trials' owner say a dataset's scores, not a study of a scene file)
+SCORE_PREFIX = "score "
+
+
+def scored_method(name: str) -> str | None:
+    """The method a ``testbed score`` run's ``name`` scores, or None for a study's name."""
+    return name.removeprefix(SCORE_PREFIX) if name.startswith(SCORE_PREFIX) else None
+
+
 def reproduce_command(ctx: StudyContext) -> str:
     """The command that runs the study again to the same results (a review, h87: the reports
     did not say how they were made). Workers and a Dask scheduler are left out: the trials'
@@ -244,8 +255,8 @@ def reproduce_command(ctx: StudyContext) -> str:
     import shlex
 
     path = Path(ctx.scene_path)
-    if ctx.name.startswith("score "):      # testbed score's report (a review, h97: it named
-        method = ctx.name.removeprefix("score ")   # a study "score reglib", which exits 2)
+    method = scored_method(ctx.name)
+    if method is not None:   # testbed score's (a review, h97: "testbed study 'score reglib'")
         return shlex.join(["testbed", "score", str(path)]
                           + ([] if method == "reglib" else ["--method", method])
                           + ["--out", "DIR"])
@@ -292,7 +303,7 @@ def finish_study(ctx: StudyContext, df: pd.DataFrame) -> None:
     if ws is not None and not ws.check and ctx.scene.scene.kind == "operating_room":
         parts += ["**The workspace was not checked** (`[workspace] check = false`): the "
                   "views and sweeps of this scene may not be physically possible.", ""]
-    dataset = Path(ctx.scene_path).is_dir()      # testbed score: a dataset's folder
+    dataset = scored_method(ctx.name) is not None     # testbed score: a dataset's folder
     parts += [
         f"- {'dataset' if dataset else 'scene'}: `{ctx.scene_path}` ({ctx.scene.scene.name})",
         f"- seed: {ctx.seed}",

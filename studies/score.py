@@ -308,6 +308,7 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
     ``retry_failed``: on a rerun, the cases stored as failed are scored again (``testbed
     score --retry-failed``)."""
     from studies.common import (
+        SCORE_PREFIX,
         StudyContext,
         check_out_folder,
         finish_study,
@@ -329,8 +330,9 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
     out = Path(out)
     # the trials' owner names the dataset too: a folder scored on another dataset with the
     # same method was taken and its results replaced (a review)
-    study = f"score {method} of {_dataset_identity(dataset)}"
-    check_out_folder(out, f"score {method}", study=study)
+    name = SCORE_PREFIX + method
+    study = f"{name} of {_dataset_identity(dataset)}"
+    check_out_folder(out, name, study=study)
     params = [{"case": c.name, "method": method} for c in cases]
     # what the scores read besides the names: the dataset's files that say what each case
     # is, and the method's source (a dataset regenerated, or a method edited, under the same
@@ -400,7 +402,7 @@ def score_dataset(dataset, out, *, method: str = DEFAULT_METHOD, workers: int = 
             seed = int(json.loads((dataset / "dataset.json").read_text()).get("seed", 0))
         except (OSError, ValueError, TypeError, AttributeError):
             seed = 0
-    ctx = StudyContext(name=f"score {method}", out=out, scene_path=dataset, scene=scene,
+    ctx = StudyContext(name=name, out=out, scene_path=dataset, scene=scene,
                        seed=seed, workers=workers, scheduler=scheduler)
     report_scene_warnings(ctx, dataset_scene_warnings(scene, seed),
                           "the scene the cases were generated from (its first case)")

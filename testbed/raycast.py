@@ -419,8 +419,7 @@ class FanRays:
         else:
             start, order = bin_points(x, y, *self.grid)
             self.start, self.order = start, order
-            self.rays = np.ascontiguousarray(np.column_stack(
-                [x[order], y[order], 1.0 / da[order], t_max[order]]))
+            self.rays = np.column_stack([x[order], y[order], 1.0 / da[order], t_max[order]])
         self._acc = None
         self._columns = None
 
